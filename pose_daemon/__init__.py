@@ -1,0 +1,38 @@
+"""pose-daemon: camera pose from the four corners of a known rectangle, for robots and drones.
+
+The stable Python API (see README): Camera, Marker, estimate_pose, estimate_pose_batch,
+EstimationError, Pose, MarkerDetector.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from .camera import Camera, Marker
+from .pose.types import EstimationError, Pose
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Camera",
+    "Marker",
+    "Pose",
+    "EstimationError",
+    "estimate_pose",
+    "estimate_pose_batch",
+    "MarkerDetector",
+    "__version__",
+]
+
+
+def __getattr__(name: str) -> Any:
+    # Imported on first use so that `pose-daemon --help` and tools stay light.
+    if name in ("estimate_pose", "estimate_pose_batch"):
+        from .pose import estimator
+
+        return getattr(estimator, name)
+    if name == "MarkerDetector":
+        from .detect import MarkerDetector
+
+        return MarkerDetector
+    raise AttributeError(f"module 'pose_daemon' has no attribute {name!r}")

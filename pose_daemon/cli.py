@@ -1,0 +1,73 @@
+"""The ``pose-daemon`` command: parses arguments, calls into the packages, maps user errors to exit 2.
+
+Each subcommand lives in ``pose_daemon/commands/<name>.py`` and exposes
+``register(subparsers)``, which adds its parser and sets ``func(args) -> int``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import List, Optional
+
+from . import __version__
+from .errors import UserError
+
+# Order = order in --help.
+COMMANDS = (
+    "run",
+    "replay",
+    "estimate",
+    "record",
+    "check_config",
+    "calibrate",
+    "marker",
+    "plot",
+    "bench",
+    "paper",
+)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports errors as one line and exit status 2 (its own default)."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="pose-daemon", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"pose-daemon {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    for name in COMMANDS:
+        try:
+            module = importlib.import_module(f"pose_daemon.commands.{name}")
+        except ModuleNotFoundError as exc:  # during development only: removed once all exist
+            if exc.name == f"pose_daemon.commands.{name}":
+                continue
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help(sys.stderr)
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except UserError as exc:
+        print(f"pose-daemon: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:
+        # Output piped into `head` and the like: not an error of ours.
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

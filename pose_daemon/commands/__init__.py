@@ -1,0 +1,1 @@
+"""One module per ``pose-daemon`` subcommand; see pose_daemon/cli.py."""

@@ -1,0 +1,145 @@
+"""Every rotation and frame conversion of the project lives here; nothing else builds them.
+
+Frames (interface.md):
+- cam: OpenCV camera, x right, y down, z forward (optical axis).
+- marker: origin at the marker centre, x right, y up, z out of the marker towards the camera.
+- unrot: the "unrotated camera" of the paper: origin at the camera, axes parallel to the
+  marker's, looking straight at it (x = marker x, y = -marker y, z = -marker z). A marker
+  seen by an unrotated camera images as an axis-aligned rectangle.
+
+The paper's angles (algorithm.md): alpha = pitch about x, beta = yaw about y, gamma = roll
+about z, with its own Rx, Ry, Rz (note Ry's sign placement). The loop accumulates
+R_est = Rz(g1) Ry(b1) Rx(a1) Rz(g2) ..., and a ray seen by the unrotated camera appears in
+the real camera as d_cam = R_est d_unrot, i.e. R_est = R_cam_unrot. Eqs 13-16 read the
+angles off R_cam_unrot = Rz(gamma) Ry(beta) Rx(alpha).
+
+All functions accept a single angle/matrix or a stack (..., 3, 3) for the batch estimator.
+"""
+
+from __future__ import annotations
+
+from typing import Tuple
+
+import cv2
+import numpy as np
+
+# R_unrot_marker: marker axes expressed in the unrotated camera frame.
+R_UNROT_MARKER = np.diag([1.0, -1.0, -1.0])
+R_UNROT_MARKER.setflags(write=False)
+
+
+def rot_x(a_rad) -> np.ndarray:
+    """The paper's Rx(a) (eq 23), shape (..., 3, 3)."""
+    a = np.asarray(a_rad, dtype=np.float64)
+    c, s = np.cos(a), np.sin(a)
+    o, z = np.ones_like(a), np.zeros_like(a)
+    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
+
+
+def rot_y(b_rad) -> np.ndarray:
+    """The paper's Ry(b) (eq 24): [[cos b, 0, -sin b], [0, 1, 0], [sin b, 0, cos b]]."""
+    b = np.asarray(b_rad, dtype=np.float64)
+    c, s = np.cos(b), np.sin(b)
+    o, z = np.ones_like(b), np.zeros_like(b)
+    return np.stack([np.stack([c, z, -s], -1), np.stack([z, o, z], -1), np.stack([s, z, c], -1)], -2)
+
+
+def rot_z(g_rad) -> np.ndarray:
+    """The paper's Rz(g) (eq 25)."""
+    g = np.asarray(g_rad, dtype=np.float64)
+    c, s = np.cos(g), np.sin(g)
+    o, z = np.ones_like(g), np.zeros_like(g)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+
+
+def R_cam_unrot_from_paper_angles(alpha_rad, beta_rad, gamma_rad) -> np.ndarray:
+    """R_cam_unrot = Rz(gamma) Ry(beta) Rx(alpha), the rotation eqs 13-16 decompose."""
+    return rot_z(gamma_rad) @ rot_y(beta_rad) @ rot_x(alpha_rad)
+
+
+def paper_angles_from_R_cam_unrot(R_cam_unrot: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eqs 13-16: (alpha, beta, gamma) in radians from R_cam_unrot (..., 3, 3).
+
+    Uses atan2 forms of the paper's arcsines, equal to them for |angles| < 90 deg and
+    well defined beyond; singular only at beta = +-90 deg (marker seen edge-on).
+    """
+    R = np.asarray(R_cam_unrot, dtype=np.float64)
+    beta = np.arcsin(np.clip(R[..., 2, 0], -1.0, 1.0))
+    gamma = np.arctan2(R[..., 1, 0], R[..., 0, 0])
+    alpha = np.arctan2(R[..., 2, 1], R[..., 2, 2])
+    return alpha, beta, gamma
+
+
+def R_cam_marker_from_R_cam_unrot(R_cam_unrot: np.ndarray) -> np.ndarray:
+    return np.asarray(R_cam_unrot) @ R_UNROT_MARKER
+
+
+def R_cam_unrot_from_R_cam_marker(R_cam_marker: np.ndarray) -> np.ndarray:
+    return np.asarray(R_cam_marker) @ R_UNROT_MARKER
+
+
+def paper_angles_deg_from_R_cam_marker(R_cam_marker: np.ndarray) -> Tuple[float, float, float]:
+    """(alpha, beta, gamma) in degrees, as reported with every pose."""
+    a, b, g = paper_angles_from_R_cam_unrot(R_cam_unrot_from_R_cam_marker(R_cam_marker))
+    return float(np.degrees(a)), float(np.degrees(b)), float(np.degrees(g))
+
+
+def R_from_rvec(rvec: np.ndarray) -> np.ndarray:
+    """Rodrigues vector(s) (..., 3) -> rotation matrices (..., 3, 3)."""
+    r = np.asarray(rvec, dtype=np.float64)
+    if r.shape == (3,):
+        return cv2.Rodrigues(r.reshape(3, 1))[0]
+    theta = np.linalg.norm(r, axis=-1)[..., None, None]
+    safe = np.where(theta < 1e-12, 1.0, theta)
+    k = r[..., :, None] / safe
+    kx, ky, kz = k[..., 0, 0], k[..., 1, 0], k[..., 2, 0]
+    zero = np.zeros_like(kx)
+    Kx = np.stack([np.stack([zero, -kz, ky], -1), np.stack([kz, zero, -kx], -1),
+                   np.stack([-ky, kx, zero], -1)], -2)
+    eye = np.broadcast_to(np.eye(3), Kx.shape)
+    R = eye + np.sin(safe) * Kx + (1.0 - np.cos(safe)) * (Kx @ Kx)
+    return np.where(theta < 1e-12, eye, R)
+
+
+def rvec_from_R(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) -> Rodrigues vectors (..., 3) (angle in [0, pi])."""
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape == (3, 3):
+        return cv2.Rodrigues(R)[0].reshape(3)
+    # Via unit quaternions: stable for every angle including pi.
+    q = quaternion_from_R(R)
+    w = np.clip(q[..., 0], -1.0, 1.0)
+    v = q[..., 1:]
+    sign = np.where(w < 0, -1.0, 1.0)[..., None]
+    v = v * sign
+    w = np.abs(w)
+    n = np.linalg.norm(v, axis=-1)
+    angle = 2.0 * np.arctan2(n, w)
+    scale = np.where(n < 1e-15, 2.0, angle / np.where(n < 1e-15, 1.0, n))
+    return v * scale[..., None]
+
+
+def quaternion_from_R(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) -> unit quaternions (..., 4) as (w, x, y, z)."""
+    R = np.asarray(R, dtype=np.float64)
+    m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    tr = m00 + m11 + m22
+    cands = np.stack([
+        np.stack([1 + tr, R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1),
+        np.stack([R[..., 2, 1] - R[..., 1, 2], 1 + m00 - m11 - m22, R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0]], -1),
+        np.stack([R[..., 0, 2] - R[..., 2, 0], R[..., 0, 1] + R[..., 1, 0], 1 - m00 + m11 - m22, R[..., 1, 2] + R[..., 2, 1]], -1),
+        np.stack([R[..., 1, 0] - R[..., 0, 1], R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1], 1 - m00 - m11 + m22], -1),
+    ], -2)
+    diag = np.stack([tr, m00, m11, m22], -1)
+    idx = np.argmax(diag, axis=-1)
+    q = np.take_along_axis(cands, idx[..., None, None].repeat(4, -1), axis=-2)[..., 0, :]
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
+    """Angle of the rotation R_a^T R_b in degrees (the usual rotation error), stacks allowed."""
+    Ra, Rb = np.asarray(R_a, dtype=np.float64), np.asarray(R_b, dtype=np.float64)
+    # Through the quaternion, not arccos of the trace: exact near zero (errors of 1e-9 deg).
+    q = quaternion_from_R(np.swapaxes(Ra, -1, -2) @ Rb)
+    return np.degrees(2.0 * np.arctan2(np.linalg.norm(q[..., 1:], axis=-1), np.abs(q[..., 0])))

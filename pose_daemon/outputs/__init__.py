@@ -1,0 +1,1 @@
+"""Pose outputs: MAVLink, plain serial lines, JSON lines."""

@@ -1,0 +1,40 @@
+"""What processing produces for one frame, and its per-frame JSON object (interface.md)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, Optional
+
+import numpy as np
+
+from .pose.types import Pose
+
+
+@dataclass
+class FrameResult:
+    """The outcome of one frame. ``pose`` is None when ``error`` says why there is none."""
+
+    seq: int
+    t_capture_s: float
+    corners: Optional[np.ndarray] = None
+    pose: Optional[Pose] = None
+    error: Optional[str] = None
+    # Per-stage times in seconds (capture, detect, estimate, ...), filled by the pipeline.
+    stage_s: Dict[str, float] = field(default_factory=dict)
+    latency_s: Optional[float] = None
+
+    @property
+    def ok(self) -> bool:
+        return self.pose is not None
+
+    def to_json_dict(self) -> dict:
+        out: dict = {"frame": int(self.seq), "t": round(float(self.t_capture_s), 6), "ok": self.ok}
+        if self.corners is not None:
+            out["corners"] = [[round(float(u), 3), round(float(v), 3)] for u, v in self.corners]
+        if self.pose is not None:
+            out.update(self.pose.to_dict())
+        else:
+            out["error"] = self.error or "no marker"
+        if self.latency_s is not None:
+            out["latency_ms"] = round(self.latency_s * 1e3, 3)
+        return out
