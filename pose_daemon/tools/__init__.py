@@ -1,0 +1,1 @@
+"""Tools around the daemon: benchmarks, calibration, printable markers, plots."""
