@@ -1,0 +1,655 @@
+"""TOML configuration -> one typed, validated ``Config``; every mistake is one line naming file and key.
+
+Each section is a dataclass whose fields carry their own rule (type, bounds, choices) in
+``field(metadata=...)``, so adding a key is one line: the validator, the error messages and
+the config reference all read the same declaration.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from dataclasses import MISSING, asdict, dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.9/3.10 (Raspberry Pi OS Bullseye)
+    import tomli as tomllib
+
+from .camera import Camera, Marker
+from .errors import ConfigError
+
+__all__ = [
+    "Config",
+    "CameraConfig",
+    "MarkerConfig",
+    "EstimatorConfig",
+    "DetectorConfig",
+    "SyntheticConfig",
+    "PipelineConfig",
+    "MountConfig",
+    "MavlinkOutputConfig",
+    "SerialOutputConfig",
+    "JsonlOutputConfig",
+    "OutputConfig",
+    "LoggingConfig",
+    "ConfigError",
+    "DEFAULT_CONFIG_TOML",
+    "load_config",
+    "parse_config",
+]
+
+# The embedded default: the same text as config/demo.toml (a test keeps the two equal), so
+# `pose-daemon run` without --config works from an installed wheel.
+DEFAULT_CONFIG_TOML = """\
+# pose-daemon demo configuration: the synthetic source (a rendered camera moving in front of a
+# wall marker), poses to a ground station on UDP 14550 over MAVLink and as JSON lines on stdout.
+#   pose-daemon run --config config/demo.toml
+# This is also the embedded default of `pose-daemon run` without --config.
+
+[camera]                 # intrinsics in pixels at the capture resolution
+source = "synthetic"
+width = 640
+height = 480
+fx = 500.0
+fy = 500.0
+cx = 319.5
+cy = 239.5
+dist = [0.0, 0.0, 0.0, 0.0, 0.0]   # k1 k2 p1 p2 k3
+fps = 30.0
+
+[marker]
+type = "square"          # plain dark square on a light surround
+width = 0.20             # metres, outer edge of the dark region
+height = 0.20
+placement = "wall"
+
+[estimator]
+method = "iterative"
+iterations = 5
+refine = true
+
+[detector]
+max_misses = 5
+min_side_px = 10.0
+
+[synthetic]
+trajectory = "wall"
+seed = 0
+blur_px = 0.8
+noise_gray = 2.0
+frames = 0               # 0 = endless
+
+[pipeline]
+latency_budget_s = 0.1
+status_interval_s = 10.0
+
+[mount]
+preset = "forward"
+
+[output.mavlink]
+connection = "udpout:127.0.0.1:14550"
+messages = ["ODOMETRY"]
+source_system = 1
+source_component = 197
+
+[output.jsonl]
+path = "-"               # stdout
+
+[logging]
+level = "INFO"
+"""
+
+
+# --------------------------------------------------------------------------- rules
+
+
+class _Invalid(Exception):
+    """Raised by a rule or a section check: ``key`` failed, ``expected`` says what was wanted."""
+
+    def __init__(self, key: str, expected: str, got: Any = MISSING) -> None:
+        super().__init__(key)
+        self.key = key
+        self.expected = expected
+        self.got = got
+
+
+@dataclass(frozen=True)
+class Rule:
+    """What one key accepts.
+
+    kind: "int", "float", "str", "bool", "floats" (list of numbers), "strs" (list of strings).
+    lo/hi: bounds (inclusive unless lo_open/hi_open); choices: allowed values (strings compare
+    case-insensitively when ``upper`` is set, and are stored upper-case); lengths: allowed list
+    lengths.
+    """
+
+    kind: str
+    lo: Optional[float] = None
+    hi: Optional[float] = None
+    lo_open: bool = False
+    hi_open: bool = False
+    choices: Optional[Tuple[Any, ...]] = None
+    lengths: Optional[Tuple[int, ...]] = None
+    nonempty: bool = False
+    unique: bool = False
+    upper: bool = False
+    doc: str = ""
+
+    def expectation(self) -> str:
+        noun = {"int": "an integer", "float": "a number", "str": "a string", "bool": "true or false",
+                "floats": "a list of numbers", "strs": "a list of strings"}[self.kind]
+        if self.choices is not None and self.kind in ("str", "int"):
+            return "one of " + ", ".join(_show(c) for c in self.choices)
+        if self.kind in ("floats", "strs"):
+            parts = [noun]
+            if self.lengths:
+                parts = [f"a list of {' or '.join(str(n) for n in self.lengths)} "
+                         f"{'numbers' if self.kind == 'floats' else 'strings'}"]
+            if self.choices is not None:
+                parts.append("each one of " + ", ".join(_show(c) for c in self.choices))
+            elif self.lo is not None or self.hi is not None:
+                parts.append("each " + self._bounds())
+            if self.nonempty:
+                parts.append("not empty")
+            if self.unique:
+                parts.append("no repeats")
+            return ", ".join(parts)
+        bounds = self._bounds()
+        if self.kind == "str" and self.nonempty:
+            return "a non-empty string"
+        return f"{noun} {bounds}".strip()
+
+    def _bounds(self) -> str:
+        lo, hi = self.lo, self.hi
+        if lo is not None and hi is not None:
+            left = "(" if self.lo_open else "["
+            right = ")" if self.hi_open else "]"
+            return f"in {left}{_num(lo)}, {_num(hi)}{right}"
+        if lo is not None:
+            return f"{'>' if self.lo_open else '>='} {_num(lo)}"
+        if hi is not None:
+            return f"{'<' if self.hi_open else '<='} {_num(hi)}"
+        return ""
+
+    def _in_bounds(self, v: float) -> bool:
+        if self.lo is not None and (v <= self.lo if self.lo_open else v < self.lo):
+            return False
+        if self.hi is not None and (v >= self.hi if self.hi_open else v > self.hi):
+            return False
+        return True
+
+    def convert(self, key: str, value: Any) -> Any:
+        """The value as stored in the dataclass, or _Invalid."""
+        bad = _Invalid(key, self.expectation(), value)
+        if self.kind == "bool":
+            if not isinstance(value, bool):
+                raise bad
+            return value
+        if self.kind == "int":
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise bad
+            if self.choices is not None and value not in self.choices:
+                raise bad
+            if not self._in_bounds(value):
+                raise bad
+            return int(value)
+        if self.kind == "float":
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise bad
+            value = float(value)
+            if not math.isfinite(value) or not self._in_bounds(value):
+                raise bad
+            return value
+        if self.kind == "str":
+            if not isinstance(value, str):
+                raise bad
+            if self.upper:
+                value = value.upper()
+            if self.choices is not None and value not in self.choices:
+                raise bad
+            if self.nonempty and not value.strip():
+                raise bad
+            return value
+        if not isinstance(value, list):
+            raise bad
+        if self.lengths is not None and len(value) not in self.lengths:
+            raise bad
+        if self.nonempty and not value:
+            raise bad
+        out: List[Any] = []
+        for item in value:
+            if self.kind == "floats":
+                if isinstance(item, bool) or not isinstance(item, (int, float)):
+                    raise bad
+                item = float(item)
+                if not math.isfinite(item) or not self._in_bounds(item):
+                    raise bad
+            else:
+                if not isinstance(item, str):
+                    raise bad
+                if self.upper:
+                    item = item.upper()
+                if self.choices is not None and item not in self.choices:
+                    raise bad
+            out.append(item)
+        if self.unique and len(set(out)) != len(out):
+            raise bad
+        return tuple(out)
+
+
+def _num(v: float) -> str:
+    return str(int(v)) if float(v).is_integer() and abs(v) < 1e15 else repr(float(v))
+
+
+def _show(value: Any) -> str:
+    """A value as it would be written in TOML (for error messages)."""
+    if value is MISSING:
+        return "nothing"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_show(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "a table"
+    if isinstance(value, float) and not math.isfinite(value):
+        return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
+    try:
+        return json.dumps(value)
+    except (TypeError, ValueError):
+        return str(value)
+
+
+def _key(default: Any, rule: Rule, doc: str = "") -> Any:
+    """A dataclass field with its rule; mutable defaults (lists) are stored as tuples."""
+    if isinstance(default, list):
+        default = tuple(default)
+    return field(default=default, metadata={"rule": rule, "doc": doc})
+
+
+# --------------------------------------------------------------------------- sections
+
+SOURCE_WORDS = ("picamera2", "synthetic")
+SOURCE_PREFIXES = ("opencv:", "video:", "replay:")
+SOURCE_EXPECTED = ('"picamera2", "synthetic", "opencv:N", "video:PATH", "replay:PATH" '
+                   'or a GStreamer pipeline ("... ! appsink")')
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """The frame source and its intrinsics (pixels at the capture resolution)."""
+
+    source: str = _key("synthetic", Rule("str", nonempty=True), "frame source: " + SOURCE_EXPECTED)
+    width: int = _key(640, Rule("int", lo=16, hi=8192), "capture width, pixels")
+    height: int = _key(480, Rule("int", lo=16, hi=8192), "capture height, pixels")
+    fx: float = _key(500.0, Rule("float", lo=0, lo_open=True), "focal length x, pixels")
+    fy: float = _key(500.0, Rule("float", lo=0, lo_open=True), "focal length y, pixels")
+    cx: float = _key(319.5, Rule("float"), "principal point x, pixels (0 = centre of the left pixel)")
+    cy: float = _key(239.5, Rule("float"), "principal point y, pixels")
+    dist: Tuple[float, ...] = _key([0.0] * 5, Rule("floats", lengths=(4, 5, 8)),
+                                   "distortion k1 k2 p1 p2 k3 (OpenCV)")
+    fps: float = _key(30.0, Rule("float", lo=0, hi=1000, lo_open=True), "frames per second asked of the camera")
+    exposure_us: int = _key(0, Rule("int", lo=0, hi=10_000_000), "exposure time, microseconds (0 = auto)")
+    analogue_gain: float = _key(0.0, Rule("float", lo=0, hi=64), "sensor analogue gain (0 = auto)")
+
+    def check(self) -> None:
+        s = self.source.strip()
+        if not (s in SOURCE_WORDS or "!" in s
+                or any(s.startswith(p) and len(s) > len(p) for p in SOURCE_PREFIXES)):
+            raise _Invalid("source", SOURCE_EXPECTED, self.source)
+        if s.startswith("opencv:"):
+            dev = s[len("opencv:"):]
+            if not (dev.isdigit() or dev.startswith("/")):
+                raise _Invalid("source", '"opencv:N" with a camera index N or a device path', self.source)
+        if not 0.0 <= self.cx < self.width:
+            raise _Invalid("cx", f"a number in [0, {self.width}) (inside the image width)", self.cx)
+        if not 0.0 <= self.cy < self.height:
+            raise _Invalid("cy", f"a number in [0, {self.height}) (inside the image height)", self.cy)
+
+    @property
+    def source_kind(self) -> str:
+        """"picamera2", "synthetic", "opencv", "video", "replay" or "gstreamer"."""
+        s = self.source.strip()
+        if s in SOURCE_WORDS:
+            return s
+        for p in SOURCE_PREFIXES:
+            if s.startswith(p):
+                return p[:-1]
+        return "gstreamer"
+
+    @property
+    def source_arg(self) -> str:
+        """What follows "kind:" (index, device or path), or the whole pipeline string."""
+        s = self.source.strip()
+        for p in SOURCE_PREFIXES:
+            if s.startswith(p):
+                return s[len(p):]
+        return s
+
+    def model(self) -> Camera:
+        return Camera(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, dist=tuple(self.dist),
+                      width=self.width, height=self.height)
+
+
+@dataclass(frozen=True)
+class MarkerConfig:
+    """The rectangle looked for (metres) and where it is placed."""
+
+    type: str = _key("square", Rule("str", choices=("square", "aruco")), "square or aruco")
+    width: float = _key(0.20, Rule("float", lo=0, hi=100, lo_open=True), "outer edge of the dark region, metres")
+    height: float = _key(0.20, Rule("float", lo=0, hi=100, lo_open=True), "metres (default: width)")
+    dictionary: Optional[str] = _key(None, Rule("str", nonempty=True), "aruco only: OpenCV dictionary, e.g. DICT_4X4_50")
+    id: Optional[int] = _key(None, Rule("int", lo=0, hi=100_000), "aruco only: marker id")
+    placement: str = _key("wall", Rule("str", choices=("wall", "floor")), "wall (vertical) or floor (face up)")
+
+    def check(self) -> None:
+        if self.type == "aruco":
+            if self.dictionary is None:
+                raise _Invalid("dictionary", 'a dictionary name such as "DICT_4X4_50" (needed when type = "aruco")')
+            if self.id is None:
+                raise _Invalid("id", 'an integer >= 0 (needed when type = "aruco")')
+            if not self.dictionary.startswith("DICT_") or not _aruco_dictionary_exists(self.dictionary):
+                raise _Invalid("dictionary", 'an OpenCV ArUco dictionary name such as "DICT_4X4_50"', self.dictionary)
+        else:
+            if self.dictionary is not None:
+                raise _Invalid("dictionary", 'no dictionary unless type = "aruco"', self.dictionary)
+            if self.id is not None:
+                raise _Invalid("id", 'no id unless type = "aruco"', self.id)
+
+    def model(self) -> Marker:
+        return Marker(width=self.width, height=self.height, type=self.type,
+                      dictionary=self.dictionary, id=self.id)
+
+
+def _aruco_dictionary_exists(name: str) -> bool:
+    try:
+        import cv2
+    except ImportError:  # pragma: no cover - OpenCV is a dependency
+        return True
+    aruco = getattr(cv2, "aruco", None)
+    if aruco is None:  # an OpenCV build without aruco: the detector reports it
+        return True
+    return isinstance(getattr(aruco, name, None), int)
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    method: str = _key("iterative", Rule("str", nonempty=True), "pose method: iterative, paper, ...")
+    iterations: int = _key(5, Rule("int", lo=1, hi=100), "iterations of the correction loop")
+    refine: bool = _key(True, Rule("bool"), "final least-squares refinement")
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    max_misses: int = _key(5, Rule("int", lo=0, hi=10_000), "frames a track survives without the marker")
+    min_side_px: float = _key(10.0, Rule("float", lo=1, hi=10_000), "shortest accepted marker side, pixels")
+
+
+@dataclass(frozen=True)
+class SyntheticConfig:
+    trajectory: str = _key("wall", Rule("str", choices=("wall", "floor")),
+                           "wall: camera in front of a wall marker; floor: over a floor marker")
+    seed: int = _key(0, Rule("int", lo=0, hi=2**32 - 1), "random seed of noise and trajectory")
+    blur_px: float = _key(0.8, Rule("float", lo=0, hi=20), "Gaussian blur sigma, pixels")
+    noise_gray: float = _key(2.0, Rule("float", lo=0, hi=100), "sensor noise sigma, gray levels")
+    motion_blur_px: float = _key(0.0, Rule("float", lo=0, hi=100), "motion blur length, pixels")
+    jpeg_quality: int = _key(0, Rule("int", lo=0, hi=100), "JPEG round trip quality (0 = none)")
+    frames: int = _key(0, Rule("int", lo=0, hi=10**9), "frames before end of stream (0 = endless)")
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    latency_budget_s: float = _key(0.1, Rule("float", lo=0, hi=10, lo_open=True),
+                                   "a pose that would leave later than this after capture is dropped")
+    status_interval_s: float = _key(10.0, Rule("float", lo=0.1, hi=86400), "seconds between status lines")
+    output_buffer: int = _key(4, Rule("int", lo=1, hi=1000), "results buffered per output before dropping the oldest")
+    source_retry_s: float = _key(0.5, Rule("float", lo=0.01, hi=60), "first pause before reopening a failed source")
+    source_retry_max_s: float = _key(5.0, Rule("float", lo=0.01, hi=600), "longest pause (the pause doubles)")
+
+    def check(self) -> None:
+        if self.source_retry_max_s < self.source_retry_s:
+            raise _Invalid("source_retry_max_s", f"a number >= source_retry_s ({_num(self.source_retry_s)})",
+                           self.source_retry_max_s)
+
+
+@dataclass(frozen=True)
+class MountConfig:
+    preset: str = _key("forward", Rule("str", choices=("forward", "down", "custom")),
+                       "forward: camera looks ahead; down: looks down; custom: rotation_deg + offset_m")
+    rotation_deg: Tuple[float, ...] = _key([0.0, 0.0, 0.0], Rule("floats", lengths=(3,), lo=-360, hi=360),
+                                           "custom mount: roll, pitch, yaw of the camera on the body, degrees")
+    offset_m: Tuple[float, ...] = _key([0.0, 0.0, 0.0], Rule("floats", lengths=(3,), lo=-100, hi=100),
+                                       "camera position in the body frame (FRD), metres")
+
+
+MAVLINK_MESSAGES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
+
+
+@dataclass(frozen=True)
+class MavlinkOutputConfig:
+    connection: str = _key("udpout:127.0.0.1:14550", Rule("str", nonempty=True),
+                           "pymavlink connection string: udpout:HOST:PORT, /dev/serial0, tcp:HOST:PORT")
+    baud: int = _key(921600, Rule("int", lo=300, hi=20_000_000), "serial links only")
+    messages: Tuple[str, ...] = _key(["ODOMETRY"], Rule("strs", choices=MAVLINK_MESSAGES, nonempty=True,
+                                                        unique=True, upper=True), "messages sent per pose")
+    source_system: int = _key(1, Rule("int", lo=1, hi=255), "MAVLink system id")
+    source_component: int = _key(197, Rule("int", lo=1, hi=255), "MAVLink component id (197 = visual odometry)")
+
+
+@dataclass(frozen=True)
+class SerialOutputConfig:
+    port: str = _key("/dev/ttyUSB0", Rule("str", nonempty=True), "serial device")
+    baud: int = _key(115200, Rule("int", lo=300, hi=20_000_000), "baud rate")
+
+
+@dataclass(frozen=True)
+class JsonlOutputConfig:
+    path: str = _key("-", Rule("str", nonempty=True), 'file to append to, or "-" for stdout')
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    """Each output is None unless its table is present."""
+
+    mavlink: Optional[MavlinkOutputConfig] = None
+    serial: Optional[SerialOutputConfig] = None
+    jsonl: Optional[JsonlOutputConfig] = None
+
+
+@dataclass(frozen=True)
+class LoggingConfig:
+    level: str = _key("INFO", Rule("str", choices=("DEBUG", "INFO", "WARNING", "ERROR"), upper=True),
+                      "log level")
+
+
+SECTIONS: Dict[str, type] = {
+    "camera": CameraConfig,
+    "marker": MarkerConfig,
+    "estimator": EstimatorConfig,
+    "detector": DetectorConfig,
+    "synthetic": SyntheticConfig,
+    "pipeline": PipelineConfig,
+    "mount": MountConfig,
+    "logging": LoggingConfig,
+}
+OUTPUTS: Dict[str, type] = {
+    "mavlink": MavlinkOutputConfig,
+    "serial": SerialOutputConfig,
+    "jsonl": JsonlOutputConfig,
+}
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole validated configuration; ``name`` is the file it came from (for messages)."""
+
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    marker: MarkerConfig = field(default_factory=MarkerConfig)
+    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+    detector: DetectorConfig = field(default_factory=DetectorConfig)
+    synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
+    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    mount: MountConfig = field(default_factory=MountConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    logging: LoggingConfig = field(default_factory=LoggingConfig)
+    name: str = "<default config>"
+
+    @classmethod
+    def default(cls) -> Config:
+        """The embedded demo configuration (= config/demo.toml)."""
+        return parse_config(DEFAULT_CONFIG_TOML, "<default config>")
+
+    def to_dict(self) -> Dict[str, Any]:
+        """Plain data in the TOML layout (absent outputs and unset optional keys left out)."""
+        out: Dict[str, Any] = {}
+        for name in SECTIONS:
+            out[name] = _plain(asdict(getattr(self, name)))
+        outputs = {k: _plain(asdict(v)) for k, v in asdict_shallow(self.output).items() if v is not None}
+        out["output"] = outputs
+        return out
+
+    def to_toml(self) -> str:
+        """The effective configuration as TOML text (what check-config --print shows)."""
+        lines: List[str] = []
+        data = self.to_dict()
+        for section, values in data.items():
+            if section == "output":
+                for name, sub in values.items():
+                    lines.append(f"[output.{name}]")
+                    lines.extend(f"{k} = {_show(v)}" for k, v in sub.items())
+                    lines.append("")
+                continue
+            lines.append(f"[{section}]")
+            lines.extend(f"{k} = {_show(v)}" for k, v in values.items())
+            lines.append("")
+        return "\n".join(lines)
+
+
+def asdict_shallow(obj: Any) -> Dict[str, Any]:
+    return {f.name: getattr(obj, f.name) for f in fields(obj)}
+
+
+def _plain(d: Dict[str, Any]) -> Dict[str, Any]:
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items() if v is not None}
+
+
+# --------------------------------------------------------------------------- parsing
+
+
+def _build(cls: type, table: Dict[str, Any], where: str) -> Any:
+    """One section's dataclass from its TOML table; _Invalid names the key (with ``where``)."""
+    known = {f.name: f for f in fields(cls) if "rule" in f.metadata}
+    kwargs: Dict[str, Any] = {}
+    for key, value in table.items():
+        f = known.get(key)
+        if f is None:
+            raise _Invalid(key, "one of " + ", ".join(known), _Unknown)
+        kwargs[key] = f.metadata["rule"].convert(key, value)
+    if cls is MarkerConfig and "height" not in table and "width" in kwargs:
+        kwargs["height"] = kwargs["width"]  # a square unless told otherwise
+    obj = cls(**kwargs)
+    check = getattr(obj, "check", None)
+    if check is not None:
+        check()
+    return obj
+
+
+_Unknown = object()
+
+
+def _message(name: str, where: str, err: _Invalid) -> str:
+    if err.got is _Unknown:
+        return f"{name}: {where} {err.key}: unknown key (expected {err.expected})"
+    got = "" if err.got is MISSING else f", got {_show(err.got)}"
+    return f"{name}: {where} {err.key}: expected {err.expected}{got}"
+
+
+def parse_config(text: str, name: str = "<config>") -> Config:
+    """Config from TOML text; ``name`` (the file name) starts every error message."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{name}: invalid TOML: {' '.join(str(exc).split())}") from None
+    return config_from_dict(data, name)
+
+
+def config_from_dict(data: Dict[str, Any], name: str = "<config>") -> Config:
+    """Config from an already-parsed TOML document (a dict of tables)."""
+    sections: Dict[str, Any] = {}
+    outputs: Dict[str, Any] = {}
+    allowed = ", ".join(list(SECTIONS) + ["output"])
+    for section, table in data.items():
+        if section not in SECTIONS and section != "output":
+            raise ConfigError(f"{name}: [{section}]: unknown section (expected one of {allowed})")
+        if not isinstance(table, dict):
+            raise ConfigError(f"{name}: {section}: expected a table [{section}], got {_show(table)}")
+        if section == "output":
+            for out_name, out_table in table.items():
+                if out_name not in OUTPUTS:
+                    raise ConfigError(f"{name}: [output.{out_name}]: unknown output "
+                                      f"(expected one of {', '.join(OUTPUTS)})")
+                if not isinstance(out_table, dict):
+                    raise ConfigError(f"{name}: [output] {out_name}: expected a table "
+                                      f"[output.{out_name}], got {_show(out_table)}")
+                where = f"[output.{out_name}]"
+                try:
+                    outputs[out_name] = _build(OUTPUTS[out_name], out_table, where)
+                except _Invalid as err:
+                    raise ConfigError(_message(name, where, err)) from None
+            continue
+        where = f"[{section}]"
+        try:
+            sections[section] = _build(SECTIONS[section], table, where)
+        except _Invalid as err:
+            raise ConfigError(_message(name, where, err)) from None
+    synthetic_table = data.get("synthetic", {})
+    marker = sections.get("marker", MarkerConfig())
+    if "trajectory" not in synthetic_table and marker.placement != SyntheticConfig().trajectory:
+        # The synthetic camera moves over the marker as it is placed unless told otherwise.
+        sections["synthetic"] = replace(sections.get("synthetic", SyntheticConfig()),
+                                        trajectory=marker.placement)
+    cfg = Config(output=OutputConfig(**outputs), name=name, **sections)
+    _check_whole(cfg)
+    return cfg
+
+
+def _check_whole(cfg: Config) -> None:
+    """Rules that join two sections."""
+    if cfg.camera.source_kind == "synthetic" and cfg.marker.placement != cfg.synthetic.trajectory:
+        raise ConfigError(f"{cfg.name}: [synthetic] trajectory: expected {_show(cfg.marker.placement)} "
+                          f"(the [marker] placement), got {_show(cfg.synthetic.trajectory)}")
+
+
+def load_config(path: Union[str, Path]) -> Config:
+    """Read and validate a TOML file; ConfigError (one line: file, key, expectation) otherwise."""
+    p = Path(path)
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read config: {exc.strerror or exc}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{p}: invalid TOML: not UTF-8 text (byte {exc.start})") from None
+    return parse_config(text, str(p))
+
+
+def load_config_or_default(path: Optional[Union[str, Path]]) -> Config:
+    """``load_config(path)``, or the embedded default when no path is given."""
+    return Config.default() if path is None else load_config(path)
+
+
+def reference() -> List[Tuple[str, str, str, str, str]]:
+    """(section, key, default, expectation, meaning) for every key: the README's config reference."""
+    rows: List[Tuple[str, str, str, str, str]] = []
+    tables: Sequence[Tuple[str, type]] = (list((f"[{k}]", v) for k, v in SECTIONS.items())
+                                          + list((f"[output.{k}]", v) for k, v in OUTPUTS.items()))
+    for where, cls in tables:
+        for f in fields(cls):
+            if "rule" not in f.metadata:
+                continue
+            default = f.default if f.default is not MISSING else None
+            rows.append((where, f.name, "-" if default is None else _show(default),
+                         f.metadata["rule"].expectation(), f.metadata["doc"]))
+    return rows
