@@ -1,0 +1,27 @@
+"""``pose-daemon check-config FILE``: validate a config file; one line naming file and key on error (exit 2)."""
+
+from __future__ import annotations
+
+import argparse
+
+from ..config import load_config
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    parser = sub.add_parser("check-config", help="validate a config file",
+                            description=__doc__.splitlines()[0])
+    parser.add_argument("config", metavar="FILE", help="TOML config file")
+    parser.add_argument("--print", dest="show", action="store_true",
+                        help="print the effective configuration (defaults filled in)")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    cfg = load_config(args.config)
+    if args.show:
+        print(cfg.to_toml(), end="")
+    else:
+        outputs = [name for name in ("mavlink", "serial", "jsonl") if getattr(cfg.output, name)]
+        print(f"{args.config}: ok (source {cfg.camera.source}, marker {cfg.marker.type} "
+              f"{cfg.marker.width:g}x{cfg.marker.height:g} m, outputs: {', '.join(outputs) or 'none'})")
+    return 0
