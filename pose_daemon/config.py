@@ -435,12 +435,49 @@ class MavlinkOutputConfig:
                                                         unique=True, upper=True), "messages sent per pose")
     source_system: int = _key(1, Rule("int", lo=1, hi=255), "MAVLink system id")
     source_component: int = _key(197, Rule("int", lo=1, hi=255), "MAVLink component id (197 = visual odometry)")
+    wait_heartbeat: bool = _key(True, Rule("bool"), "send poses only once the autopilot's HEARTBEAT was heard")
+    min_interval_s: float = _key(0.02, Rule("float", lo=0.02, hi=0.25),
+                                 "shortest time between two messages of a type (EKF3 drops closer ones)")
+    lost_timeout_s: float = _key(0.3, Rule("float", lo=0.02, hi=10),
+                                 "no pose for this long = marker lost (STATUSTEXT; reset_counter + 1 when found)")
+    jump_m: float = _key(0.5, Rule("float", lo=0, hi=100, lo_open=True),
+                         "a pose moving further between two messages is a jump (reset_counter + 1)")
+    jump_deg: float = _key(30.0, Rule("float", lo=0, hi=180, lo_open=True),
+                           "a pose turning further between two messages is a jump (reset_counter + 1)")
+    statustext: bool = _key(True, Rule("bool"), "STATUSTEXT on start, marker lost and marker found")
+    origin: Optional[Tuple[float, ...]] = _key(None, Rule("floats", lengths=(3,)),
+                                               "latitude deg, longitude deg, altitude m: SET_GPS_GLOBAL_ORIGIN "
+                                               "sent to the autopilot (flying without GPS)")
+    set_home: bool = _key(False, Rule("bool"), "also SET_HOME_POSITION at the origin")
+    signing_key: Optional[str] = _key(None, Rule("str", nonempty=True),
+                                      "MAVLink 2 signing: 64 hex digits, or a passphrase (SHA-256, as MAVProxy)")
+    retry_s: float = _key(0.5, Rule("float", lo=0.01, hi=60), "first pause before reopening a failed link")
+    retry_max_s: float = _key(5.0, Rule("float", lo=0.01, hi=600), "longest pause (the pause doubles)")
+
+    def check(self) -> None:
+        if self.origin is not None:
+            lat, lon, alt = self.origin
+            if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0 and -1000.0 <= alt <= 10000.0):
+                raise _Invalid("origin", "[latitude in [-90, 90], longitude in [-180, 180], "
+                               "altitude in [-1000, 10000] m]", list(self.origin))
+        if self.set_home and self.origin is None:
+            raise _Invalid("set_home", "false unless origin is set")
+        if self.retry_max_s < self.retry_s:
+            raise _Invalid("retry_max_s", f"a number >= retry_s ({_num(self.retry_s)})", self.retry_max_s)
 
 
 @dataclass(frozen=True)
 class SerialOutputConfig:
-    port: str = _key("/dev/ttyUSB0", Rule("str", nonempty=True), "serial device")
+    port: str = _key("/dev/ttyUSB0", Rule("str", nonempty=True), "serial device (or a pyserial URL)")
     baud: int = _key(115200, Rule("int", lo=300, hi=20_000_000), "baud rate")
+    min_interval_s: float = _key(0.0, Rule("float", lo=0, hi=60), "shortest time between two lines (0 = every frame)")
+    send_lost: bool = _key(True, Rule("bool"), "a line with empty pose fields and quality -1 when no pose")
+    retry_s: float = _key(0.5, Rule("float", lo=0.01, hi=60), "first pause before reopening a failed port")
+    retry_max_s: float = _key(5.0, Rule("float", lo=0.01, hi=600), "longest pause (the pause doubles)")
+
+    def check(self) -> None:
+        if self.retry_max_s < self.retry_s:
+            raise _Invalid("retry_max_s", f"a number >= retry_s ({_num(self.retry_s)})", self.retry_max_s)
 
 
 @dataclass(frozen=True)
