@@ -1,0 +1,318 @@
+"""The paper's iterative image correction (Fig. 2), vectorised over stacks of quadrilaterals.
+
+Image points are (..., 4, 2) in the order TL, TR, BR, BL, relative to the principal point, in
+the units of ``f`` (f = 1 for normalized coordinates), OpenCV axes (x right, y down). The
+paper's camera frame is OpenCV's; each correction (8)-(12) is the image of a pure camera
+rotation, d' = Rz(g)^T d, Ry(b)^T d, Rx(a)^T d, and the loop accumulates
+R_est = R_est Rz(g) Ry(b) Rx(a) ... = R_cam_unrot (see geometry.py).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import List, Optional
+
+import numpy as np
+
+METHODS = ("iterative", "paper")
+
+
+@dataclass
+class IterationTrace:
+    """One pass of the loop; all fields are (...,) arrays except ``i``.
+
+    ``zeta_rad`` (..., 4): internal angles of the image at the start of iteration ``i``;
+    ``x``, ``y``, ``z``: the position estimate (6)-(7) at the end of the iteration (unrotated
+    camera frame, y down, length unit of sqrt(area)); the three steps are the corrections
+    found in this iteration; ``R_cam_unrot`` (..., 3, 3) is R_est after it.
+    """
+
+    i: int
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    zeta_rad: np.ndarray
+    gamma_step_rad: np.ndarray
+    beta_step_rad: np.ndarray
+    alpha_step_rad: np.ndarray
+    R_cam_unrot: np.ndarray
+
+
+@dataclass
+class LoopResult:
+    """R_cam_unrot (..., 3, 3) = accumulated R_est; position_unrot (..., 3) the marker centre in
+    the unrotated camera frame (x right, y down, z forward); corrected (..., 4, 2) the final image."""
+
+    R_cam_unrot: np.ndarray
+    position_unrot: np.ndarray
+    corrected: np.ndarray
+    trace: Optional[List[IterationTrace]] = None
+
+
+def quad_area(points: np.ndarray) -> np.ndarray:
+    """Signed shoelace area (..., ) of (..., 4, 2) points; positive for TL, TR, BR, BL with y down."""
+    x, y = points[..., 0], points[..., 1]
+    return 0.5 * np.sum(x * np.roll(y, -1, axis=-1) - np.roll(x, -1, axis=-1) * y, axis=-1)
+
+
+def depth_from_area(points: np.ndarray, f: float, area: float) -> np.ndarray:
+    """Eq. (1): z = sqrt(f^2 s^2 / Area), s^2 = W*H; exact for a fronto-parallel image."""
+    return np.sqrt(f * f * area / np.abs(quad_area(points)))
+
+
+def _split(points: np.ndarray):
+    pts = np.asarray(points, dtype=np.float64)
+    return [pts[..., j, 0] for j in range(4)], [pts[..., j, 1] for j in range(4)]
+
+
+def internal_angles(points: np.ndarray) -> np.ndarray:
+    """zeta_j (..., 4): internal angle at each vertex (radians) of a convex quadrilateral."""
+    xs, ys = _split(points)
+    return np.stack(np.broadcast_arrays(*_angles(xs, ys, NUMPY_OPS)), -1)
+
+
+def roll_from_edges(points: np.ndarray) -> np.ndarray:
+    """Eqs. (2)-(3) done right: edge j -> j+1 points at 0, 90, 180, 270 deg (image angles, y
+    down) for an unrotated camera, so each edge gives the roll modulo 360; circular mean.
+    Valid at every quadrant, (..., ) radians."""
+    xs, ys = _split(points)
+    return _roll(xs, ys, NUMPY_OPS)
+
+
+def correct_roll(points: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Eq. (8): x' = x cos g + y sin g, y' = -x sin g + y cos g (rays d' = Rz(g)^T d)."""
+    c, s = np.cos(g)[..., None], np.sin(g)[..., None]
+    x, y = points[..., 0], points[..., 1]
+    return np.stack([x * c + y * s, -x * s + y * c], axis=-1)
+
+
+def correct_yaw(points: np.ndarray, b: np.ndarray, f: float) -> np.ndarray:
+    """Eqs. (9)-(10): x' = f (x cos b + f sin b) / den, y' = f y / den, den = f cos b - x sin b."""
+    c, s = np.cos(b)[..., None], np.sin(b)[..., None]
+    x, y = points[..., 0], points[..., 1]
+    k = f / (f * c - x * s)
+    return np.stack([(x * c + f * s) * k, y * k], axis=-1)
+
+
+def correct_pitch(points: np.ndarray, a: np.ndarray, f: float) -> np.ndarray:
+    """Eqs. (11)-(12): y' = f (y cos a + f sin a) / den, x' = f x / den, den = f cos a - y sin a."""
+    c, s = np.cos(a)[..., None], np.sin(a)[..., None]
+    x, y = points[..., 0], points[..., 1]
+    k = f / (f * c - y * s)
+    return np.stack([x * k, (y * c + f * s) * k], axis=-1)
+
+
+def yaw_from_vanishing_point(points: np.ndarray, f: float) -> np.ndarray:
+    """Table-free yaw: the top and bottom edges meet at v ~ R e_x; Ry(b)^T sends v to the
+    image plane's horizon at infinity when tan b = v_z / v_x. Exact for a pure yaw. (..., ) rad."""
+    xs, ys = _split(points)
+    vx, _, vz = _vanish(xs, ys, float(f), 0, 1, 3, 2)
+    sg = np.copysign(1.0, vx)
+    return np.arctan2(vz * sg, vx * sg)
+
+
+def pitch_from_vanishing_point(points: np.ndarray, f: float) -> np.ndarray:
+    """Table-free pitch: the left and right edges meet at v ~ R e_y; tan a = v_z / v_y."""
+    xs, ys = _split(points)
+    _, vy, vz = _vanish(xs, ys, float(f), 0, 3, 1, 2)
+    sg = np.copysign(1.0, vy)
+    return np.arctan2(vz * sg, vy * sg)
+
+
+def e_beta(zeta: np.ndarray) -> np.ndarray:
+    """Eq. (4): left-side angles minus right-side ones, zeta1 + zeta4 - zeta2 - zeta3."""
+    return zeta[..., 0] + zeta[..., 3] - zeta[..., 1] - zeta[..., 2]
+
+
+def e_alpha(zeta: np.ndarray) -> np.ndarray:
+    """Eq. (5): bottom angles minus top ones, zeta3 + zeta4 - zeta1 - zeta2."""
+    return zeta[..., 2] + zeta[..., 3] - zeta[..., 0] - zeta[..., 1]
+
+
+def position_from_image(points: np.ndarray, f: float, area: float) -> np.ndarray:
+    """Eqs. (1), (6)-(7): (x, y, z) (..., 3) of the marker centre from a corrected image."""
+    z = depth_from_area(points, f, area)
+    c = np.mean(points, axis=-2)
+    return np.stack([c[..., 0] * z / f, c[..., 1] * z / f, z], axis=-1)
+
+
+class _Ops:
+    """The few functions the loop needs, from numpy (stacks) or math (one quadrilateral: the
+    per-frame path, where numpy's per-call overhead would dominate at four points)."""
+
+    def __init__(self, mod) -> None:
+        self.cos, self.sin, self.sqrt = mod.cos, mod.sin, mod.sqrt
+        self.atan2 = getattr(mod, "arctan2", None) or mod.atan2
+        self.copysign = mod.copysign
+        self.fabs = mod.fabs
+
+
+NUMPY_OPS = _Ops(np)
+MATH_OPS = _Ops(math)
+
+
+def _angles(xs, ys, m: _Ops):
+    """Internal angles zeta_1..4 of the quadrilateral given as corner lists."""
+    out = []
+    for j in range(4):
+        px, py = xs[j - 1] - xs[j], ys[j - 1] - ys[j]
+        nx, ny = xs[(j + 1) % 4] - xs[j], ys[(j + 1) % 4] - ys[j]
+        out.append(m.atan2(m.fabs(px * ny - py * nx), px * nx + py * ny))
+    return out
+
+
+def _area(xs, ys):
+    return 0.5 * ((xs[0] * ys[1] - xs[1] * ys[0]) + (xs[1] * ys[2] - xs[2] * ys[1])
+                  + (xs[2] * ys[3] - xs[3] * ys[2]) + (xs[3] * ys[0] - xs[0] * ys[3]))
+
+
+def _roll(xs, ys, m: _Ops):
+    # Edge j -> j+1 of an unrotated image points at j * 90 deg (y down); rotating each edge
+    # direction back by that and averaging the unit vectors gives the roll in every quadrant.
+    sx = sy = 0.0
+    for j in range(4):
+        dx, dy = xs[(j + 1) % 4] - xs[j], ys[(j + 1) % 4] - ys[j]
+        # (dx, dy) rotated by -j*90 deg.
+        if j == 1:
+            dx, dy = dy, -dx
+        elif j == 2:
+            dx, dy = -dx, -dy
+        elif j == 3:
+            dx, dy = -dy, dx
+        n = m.sqrt(dx * dx + dy * dy)
+        sx = sx + dx / n
+        sy = sy + dy / n
+    return m.atan2(sy, sx)
+
+
+def _vanish(xs, ys, f, a, b, c, d):
+    """Ray (vx, vy, vz) to the meeting point of lines a-b and c-d (rays (x, y, f))."""
+    l1 = (f * (ys[a] - ys[b]), f * (xs[b] - xs[a]), xs[a] * ys[b] - ys[a] * xs[b])
+    l2 = (f * (ys[c] - ys[d]), f * (xs[d] - xs[c]), xs[c] * ys[d] - ys[c] * xs[d])
+    return (l1[1] * l2[2] - l1[2] * l2[1], l1[2] * l2[0] - l1[0] * l2[2],
+            l1[0] * l2[1] - l1[1] * l2[0])
+
+
+def _rot_cols(R, i: int, j: int, c, s) -> None:
+    """R <- R @ G for the paper's plane rotations, in place on a 3x3 list of entries:
+    new column i = c col_i + s col_j, new column j = -s col_i + c col_j. Equals
+    geometry.rot_z(g) for (i, j) = (0, 1), rot_y(b) for (0, 2), rot_x(a) for (1, 2)
+    (checked by the tests); done by columns because stacked 3x3 matmuls are slow."""
+    for r in range(3):
+        ri, rj = R[r][i], R[r][j]
+        R[r][i] = c * ri + s * rj
+        R[r][j] = c * rj - s * ri
+
+
+def _loop_core(xs, ys, f: float, area: float, method: str, iterations: int, m: _Ops,
+               table=None, rows: Optional[list] = None):
+    """The loop on corner lists xs, ys (4 entries each: arrays or floats). Returns (R, xs, ys),
+    R as a 3x3 list of entries (R_cam_unrot)."""
+    one, zero = 1.0, 0.0
+    R = [[one, zero, zero], [zero, one, zero], [zero, zero, one]]
+    # Image angles do not depend on f: the table's depth is z / sqrt(W*H) (z from eq. 1 is
+    # already a length), i.e. z / (f sqrt(W*H)) with z in image units.
+    scale = math.sqrt(area)
+    ff = f * f * area
+    for i in range(1, int(iterations) + 1):
+        zeta = _angles(xs, ys, m) if rows is not None else None
+        # Step 2, roll (8).
+        g = _roll(xs, ys, m)
+        c, s = m.cos(g), m.sin(g)
+        xs, ys = [x * c + y * s for x, y in zip(xs, ys)], [y * c - x * s for x, y in zip(xs, ys)]
+        _rot_cols(R, 0, 1, c, s)
+        # Step 3, yaw (9)-(10).
+        if table is not None:
+            zt = ang = _angles(xs, ys, m)
+            zt = m.sqrt(ff / m.fabs(_area(xs, ys))) / scale
+            b = table.yaw(ang[0] + ang[3] - ang[1] - ang[2], zt)
+        else:
+            vx, _, vz = _vanish(xs, ys, f, 0, 1, 3, 2)
+            sg = m.copysign(1.0, vx)
+            b = m.atan2(vz * sg, vx * sg)
+        c, s = m.cos(b), m.sin(b)
+        ks = [f / (f * c - x * s) for x in xs]
+        xs, ys = [(x * c + f * s) * k for x, k in zip(xs, ks)], [y * k for y, k in zip(ys, ks)]
+        _rot_cols(R, 0, 2, c, s)
+        # Steps 4-5, pitch (11)-(12).
+        if table is not None:
+            ang = _angles(xs, ys, m)
+            zt = m.sqrt(ff / m.fabs(_area(xs, ys))) / scale
+            a = table.pitch(ang[2] + ang[3] - ang[0] - ang[1], zt)
+        else:
+            _, vy, vz = _vanish(xs, ys, f, 0, 3, 1, 2)
+            sg = m.copysign(1.0, vy)
+            a = m.atan2(vz * sg, vy * sg)
+        c, s = m.cos(a), m.sin(a)
+        ks = [f / (f * c - y * s) for y in ys]
+        xs, ys = [x * k for x, k in zip(xs, ks)], [(y * c + f * s) * k for y, k in zip(ys, ks)]
+        _rot_cols(R, 1, 2, c, s)
+        if rows is not None:
+            rows.append((i, zeta, g, b, a, [list(r) for r in R], _position(xs, ys, f, ff, m)))
+    return R, xs, ys
+
+
+def _position(xs, ys, f: float, ff: float, m: _Ops):
+    """Eqs. (1), (6)-(7) on a corrected image: (x, y, z)."""
+    z = m.sqrt(ff / m.fabs(_area(xs, ys)))
+    k = 0.25 * z / f
+    return (xs[0] + xs[1] + xs[2] + xs[3]) * k, (ys[0] + ys[1] + ys[2] + ys[3]) * k, z
+
+
+def _stack_R(R, batch) -> np.ndarray:
+    out = np.empty(batch + (3, 3))
+    for r in range(3):
+        for c in range(3):
+            out[..., r, c] = R[r][c]
+    return out
+
+
+def correction_loop(points: np.ndarray, f: float, area: float, *, method: str = "iterative",
+                    iterations: int = 5, trace: bool = False) -> LoopResult:
+    """Run the paper's loop on (..., 4, 2) image points (see the module docstring).
+
+    ``area`` is the marker's W*H (the paper's s^2) in the squared length unit the position
+    comes out in. ``method`` "paper" maps e_beta/e_alpha to yaw/pitch through the simulated
+    cubic (pose_daemon/data/paper_table.json); "iterative" takes them from the vanishing
+    points of the edges being straightened (no table, any camera and marker).
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
+    pts = np.asarray(points, dtype=np.float64)
+    f, area = float(f), float(area)
+    batch = pts.shape[:-2]
+    table = None
+    if method == "paper":
+        from .paper_table import load_table
+
+        table = load_table()
+    xs = [np.array(pts[..., j, 0]) for j in range(4)]
+    ys = [np.array(pts[..., j, 1]) for j in range(4)]
+    raw: Optional[list] = [] if trace else None
+    R, xs, ys = _loop_core(xs, ys, f, area, method, iterations, NUMPY_OPS, table, raw)
+    corrected = np.stack([np.stack([x, y], -1) for x, y in zip(xs, ys)], -2)
+    pos = np.stack(np.broadcast_arrays(*_position(xs, ys, f, f * f * area, NUMPY_OPS)), -1)
+    rows: Optional[List[IterationTrace]] = None
+    if raw is not None:
+        rows = []
+        for i, zeta, g, b, a, Ri, (x, y, z) in raw:
+            rows.append(IterationTrace(
+                i=i, x=x, y=y, z=z, zeta_rad=np.stack(zeta, -1), gamma_step_rad=g,
+                beta_step_rad=b, alpha_step_rad=a, R_cam_unrot=_stack_R(Ri, batch)))
+    return LoopResult(R_cam_unrot=_stack_R(R, batch), position_unrot=pos, corrected=corrected,
+                      trace=rows)
+
+
+def project_unrot(R_cam_unrot: np.ndarray, position_unrot: np.ndarray, width: float,
+                  height: float, f: float) -> np.ndarray:
+    """Image (..., 4, 2) TL, TR, BR, BL that a camera with rotation R_cam_unrot sees of a
+    width x height marker fronto-parallel to the unrotated camera, centred at position_unrot
+    (unrotated frame, y down): d_cam = R_cam_unrot d_unrot, x = f d_x / d_z, y = f d_y / d_z."""
+    R = np.asarray(R_cam_unrot, dtype=np.float64)
+    p = np.asarray(position_unrot, dtype=np.float64)
+    w2, h2 = 0.5 * width, 0.5 * height
+    offsets = np.array([[-w2, -h2, 0.0], [w2, -h2, 0.0], [w2, h2, 0.0], [-w2, h2, 0.0]])
+    d_unrot = p[..., None, :] + offsets
+    d_cam = np.einsum("...ij,...kj->...ki", R, d_unrot)
+    return f * d_cam[..., :2] / d_cam[..., 2:3]

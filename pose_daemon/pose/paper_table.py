@@ -1,0 +1,96 @@
+"""The paper's e_beta -> beta and e_alpha -> alpha cubics, with coefficients depending on depth.
+
+Built by simulation as the paper describes (its Fig. 1): a square on the optical axis, seen by
+a camera turned by a pure yaw (pitch), gives e_beta (e_alpha) for each angle; a cubic
+a e^3 + b e^2 + c e + d is fitted at each depth. Depth is the dimensionless
+z_rel = z / sqrt(W*H) (z a length, from eq. 1; equivalently z / (f sqrt(W*H)) with z in image
+units): image angles do not depend on f, so one table holds for every camera and marker size.
+``scripts/make_paper_table.py`` writes the shipped table ``pose_daemon/data/paper_table.json``.
+"""
+
+from __future__ import annotations
+
+import json
+from importlib import resources
+from typing import Dict, Optional
+
+import numpy as np
+
+from .. import geometry
+from .loop import e_alpha, e_beta, internal_angles, project_unrot
+
+TABLE_FILE = "paper_table.json"
+# Depth grid (z_rel) and angle range of the simulation.
+Z_REL_MIN, Z_REL_MAX, Z_REL_COUNT = 1.0, 500.0, 80
+ANGLE_MAX_DEG, ANGLE_COUNT = 60.0, 241
+# Corrections are clamped to this: beyond it the marker is seen edge-on.
+STEP_LIMIT_RAD = np.radians(80.0)
+
+
+def build_table() -> Dict[str, object]:
+    """Simulate and fit; returns the JSON-ready table (coefficients a, b, c, d per z_rel)."""
+    z_rel = np.geomspace(Z_REL_MIN, Z_REL_MAX, Z_REL_COUNT)
+    angles = np.radians(np.linspace(-ANGLE_MAX_DEG, ANGLE_MAX_DEG, ANGLE_COUNT))
+    out: Dict[str, object] = {
+        "description": "cubic angle = a e^3 + b e^2 + c e + d (radians) per z_rel = z / sqrt(W*H); "
+                       "simulated square on the optical axis, pure yaw (beta) or pitch (alpha)",
+        "angle_max_deg": ANGLE_MAX_DEG,
+        "z_rel": [float(v) for v in z_rel],
+    }
+    for name, rot, err in (("beta", geometry.rot_y, e_beta), ("alpha", geometry.rot_x, e_alpha)):
+        coeffs = []
+        for zr in z_rel:
+            R = rot(angles)
+            pos = np.broadcast_to(np.array([0.0, 0.0, zr]), angles.shape + (3,))
+            img = project_unrot(R, pos, 1.0, 1.0, 1.0)
+            e = err(internal_angles(img))
+            # Fit in u = e * z_rel (well scaled at every depth), convert back to e.
+            A, B, C, D = np.polyfit(e * zr, angles, 3)
+            coeffs.append([float(A * zr ** 3), float(B * zr ** 2), float(C * zr), float(D)])
+        out[name] = coeffs
+    return out
+
+
+class PaperTable:
+    """Looks up the cubic for a depth (linear interpolation in log z_rel) and evaluates it."""
+
+    def __init__(self, data: Dict[str, object]) -> None:
+        z_rel = np.asarray(data["z_rel"], dtype=np.float64)
+        self._log_z = np.log(z_rel)
+        self._norm: Dict[str, np.ndarray] = {}
+        for name in ("beta", "alpha"):
+            c = np.asarray(data[name], dtype=np.float64)  # (n, 4): a, b, c, d
+            # Coefficients of the cubic in u = e * z_rel: nearly constant in depth, so they
+            # interpolate well and extend beyond the grid (weak perspective: e ~ 1 / z_rel).
+            powers = np.stack([z_rel ** -3, z_rel ** -2, z_rel ** -1, np.ones_like(z_rel)], -1)
+            self._norm[name] = c * powers
+
+    def _evaluate(self, name: str, e: np.ndarray, z_rel: np.ndarray) -> np.ndarray:
+        table = self._norm[name]
+        lz = np.log(np.clip(z_rel, 1e-6, None))
+        u = np.asarray(e) * z_rel
+        out = np.zeros(np.broadcast(u, lz).shape)
+        for k in range(4):
+            coeff = np.interp(lz, self._log_z, table[:, k])
+            out = out * u + coeff
+        return np.clip(out, -STEP_LIMIT_RAD, STEP_LIMIT_RAD)
+
+    def yaw(self, e_beta_rad: np.ndarray, z_rel: np.ndarray) -> np.ndarray:
+        """beta (radians) from e_beta (radians) at depth z_rel = z / sqrt(W*H)."""
+        return self._evaluate("beta", e_beta_rad, z_rel)
+
+    def pitch(self, e_alpha_rad: np.ndarray, z_rel: np.ndarray) -> np.ndarray:
+        """alpha (radians) from e_alpha (radians) at depth z_rel."""
+        return self._evaluate("alpha", e_alpha_rad, z_rel)
+
+
+_TABLE: Optional[PaperTable] = None
+
+
+def load_table() -> PaperTable:
+    """The shipped table, read once."""
+    global _TABLE
+    if _TABLE is None:
+        text = resources.files("pose_daemon").joinpath("data", TABLE_FILE).read_text("utf-8")
+        _TABLE = PaperTable(json.loads(text))
+    return _TABLE
