@@ -18,6 +18,7 @@ All functions accept a single angle/matrix or a stack (..., 3, 3) for the batch 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Tuple
 
 import cv2
@@ -143,3 +144,150 @@ def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
     # Through the quaternion, not arccos of the trace: exact near zero (errors of 1e-9 deg).
     q = quaternion_from_R(np.swapaxes(Ra, -1, -2) @ Rb)
     return np.degrees(2.0 * np.arctan2(np.linalg.norm(q[..., 1:], axis=-1), np.abs(q[..., 0])))
+
+
+# ---------------------------------------------------------------------------------------------
+# Vehicle frames: the camera on the vehicle (mount) and the marker in the room (placement).
+#
+# - body: the vehicle's FRD frame (x forward, y right, z down), origin at its reference point.
+# - local: FRD frame fixed to the marker, origin at the marker centre, z down (gravity):
+#     "wall":  x points from the room into the wall (the marker's -z), y along the marker's
+#              x (right as seen facing it), z down (the marker's -y).
+#     "floor": x points along the marker's y (its "top" edge), y along its x, z down (into
+#              the floor, the marker's -z). With the marker's top edge pointing north this is
+#              NED.
+# - mount presets (camera axes in the body frame):
+#     "forward": optical axis = body x, image right = body y, image down = body z.
+#     "down":    optical axis = body z, image right = body y, image top = body x (forward).
+#     "custom":  the "forward" camera turned by rotation_deg; rotation_deg also trims the
+#                other presets. rotation_deg = (roll, pitch, yaw) in degrees, applied as
+#                R_z(yaw) R_y(pitch) R_x(roll) in the body frame (pitch -90 = looking down).
+#   offset_m is the camera centre in the body frame (ArduPilot's VISO_POS_X/Y/Z).
+# ---------------------------------------------------------------------------------------------
+
+MOUNT_PRESETS = ("forward", "down", "custom")
+MARKER_PLACEMENTS = ("wall", "floor")
+
+_R_BODY_CAM_PRESET = {
+    "forward": np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
+    "down": np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+}
+_R_BODY_CAM_PRESET["custom"] = _R_BODY_CAM_PRESET["forward"]
+_R_LOCAL_MARKER = {
+    "wall": np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]),
+    "floor": np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]),
+}
+for _m in list(_R_BODY_CAM_PRESET.values()) + list(_R_LOCAL_MARKER.values()):
+    _m.setflags(write=False)
+
+
+def R_from_euler_rpy(roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
+    """Aerospace Z-Y-X Euler angles -> R = Rz(yaw) Ry(pitch) Rx(roll) (parent <- child).
+
+    The usual convention of MAVLink's roll/pitch/yaw (not the paper's Ry: rot_y(-pitch)).
+    """
+    return rot_z(yaw_rad) @ rot_y(-np.asarray(pitch_rad, dtype=np.float64)) @ rot_x(roll_rad)
+
+
+def euler_rpy_from_R(R: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(roll, pitch, yaw) in radians of R = Rz(yaw) Ry(pitch) Rx(roll); pitch in [-90, 90] deg."""
+    R = np.asarray(R, dtype=np.float64)
+    pitch = np.arcsin(np.clip(-R[..., 2, 0], -1.0, 1.0))
+    roll = np.arctan2(R[..., 2, 1], R[..., 2, 2])
+    yaw = np.arctan2(R[..., 1, 0], R[..., 0, 0])
+    return roll, pitch, yaw
+
+
+def R_body_cam_for_mount(preset: str, rotation_deg=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Camera axes in the body FRD frame (3, 3) for a mount preset plus a (roll, pitch, yaw) turn."""
+    if preset not in _R_BODY_CAM_PRESET:
+        raise ValueError(f"mount preset must be one of {', '.join(MOUNT_PRESETS)}, got {preset!r}")
+    r, p, y = np.radians(np.asarray(rotation_deg, dtype=np.float64).reshape(3))
+    return R_from_euler_rpy(r, p, y) @ _R_BODY_CAM_PRESET[preset]
+
+
+def R_local_marker_for_placement(placement: str) -> np.ndarray:
+    """Marker axes in the local FRD frame (3, 3) for a placement ("wall" or "floor")."""
+    if placement not in _R_LOCAL_MARKER:
+        raise ValueError(f"marker placement must be one of {', '.join(MARKER_PLACEMENTS)}, got {placement!r}")
+    return _R_LOCAL_MARKER[placement].copy()
+
+
+def rotate_covariance(R_a_b: np.ndarray, cov_b: np.ndarray) -> np.ndarray:
+    """A 3x3 covariance expressed in frame b -> the same in frame a."""
+    R = np.asarray(R_a_b, dtype=np.float64)
+    return R @ np.asarray(cov_b, dtype=np.float64) @ R.T
+
+
+@dataclass(frozen=True)
+class VehiclePose:
+    """The vehicle in the local frame: ``p_local_body_m`` (3,) metres, ``R_local_body`` (3, 3)."""
+
+    p_local_body_m: np.ndarray
+    R_local_body: np.ndarray
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        """(w, x, y, z) of R_local_body, w >= 0 (MAVLink's ODOMETRY.q)."""
+        return quaternion_from_R(self.R_local_body)
+
+    @property
+    def rpy_rad(self) -> Tuple[float, float, float]:
+        """Roll, pitch, yaw of the body in the local frame, radians."""
+        r, p, y = euler_rpy_from_R(self.R_local_body)
+        return float(r), float(p), float(y)
+
+
+@dataclass(frozen=True)
+class VehicleFrames:
+    """How the camera sits on the vehicle and the marker in the room: camera pose <-> vehicle pose."""
+
+    R_body_cam: np.ndarray
+    p_body_cam_m: np.ndarray
+    R_local_marker: np.ndarray
+
+    @classmethod
+    def from_settings(cls, preset: str = "forward", rotation_deg=(0.0, 0.0, 0.0),
+                      offset_m=(0.0, 0.0, 0.0), placement: str = "wall") -> VehicleFrames:
+        offset = np.asarray(offset_m, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(offset)):
+            raise ValueError("mount offset_m must be finite")
+        return cls(R_body_cam=R_body_cam_for_mount(preset, rotation_deg), p_body_cam_m=offset,
+                   R_local_marker=R_local_marker_for_placement(placement))
+
+    @classmethod
+    def from_config(cls, mount, placement: str) -> VehicleFrames:
+        """From ``cfg.mount`` (preset, rotation_deg, offset_m) and ``cfg.marker.placement``."""
+        return cls.from_settings(mount.preset, mount.rotation_deg, mount.offset_m, placement)
+
+    @property
+    def R_cam_body(self) -> np.ndarray:
+        return self.R_body_cam.T
+
+    def vehicle_pose(self, R_cam_marker: np.ndarray, tvec_m: np.ndarray) -> VehiclePose:
+        """Camera pose (X_cam = R_cam_marker X_marker + tvec) -> the vehicle in the local frame."""
+        R_cm = np.asarray(R_cam_marker, dtype=np.float64)
+        t = np.asarray(tvec_m, dtype=np.float64).reshape(3)
+        R_marker_cam = R_cm.T
+        p_marker_cam = -R_marker_cam @ t
+        R_local_body = self.R_local_marker @ R_marker_cam @ self.R_cam_body
+        p_local_cam = self.R_local_marker @ p_marker_cam
+        p_local_body = p_local_cam - R_local_body @ self.p_body_cam_m
+        return VehiclePose(p_local_body_m=p_local_body, R_local_body=R_local_body)
+
+    def camera_pose(self, vehicle: VehiclePose) -> Tuple[np.ndarray, np.ndarray]:
+        """The inverse: (R_cam_marker, tvec) a camera on this vehicle would measure."""
+        R_local_cam = vehicle.R_local_body @ self.R_body_cam
+        p_local_cam = vehicle.p_local_body_m + vehicle.R_local_body @ self.p_body_cam_m
+        R_cam_local = R_local_cam.T
+        R_cam_marker = R_cam_local @ self.R_local_marker
+        tvec = -R_cam_local @ p_local_cam  # the marker origin is the local origin
+        return R_cam_marker, tvec
+
+    def marker_in_body(self, tvec_m: np.ndarray) -> np.ndarray:
+        """The marker centre in the body FRD frame (3,), metres (LANDING_TARGET x, y, z)."""
+        return self.R_body_cam @ np.asarray(tvec_m, dtype=np.float64).reshape(3) + self.p_body_cam_m
+
+    def R_local_cam(self, R_cam_marker: np.ndarray) -> np.ndarray:
+        """Camera axes in the local frame: turns camera-frame covariances into local ones."""
+        return self.R_local_marker @ np.asarray(R_cam_marker, dtype=np.float64).T
