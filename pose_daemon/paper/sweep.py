@@ -1,0 +1,144 @@
+"""Section IV-A / Fig. 4: the correction loop over every orientation in [-45, 45) deg, e_image of eq 17.
+
+The square sits on the optical axis of the unrotated camera; for each (alpha, beta, gamma)
+the real camera's image is synthesised with ``project_unrot``, corrected by the loop, and
+compared corner by corner with the image the unrotated camera sees (eq 17). Orientations are
+processed in vectorised chunks; a chunk is one call of the batch loop.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Optional, Tuple
+
+import numpy as np
+
+from .. import geometry
+from .cases import FOCAL_PX, SIDE
+
+DISTANCE = 100.0
+RANGE_DEG = (-45.0, 45.0)
+CHUNK = 32768
+
+
+@dataclass
+class SweepResult:
+    method: str
+    iterations: int
+    step_deg: float
+    focal_px: float
+    side: float
+    distance: float
+    seconds: float
+    e_image: np.ndarray = field(repr=False)  # (count,) in pixels, the sweep's order
+    angles_deg: np.ndarray = field(repr=False)  # (n,) the grid of one axis
+
+    @property
+    def count(self) -> int:
+        return int(self.e_image.size)
+
+    @property
+    def failed(self) -> int:
+        """Orientations where the loop produced no finite image."""
+        return int(np.count_nonzero(~np.isfinite(self.e_image)))
+
+    def worst(self) -> dict:
+        e = np.where(np.isfinite(self.e_image), self.e_image, -np.inf)
+        k = int(np.argmax(e))
+        a, b, g = orientation(k, self.angles_deg)
+        return {"alpha_deg": a, "beta_deg": b, "gamma_deg": g, "e_image": float(self.e_image[k])}
+
+    def to_json_dict(self) -> dict:
+        finite = self.e_image[np.isfinite(self.e_image)]
+        return {
+            "count": self.count,
+            "max_e_image": float(finite.max()) if finite.size else None,
+            "mean_e_image": float(finite.mean()) if finite.size else None,
+            "median_e_image": float(np.median(finite)) if finite.size else None,
+            "failed": self.failed,
+            "seconds": round(self.seconds, 3),
+            "method": self.method,
+            "iterations": self.iterations,
+            "e_image_unit": "px",
+            "geometry": {"f_px": self.focal_px, "side": self.side,
+                         "position": [0.0, 0.0, self.distance]},
+            "step_deg": self.step_deg,
+            "range_deg": list(RANGE_DEG),
+            "worst": self.worst() if self.count else None,
+        }
+
+
+def angle_grid(step_deg: float) -> np.ndarray:
+    """The angles of one axis: [-45, 45) in ``step_deg`` steps (90 values at 1 deg)."""
+    n = int(np.floor((RANGE_DEG[1] - RANGE_DEG[0]) / step_deg + 1e-9))
+    return RANGE_DEG[0] + step_deg * np.arange(n)
+
+
+def orientation(k: int, angles_deg: np.ndarray) -> Tuple[float, float, float]:
+    """(alpha, beta, gamma) in degrees of sweep index ``k`` (alpha slowest, gamma fastest)."""
+    n = angles_deg.size
+    ia, rest = divmod(int(k), n * n)
+    ib, ig = divmod(rest, n)
+    return float(angles_deg[ia]), float(angles_deg[ib]), float(angles_deg[ig])
+
+
+def e_image(corrected: np.ndarray, ideal: np.ndarray) -> np.ndarray:
+    """Eq 17: sum over the four corners of the distance between corrected and ideal image."""
+    return np.sqrt(((np.asarray(corrected) - np.asarray(ideal)) ** 2).sum(axis=-1)).sum(axis=-1)
+
+
+def run_sweep(*, method: str = "paper", iterations: int = 10, step_deg: float = 1.0,
+              limit: Optional[int] = None, focal_px: float = FOCAL_PX, side: float = SIDE,
+              distance: float = DISTANCE, chunk: int = CHUNK,
+              progress: Optional[Callable[[int], None]] = None) -> SweepResult:
+    """Run the sweep; ``limit`` keeps the first N orientations; ``progress(n)`` after each chunk."""
+    from ..pose.loop import correction_loop, project_unrot
+
+    angles = angle_grid(step_deg)
+    n = angles.size
+    total = n ** 3 if limit is None else min(int(limit), n ** 3)
+    position = np.array([0.0, 0.0, distance])
+    ideal = np.asarray(project_unrot(np.eye(3), position, side, side, focal_px))
+    rad = np.radians(angles)
+    out = np.empty(total)
+    t0 = time.perf_counter()
+    for start in range(0, total, chunk):
+        k = np.arange(start, min(start + chunk, total))
+        ia, rest = np.divmod(k, n * n)
+        ib, ig = np.divmod(rest, n)
+        R = geometry.R_cam_unrot_from_paper_angles(rad[ia], rad[ib], rad[ig])
+        points = project_unrot(R, np.broadcast_to(position, (k.size, 3)), side, side, focal_px)
+        result = correction_loop(points, focal_px, side * side, method=method,
+                                 iterations=iterations)
+        out[start:start + k.size] = e_image(result.corrected, ideal)
+        if progress is not None:
+            progress(int(k.size))
+    seconds = time.perf_counter() - t0
+    return SweepResult(method, iterations, float(step_deg), focal_px, side, distance, seconds,
+                       out, angles)
+
+
+def format_sweep(result: SweepResult) -> str:
+    d = result.to_json_dict()
+    lines = [
+        f"orientation sweep: alpha, beta, gamma in [{RANGE_DEG[0]:g}, {RANGE_DEG[1]:g}) deg "
+        f"at {result.step_deg:g} deg steps",
+        f"square side {result.side:g} at (0, 0, {result.distance:g}), f = {result.focal_px:g} px, "
+        f"method {result.method}, {result.iterations} iterations",
+        "",
+        f"{'orientations':<22}{d['count']:,}",
+    ]
+    if d["max_e_image"] is not None:
+        w = d["worst"]
+        lines += [
+            f"{'max e_image (px)':<22}{d['max_e_image']:.3e}",
+            f"{'mean e_image (px)':<22}{d['mean_e_image']:.3e}",
+            f"{'median e_image (px)':<22}{d['median_e_image']:.3e}",
+            f"{'worst orientation':<22}alpha {w['alpha_deg']:g}, beta {w['beta_deg']:g}, "
+            f"gamma {w['gamma_deg']:g} deg",
+        ]
+    lines += [f"{'failed':<22}{d['failed']:,}",
+              f"{'time':<22}{result.seconds:.1f} s "
+              f"({result.count / max(result.seconds, 1e-9):,.0f} orientations/s)"]
+    return "\n".join(lines)
