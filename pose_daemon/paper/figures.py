@@ -14,31 +14,47 @@ from .unicycle import UnicycleResult
 UNICYCLE_FILES = ("fig7_trajectory.png", "fig8_heading.png", "fig9_heading_error.png")
 
 
+PAPER_E_IMAGE = 1.4023e-6  # the value Fig. 4 of the paper shows for every orientation
+
+
 def plot_sweep(result: SweepResult, path: str) -> Path:
-    """Fig. 4: e_image of every orientation against its index, and their distribution."""
-    fig, (ax, hist) = new_figure(1, 2, size_in=(11.0, 4.2))
+    """Fig. 4: e_image of every orientation against its index, their distribution, and
+    (when traced) the largest and mean e_image after each iteration."""
+    traced = result.by_iteration is not None
+    fig, axes = new_figure(1, 3 if traced else 2, size_in=(16.0 if traced else 11.0, 4.4))
+    ax, hist = axes[0], axes[1]
     e = result.e_image
     finite = np.isfinite(e) & (e > 0)
-    # A floor keeps exact zeros (possible with "iterative") on a log axis.
-    floor = 1e-17
-    shown = np.where(np.isfinite(e), np.maximum(e, floor), np.nan)
-    idx = np.arange(e.size)
-    ax.plot(idx, shown, ",", color="tab:blue", rasterized=True)
+    # A floor keeps exact zeros on a log axis.
+    shown = np.where(np.isfinite(e), np.maximum(e, 1e-17), np.nan)
+    ax.plot(np.arange(e.size) / 1000.0, shown, ",", color="tab:blue", rasterized=True)
+    ax.axhline(PAPER_E_IMAGE, color="tab:red", linestyle="--", label="paper (Fig. 4)")
     ax.set_yscale("log")
-    ax.set_xlabel("orientation index (alpha slowest, gamma fastest)")
+    ax.set_xlabel("orientation index / 1000 (alpha slowest, gamma fastest)")
     ax.set_ylabel("e_image (px, eq 17)")
-    ax.set_title(f"Error norm for each orientation: {result.method}, "
-                 f"{result.iterations} iterations")
+    ax.set_title(f"e_image per orientation: {result.method}, {result.iterations} iterations")
     ax.grid(True, which="major", alpha=0.3)
+    ax.legend(loc="center right")
     if finite.any():
-        logs = np.log10(e[finite])
-        hist.hist(logs, bins=80, color="tab:blue")
-        hist.axvline(np.log10(1.4023e-6), color="tab:red", linestyle="--",
-                     label="paper: 1.4023e-6")
-        hist.legend(loc="upper left")
+        hist.hist(np.log10(e[finite]), bins=80, color="tab:blue")
+    hist.axvline(np.log10(PAPER_E_IMAGE), color="tab:red", linestyle="--",
+                 label=f"paper: {PAPER_E_IMAGE:g}")
+    hist.legend(loc="upper left")
     hist.set_xlabel("log10 e_image (px)")
     hist.set_ylabel("orientations")
     hist.set_title(f"{result.count:,} orientations, max {np.nanmax(e):.2e} px")
+    if traced:
+        conv = axes[2]
+        its = np.arange(1, result.by_iteration.shape[0] + 1)
+        conv.semilogy(its, result.by_iteration[:, 0], "o-", label="max")
+        conv.semilogy(its, result.by_iteration[:, 1] / max(result.count, 1), "s--",
+                      label="mean")
+        conv.axhline(PAPER_E_IMAGE, color="tab:red", linestyle="--", label="paper")
+        conv.set_xlabel("iteration")
+        conv.set_ylabel("e_image after the iteration (px)")
+        conv.set_title("convergence over all orientations")
+        conv.grid(True, which="major", alpha=0.3)
+        conv.legend(loc="upper right")
     return save_figure(fig, path)
 
 

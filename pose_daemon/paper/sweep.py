@@ -33,6 +33,8 @@ class SweepResult:
     seconds: float
     e_image: np.ndarray = field(repr=False)  # (count,) in pixels, the sweep's order
     angles_deg: np.ndarray = field(repr=False)  # (n,) the grid of one axis
+    # (iterations, 2): max and sum of e_image after each iteration, over all orientations
+    by_iteration: Optional[np.ndarray] = field(default=None, repr=False)
 
     @property
     def count(self) -> int:
@@ -66,6 +68,11 @@ class SweepResult:
             "step_deg": self.step_deg,
             "range_deg": list(RANGE_DEG),
             "worst": self.worst() if self.count else None,
+            "max_e_image_by_iteration": (None if self.by_iteration is None else
+                                         [float(v) for v in self.by_iteration[:, 0]]),
+            "mean_e_image_by_iteration": (None if self.by_iteration is None else
+                                          [float(v) / max(self.count, 1)
+                                           for v in self.by_iteration[:, 1]]),
         }
 
 
@@ -90,9 +97,15 @@ def e_image(corrected: np.ndarray, ideal: np.ndarray) -> np.ndarray:
 
 def run_sweep(*, method: str = "paper", iterations: int = 10, step_deg: float = 1.0,
               limit: Optional[int] = None, focal_px: float = FOCAL_PX, side: float = SIDE,
-              distance: float = DISTANCE, chunk: int = CHUNK,
+              distance: float = DISTANCE, chunk: int = CHUNK, per_iteration: bool = True,
               progress: Optional[Callable[[int], None]] = None) -> SweepResult:
-    """Run the sweep; ``limit`` keeps the first N orientations; ``progress(n)`` after each chunk."""
+    """Run the sweep; ``limit`` keeps the first N orientations; ``progress(n)`` after each chunk.
+
+    With ``per_iteration`` the loop is traced and e_image is also taken after every
+    iteration (from the accumulated rotation: the corrections are pure ray rotations, so
+    the image corrected by R_est is the image of R_est^T R_true), to show how fast it falls.
+    The final e_image is always the loop's own corrected image against the ideal one.
+    """
     from ..pose.loop import correction_loop, project_unrot
 
     angles = angle_grid(step_deg)
@@ -102,6 +115,7 @@ def run_sweep(*, method: str = "paper", iterations: int = 10, step_deg: float = 
     ideal = np.asarray(project_unrot(np.eye(3), position, side, side, focal_px))
     rad = np.radians(angles)
     out = np.empty(total)
+    by_iteration = np.zeros((iterations, 2)) if per_iteration else None
     t0 = time.perf_counter()
     for start in range(0, total, chunk):
         k = np.arange(start, min(start + chunk, total))
@@ -110,13 +124,19 @@ def run_sweep(*, method: str = "paper", iterations: int = 10, step_deg: float = 
         R = geometry.R_cam_unrot_from_paper_angles(rad[ia], rad[ib], rad[ig])
         points = project_unrot(R, np.broadcast_to(position, (k.size, 3)), side, side, focal_px)
         result = correction_loop(points, focal_px, side * side, method=method,
-                                 iterations=iterations)
+                                 iterations=iterations, trace=per_iteration)
         out[start:start + k.size] = e_image(result.corrected, ideal)
+        if by_iteration is not None:
+            for i, step in enumerate(result.trace or []):
+                R_left = np.swapaxes(step.R_cam_unrot, -1, -2) @ R
+                e = e_image(project_unrot(R_left, position, side, side, focal_px), ideal)
+                by_iteration[i, 0] = max(by_iteration[i, 0], float(np.nanmax(e)))
+                by_iteration[i, 1] += float(np.nansum(e))
         if progress is not None:
             progress(int(k.size))
     seconds = time.perf_counter() - t0
     return SweepResult(method, iterations, float(step_deg), focal_px, side, distance, seconds,
-                       out, angles)
+                       out, angles, by_iteration)
 
 
 def format_sweep(result: SweepResult) -> str:
@@ -138,6 +158,12 @@ def format_sweep(result: SweepResult) -> str:
             f"{'worst orientation':<22}alpha {w['alpha_deg']:g}, beta {w['beta_deg']:g}, "
             f"gamma {w['gamma_deg']:g} deg",
         ]
+    if result.by_iteration is not None:
+        lines += ["", f"{'after iteration':<16}{'max e_image':>14}{'mean e_image':>14}"]
+        for i, (mx, mean) in enumerate(zip(d["max_e_image_by_iteration"],
+                                           d["mean_e_image_by_iteration"]), 1):
+            lines.append(f"{i:<16}{mx:14.3e}{mean:14.3e}")
+        lines.append("")
     lines += [f"{'failed':<22}{d['failed']:,}",
               f"{'time':<22}{result.seconds:.1f} s "
               f"({result.count / max(result.seconds, 1e-9):,.0f} orientations/s)"]
