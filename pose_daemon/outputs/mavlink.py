@@ -1,0 +1,419 @@
+"""MAVLink 2 output to a flight controller (ArduPilot, PX4): poses as ODOMETRY, VISION_POSITION_ESTIMATE
+and/or LANDING_TARGET, plus HEARTBEAT, STATUSTEXT and the optional GPS origin, over one link.
+
+The rules it keeps (shared/autopilot-rules.md, checked by tests/fc_acceptance.py):
+- HEARTBEAT every second as MAV_TYPE_ONBOARD_CONTROLLER (component 197 by default).
+- Poses only after the autopilot's HEARTBEAT was heard (``wait_heartbeat``).
+- ODOMETRY: frame_id MAV_FRAME_LOCAL_FRD, child_frame_id MAV_FRAME_BODY_FRD, estimator_type
+  VISION, quality 1-100 (quality.py), pose_covariance from the same, velocities NaN (not
+  estimated). No pose is ever sent for a frame without one: "lost" sends nothing.
+- time_usec = the frame's capture time in microseconds (monotonic clock), a Python int
+  (64 bits on the wire; never through a numpy default int, 32 bits on a 32-bit Pi).
+- At most one message of a type per ``min_interval_s`` (>= 20 ms: EKF3 drops closer ones).
+- reset_counter + 1 when the track comes back after a loss, after a gap longer than 300 ms
+  (ArduPilot's visual-odometry timeout), or when the pose jumps (``jump_m``/``jump_deg``).
+- LANDING_TARGET in MAV_FRAME_BODY_FRD with position_valid = 1, x/y/z the marker centre in
+  the body frame, angles and distance from the camera.
+
+The link is one pymavlink connection string (udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT,
+/dev/ttyX[:BAUD]) opened through ``mavutil.mavlink_connection``; this module does the reads
+and writes itself so that a failure is seen (pymavlink would print and carry on), and reopens
+the link with a doubling pause.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import math
+import socket
+import time
+from typing import Any, Callable, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from ..geometry import VehicleFrames, euler_rpy_from_R, quaternion_from_R, rotation_angle_deg
+from ..pose.types import Pose
+from ..result import FrameResult
+from .quality import pose_covariance_local, pose_quality
+from .worker import LinkBusy, LinkError, QueuedOutput
+
+MESSAGES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
+# ArduPilot's AP_VISUALODOM_TIMEOUT_MS: a longer silence makes the feed unhealthy, so the next
+# pose starts a new track (reset_counter + 1).
+HEALTH_GAP_S = 0.3
+HEARTBEAT_S = 1.0
+WRITE_TIMEOUT_S = 0.25
+NAN = float("nan")
+# MAVLink enum values (common.xml), named here so the module reads without the dialect.
+MAV_FRAME_BODY_FRD = 12
+MAV_FRAME_LOCAL_FRD = 20
+MAV_ESTIMATOR_TYPE_VISION = 2
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+MAV_TYPE_GCS = 6
+MAV_AUTOPILOT_INVALID = 8
+MAV_STATE_ACTIVE = 4
+MAV_SEVERITY_WARNING = 4
+MAV_SEVERITY_INFO = 6
+LANDING_TARGET_TYPE_VISION_FIDUCIAL = 2
+_SIGNING_EPOCH_S = 1420070400  # MAVLink 2 signing time stamps count from 2015-01-01
+
+
+def time_usec_from_s(t_s: float) -> int:
+    """Seconds -> integer microseconds as a Python int (no 32-bit intermediate)."""
+    return int(round(float(t_s) * 1e6))
+
+
+def signing_key_bytes(key: str) -> bytes:
+    """64 hex digits -> those 32 bytes; anything else is a passphrase hashed with SHA-256 (as MAVProxy)."""
+    k = key.strip()
+    if len(k) == 64:
+        try:
+            return bytes.fromhex(k)
+        except ValueError:
+            pass
+    return hashlib.sha256(key.encode("utf-8")).digest()
+
+
+def parse_connection(connection: str, baud: int) -> Tuple[str, str, int]:
+    """(kind, device for mavlink_connection, baud); kind is udpout, udpin, tcp or serial.
+
+    ValueError with what was expected for a string that cannot be a link.
+    """
+    s = connection.strip()
+    for prefix, kind in (("udpout:", "udpout"), ("udpin:", "udpin"), ("udp:", "udpin"), ("tcp:", "tcp")):
+        if s.startswith(prefix):
+            host, sep, port = s[len(prefix):].rpartition(":")
+            if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+                raise ValueError(f"{prefix}HOST:PORT with a port in 1..65535")
+            return kind, f"{'udpin:' if prefix == 'udp:' else prefix}{host}:{int(port)}", int(baud)
+    if s.startswith("/") or s.upper().startswith("COM"):
+        device, rate = s, int(baud)
+        for sep in (":", ","):
+            head, found, tail = s.rpartition(sep)
+            if found and tail.isdigit() and head:
+                device, rate = head, int(tail)
+                break
+        return "serial", device, rate
+    raise ValueError("udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT or a serial device such as "
+                     "/dev/serial0 (optionally /dev/serial0:921600)")
+
+
+class _MavlinkLink:
+    """One open connection: pymavlink's opener and MAVLink 2 encoder, with our own byte I/O."""
+
+    def __init__(self, kind: str, device: str, baud: int, source_system: int, source_component: int,
+                 signing_key: Optional[bytes]) -> None:
+        from pymavlink import mavutil
+        from pymavlink.dialects.v20 import common as mavlink2
+
+        self.kind = kind
+        self.conn = mavutil.mavlink_connection(device, baud=baud, source_system=source_system,
+                                               source_component=source_component, retries=0,
+                                               autoreconnect=False)
+        # MAVLink 2 whatever MAVLINK20 says, writing through self so that errors surface.
+        self.mav = mavlink2.MAVLink(self, srcSystem=source_system, srcComponent=source_component)
+        self.mav.robust_parsing = True
+        self.conn.mav = self.mav
+        if signing_key is not None:
+            self.mav.signing.secret_key = signing_key
+            self.mav.signing.sign_outgoing = True
+            self.mav.signing.link_id = 0
+            self.mav.signing.timestamp = int((max(time.time(), _SIGNING_EPOCH_S) - _SIGNING_EPOCH_S) * 1e5)
+            # Accept the autopilot's unsigned HEARTBEAT: we only listen for its presence.
+            self.mav.signing.allow_unsigned_callback = lambda mav, msgid: True
+        port = self.conn.port
+        if kind == "serial":
+            port.write_timeout = WRITE_TIMEOUT_S
+        elif kind == "tcp":
+            port.settimeout(WRITE_TIMEOUT_S)
+
+    # pymavlink's encoder calls this for every packed message.
+    def write(self, buf: bytes) -> int:
+        data = bytes(buf)
+        try:
+            if self.kind == "serial":
+                n = self.conn.port.write(data)
+                if n is not None and n < len(data):
+                    raise LinkBusy(f"serial write timed out after {n} of {len(data)} bytes")
+                return len(data)
+            if self.kind == "udpout":
+                try:
+                    self.conn.port.sendto(data, self.conn.destination_addr)
+                except ConnectionRefusedError:
+                    pass  # an ICMP "port unreachable" from an earlier datagram: nobody listens yet
+                except BlockingIOError as exc:
+                    raise LinkBusy("UDP send buffer full") from exc
+                return len(data)
+            if self.kind == "udpin":
+                self.conn.write(data)  # to every peer heard from (none yet: nothing is sent)
+                return len(data)
+            self.conn.port.sendall(data)
+            return len(data)
+        except LinkBusy:
+            raise
+        except Exception as exc:
+            if type(exc).__name__ == "SerialTimeoutException":
+                raise LinkBusy("serial write timed out") from exc
+            raise LinkError(f"write failed: {exc}") from exc
+
+    def read_messages(self) -> List[Any]:
+        """Every complete message waiting on the link (non-blocking)."""
+        out: List[Any] = []
+        for _ in range(64):
+            data = self._read_some()
+            if not data:
+                break
+            msgs = self.mav.parse_buffer(data)
+            if msgs:
+                out.extend(msgs)
+        return out
+
+    def _read_some(self) -> bytes:
+        port = self.conn.port
+        try:
+            if self.kind == "serial":
+                n = port.in_waiting
+                return port.read(n) if n else b""
+            if self.kind in ("udpout", "udpin"):
+                data = self.conn.recv()  # notes the sender as a peer (udpin)
+                return data if isinstance(data, (bytes, bytearray)) else b""
+            try:
+                data = port.recv(4096, socket.MSG_DONTWAIT)
+            except (BlockingIOError, InterruptedError):
+                return b""
+            if not data:
+                raise LinkError("connection closed by peer")
+            return data
+        except LinkError:
+            raise
+        except OSError as exc:
+            if exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK, errno.ECONNREFUSED):
+                return b""
+            raise LinkError(f"read failed: {exc}") from exc
+        except Exception as exc:
+            raise LinkError(f"read failed: {exc}") from exc
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+class MavlinkOutput(QueuedOutput):
+    """Streams each pose to a flight controller; see the module docstring for the rules."""
+
+    name = "mavlink"
+    tick_s = 0.05  # how often incoming bytes are read and the heartbeat is checked
+
+    def __init__(self, connection: str, frames: VehicleFrames, *, fx_px: float, marker_width_m: float,
+                 marker_height_m: Optional[float] = None, baud: int = 921600, messages: Sequence[str] = ("ODOMETRY",), source_system: int = 1,
+                 source_component: int = 197, wait_heartbeat: bool = True, min_interval_s: float = 0.02,
+                 lost_timeout_s: float = 0.3, jump_m: float = 0.5, jump_deg: float = 30.0,
+                 statustext: bool = True, origin: Optional[Sequence[float]] = None, set_home: bool = False,
+                 signing_key: Optional[str] = None, queue_size: int = 4, retry_s: float = 0.5,
+                 retry_max_s: float = 5.0, clock: Callable[[], float] = time.monotonic,
+                 start: bool = True) -> None:
+        self.kind, self.device, self.baud = parse_connection(connection, baud)
+        bad = [m for m in messages if m not in MESSAGES]
+        if bad or not messages:
+            raise ValueError(f"messages must be some of {', '.join(MESSAGES)}, got {list(messages)}")
+        self.connection = connection
+        self.frames = frames
+        self.fx_px = float(fx_px)
+        self.marker_width_m = float(marker_width_m)
+        self.marker_height_m = float(marker_height_m) if marker_height_m is not None else self.marker_width_m
+        self.messages = tuple(messages)
+        self.source_system = int(source_system)
+        self.source_component = int(source_component)
+        self.wait_heartbeat = bool(wait_heartbeat)
+        self.min_interval_s = float(min_interval_s)
+        self.lost_timeout_s = float(lost_timeout_s)
+        self.jump_m = float(jump_m)
+        self.jump_deg = float(jump_deg)
+        self.statustext = bool(statustext)
+        self.origin = tuple(float(v) for v in origin) if origin is not None else None
+        self.set_home = bool(set_home)
+        self._signing_key = signing_key_bytes(signing_key) if signing_key else None
+        self._link: Optional[_MavlinkLink] = None
+        self._last_heartbeat_t = -1e18
+        self.autopilot_system: Optional[int] = None
+        self._autopilot_heard_t: Optional[float] = None
+        self._origin_sent = False
+        self._started_text_sent = False
+        # Track state (touched by the writer thread only).
+        self.reset_counter = 0
+        self._last_sent_t: Optional[float] = None
+        self._last_sent_pose: Optional[Tuple[np.ndarray, np.ndarray]] = None
+        self._last_pose_t: Optional[float] = None
+        self._tracked = False
+        self._lost = False
+        super().__init__(queue_size=queue_size, retry_s=retry_s, retry_max_s=retry_max_s, clock=clock,
+                         start=start)
+
+    @classmethod
+    def from_config(cls, cfg, **kwargs) -> MavlinkOutput:
+        m = cfg.output.mavlink
+        return cls(m.connection, VehicleFrames.from_config(cfg.mount, cfg.marker.placement),
+                   fx_px=cfg.camera.fx, marker_width_m=cfg.marker.width,
+                   marker_height_m=cfg.marker.height, baud=m.baud, messages=m.messages,
+                   source_system=m.source_system, source_component=m.source_component,
+                   wait_heartbeat=m.wait_heartbeat, min_interval_s=m.min_interval_s,
+                   lost_timeout_s=m.lost_timeout_s, jump_m=m.jump_m, jump_deg=m.jump_deg,
+                   statustext=m.statustext, origin=m.origin, set_home=m.set_home, signing_key=m.signing_key,
+                   queue_size=cfg.pipeline.output_buffer, retry_s=m.retry_s, retry_max_s=m.retry_max_s,
+                   **kwargs)
+
+    def stats(self) -> dict:
+        s = super().stats()
+        s["reset_counter"] = self.reset_counter
+        s["autopilot"] = self.autopilot_system
+        if s["link_up"] and self.wait_heartbeat and self.autopilot_system is None:
+            s["link"] = "up, waiting for the autopilot's HEARTBEAT"
+        return s
+
+    # ------------------------------------------------------------------ link
+
+    def _open(self) -> None:
+        self._link = _MavlinkLink(self.kind, self.device, self.baud, self.source_system,
+                                  self.source_component, self._signing_key)
+
+    def _close_link(self) -> None:
+        link, self._link = self._link, None
+        if link is not None:
+            link.close()
+
+    def _on_link_up(self) -> None:
+        self._last_heartbeat_t = -1e18
+        self._origin_sent = False
+        self._send_heartbeat(self._clock())
+        if self.statustext:
+            text = "pose-daemon started" if not self._started_text_sent else "pose-daemon link reopened"
+            self._started_text_sent = True
+            self._send_text(MAV_SEVERITY_INFO, text)
+
+    def _tick(self, now: float) -> None:
+        assert self._link is not None
+        for msg in self._link.read_messages():
+            self._on_message(msg, now)
+        if now - self._last_heartbeat_t >= HEARTBEAT_S:
+            self._send_heartbeat(now)
+
+    def _on_message(self, msg: Any, now: float) -> None:
+        if msg.get_type() != "HEARTBEAT":
+            return
+        if msg.autopilot == MAV_AUTOPILOT_INVALID or msg.type in (MAV_TYPE_GCS, MAV_TYPE_ONBOARD_CONTROLLER):
+            return
+        if self.autopilot_system is None:
+            self.log.info("autopilot heard: system %d", msg.get_srcSystem())
+        self.autopilot_system = msg.get_srcSystem()
+        self._autopilot_heard_t = now
+        if self.origin is not None and not self._origin_sent:
+            self._send_origin(now)
+
+    def _send_heartbeat(self, now: float) -> None:
+        assert self._link is not None
+        self._link.mav.heartbeat_send(MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE)
+        self._last_heartbeat_t = now
+        self._count("heartbeats")
+
+    def _send_text(self, severity: int, text: str) -> None:
+        assert self._link is not None
+        self._link.mav.statustext_send(severity, text.encode("ascii", "replace")[:50])
+        self._count("statustexts")
+
+    def _send_origin(self, now: float) -> None:
+        assert self._link is not None and self.origin is not None
+        lat, lon, alt = self.origin
+        lat_e7, lon_e7, alt_mm = int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1e3))
+        target = self.autopilot_system or 0
+        t_us = time_usec_from_s(now)
+        self._link.mav.set_gps_global_origin_send(target, lat_e7, lon_e7, alt_mm, t_us)
+        if self.set_home:
+            self._link.mav.set_home_position_send(target, lat_e7, lon_e7, alt_mm, 0.0, 0.0, 0.0,
+                                                  [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, t_us)
+        self._origin_sent = True
+        self.log.info("GPS origin sent to system %d: %.7f %.7f %.1f m", target, lat, lon, alt)
+
+    # ------------------------------------------------------------------ poses
+
+    def _write(self, result: FrameResult) -> int:
+        assert self._link is not None
+        t = float(result.t_capture_s)
+        pose = result.pose
+        if pose is None:
+            if self._tracked and self._last_pose_t is not None and t - self._last_pose_t >= self.lost_timeout_s:
+                self._tracked = False
+                self._lost = True
+                if self.statustext:
+                    self._send_text(MAV_SEVERITY_WARNING, "pose-daemon: marker lost")
+            self._drop("no_pose")
+            return 0
+        self._last_pose_t = t
+        if self.wait_heartbeat and self.autopilot_system is None:
+            self._drop("no_autopilot")
+            return 0
+        if self._last_sent_t is not None:
+            if t <= self._last_sent_t:
+                self._drop("out_of_order")
+                return 0
+            if t - self._last_sent_t < self.min_interval_s - 1e-9:
+                self._drop("rate")
+                return 0
+        vehicle = self.frames.vehicle_pose(pose.R, pose.tvec)
+        p, R = vehicle.p_local_body_m, vehicle.R_local_body
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(R))):
+            self._drop("not_finite")
+            return 0
+        found_again = self._lost
+        if self._last_sent_t is not None and (found_again or t - self._last_sent_t > HEALTH_GAP_S
+                                              or self._jumped(p, R)):
+            self.reset_counter = (self.reset_counter + 1) % 256
+        if found_again and self.statustext:
+            self._send_text(MAV_SEVERITY_INFO, "pose-daemon: marker found")
+        self._lost = False
+        self._tracked = True
+        n = self._send_pose(time_usec_from_s(t), pose, p, R)
+        self._last_sent_t = t
+        self._last_sent_pose = (p, R)
+        return n
+
+    def _jumped(self, p: np.ndarray, R: np.ndarray) -> bool:
+        if self._last_sent_pose is None:
+            return False
+        p0, R0 = self._last_sent_pose
+        return (float(np.linalg.norm(p - p0)) > self.jump_m
+                or float(rotation_angle_deg(R0, R)) > self.jump_deg)
+
+    def _send_pose(self, t_us: int, pose: Pose, p: np.ndarray, R: np.ndarray) -> int:
+        assert self._link is not None
+        mav = self._link.mav
+        quality = pose_quality(pose.reprojection_error_px, pose.ambiguity_ratio)
+        cov = pose_covariance_local(pose, self.frames, self.fx_px, self.marker_width_m)
+        x, y, z = (float(v) for v in p)
+        n = 0
+        for name in self.messages:
+            if name == "ODOMETRY":
+                q = [float(v) for v in quaternion_from_R(R)]
+                mav.odometry_send(t_us, MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD, x, y, z, q,
+                                  NAN, NAN, NAN, NAN, NAN, NAN, cov, [NAN] * 21,
+                                  self.reset_counter, MAV_ESTIMATOR_TYPE_VISION, quality)
+            elif name == "VISION_POSITION_ESTIMATE":
+                roll, pitch, yaw = (float(v) for v in euler_rpy_from_R(R))
+                mav.vision_position_estimate_send(t_us, x, y, z, roll, pitch, yaw, cov, self.reset_counter)
+            else:
+                self._send_landing_target(t_us, pose)
+            n += 1
+        return n
+
+    def _send_landing_target(self, t_us: int, pose: Pose) -> None:
+        assert self._link is not None
+        t = np.asarray(pose.tvec, dtype=np.float64)
+        distance = float(np.linalg.norm(t))
+        angle_x = math.atan2(float(t[0]), float(t[2]))
+        angle_y = math.atan2(float(t[1]), float(t[2]))
+        size_x = 2.0 * math.atan2(self.marker_width_m / 2.0, distance)
+        size_y = 2.0 * math.atan2(self.marker_height_m / 2.0, distance)
+        xb, yb, zb = (float(v) for v in self.frames.marker_in_body(t))
+        q = [float(v) for v in quaternion_from_R(self.frames.R_body_cam @ np.asarray(pose.R))]
+        self._link.mav.landing_target_send(t_us, 0, MAV_FRAME_BODY_FRD, angle_x, angle_y, distance,
+                                           size_x, size_y, xb, yb, zb, q,
+                                           LANDING_TARGET_TYPE_VISION_FIDUCIAL, 1)

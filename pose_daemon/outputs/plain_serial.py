@@ -1,0 +1,141 @@
+"""Plain serial output for microcontrollers that speak no MAVLink: one NMEA-style line per pose.
+
+Line format (ASCII, CR LF terminated)::
+
+    $POSE,<t_us>,<x_m>,<y_m>,<z_m>,<roll_deg>,<pitch_deg>,<yaw_deg>,<quality>*HH
+
+- t_us: the frame's capture time, integer microseconds (monotonic clock).
+- x_m, y_m, z_m: the vehicle in the local FRD frame fixed to the marker (geometry.py), metres,
+  4 decimals.
+- roll_deg, pitch_deg, yaw_deg: the vehicle's attitude in that frame, degrees, 2 decimals.
+- quality: 1 (worst) .. 100 (best); -1 when there is no pose, and then the six pose fields are
+  empty (``$POSE,12345678,,,,,,,-1*HH``).
+- HH: two upper-case hex digits, the XOR of every byte between ``$`` and ``*``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable, Optional
+
+import numpy as np
+
+from ..geometry import VehicleFrames
+from ..result import FrameResult
+from .mavlink import time_usec_from_s
+from .quality import LOST_QUALITY, pose_quality
+from .worker import LinkBusy, LinkError, QueuedOutput
+
+WRITE_TIMEOUT_S = 0.25
+
+
+def nmea_checksum(body: str) -> str:
+    """Two hex digits: XOR of the bytes of ``body`` (the text between ``$`` and ``*``)."""
+    c = 0
+    for b in body.encode("ascii"):
+        c ^= b
+    return f"{c:02X}"
+
+
+def pose_line(result: FrameResult, frames: VehicleFrames) -> Optional[str]:
+    """The ``$POSE`` line (with CR LF) for one result; None when the pose is not finite."""
+    t_us = time_usec_from_s(result.t_capture_s)
+    pose = result.pose
+    if pose is None:
+        body = f"POSE,{t_us},,,,,,,{LOST_QUALITY}"
+    else:
+        v = frames.vehicle_pose(pose.R, pose.tvec)
+        p = v.p_local_body_m
+        rpy = np.degrees(v.rpy_rad)
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(rpy))):
+            return None
+        q = pose_quality(pose.reprojection_error_px, pose.ambiguity_ratio)
+        # "+ 0.0" turns -0.0 into 0.0 so that a still vehicle prints the same line every time.
+        fields = [f"{float(x) + 0.0:.4f}" for x in p] + [f"{float(a) + 0.0:.2f}" for a in rpy]
+        body = f"POSE,{t_us}," + ",".join(fields) + f",{q}"
+    return f"${body}*{nmea_checksum(body)}\r\n"
+
+
+def parse_pose_line(line: str) -> dict:
+    """The inverse of ``pose_line`` (checks the checksum); ValueError for a bad line.
+
+    For receivers written in Python and for the tests; a microcontroller does the same in C.
+    """
+    s = line.rstrip("\r\n")
+    if not s.startswith("$") or len(s) < 4 or s[-3] != "*":
+        raise ValueError(f"not a $POSE line: {line!r}")
+    body, hh = s[1:-3], s[-2:]
+    if nmea_checksum(body) != hh.upper():
+        raise ValueError(f"checksum mismatch: {hh} != {nmea_checksum(body)}")
+    parts = body.split(",")
+    if parts[0] != "POSE" or len(parts) != 9:
+        raise ValueError(f"expected POSE and 8 fields, got {body!r}")
+    out = {"t_us": int(parts[1]), "quality": int(parts[8])}
+    names = ("x_m", "y_m", "z_m", "roll_deg", "pitch_deg", "yaw_deg")
+    for name, text in zip(names, parts[2:8]):
+        out[name] = float(text) if text else math.nan
+    return out
+
+
+class PlainSerialOutput(QueuedOutput):
+    """Writes ``$POSE`` lines to a serial port (or any pyserial URL); reopens it when it vanishes."""
+
+    name = "serial"
+
+    def __init__(self, port: str, frames: VehicleFrames, *, baud: int = 115200, min_interval_s: float = 0.0,
+                 send_lost: bool = True, queue_size: int = 4, retry_s: float = 0.5, retry_max_s: float = 5.0,
+                 clock: Callable[[], float] = time.monotonic, start: bool = True) -> None:
+        self.port = port
+        self.baud = int(baud)
+        self.frames = frames
+        self.min_interval_s = float(min_interval_s)
+        self.send_lost = bool(send_lost)
+        self._serial = None
+        self._last_sent_t: Optional[float] = None
+        super().__init__(queue_size=queue_size, retry_s=retry_s, retry_max_s=retry_max_s, clock=clock,
+                         start=start)
+
+    @classmethod
+    def from_config(cls, cfg, **kwargs) -> PlainSerialOutput:
+        s = cfg.output.serial
+        return cls(s.port, VehicleFrames.from_config(cfg.mount, cfg.marker.placement), baud=s.baud,
+                   min_interval_s=s.min_interval_s, send_lost=s.send_lost,
+                   queue_size=cfg.pipeline.output_buffer, retry_s=s.retry_s, retry_max_s=s.retry_max_s, **kwargs)
+
+    def _open(self) -> None:
+        import serial
+
+        self._serial = serial.serial_for_url(self.port, baudrate=self.baud, timeout=0,
+                                             write_timeout=WRITE_TIMEOUT_S)
+
+    def _close_link(self) -> None:
+        port, self._serial = self._serial, None
+        if port is not None:
+            port.close()
+
+    def _write(self, result: FrameResult) -> int:
+        import serial
+
+        t = float(result.t_capture_s)
+        if result.pose is None and not self.send_lost:
+            self._drop("no_pose")
+            return 0
+        if self._last_sent_t is not None and self.min_interval_s > 0 and t - self._last_sent_t < self.min_interval_s:
+            self._drop("rate")
+            return 0
+        line = pose_line(result, self.frames)
+        if line is None:
+            self._drop("not_finite")
+            return 0
+        data = line.encode("ascii")
+        try:
+            n = self._serial.write(data)
+        except serial.SerialTimeoutException as exc:
+            raise LinkBusy("serial write timed out (nobody reading?)") from exc
+        except Exception as exc:
+            raise LinkError(f"write failed: {exc}") from exc
+        if n is not None and n < len(data):
+            raise LinkBusy(f"serial write timed out after {n} of {len(data)} bytes")
+        self._last_sent_t = t
+        return 1
