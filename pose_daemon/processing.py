@@ -1,11 +1,14 @@
 """Per-frame processing shared by the daemon and replay: detect the corners, estimate the pose.
 
 Times itself per stage, so latency figures are a by-product. Never raises for a bad frame:
-the FrameResult says what went wrong.
+the FrameResult says what went wrong. A plain square has two planar solutions that fit its
+corners almost equally well; when the estimator says the choice is a guess, the one closer to
+the previous frame's pose is kept (continuity), and a lost marker starts a new track.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Optional
 
@@ -13,8 +16,35 @@ import numpy as np
 
 from .camera import Camera, Marker
 from .capture.base import Frame
-from .pose.types import EstimationError
+from .geometry import rotation_angle_deg
+from .pose.types import EstimationError, Pose
 from .result import FrameResult
+
+# Pose.ambiguity_ratio (best residual / alternative's) at or above which the estimator's pick is
+# treated as a guess: the alternative then fits within a factor 1/0.5 = 2 of the best.
+AMBIGUOUS_RATIO = 0.5
+
+
+def _pose_distance(a: Pose, b: Pose) -> float:
+    """How far apart two poses are: rotation angle (degrees) + camera displacement (per cm)."""
+    angle_deg = float(rotation_angle_deg(a.R, b.R))
+    shift_m = float(np.linalg.norm(a.camera_position - b.camera_position))
+    return angle_deg + 100.0 * shift_m
+
+
+def choose_by_continuity(pose: Pose, previous: Optional[Pose]) -> Pose:
+    """The planar solution closer to ``previous`` when ``pose`` is ambiguous; else ``pose`` itself.
+
+    The returned pose keeps the estimator's ambiguity_ratio and carries the other solution
+    as its ``alternative``.
+    """
+    alt = pose.alternative
+    if previous is None or alt is None or not pose.ambiguity_ratio >= AMBIGUOUS_RATIO:
+        return pose
+    if _pose_distance(alt, previous) >= _pose_distance(pose, previous):
+        return pose
+    return dataclasses.replace(alt, alternative=dataclasses.replace(pose, alternative=None),
+                               ambiguity_ratio=pose.ambiguity_ratio)
 
 
 class FrameProcessor:
@@ -32,10 +62,28 @@ class FrameProcessor:
         self.refine = refine
         self.detector = detector if detector is not None else MarkerDetector(marker)
         self._estimate = estimate_pose
+        self._previous: Optional[Pose] = None
+        # Frames whose ambiguous pose was flipped to the alternative by continuity.
+        self.flips = 0
+
+    @classmethod
+    def from_config(cls, cfg) -> FrameProcessor:
+        """The processor a Config asks for: its camera, marker, estimator and detector keys."""
+        import inspect
+
+        from .detect import MarkerDetector
+
+        marker = cfg.marker.model()
+        accepted = inspect.signature(MarkerDetector).parameters
+        options = {k: getattr(cfg.detector, k) for k in ("max_misses", "min_side_px") if k in accepted}
+        return cls(cfg.camera.model(), marker, method=cfg.estimator.method,
+                   iterations=cfg.estimator.iterations, refine=cfg.estimator.refine,
+                   detector=MarkerDetector(marker, **options))
 
     def reset(self) -> None:
         """Forget tracking state (after a source restart or a long gap)."""
         self.detector.reset()
+        self._previous = None
 
     def process(self, frame: Frame) -> FrameResult:
         result = FrameResult(seq=frame.seq, t_capture_s=frame.t_capture_s)
@@ -45,12 +93,19 @@ class FrameProcessor:
         result.stage_s["detect"] = t1 - t0
         if corners is None:
             result.error = "no marker"
+            self._previous = None  # lost: the next sighting starts a new track
             return result
         result.corners = corners
         try:
-            result.pose = self._estimate(corners, self.camera, self.marker, method=self.method,
-                                         iterations=self.iterations, refine=self.refine)
+            pose = self._estimate(corners, self.camera, self.marker, method=self.method,
+                                  iterations=self.iterations, refine=self.refine)
         except EstimationError as exc:
             result.error = f"pose: {exc}"
+            self._previous = None
+        else:
+            chosen = choose_by_continuity(pose, self._previous)
+            if chosen is not pose:
+                self.flips += 1
+            result.pose = self._previous = chosen
         result.stage_s["estimate"] = time.perf_counter() - t1
         return result

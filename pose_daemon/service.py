@@ -1,0 +1,239 @@
+"""The service shell around the pipeline: signals, systemd notification and watchdog, status lines.
+
+systemd (Type=notify) hears READY=1 after the first frame, WATCHDOG=1 only while results
+really reach the outputs (a stalled camera gets the service restarted), STATUS= lines and
+STOPPING=1. SIGTERM/SIGINT stop cleanly (exit 0), SIGUSR1 logs a status line.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import sys
+import threading
+import time
+from typing import Callable, Dict, List, Mapping, Optional, Sequence
+
+from .capture.base import FrameSource
+from .config import Config
+from .outputs.base import Output
+from .pipeline import Pipeline
+
+log = logging.getLogger("pose_daemon.service")
+
+# Longest a clean stop may take (systemd and users expect SIGTERM -> exit within 2 s).
+STOP_TIMEOUT_S = 1.5
+
+
+class SdNotifier:
+    """sd_notify(3) over $NOTIFY_SOCKET with the socket module; silent when not under systemd."""
+
+    def __init__(self, address: Optional[str] = None) -> None:
+        if address is None:
+            address = os.environ.get("NOTIFY_SOCKET")
+        self.address: Optional[str] = None
+        if address:
+            # "@name" is a socket in the abstract namespace.
+            self.address = "\0" + address[1:] if address.startswith("@") else address
+        self._sock: Optional[socket.socket] = None
+        self.failed = False
+
+    @property
+    def enabled(self) -> bool:
+        return self.address is not None
+
+    def notify(self, *lines: str) -> bool:
+        """Send "KEY=value" lines as one datagram; False (never an exception) when it failed."""
+        if self.address is None or not lines:
+            return False
+        try:
+            if self._sock is None:
+                self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+            self._sock.sendto("\n".join(lines).encode("utf-8", "replace"), self.address)
+            return True
+        except OSError as exc:
+            if not self.failed:
+                log.warning("sd_notify to %r failed: %s", self.address, exc)
+            self.failed = True
+            return False
+
+    def close(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+
+def watchdog_interval_s(env: Optional[Mapping[str, str]] = None) -> Optional[float]:
+    """systemd's watchdog period (WATCHDOG_USEC) in seconds when it applies to this process."""
+    env = os.environ if env is None else env
+    usec = env.get("WATCHDOG_USEC")
+    if not usec:
+        return None
+    pid = env.get("WATCHDOG_PID")
+    if pid and pid.strip() != str(os.getpid()):
+        return None
+    try:
+        value = int(usec)
+    except ValueError:
+        return None
+    return value / 1e6 if value > 0 else None
+
+
+def setup_logging(level: str) -> None:
+    """Log lines on stderr; without time stamps under systemd, whose journal adds its own."""
+    fmt = "%(levelname)s %(name)s: %(message)s"
+    if not os.environ.get("JOURNAL_STREAM"):
+        fmt = "%(asctime)s " + fmt
+    root = logging.getLogger()
+    for handler in list(root.handlers):
+        root.removeHandler(handler)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter(fmt))
+    root.addHandler(handler)
+    root.setLevel(level)
+
+
+def build_processor(cfg: Config):
+    """The FrameProcessor the config asks for (camera, marker, estimator, detector)."""
+    from .processing import FrameProcessor
+
+    return FrameProcessor.from_config(cfg)
+
+
+class Service:
+    """Runs the pipeline until a signal or the end of the stream, talking to systemd on the way."""
+
+    def __init__(self, cfg: Config, *, source: Optional[FrameSource] = None,
+                 outputs: Optional[Sequence[Output]] = None, processor=None,
+                 notifier: Optional[SdNotifier] = None,
+                 env: Optional[Mapping[str, str]] = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.cfg = cfg
+        self.clock = clock
+        if source is None:
+            from .capture import open_source
+
+            source = open_source(cfg.camera, cfg)
+        if processor is None:
+            processor = build_processor(cfg)
+        if outputs is None:
+            from .outputs import open_outputs
+
+            outputs = open_outputs(cfg)
+        self.outputs: List[Output] = list(outputs)
+        self.pipeline = Pipeline.from_config(cfg, source, processor, self.outputs, clock=clock)
+        self.notifier = notifier if notifier is not None else SdNotifier()
+        self.watchdog_s = watchdog_interval_s(env)
+        self._stop = threading.Event()
+        self._status_requested = threading.Event()
+        self.stop_reason: Optional[str] = None
+        self.watchdog_pings = 0
+
+    # Signal handlers only set flags; the main loop acts on them.
+    def request_stop(self, reason: str = "stop requested") -> None:
+        if self.stop_reason is None:
+            self.stop_reason = reason
+        self._stop.set()
+
+    def request_status(self) -> None:
+        self._status_requested.set()
+
+    def install_signal_handlers(self) -> Dict[int, object]:
+        """SIGTERM/SIGINT -> clean stop, SIGUSR1 -> status line; returns the previous handlers."""
+        previous: Dict[int, object] = {}
+
+        def on_stop(signum, _frame):
+            self.request_stop(signal.Signals(signum).name)
+
+        def on_status(_signum, _frame):
+            self.request_status()
+
+        for signum, handler in ((signal.SIGTERM, on_stop), (signal.SIGINT, on_stop),
+                                (signal.SIGUSR1, on_status)):
+            previous[signum] = signal.signal(signum, handler)
+        return previous
+
+    def run(self) -> int:
+        """0 after a clean stop or the end of a finite source; 1 when the pipeline crashed."""
+        interval_s = self.cfg.pipeline.status_interval_s
+        wd_s = self.watchdog_s
+        ping_every_s = wd_s / 2.0 if wd_s else None
+        self.pipeline.start()
+        log.info("started: source %s, outputs %s, latency budget %.0f ms", self.cfg.camera.source,
+                 ", ".join(w.name for w in self.pipeline.workers) or "none",
+                 self.cfg.pipeline.latency_budget_s * 1e3)
+        self.notifier.notify("STATUS=waiting for the first frame")
+        ready = False
+        now = self.clock()
+        next_status = now + interval_s
+        next_ping = now
+        last_ping = now
+        try:
+            while not self._stop.is_set():
+                if self.pipeline.finished.is_set():
+                    self.stop_reason = self.pipeline.end_reason or "pipeline ended"
+                    break
+                self._stop.wait(0.05)
+                now = self.clock()
+                if not ready and self.pipeline.first_frame.is_set():
+                    ready = True
+                    self.notifier.notify("READY=1", "STATUS=first frame processed")
+                    log.info("first frame processed")
+                if ping_every_s is not None and ready and now >= next_ping:
+                    # Alive only if results reached the outputs since the last ping.
+                    progress = self.pipeline.last_progress_s
+                    if progress is not None and progress > last_ping:
+                        self.notifier.notify("WATCHDOG=1")
+                        self.watchdog_pings += 1
+                        last_ping = now
+                    next_ping = now + ping_every_s
+                if self._status_requested.is_set():
+                    self._status_requested.clear()
+                    self._log_status(reset=False)
+                if now >= next_status:
+                    next_status = now + interval_s
+                    self._log_status(reset=True)
+        finally:
+            self.notifier.notify("STOPPING=1", f"STATUS=stopping: {self.stop_reason or 'stop'}")
+            log.info("stopping: %s", self.stop_reason or "stop")
+            clean = self.pipeline.stop(STOP_TIMEOUT_S)
+            if not clean:
+                log.warning("a thread did not end within %.1f s (a camera read stuck?)", STOP_TIMEOUT_S)
+            self._close_outputs(deadline_s=self.clock() + 0.3)
+            self._log_status(reset=True)
+            self.notifier.close()
+        crashed = (self.pipeline.end_reason or "").split(":")[0].endswith("crashed")
+        return 1 if crashed else 0
+
+    def _log_status(self, reset: bool) -> None:
+        line = self.pipeline.status_line(reset=reset)
+        log.info("status: %s", line)
+        parts = line.split("; ")
+        self.notifier.notify("STATUS=" + "; ".join(parts[:2] + [p for p in parts if p.startswith("source ")]))
+
+    def _close_outputs(self, deadline_s: float) -> None:
+        # A close that blocks (a serial port wedged) must not hold up the exit.
+        def close_all() -> None:
+            for out in self.outputs:
+                try:
+                    out.close()
+                except Exception as exc:
+                    log.warning("closing output %s failed: %s", getattr(out, "name", out), exc)
+
+        t = threading.Thread(target=close_all, name="close-outputs", daemon=True)
+        t.start()
+        t.join(max(0.0, deadline_s - self.clock()))
+
+
+def run_daemon(cfg: Config) -> int:
+    """``pose-daemon run``: the service in the main thread until SIGTERM/SIGINT; exit status."""
+    setup_logging(cfg.logging.level)
+    service = Service(cfg)
+    previous = service.install_signal_handlers()
+    try:
+        return service.run()
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)  # type: ignore[arg-type]

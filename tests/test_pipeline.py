@@ -1,0 +1,173 @@
+"""The threaded pipeline: newest frame wins, the latency budget, slow outputs, source faults, status."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+from pipeline_fakes import FakeOutput, FakeProcessor, FakeSource
+
+from pose_daemon.pipeline import LatencyWindow, NewestSlot, Pipeline
+
+
+def _run(pipeline: Pipeline, timeout_s: float = 10.0) -> None:
+    pipeline.start()
+    assert pipeline.wait(timeout_s), "pipeline did not finish"
+    pipeline.stop()
+
+
+def test_newest_slot_replaces_and_counts():
+    slot = NewestSlot()
+    assert slot.put("a", 0, 1.0) is False
+    assert slot.put("b", 0, 2.0) is True
+    assert slot.get(0.01) == ("b", 0, 2.0)
+    assert slot.get(0.01) is None
+    slot.put("c", 1, 3.0)
+    slot.close()
+    assert not slot.closed  # closed, but a frame still waits
+    assert slot.get(0.01) == ("c", 1, 3.0)
+    assert slot.closed and slot.get(0.01) is None
+
+
+def test_latency_window_percentiles_and_bounded_size():
+    w = LatencyWindow(size=100)
+    for i in range(1, 101):
+        w.add("total", i / 1000.0)
+    p50, p95, mx = w.summary_ms("total")
+    assert p50 == pytest.approx(50.5) and p95 == pytest.approx(95.05) and mx == pytest.approx(100.0)
+    for _ in range(100):
+        w.add("total", 0.001)  # the ring keeps the newest 100 only
+    assert w.summary_ms("total") == pytest.approx((1.0, 1.0, 1.0))
+    assert w.summary_ms("detect") is None
+
+
+def test_newest_frame_wins_and_every_replaced_frame_is_counted():
+    source = FakeSource(frames=150, period_s=0.0005)
+    proc = FakeProcessor(delay=lambda s: 0.006)
+    out = FakeOutput()
+    p = Pipeline(source, proc, [out], latency_budget_s=5.0)
+    _run(p)
+    snap = p.stats.snapshot()
+    assert snap["captured"] == 150
+    assert snap["drops"].get("replaced", 0) > 50  # processing is ~10x slower than capture
+    assert snap["processed"] + snap["drops"]["replaced"] == 150
+    assert proc.seen == sorted(proc.seen) and len(set(proc.seen)) == len(proc.seen)
+    assert proc.seen[-1] == 149  # the newest frame is never the one dropped
+    assert [g[0] for g in out.got] == proc.seen
+    assert source.closes == 1
+
+
+def test_budget_drops_late_frames_before_and_after_processing():
+    gate = threading.Semaphore(0)
+    old = {3, 7, 11}  # captured 0.5 s ago: late before processing
+    slow = {5, 9}  # processing takes longer than the budget
+    source = FakeSource(frames=15, old_seqs=old, gate=gate)
+    proc = FakeProcessor(delay=lambda s: 0.15 if s in slow else 0.0, gate=gate)
+    out = FakeOutput()
+    p = Pipeline(source, proc, [out], latency_budget_s=0.1)
+    _run(p)
+    snap = p.stats.snapshot()
+    assert snap["drops"] == {"late": 5}
+    assert sorted(proc.seen) == sorted(set(range(15)) - old)
+    assert [g[0] for g in out.got] == sorted(set(range(15)) - old - slow)
+    # Nothing left later than the budget: latency_s is the time of writing after capture.
+    assert all(0.0 <= g[2] <= 0.1 for g in out.got)
+    line = p.status_line()
+    assert "frames 12, drops late 5;" in line
+
+
+def test_slow_output_never_blocks_capture_processing_or_other_outputs():
+    release = threading.Event()
+    fast, slow = FakeOutput("fast"), FakeOutput("slow", block=release)
+    source = FakeSource(frames=60, period_s=0.002)
+    proc = FakeProcessor()
+    p = Pipeline(source, proc, [fast, slow], latency_budget_s=5.0, output_buffer=4)
+    p.start()
+    deadline = time.monotonic() + 10
+    while p.stats.snapshot()["processed"] + p.stats.snapshot()["drops"].get("replaced", 0) < 60:
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    time.sleep(0.05)
+    snap = p.stats.snapshot()
+    processed = snap["processed"]
+    assert len(fast.got) == processed
+    assert slow.got == []
+    # One result is stuck in the blocked publish, four wait in the buffer, the rest were dropped.
+    assert snap["drops"]["full[slow]"] == processed - 1 - 4
+    release.set()
+    assert p.wait(5.0)
+    p.stop()
+    assert len(slow.got) == 5
+    assert p.stats.snapshot()["written"] == {"fast": processed, "slow": 5}
+
+
+def test_failing_output_is_counted_and_the_others_go_on():
+    bad = FakeOutput("bad", fail=lambda s: s % 2 == 0)
+    good = FakeOutput("good")
+    gate = threading.Semaphore(0)
+    p = Pipeline(FakeSource(frames=10, gate=gate), FakeProcessor(gate=gate), [bad, good],
+                 latency_budget_s=5.0)
+    _run(p)
+    assert [g[0] for g in good.got] == list(range(10))
+    assert [g[0] for g in bad.got] == [1, 3, 5, 7, 9]
+    assert p.stats.snapshot()["drops"] == {"failed[bad]": 5}
+    assert "last error: write failed at frame 8" in p.status_line()
+
+
+def test_source_failure_mid_run_reopens_with_backoff_and_resets_the_track():
+    gate = threading.Semaphore(0)
+    source = FakeSource(frames=20, gate=gate, fail_at={6, 7})
+    proc = FakeProcessor(gate=gate)
+    out = FakeOutput()
+    p = Pipeline(source, proc, [out], latency_budget_s=5.0, source_retry_s=0.2,
+                 source_retry_max_s=0.3)
+    t0 = time.monotonic()
+    p.start()
+    states = set()
+    while not p.finished.is_set() and time.monotonic() - t0 < 10:
+        states.add(p.source_state)
+        time.sleep(0.01)
+    elapsed = time.monotonic() - t0
+    p.stop()
+    assert [g[0] for g in out.got] == list(range(20))
+    assert source.opens == 3 and source.closes == 3
+    assert p.stats.snapshot()["source_failures"] == 2
+    assert proc.resets == 1  # frames after the reopened source start a new track
+    assert "failed (camera unplugged at read 6), reopening in 0.2 s" in states
+    assert "failed (camera unplugged at read 7), reopening in 0.3 s" in states  # doubled, capped
+    assert elapsed >= 0.5
+    assert "source ended" in p.status_line()
+
+
+def test_status_line_counts():
+    gate = threading.Semaphore(0)
+    source = FakeSource(frames=10, gate=gate)
+    proc = FakeProcessor(detect=lambda s: s % 2 == 0, gate=gate)
+    out = FakeOutput("jsonl")
+    p = Pipeline(source, proc, [out], latency_budget_s=5.0)
+    _run(p)
+    line = p.status_line()
+    assert "detected 50% (5/10)" in line
+    assert "frames 10, drops none" in line
+    assert "jsonl 10 sent" in line
+    for stage in ("capture", "queue", "detect", "estimate", "output", "total"):
+        assert f" {stage} " in line or f": {stage} " in line
+    # The window restarts after a line: rates start again from zero.
+    again = p.status_line()
+    assert "detected 0% (0/0)" in again and "latency ms p50/p95/max: no frames" in again
+    assert [g[3] for g in out.got] == [s % 2 == 0 for s in range(10)]
+
+
+def test_stop_is_prompt_even_with_a_blocked_output():
+    block = threading.Event()
+    p = Pipeline(FakeSource(frames=10**6, period_s=0.001), FakeProcessor(),
+                 [FakeOutput("stuck", block=block)], latency_budget_s=5.0)
+    p.start()
+    assert p.first_frame.wait(5.0)
+    time.sleep(0.05)  # the output is now stuck in publish
+    t0 = time.monotonic()
+    clean = p.stop(timeout_s=0.5)
+    assert time.monotonic() - t0 < 0.7
+    assert not clean  # the stuck output's thread is left behind, as a daemon thread
+    block.set()
