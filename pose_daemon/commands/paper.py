@@ -78,6 +78,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=_number(float, "--duration", low=0.0, high=3600.0,
                                               low_open=True),
                    default=10.0, help="simulated time, s (default 10)")
+    p.add_argument("--goal-radius", type=_number(float, "--goal-radius", low=0.0, high=100.0),
+                   default=1.0, help="stop once the feedback is this close to the goal, cm "
+                                     "(default 1; 0 = the paper's controller, never stops)")
     p.add_argument("--plot", metavar="DIR", help="write Figs. 7-9 equivalents into DIR")
     p.set_defaults(func=run_unicycle)
 
@@ -134,6 +137,7 @@ def run_unicycle(args: argparse.Namespace) -> int:
         require_matplotlib()
         check_plot_dir(args.plot)
     setup = UnicycleSetup(kv=args.kv, kw=args.kw, dt_s=args.dt, duration_s=args.duration,
+                          goal_radius=args.goal_radius,
                           method=args.method, iterations=args.iterations, refine=args.refine,
                           noise_px=args.noise_px, seed=args.seed)
     result = simulate(setup)

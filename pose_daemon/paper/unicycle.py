@@ -25,8 +25,11 @@ import numpy as np
 from .. import geometry
 from ..camera import Camera, Marker
 
-# A Raspberry Pi camera (v2) at 640x480: 62 deg horizontal field of view.
-DEFAULT_CAMERA = Camera(fx=530.0, fy=530.0, cx=319.5, cy=239.5, width=640, height=480)
+# A wide-angle Raspberry Pi camera (Camera Module 3 Wide: 102 deg horizontal field of view)
+# at 640x480, lens distortion already calibrated out. The wide lens matters: the robot
+# reaches the goal heading about 26 deg away from the window, which is 20 cm across at
+# 50 cm, so a 62 deg camera (Camera Module 2, f = 530 px) loses it for most of the run.
+DEFAULT_CAMERA = Camera(fx=260.0, fy=260.0, cx=319.5, cy=239.5, width=640, height=480)
 
 
 @dataclass(frozen=True)
@@ -39,6 +42,10 @@ class UnicycleSetup:
     duration_s: float = 10.0
     start: Tuple[float, float, float] = (20.0, -100.0, 0.0)   # x, z (cm), theta (deg)
     goal: Tuple[float, float] = (0.0, -50.0)                   # x_f, z_f (cm)
+    # The bearing in eq 22 is undefined at the goal: with noisy feedback, the robot would
+    # spin in place there. It stops (v = w = 0, for good) once the feedback puts it within
+    # goal_radius of the goal; 0 keeps the paper's controller exactly as printed.
+    goal_radius: float = 1.0   # cm
     window_side: float = 20.0  # cm
     camera_below: float = 10.0  # cm the camera sits under the window's centre
     camera: Camera = DEFAULT_CAMERA
@@ -53,7 +60,7 @@ class UnicycleSetup:
         return {
             "kv": self.kv, "kw": self.kw, "dt_s": self.dt_s, "duration_s": self.duration_s,
             "start": {"x": self.start[0], "z": self.start[1], "theta_deg": self.start[2]},
-            "goal": {"x": self.goal[0], "z": self.goal[1]},
+            "goal": {"x": self.goal[0], "z": self.goal[1]}, "goal_radius": self.goal_radius,
             "window_side": self.window_side, "camera_below": self.camera_below,
             "camera": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
                        "width": c.width, "height": c.height},
@@ -74,6 +81,7 @@ class UnicycleRun:
     x_est: np.ndarray = field(default_factory=lambda: np.empty(0))
     z_est: np.ndarray = field(default_factory=lambda: np.empty(0))
     theta_est_deg: np.ndarray = field(default_factory=lambda: np.empty(0))
+    t_arrived_s: Optional[float] = None  # when the feedback first put it within goal_radius
     out_of_view: int = 0          # frames where a corner fell outside the image
     failures: int = 0             # frames the estimator rejected (the last estimate was kept)
 
@@ -135,6 +143,7 @@ def simulate(setup: UnicycleSetup, *, feedback: str = "estimated") -> UnicycleRu
     x, z, theta = setup.start[0], setup.start[1], math.radians(setup.start[2])
     last: Optional[Tuple[float, float, float]] = None
     out_of_view = failures = 0
+    t_arrived: Optional[float] = None
     for k in range(steps):
         xs[k], zs[k], ths[k] = x, z, theta
         R, tvec = camera_pose(x, z, theta, setup)
@@ -154,11 +163,16 @@ def simulate(setup: UnicycleSetup, *, feedback: str = "estimated") -> UnicycleRu
                 last = (x, z, theta)
         xe[k], ze[k], the[k] = last
         fx, fz, fth = (x, z, theta) if feedback == "true" else last
-        v = setup.kv * math.hypot(fx - setup.goal[0], fz - setup.goal[1])
+        distance = math.hypot(fx - setup.goal[0], fz - setup.goal[1])
+        if t_arrived is None and distance < setup.goal_radius:
+            t_arrived = float(t[k])
+        if t_arrived is not None:
+            continue
+        v = setup.kv * distance
         w = setup.kw * (goal_bearing_rad(fx, fz, setup.goal) - fth)
         x, z, theta = _step(x, z, theta, v, w, setup.dt_s)
     return UnicycleRun(feedback, t, xs, zs, np.degrees(ths), xe, ze, np.degrees(the),
-                       out_of_view, failures)
+                       t_arrived, out_of_view, failures)
 
 
 @dataclass
@@ -175,7 +189,10 @@ class UnicycleResult:
             "max_heading_error_deg": float(heading_err.max()),
             "max_x_error": float(np.abs(e.x_est - e.x).max()),
             "max_z_error": float(np.abs(e.z_est - e.z).max()),
+            "rms_heading_error_deg": float(np.sqrt(np.mean(heading_err ** 2))),
             "max_trajectory_deviation": float(deviation.max()),
+            "t_arrived_s": e.t_arrived_s,
+            "t_arrived_true_feedback_s": self.true_run.t_arrived_s,
             "final": {"x": float(e.x[-1]), "z": float(e.z[-1]),
                       "theta_deg": float(e.theta_deg[-1])},
             "final_true_feedback": {"x": float(self.true_run.x[-1]),
@@ -194,12 +211,17 @@ def run_unicycle(setup: UnicycleSetup) -> UnicycleResult:
                           simulate(setup, feedback="estimated"))
 
 
+def _when(t_s: Optional[float]) -> str:
+    return "never" if t_s is None else f"at {t_s:.2f} s"
+
+
 def format_unicycle(result: UnicycleResult) -> str:
     d = result.to_json_dict()
     s = result.setup
     lines = [
         f"unicycle robot (eqs 18-22): start ({s.start[0]:g}, {s.start[1]:g}) cm, heading "
-        f"{s.start[2]:g} deg, goal ({s.goal[0]:g}, {s.goal[1]:g}) cm",
+        f"{s.start[2]:g} deg, goal ({s.goal[0]:g}, {s.goal[1]:g}) cm, stop within "
+        f"{s.goal_radius:g} cm",
         f"kv {s.kv:g}/s, kw {s.kw:g}/s, dt {s.dt_s:.4f} s, {s.duration_s:g} s; window "
         f"{s.window_side:g} cm, camera {s.camera.width}x{s.camera.height} f = {s.camera.fx:g} px, "
         f"{s.camera_below:g} cm below the window's centre",
@@ -207,6 +229,7 @@ def format_unicycle(result: UnicycleResult) -> str:
         f"pixel noise {s.noise_px:g} px (seed {s.seed})",
         "",
         f"{'max heading error':<30}{d['max_heading_error_deg']:.3e} deg",
+        f"{'rms heading error':<30}{d['rms_heading_error_deg']:.3e} deg",
         f"{'max x error':<30}{d['max_x_error']:.3e} cm",
         f"{'max z error':<30}{d['max_z_error']:.3e} cm",
         f"{'max deviation from the':<30}",
@@ -216,6 +239,8 @@ def format_unicycle(result: UnicycleResult) -> str:
         f"{'final (true feedback)':<30}x {d['final_true_feedback']['x']:.3f}, "
         f"z {d['final_true_feedback']['z']:.3f} cm, "
         f"heading {d['final_true_feedback']['theta_deg']:.3f} deg",
+        f"{'arrived (within ' + format(s.goal_radius, 'g') + ' cm)':<30}"
+        f"{_when(d['t_arrived_s'])} (true feedback: {_when(d['t_arrived_true_feedback_s'])})",
         f"{'frames (out of view, failed)':<30}{d['frames']} ({d['frames_out_of_view']}, "
         f"{d['estimation_failures']})",
     ]
