@@ -180,8 +180,13 @@ class PipelineStats:
 
 
 class OutputWorker:
-    """One output behind a bounded buffer and its own thread: a slow output drops its oldest
-    waiting results (counted as ``full[name]``) and never holds up processing."""
+    """One output behind a bounded buffer: a slow output drops its oldest waiting results
+    (counted) and never holds up processing.
+
+    An output with an ``on_written(result, t_written_s)`` hook (pose_daemon.outputs) queues
+    in ``publish`` and writes in its own thread: it is fed directly and reports when the
+    bytes left. Any other output gets a thread here, and "written" is when ``publish`` returned.
+    """
 
     def __init__(self, output: Output, *, buffer: int, budget_s: float, stats: PipelineStats,
                  clock: Callable[[], float], on_written: Optional[WrittenHook]) -> None:
@@ -198,12 +203,26 @@ class OutputWorker:
         self._stopping = False
         self.last_written_s: Optional[float] = None
         self.last_error: Optional[str] = None
-        self._thread = threading.Thread(target=self._run, name=f"output-{self.name}", daemon=True)
+        self.asynchronous = hasattr(output, "on_written")
+        # Dispatch times of results handed to an asynchronous output, by (seq, t_capture_s);
+        # bounded, since the output may drop results without reporting them.
+        self._pending: collections.OrderedDict = collections.OrderedDict()
+        if self.asynchronous:
+            output.on_written = self._written  # type: ignore[attr-defined]
+            if hasattr(output, "max_age_s"):
+                output.max_age_s = budget_s  # type: ignore[attr-defined]
+            self._thread = None
+        else:
+            self._thread = threading.Thread(target=self._run, name=f"output-{self.name}", daemon=True)
 
     def start(self) -> None:
-        self._thread.start()
+        if self._thread is not None:
+            self._thread.start()
 
     def submit(self, result: FrameResult, t_dispatch_s: float) -> None:
+        if self.asynchronous:
+            self._publish(result, t_dispatch_s)
+            return
         with self._cond:
             if len(self._buffer) >= self._maxlen:
                 self._buffer.popleft()
@@ -224,20 +243,63 @@ class OutputWorker:
             self._cond.notify()
 
     def join(self, timeout: Optional[float]) -> bool:
+        if self._thread is None:
+            return True
         self._thread.join(timeout)
         return not self._thread.is_alive()
 
     def state(self) -> str:
-        extra = ""
-        status = getattr(self.output, "status", None)
-        if callable(status):
+        """"name: N sent (...)" with the output's own counters when it keeps them."""
+        extra: List[str] = []
+        stats = getattr(self.output, "stats", None)
+        if callable(stats):
             try:
-                extra = str(status())
+                s = stats()
+                extra.append(f"link {s.get('link', '?')}")
+                dropped = {k: v for k, v in dict(s.get("dropped", {})).items() if v}
+                if dropped:
+                    extra.append("dropped " + ", ".join(f"{k} {v}" for k, v in sorted(dropped.items())))
+                if s.get("last_error"):
+                    extra.append(f"last error: {s['last_error']}")
             except Exception as exc:  # a status hook must never take the daemon down
-                extra = f"status failed: {exc}"
+                extra.append(f"stats failed: {exc}")
         if self.last_error:
-            extra = f"{extra}, last error: {self.last_error}" if extra else f"last error: {self.last_error}"
-        return f"{self.name} {self._stats.written.get(self.name, 0)} sent" + (f" ({extra})" if extra else "")
+            extra.append(f"last error: {self.last_error}")
+        sent = self._stats.written.get(self.name, 0)
+        return f"{self.name} {sent} sent" + (f" ({', '.join(extra)})" if extra else "")
+
+    def _publish(self, result: FrameResult, t_dispatch_s: float) -> bool:
+        now = self._clock()
+        if now - result.t_capture_s > self._budget_s:
+            self._stats.count(f"late[{self.name}]")
+            return False
+        # Each output gets its own copy: latency_s is this output's time of publication.
+        mine = dataclasses.replace(result, latency_s=now - result.t_capture_s)
+        if self.asynchronous:
+            with self._cond:
+                self._pending[(mine.seq, mine.t_capture_s)] = t_dispatch_s
+                while len(self._pending) > 256:
+                    self._pending.popitem(last=False)
+        try:
+            self.output.publish(mine)
+        except Exception as exc:  # an output's failure must not stop the others
+            self.last_error = " ".join(str(exc).split()) or type(exc).__name__
+            self._stats.count(f"failed[{self.name}]")
+            log.warning("output %s failed: %s", self.name, self.last_error)
+            return False
+        if not self.asynchronous:
+            self._written(mine, self._clock(), t_dispatch_s)
+        return True
+
+    def _written(self, result: FrameResult, t_written_s: float,
+                 t_dispatch_s: Optional[float] = None) -> None:
+        if t_dispatch_s is None:
+            with self._cond:
+                t_dispatch_s = self._pending.pop((result.seq, result.t_capture_s), t_written_s)
+        self.last_written_s = t_written_s
+        self._stats.written_frame(self.name, t_written_s - t_dispatch_s, t_written_s - result.t_capture_s)
+        if self._on_written is not None:
+            self._on_written(self.name, result, t_written_s)
 
     def _run(self) -> None:
         while True:
@@ -247,24 +309,7 @@ class OutputWorker:
                 if self._stopping or (self._finishing and not self._buffer):
                     return
                 result, t_dispatch_s = self._buffer.popleft()
-            now = self._clock()
-            if now - result.t_capture_s > self._budget_s:
-                self._stats.count(f"late[{self.name}]")
-                continue
-            # Each output gets its own copy: latency_s is this output's time of writing.
-            mine = dataclasses.replace(result, latency_s=now - result.t_capture_s)
-            try:
-                self.output.publish(mine)
-            except Exception as exc:  # an output's failure must not stop the others
-                self.last_error = " ".join(str(exc).split()) or type(exc).__name__
-                self._stats.count(f"failed[{self.name}]")
-                log.warning("output %s failed: %s", self.name, self.last_error)
-                continue
-            t_written = self._clock()
-            self.last_written_s = t_written
-            self._stats.written_frame(self.name, t_written - t_dispatch_s, t_written - result.t_capture_s)
-            if self._on_written is not None:
-                self._on_written(self.name, mine, t_written)
+            self._publish(result, t_dispatch_s)
 
 
 class Pipeline:

@@ -132,3 +132,44 @@ class FakeOutput:
 
     def close(self) -> None:
         self.closed = True
+
+
+class FakeQueuedOutput:
+    """An output that queues in ``publish`` and writes ``write_s`` later in its own thread,
+    reporting through ``on_written`` as pose_daemon.outputs do."""
+
+    def __init__(self, name: str = "queued", write_s: float = 0.02) -> None:
+        self.name = name
+        self.write_s = write_s
+        self.on_written = None
+        self.max_age_s = None
+        self.got: List[tuple] = []
+        self._items: List = []
+        self._cond = threading.Condition()
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def publish(self, result: FrameResult) -> None:
+        with self._cond:
+            self._items.append(result)
+            self._cond.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._items and not self._stop:
+                    self._cond.wait()
+                if not self._items:
+                    return
+                item = self._items.pop(0)
+            time.sleep(self.write_s)
+            self.got.append((item.seq, item.t_capture_s))
+            if self.on_written is not None:
+                self.on_written(item, time.monotonic())
+
+    def close(self) -> None:
+        with self._cond:
+            self._stop = True
+            self._cond.notify()
+        self._thread.join(2.0)

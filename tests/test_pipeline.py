@@ -6,7 +6,7 @@ import threading
 import time
 
 import pytest
-from pipeline_fakes import FakeOutput, FakeProcessor, FakeSource
+from pipeline_fakes import FakeOutput, FakeProcessor, FakeQueuedOutput, FakeSource
 
 from pose_daemon.pipeline import LatencyWindow, NewestSlot, Pipeline
 
@@ -80,12 +80,13 @@ def test_budget_drops_late_frames_before_and_after_processing():
 def test_slow_output_never_blocks_capture_processing_or_other_outputs():
     release = threading.Event()
     fast, slow = FakeOutput("fast"), FakeOutput("slow", block=release)
-    source = FakeSource(frames=60, period_s=0.002)
+    source = FakeSource(frames=200, period_s=0.001)
     proc = FakeProcessor()
-    p = Pipeline(source, proc, [fast, slow], latency_budget_s=5.0, output_buffer=4)
+    # A buffer deep enough that the fast output keeps up on a loaded machine.
+    p = Pipeline(source, proc, [fast, slow], latency_budget_s=5.0, output_buffer=32)
     p.start()
     deadline = time.monotonic() + 10
-    while p.stats.snapshot()["processed"] + p.stats.snapshot()["drops"].get("replaced", 0) < 60:
+    while p.stats.snapshot()["processed"] + p.stats.snapshot()["drops"].get("replaced", 0) < 200:
         assert time.monotonic() < deadline
         time.sleep(0.01)
     time.sleep(0.05)
@@ -93,13 +94,13 @@ def test_slow_output_never_blocks_capture_processing_or_other_outputs():
     processed = snap["processed"]
     assert len(fast.got) == processed
     assert slow.got == []
-    # One result is stuck in the blocked publish, four wait in the buffer, the rest were dropped.
-    assert snap["drops"]["full[slow]"] == processed - 1 - 4
+    # One result is stuck in the blocked publish, 32 wait in the buffer, the rest were dropped.
+    assert snap["drops"]["full[slow]"] == processed - 1 - 32
     release.set()
     assert p.wait(5.0)
     p.stop()
-    assert len(slow.got) == 5
-    assert p.stats.snapshot()["written"] == {"fast": processed, "slow": 5}
+    assert len(slow.got) == 33
+    assert p.stats.snapshot()["written"] == {"fast": processed, "slow": 33}
 
 
 def test_failing_output_is_counted_and_the_others_go_on():
@@ -107,7 +108,7 @@ def test_failing_output_is_counted_and_the_others_go_on():
     good = FakeOutput("good")
     gate = threading.Semaphore(0)
     p = Pipeline(FakeSource(frames=10, gate=gate), FakeProcessor(gate=gate), [bad, good],
-                 latency_budget_s=5.0)
+                 latency_budget_s=5.0, output_buffer=16)
     _run(p)
     assert [g[0] for g in good.got] == list(range(10))
     assert [g[0] for g in bad.got] == [1, 3, 5, 7, 9]
@@ -120,7 +121,7 @@ def test_source_failure_mid_run_reopens_with_backoff_and_resets_the_track():
     source = FakeSource(frames=20, gate=gate, fail_at={6, 7})
     proc = FakeProcessor(gate=gate)
     out = FakeOutput()
-    p = Pipeline(source, proc, [out], latency_budget_s=5.0, source_retry_s=0.2,
+    p = Pipeline(source, proc, [out], latency_budget_s=5.0, output_buffer=16, source_retry_s=0.2,
                  source_retry_max_s=0.3)
     t0 = time.monotonic()
     p.start()
@@ -145,7 +146,7 @@ def test_status_line_counts():
     source = FakeSource(frames=10, gate=gate)
     proc = FakeProcessor(detect=lambda s: s % 2 == 0, gate=gate)
     out = FakeOutput("jsonl")
-    p = Pipeline(source, proc, [out], latency_budget_s=5.0)
+    p = Pipeline(source, proc, [out], latency_budget_s=5.0, output_buffer=16)
     _run(p)
     line = p.status_line()
     assert "detected 50% (5/10)" in line
@@ -171,3 +172,24 @@ def test_stop_is_prompt_even_with_a_blocked_output():
     assert time.monotonic() - t0 < 0.7
     assert not clean  # the stuck output's thread is left behind, as a daemon thread
     block.set()
+
+
+def test_outputs_that_write_in_their_own_thread_report_bytes_written_latency():
+    gate = threading.Semaphore(0)
+    out = FakeQueuedOutput(write_s=0.02)
+    written = []
+    p = Pipeline(FakeSource(frames=5, gate=gate), FakeProcessor(gate=gate), [out],
+                 latency_budget_s=0.5, on_written=lambda name, r, t: written.append((name, r.seq, t)))
+    assert out.max_age_s == 0.5  # the output learns the budget
+    _run(p)
+    deadline = time.monotonic() + 5
+    while len(written) < 5 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    out.close()
+    assert [w[1] for w in written] == [0, 1, 2, 3, 4] and {w[0] for w in written} == {"queued"}
+    assert p.stats.snapshot()["written"] == {"queued": 5}
+    # Latency runs to the moment the output wrote, not to the hand-over.
+    for (_, seq, t_written), (seq2, t_capture) in zip(written, out.got):
+        assert seq == seq2 and t_written - t_capture >= 0.02
+    p50, _, _ = p.stats.window.summary_ms("output")
+    assert p50 >= 20.0
