@@ -206,15 +206,17 @@ def _rot_cols(R, i: int, j: int, c, s) -> None:
 
 
 def _loop_core(xs, ys, f: float, area: float, method: str, iterations: int, m: _Ops,
-               table=None, rows: Optional[list] = None):
-    """The loop on corner lists xs, ys (4 entries each: arrays or floats). Returns (R, xs, ys),
-    R as a 3x3 list of entries (R_cam_unrot)."""
+               table=None, rows: Optional[list] = None, tol_rad: float = 0.0):
+    """The loop on corner lists xs, ys (4 entries each: arrays or floats). Returns
+    (R, xs, ys, iterations run), R as a 3x3 list of entries (R_cam_unrot). With tol_rad > 0
+    (floats only) it stops once an iteration's three corrections are all below tol_rad."""
     one, zero = 1.0, 0.0
     R = [[one, zero, zero], [zero, one, zero], [zero, zero, one]]
     # Image angles do not depend on f: the table's depth is z / sqrt(W*H) (z from eq. 1 is
     # already a length), i.e. z / (f sqrt(W*H)) with z in image units.
     scale = math.sqrt(area)
     ff = f * f * area
+    i = 0
     for i in range(1, int(iterations) + 1):
         zeta = _angles(xs, ys, m) if rows is not None else None
         # Step 2, roll (8).
@@ -250,7 +252,9 @@ def _loop_core(xs, ys, f: float, area: float, method: str, iterations: int, m: _
         _rot_cols(R, 1, 2, c, s)
         if rows is not None:
             rows.append((i, zeta, g, b, a, [list(r) for r in R], _position(xs, ys, f, ff, m)))
-    return R, xs, ys
+        if tol_rad > 0.0 and abs(g) < tol_rad and abs(b) < tol_rad and abs(a) < tol_rad:
+            break
+    return R, xs, ys, i
 
 
 def _position(xs, ys, f: float, ff: float, m: _Ops):
@@ -290,7 +294,7 @@ def correction_loop(points: np.ndarray, f: float, area: float, *, method: str = 
     xs = [np.array(pts[..., j, 0]) for j in range(4)]
     ys = [np.array(pts[..., j, 1]) for j in range(4)]
     raw: Optional[list] = [] if trace else None
-    R, xs, ys = _loop_core(xs, ys, f, area, method, iterations, NUMPY_OPS, table, raw)
+    R, xs, ys, _ = _loop_core(xs, ys, f, area, method, iterations, NUMPY_OPS, table, raw)
     corrected = np.stack([np.stack([x, y], -1) for x, y in zip(xs, ys)], -2)
     pos = np.stack(np.broadcast_arrays(*_position(xs, ys, f, f * f * area, NUMPY_OPS)), -1)
     rows: Optional[List[IterationTrace]] = None

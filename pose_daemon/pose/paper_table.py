@@ -10,7 +10,9 @@ units): image angles do not depend on f, so one table holds for every camera and
 
 from __future__ import annotations
 
+import bisect
 import json
+import math
 from importlib import resources
 from typing import Dict, Optional
 
@@ -24,7 +26,8 @@ TABLE_FILE = "paper_table.json"
 Z_REL_MIN, Z_REL_MAX, Z_REL_COUNT = 1.0, 500.0, 80
 ANGLE_MAX_DEG, ANGLE_COUNT = 60.0, 241
 # Corrections are clamped to this: beyond it the marker is seen edge-on.
-STEP_LIMIT_RAD = np.radians(80.0)
+STEP_LIMIT_RAD = math.radians(80.0)
+STEP_LIMIT = STEP_LIMIT_RAD
 
 
 def build_table() -> Dict[str, object]:
@@ -64,8 +67,12 @@ class PaperTable:
             # interpolate well and extend beyond the grid (weak perspective: e ~ 1 / z_rel).
             powers = np.stack([z_rel ** -3, z_rel ** -2, z_rel ** -1, np.ones_like(z_rel)], -1)
             self._norm[name] = c * powers
+        self._log_z_list = self._log_z.tolist()
+        self._norm_list = {k: v.tolist() for k, v in self._norm.items()}
 
     def _evaluate(self, name: str, e: np.ndarray, z_rel: np.ndarray) -> np.ndarray:
+        if isinstance(e, float):
+            return self._evaluate_float(name, e, float(z_rel))
         table = self._norm[name]
         lz = np.log(np.clip(z_rel, 1e-6, None))
         u = np.asarray(e) * z_rel
@@ -74,6 +81,24 @@ class PaperTable:
             coeff = np.interp(lz, self._log_z, table[:, k])
             out = out * u + coeff
         return np.clip(out, -STEP_LIMIT_RAD, STEP_LIMIT_RAD)
+
+    def _evaluate_float(self, name: str, e: float, z_rel: float) -> float:
+        # The per-frame path: plain floats, no numpy call overhead.
+        lz = math.log(max(z_rel, 1e-6))
+        grid = self._log_z_list
+        rows = self._norm_list[name]
+        k = bisect.bisect_right(grid, lz)
+        if k <= 0:
+            coeffs = rows[0]
+        elif k >= len(grid):
+            coeffs = rows[-1]
+        else:
+            w = (lz - grid[k - 1]) / (grid[k] - grid[k - 1])
+            lo, hi = rows[k - 1], rows[k]
+            coeffs = [lo[j] + w * (hi[j] - lo[j]) for j in range(4)]
+        u = e * z_rel
+        out = ((coeffs[0] * u + coeffs[1]) * u + coeffs[2]) * u + coeffs[3]
+        return min(max(out, -STEP_LIMIT), STEP_LIMIT)
 
     def yaw(self, e_beta_rad: np.ndarray, z_rel: np.ndarray) -> np.ndarray:
         """beta (radians) from e_beta (radians) at depth z_rel = z / sqrt(W*H)."""

@@ -1,0 +1,505 @@
+"""Marker pose from four corner pixels: checks, undistortion, the paper's loop, the final
+reprojection polish and the second planar solution; one quadrilateral or a batch.
+
+The per-frame path (``estimate_pose``) runs on plain floats with ``math``: at four points
+numpy's per-call overhead would cost more than the arithmetic. ``estimate_pose_batch`` runs
+the same steps vectorised over N quadrilaterals.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import List, Optional, Sequence, Tuple
+
+import cv2
+import numpy as np
+
+from .. import geometry
+from ..camera import Camera, Marker
+from . import loop
+from .types import EstimationError, Pose
+
+METHODS = loop.METHODS
+# The loop stops early once one pass corrects less than this (radians): it has converged.
+LOOP_TOL_RAD = 1e-10
+POLISH_MAX_ITER = 30
+POLISH_TOL = 1e-7
+# The second solution needs only enough polish to rank it; it is finished if it wins.
+ALT_POLISH_ITER = 4
+# Relative size below which two corners coincide / three corners are collinear.
+_DEGENERATE_REL = 1e-9
+# 180 deg about the marker's z axis: maps the mirror pose's marker axes back onto the image.
+_R_FLIP_Z = geometry.R_from_rvec(np.array([0.0, 0.0, math.pi]))
+_NAMES = ("top-left", "top-right", "bottom-right", "bottom-left")
+
+
+# --------------------------------------------------------------------------- input checks
+
+def _check_options(method: str, iterations: int) -> None:
+    if method not in METHODS:
+        raise EstimationError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
+    if not isinstance(iterations, (int, np.integer)) or isinstance(iterations, bool) or iterations < 1:
+        raise EstimationError(f"iterations must be a positive integer, got {iterations!r}")
+
+
+def quad_problem(xs: Sequence[float], ys: Sequence[float]) -> Optional[str]:
+    """Why four corners (TL, TR, BR, BL, y down) cannot be a marker's image, or None.
+
+    Checks repeated corners, zero area, collinear corners, crossed (bow-tie) and non-convex
+    shapes, and the corner order going the wrong way round (a marker seen from behind, or
+    lying behind the camera)."""
+    extent = max(max(xs) - min(xs), max(ys) - min(ys))
+    if not extent > 0.0:
+        return "all four corners are the same point"
+    tiny = _DEGENERATE_REL * extent
+    for i in range(4):
+        for j in range(i + 1, 4):
+            if abs(xs[i] - xs[j]) <= tiny and abs(ys[i] - ys[j]) <= tiny:
+                return f"repeated corners: {_NAMES[i]} and {_NAMES[j]} are the same point"
+    area = 0.5 * sum(xs[j] * ys[(j + 1) % 4] - xs[(j + 1) % 4] * ys[j] for j in range(4))
+    if abs(area) <= tiny * extent:
+        return "the corners enclose zero area"
+    turns = []
+    for j in range(4):
+        ax, ay = xs[j] - xs[j - 1], ys[j] - ys[j - 1]
+        bx, by = xs[(j + 1) % 4] - xs[j], ys[(j + 1) % 4] - ys[j]
+        cross = ax * by - ay * bx
+        if abs(cross) <= _DEGENERATE_REL * math.hypot(ax, ay) * math.hypot(bx, by):
+            return (f"collinear corners: {_NAMES[j - 1]}, {_NAMES[j]} and "
+                    f"{_NAMES[(j + 1) % 4]} lie on one line")
+        turns.append(cross > 0)
+    n_pos = sum(turns)
+    if n_pos == 2:
+        return "crossed quadrilateral (bow-tie): two edges intersect; check the corner order"
+    if n_pos in (1, 3):
+        return "non-convex quadrilateral: a rectangle's image is always convex"
+    if n_pos == 0:
+        return ("corners go counter-clockwise on the image: the marker would be behind the "
+                "camera or seen from its back; expected the order TL, TR, BR, BL")
+    return None
+
+
+def _corners_as_floats(corners_px) -> List[float]:
+    try:
+        arr = np.asarray(corners_px, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise EstimationError(f"corners must be numbers, shape (4, 2): {exc}") from None
+    if arr.shape != (4, 2):
+        raise EstimationError(f"corners must have shape (4, 2) (TL, TR, BR, BL pixels), got {arr.shape}")
+    flat = arr.ravel().tolist()
+    for v in flat:
+        if not math.isfinite(v):
+            raise EstimationError("corners contain NaN or infinity")
+    return flat
+
+
+# --------------------------------------------------------------------------- polish (floats)
+
+def _residuals(R: Sequence[Sequence[float]], t: Sequence[float], obj: Sequence[Tuple[float, float]],
+               us: Sequence[float], vs: Sequence[float], wx: float, wy: float, jac: bool):
+    """Weighted residuals (pixels) of the 4 corners; with ``jac`` a flat list of 8 rows
+    [d r / d (omega, dt), r] for R <- exp(omega) R, t <- t + dt. Also the cost and the
+    smallest corner depth."""
+    r00, r01, _ = R[0]
+    r10, r11, _ = R[1]
+    r20, r21, _ = R[2]
+    t0, t1, t2 = t
+    rows: List[float] = []
+    cost = 0.0
+    zmin = math.inf
+    for (X, Y), u_obs, v_obs in zip(obj, us, vs):
+        qx, qy, qz = r00 * X + r01 * Y, r10 * X + r11 * Y, r20 * X + r21 * Y
+        pz = qz + t2
+        if pz < zmin:
+            zmin = pz
+        iz = 1.0 / pz
+        u, v = (qx + t0) * iz, (qy + t1) * iz
+        ru, rv = wx * (u - u_obs), wy * (v - v_obs)
+        cost += ru * ru + rv * rv
+        if jac:
+            # d u / d P = (1, 0, -u) / z; d u / d omega = q x (d u / d P).
+            ax, az = wx * iz, -wx * u * iz
+            by, bz = wy * iz, -wy * v * iz
+            rows += (qy * az, qz * ax - qx * az, -qy * ax, ax, 0.0, az, ru,
+                     qy * bz - qz * by, -qx * bz, qx * by, 0.0, by, bz, rv)
+    return rows, cost, zmin
+
+
+def _polish(R: np.ndarray, t: np.ndarray, obj, us, vs, wx: float, wy: float,
+            max_iter: int = POLISH_MAX_ITER) -> Tuple[np.ndarray, np.ndarray, float]:
+    """Levenberg-Marquardt on the 6 pose parameters minimising the squared pixel error of the
+    undistorted corners (the maximum-likelihood pose for four points). Returns R, t, cost.
+    Stops once a step moves the pose by less than POLISH_TOL (radians; translation relative
+    to the distance): with noise Gauss-Newton converges only linearly, and steps below that
+    change nothing measurable."""
+    tl = t.tolist()
+    rows, cost, _ = _residuals(R.tolist(), tl, obj, us, vs, wx, wy, True)
+    lam = 0.0
+    for _ in range(max_iter):
+        Q = cv2.mulTransposed(np.array(rows).reshape(8, 7), True)
+        A = Q[:6, :6]
+        if lam > 0.0:
+            A = A + np.diag(lam * np.diag(A))
+        ok, step = cv2.solve(A, -Q[:6, 6:7], flags=cv2.DECOMP_CHOLESKY)
+        if not ok:
+            break
+        s = step.ravel().tolist()
+        R_new = geometry.R_from_rvec(step[:3, 0]) @ R
+        t_new = [tl[0] + s[3], tl[1] + s[4], tl[2] + s[5]]
+        rows_n, cost_n, zmin = _residuals(R_new.tolist(), t_new, obj, us, vs, wx, wy, True)
+        if zmin > 0.0 and cost_n <= cost * (1.0 + 1e-12):
+            R, tl, rows, cost = R_new, t_new, rows_n, cost_n
+            lam *= 0.1
+            move = max(abs(s[0]), abs(s[1]), abs(s[2]),
+                       (abs(s[3]) + abs(s[4]) + abs(s[5])) / abs(t_new[2]))
+            if move < POLISH_TOL:
+                break
+        else:
+            lam = 1e-3 if lam == 0.0 else lam * 10.0
+            if lam > 1e6:
+                break
+    return R, np.array(tl), cost
+
+
+# --------------------------------------------------------------------------- the estimator
+
+def _pose_from(R: np.ndarray, t: np.ndarray, error_px: float, method: str, iterations: int,
+               alternative: Optional[Pose] = None, ratio: float = 0.0) -> Pose:
+    a, b, g = geometry.paper_angles_deg_from_R_cam_marker(R)
+    return Pose(rvec=geometry.rvec_from_R(R), tvec=t, R=R, alpha_deg=a, beta_deg=b, gamma_deg=g,
+                reprojection_error_px=error_px, method=method, iterations=iterations,
+                alternative=alternative, ambiguity_ratio=ratio)
+
+
+def _error_px(R: np.ndarray, t: np.ndarray, cost: float, camera: Camera, marker: Marker,
+              corners: List[float]) -> float:
+    """RMS reprojection error over the 4 corners in pixels, through the lens distortion."""
+    if not camera.has_distortion:
+        return math.sqrt(cost / 4.0)
+    proj = camera.project(marker.object_points @ R.T + t)
+    d = proj.ravel() - np.array(corners)
+    return math.sqrt(float(d @ d) / 4.0)
+
+
+def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "iterative",
+                  iterations: int = 5, refine: bool = True) -> Pose:
+    """The marker's pose from its four corners (4, 2) in pixels, order TL, TR, BR, BL.
+
+    Corners are undistorted with ``camera``, the paper's correction loop runs on them
+    (``method`` "iterative" or "paper", at most ``iterations`` passes; it stops early once
+    converged), and with ``refine`` a Levenberg-Marquardt polish minimises the reprojection
+    error. The other planar solution is polished too; the better one is returned, the other
+    is ``pose.alternative``. Pose in OpenCV's convention (X_cam = R X_marker + tvec, metres).
+    Raises EstimationError for corners that cannot be the marker's image.
+    """
+    _check_options(method, iterations)
+    flat = _corners_as_floats(corners_px)
+    if camera.has_distortion:
+        norm = camera.undistort_normalized(np.array(flat).reshape(4, 2)).ravel().tolist()
+    else:
+        fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+        norm = [(flat[0] - cx) / fx, (flat[1] - cy) / fy, (flat[2] - cx) / fx, (flat[3] - cy) / fy,
+                (flat[4] - cx) / fx, (flat[5] - cy) / fy, (flat[6] - cx) / fx, (flat[7] - cy) / fy]
+    us, vs = norm[0::2], norm[1::2]
+    if not all(math.isfinite(v) for v in norm):
+        raise EstimationError("corners cannot be undistorted with this camera model")
+    problem = quad_problem(us, vs)
+    if problem:
+        raise EstimationError(problem)
+    table = None
+    if method == "paper":
+        from .paper_table import load_table
+
+        table = load_table()
+    area = marker.width * marker.height
+    R_l, cxs, cys, used = loop._loop_core(list(us), list(vs), 1.0, area, method, iterations,
+                                          loop.MATH_OPS, table, None, LOOP_TOL_RAD)
+    px, py, pz = loop._position(cxs, cys, 1.0, area, loop.MATH_OPS)
+    R_cam_unrot = np.array(R_l)
+    R = geometry.R_cam_marker_from_R_cam_unrot(R_cam_unrot)
+    t = R_cam_unrot @ np.array([px, py, pz])
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        raise EstimationError("no finite pose fits these corners")
+
+    obj = [(float(p[0]), float(p[1])) for p in marker.object_points]
+    wx, wy = camera.fx, camera.fy
+    # The mirror pose: 180 deg about the line of sight to the centre reflects the marker's
+    # normal about it; the flip about the marker's z keeps its corners where they were.
+    v = t / np.linalg.norm(t)
+    R_alt = geometry.R_from_rvec(math.pi * v) @ R @ _R_FLIP_Z
+    t_alt = t.copy()
+    if refine:
+        R, t, cost = _polish(R, t, obj, us, vs, wx, wy)
+        R_alt, t_alt, cost_alt = _polish(R_alt, t_alt, obj, us, vs, wx, wy, ALT_POLISH_ITER)
+        if cost_alt < cost:
+            R_alt, t_alt, cost_alt = _polish(R_alt, t_alt, obj, us, vs, wx, wy)
+    else:
+        _, cost, _ = _residuals(R.tolist(), t.tolist(), obj, us, vs, wx, wy, False)
+        _, cost_alt, _ = _residuals(R_alt.tolist(), t_alt.tolist(), obj, us, vs, wx, wy, False)
+    _, _, zmin = _residuals(R.tolist(), t.tolist(), obj, us, vs, wx, wy, False)
+    _, _, zmin_alt = _residuals(R_alt.tolist(), t_alt.tolist(), obj, us, vs, wx, wy, False)
+    if not zmin > 0.0:
+        raise EstimationError("the marker would be behind the camera")
+    err = _error_px(R, t, cost, camera, marker, flat)
+    alt_valid = zmin_alt > 0.0 and math.isfinite(cost_alt)
+    err_alt = _error_px(R_alt, t_alt, cost_alt, camera, marker, flat) if alt_valid else math.inf
+    if not math.isfinite(err):
+        raise EstimationError("no finite pose fits these corners")
+    if err_alt < err:
+        R, t, err, R_alt, t_alt, err_alt = R_alt, t_alt, err_alt, R, t, err
+    ratio = _ratio(err, err_alt)
+    alternative = _pose_from(R_alt, t_alt, err_alt, method, used) if math.isfinite(err_alt) else None
+    return _pose_from(R, t, err, method, used, alternative, ratio)
+
+
+def _ratio(err: float, err_alt: float) -> float:
+    if not math.isfinite(err_alt):
+        return 0.0
+    if err_alt <= 0.0:
+        return 1.0
+    return min(1.0, err / err_alt)
+
+
+# --------------------------------------------------------------------------- batch form
+
+@dataclass
+class BatchPoses:
+    """N poses as arrays (OpenCV convention, metres, radians / degrees as named).
+
+    Rows where ``ok`` is False hold NaN and ``errors[i]`` says why; every ok row is finite.
+    ``alternative_*`` is the other planar solution, ``ambiguity_ratio`` = best reprojection
+    error / the alternative's."""
+
+    rvec: np.ndarray                   # (N, 3)
+    tvec: np.ndarray                   # (N, 3)
+    R: np.ndarray                      # (N, 3, 3) R_cam_marker
+    alpha_deg: np.ndarray              # (N,)
+    beta_deg: np.ndarray
+    gamma_deg: np.ndarray
+    reprojection_error_px: np.ndarray  # (N,) RMS over the 4 corners, through the distortion
+    ambiguity_ratio: np.ndarray        # (N,)
+    alternative_R: np.ndarray          # (N, 3, 3)
+    alternative_tvec: np.ndarray       # (N, 3)
+    alternative_error_px: np.ndarray   # (N,)
+    ok: np.ndarray                     # (N,) bool
+    errors: List[Optional[str]]        # (N,) None where ok
+    method: str = "iterative"
+
+    def __len__(self) -> int:
+        return int(self.ok.shape[0])
+
+
+def _components(R: np.ndarray, t: np.ndarray):
+    return ([[R[:, i, j] for j in range(3)] for i in range(3)], [t[:, 0], t[:, 1], t[:, 2]])
+
+
+def _residuals_batch(R: np.ndarray, t: np.ndarray, obj, us, vs, wx: float, wy: float, jac: bool):
+    """Vectorised _residuals: R (n, 3, 3), t (n, 3), us/vs lists of 4 (n,) arrays.
+    Returns (rows: 8 lists of 7 (n,) arrays or None, cost (n,), zmin (n,))."""
+    Rc, tc = _components(R, t)
+    r00, r01 = Rc[0][0], Rc[0][1]
+    r10, r11 = Rc[1][0], Rc[1][1]
+    r20, r21 = Rc[2][0], Rc[2][1]
+    t0, t1, t2 = tc
+    rows = []
+    cost = 0.0
+    zmin = None
+    for (X, Y), u_obs, v_obs in zip(obj, us, vs):
+        qx, qy, qz = r00 * X + r01 * Y, r10 * X + r11 * Y, r20 * X + r21 * Y
+        pz = qz + t2
+        zmin = pz if zmin is None else np.minimum(zmin, pz)
+        iz = 1.0 / pz
+        u, v = (qx + t0) * iz, (qy + t1) * iz
+        ru, rv = wx * (u - u_obs), wy * (v - v_obs)
+        cost = cost + ru * ru + rv * rv
+        if jac:
+            ax, az = wx * iz, -wx * u * iz
+            by, bz = wy * iz, -wy * v * iz
+            zero = 0.0
+            rows.append((qy * az, qz * ax - qx * az, -qy * ax, ax, zero, az, ru))
+            rows.append((qy * bz - qz * by, -qx * bz, qx * by, zero, by, bz, rv))
+    return (rows if jac else None), cost, zmin
+
+
+def _solve_batch(rows, lam: np.ndarray) -> List[np.ndarray]:
+    """Vectorised Cholesky solve of (J^T J + lam diag) x = -J^T r from the 8 rows."""
+    n = 6
+    A = [[None] * n for _ in range(n)]
+    g = [None] * n
+    for a in range(n):
+        g[a] = sum(row[a] * row[6] for row in rows)
+        for b in range(a + 1):
+            A[a][b] = sum(row[a] * row[b] for row in rows)
+    L = [[None] * n for _ in range(n)]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for i in range(n):
+            for j in range(i + 1):
+                acc = A[i][j] * (1.0 + lam) if i == j else A[i][j]
+                for k in range(j):
+                    acc = acc - L[i][k] * L[j][k]
+                if i == j:
+                    L[i][i] = np.sqrt(np.where(acc > 0.0, acc, np.nan))
+                else:
+                    L[i][j] = acc / L[j][j]
+        y = [None] * n
+        for i in range(n):
+            acc = -g[i]
+            for k in range(i):
+                acc = acc - L[i][k] * y[k]
+            y[i] = acc / L[i][i]
+        x = [None] * n
+        for i in range(n - 1, -1, -1):
+            acc = y[i]
+            for k in range(i + 1, n):
+                acc = acc - L[k][i] * x[k]
+            x[i] = acc / L[i][i]
+    return x
+
+
+def _polish_batch(R: np.ndarray, t: np.ndarray, obj, us: np.ndarray, vs: np.ndarray, wx: float,
+                  wy: float, max_iter: int = POLISH_MAX_ITER,
+                  active: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """_polish over N poses at once (us, vs: (N, 4)); each row stops on its own criterion.
+    Only rows still moving are computed. Returns R, t, cost (N,)."""
+    R, t = R.copy(), t.copy()
+    N = R.shape[0]
+    lam = np.zeros(N)
+    cost = _residuals_batch(R, t, obj, list(us.T), list(vs.T), wx, wy, False)[1]
+    active = np.ones(N, bool) if active is None else active.copy()
+    for _ in range(max_iter):
+        idx = np.flatnonzero(active)
+        if idx.size == 0:
+            break
+        Rs, ts, ls = R[idx], t[idx], lam[idx]
+        u_s, v_s = list(us[idx].T), list(vs[idx].T)
+        rows, _, _ = _residuals_batch(Rs, ts, obj, u_s, v_s, wx, wy, True)
+        step = np.stack(_solve_batch(rows, ls), -1)
+        finite = np.all(np.isfinite(step), axis=-1)
+        step = np.where(finite[:, None], step, 0.0)
+        R_new = geometry.R_from_rvec(step[:, :3]) @ Rs
+        t_new = ts + step[:, 3:]
+        _, cost_n, zmin = _residuals_batch(R_new, t_new, obj, u_s, v_s, wx, wy, False)
+        c_old = cost[idx]
+        accept = finite & (zmin > 0.0) & (cost_n <= c_old * (1.0 + 1e-12))
+        R[idx] = np.where(accept[:, None, None], R_new, Rs)
+        t[idx] = np.where(accept[:, None], t_new, ts)
+        cost[idx] = np.where(accept, cost_n, c_old)
+        move = np.maximum(np.abs(step[:, :3]).max(-1),
+                          np.abs(step[:, 3:]).sum(-1) / np.abs(t_new[:, 2]))
+        lam[idx] = np.where(accept, ls * 0.1, np.where(ls == 0.0, 1e-3, ls * 10.0))
+        done = (accept & (move < POLISH_TOL)) | (lam[idx] > 1e6)
+        active[idx[done]] = False
+    return R, t, cost
+
+
+def _quad_screen(xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """(N,) True where a quadrilateral might fail quad_problem (checked exactly afterwards):
+    conservative margins, so every clean row passes without the per-row check."""
+    ext = np.maximum(xs.max(-1) - xs.min(-1), ys.max(-1) - ys.min(-1))
+    ax, ay = xs - np.roll(xs, 1, -1), ys - np.roll(ys, 1, -1)
+    bx, by = np.roll(xs, -1, -1) - xs, np.roll(ys, -1, -1) - ys
+    cross = ax * by - ay * bx
+    la, lb = np.hypot(ax, ay), np.hypot(bx, by)
+    area = 0.5 * np.sum(xs * np.roll(ys, -1, -1) - np.roll(xs, -1, -1) * ys, -1)
+    with np.errstate(invalid="ignore"):
+        bad = ~(ext > 0.0)
+        bad |= np.any(cross <= 10.0 * _DEGENERATE_REL * la * lb, -1)
+        bad |= ~(area > 10.0 * _DEGENERATE_REL * ext * ext)
+    return bad
+
+
+def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: str = "iterative",
+                        iterations: int = 5, refine: bool = True) -> BatchPoses:
+    """``estimate_pose`` over N corner sets (N, 4, 2) pixels, vectorised; the same results.
+
+    A bad row does not stop the batch: its ``ok`` is False and ``errors`` says why. Raises
+    EstimationError only for a wrong overall shape or bad options."""
+    _check_options(method, iterations)
+    try:
+        arr = np.array(corners_px, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise EstimationError(f"corners must be numbers, shape (N, 4, 2): {exc}") from None
+    if arr.ndim != 3 or arr.shape[1:] != (4, 2):
+        raise EstimationError(f"corners must have shape (N, 4, 2) (TL, TR, BR, BL pixels), got {arr.shape}")
+    N = arr.shape[0]
+    errors: List[Optional[str]] = [None] * N
+    finite = np.all(np.isfinite(arr), axis=(1, 2))
+    for i in np.flatnonzero(~finite):
+        errors[i] = "corners contain NaN or infinity"
+    # A harmless stand-in for bad rows keeps the vectorised maths free of NaN.
+    dummy = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]) * 50.0 + [camera.cx, camera.cy]
+    arr[~finite] = dummy
+    norm = camera.undistort_normalized(arr.reshape(-1, 2)).reshape(N, 4, 2)
+    good = finite & np.all(np.isfinite(norm), axis=(1, 2))
+    for i in np.flatnonzero(finite & ~good):
+        errors[i] = "corners cannot be undistorted with this camera model"
+    xs, ys = norm[..., 0], norm[..., 1]
+    for i in np.flatnonzero(good & _quad_screen(xs, ys)):
+        problem = quad_problem(xs[i].tolist(), ys[i].tolist())
+        if problem:
+            errors[i] = problem
+            good[i] = False
+    dummy_n = camera.undistort_normalized(dummy).reshape(4, 2)
+    norm[~good] = dummy_n
+    xs, ys = norm[..., 0], norm[..., 1]
+
+    area = marker.width * marker.height
+    res = loop.correction_loop(norm, 1.0, area, method=method, iterations=iterations)
+    R = geometry.R_cam_marker_from_R_cam_unrot(res.R_cam_unrot)
+    t = np.einsum("nij,nj->ni", res.R_cam_unrot, res.position_unrot)
+    v = t / np.linalg.norm(t, axis=-1, keepdims=True)
+    R_alt = geometry.R_from_rvec(math.pi * v) @ R @ _R_FLIP_Z
+    t_alt = t.copy()
+    obj = [(float(p[0]), float(p[1])) for p in marker.object_points]
+    wx, wy = camera.fx, camera.fy
+    if refine:
+        R, t, cost = _polish_batch(R, t, obj, xs, ys, wx, wy)
+        R_alt, t_alt, cost_alt = _polish_batch(R_alt, t_alt, obj, xs, ys, wx, wy, ALT_POLISH_ITER)
+        better = cost_alt < cost
+        if np.any(better):
+            R_alt, t_alt, cost_alt = _polish_batch(R_alt, t_alt, obj, xs, ys, wx, wy,
+                                                   active=better)
+    else:
+        cost = _residuals_batch(R, t, obj, list(xs.T), list(ys.T), wx, wy, False)[1]
+        cost_alt = _residuals_batch(R_alt, t_alt, obj, list(xs.T), list(ys.T), wx, wy, False)[1]
+    zmin = _residuals_batch(R, t, obj, list(xs.T), list(ys.T), wx, wy, False)[2]
+    zmin_alt = _residuals_batch(R_alt, t_alt, obj, list(xs.T), list(ys.T), wx, wy, False)[2]
+
+    def error_px(R_, t_, cost_):
+        if not camera.has_distortion:
+            return np.sqrt(cost_ / 4.0)
+        pts = np.einsum("nij,kj->nki", R_, marker.object_points) + t_[:, None, :]
+        proj = camera.project(pts.reshape(-1, 3)).reshape(N, 4, 2)
+        return np.sqrt(np.sum((proj - arr) ** 2, axis=(1, 2)) / 4.0)
+
+    with np.errstate(invalid="ignore", divide="ignore"):
+        err = error_px(R, t, cost)
+        err_alt = np.where(zmin_alt > 0.0, error_px(R_alt, t_alt, cost_alt), np.inf)
+    err_alt = np.where(np.isfinite(err_alt), err_alt, np.inf)
+    fin = (np.all(np.isfinite(R), axis=(1, 2)) & np.all(np.isfinite(t), axis=1)
+           & np.isfinite(err))
+    for i in np.flatnonzero(good & ~(zmin > 0.0)):
+        errors[i] = "the marker would be behind the camera"
+    for i in np.flatnonzero(good & (zmin > 0.0) & ~fin):
+        errors[i] = "no finite pose fits these corners"
+    ok = good & (zmin > 0.0) & fin
+    swap = err_alt < err
+    R, R_alt = np.where(swap[:, None, None], R_alt, R), np.where(swap[:, None, None], R, R_alt)
+    t, t_alt = np.where(swap[:, None], t_alt, t), np.where(swap[:, None], t, t_alt)
+    err, err_alt = np.where(swap, err_alt, err), np.where(swap, err, err_alt)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(np.isfinite(err_alt),
+                         np.where(err_alt > 0.0, np.minimum(1.0, err / err_alt), 1.0), 0.0)
+    a, b, g = geometry.paper_angles_from_R_cam_unrot(geometry.R_cam_unrot_from_R_cam_marker(R))
+    rvec = geometry.rvec_from_R(R)
+    nan = ~ok
+    out = BatchPoses(rvec=rvec, tvec=t, R=R, alpha_deg=np.degrees(a), beta_deg=np.degrees(b),
+                     gamma_deg=np.degrees(g), reprojection_error_px=err, ambiguity_ratio=ratio,
+                     alternative_R=R_alt, alternative_tvec=t_alt, alternative_error_px=err_alt,
+                     ok=ok, errors=errors, method=method)
+    for name in ("rvec", "tvec", "R", "alpha_deg", "beta_deg", "gamma_deg",
+                 "reprojection_error_px", "ambiguity_ratio", "alternative_R",
+                 "alternative_tvec", "alternative_error_px"):
+        getattr(out, name)[nan] = np.nan
+    return out
