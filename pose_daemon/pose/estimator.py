@@ -214,7 +214,8 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
         table = load_table()
     area = marker.width * marker.height
     R_l, cxs, cys, used = loop._loop_core(list(us), list(vs), 1.0, area, method, iterations,
-                                          loop.MATH_OPS, table, None, LOOP_TOL_RAD)
+                                          loop.MATH_OPS, table, None, LOOP_TOL_RAD,
+                                          marker.width / marker.height)
     px, py, pz = loop._position(cxs, cys, 1.0, area, loop.MATH_OPS)
     R_cam_unrot = np.array(R_l)
     R = geometry.R_cam_marker_from_R_cam_unrot(R_cam_unrot)
@@ -445,7 +446,8 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
     xs, ys = norm[..., 0], norm[..., 1]
 
     area = marker.width * marker.height
-    res = loop.correction_loop(norm, 1.0, area, method=method, iterations=iterations)
+    res = loop.correction_loop(norm, 1.0, area, method=method, iterations=iterations,
+                               aspect=marker.width / marker.height)
     R = geometry.R_cam_marker_from_R_cam_unrot(res.R_cam_unrot)
     t = np.einsum("nij,nj->ni", res.R_cam_unrot, res.position_unrot)
     v = t / np.linalg.norm(t, axis=-1, keepdims=True)

@@ -206,15 +206,19 @@ def _rot_cols(R, i: int, j: int, c, s) -> None:
 
 
 def _loop_core(xs, ys, f: float, area: float, method: str, iterations: int, m: _Ops,
-               table=None, rows: Optional[list] = None, tol_rad: float = 0.0):
+               table=None, rows: Optional[list] = None, tol_rad: float = 0.0,
+               aspect: float = 1.0):
     """The loop on corner lists xs, ys (4 entries each: arrays or floats). Returns
     (R, xs, ys, iterations run), R as a 3x3 list of entries (R_cam_unrot). With tol_rad > 0
     (floats only) it stops once an iteration's three corrections are all below tol_rad."""
     one, zero = 1.0, 0.0
     R = [[one, zero, zero], [zero, one, zero], [zero, zero, one]]
     # Image angles do not depend on f: the table's depth is z / sqrt(W*H) (z from eq. 1 is
-    # already a length), i.e. z / (f sqrt(W*H)) with z in image units.
-    scale = math.sqrt(area)
+    # already a length), i.e. z / (f sqrt(W*H)) with z in image units. To first order yaw
+    # tilts the top and bottom edges by ~ (H/2) b / z and pitch the sides by ~ (W/2) a / z,
+    # so a W x H rectangle looks up yaw at z / H and pitch at z / W (both sqrt(W*H) for a square).
+    scale_yaw = math.sqrt(area / aspect)
+    scale_pitch = math.sqrt(area * aspect)
     ff = f * f * area
     i = 0
     for i in range(1, int(iterations) + 1):
@@ -226,8 +230,8 @@ def _loop_core(xs, ys, f: float, area: float, method: str, iterations: int, m: _
         _rot_cols(R, 0, 1, c, s)
         # Step 3, yaw (9)-(10).
         if table is not None:
-            zt = ang = _angles(xs, ys, m)
-            zt = m.sqrt(ff / m.fabs(_area(xs, ys))) / scale
+            ang = _angles(xs, ys, m)
+            zt = m.sqrt(ff / m.fabs(_area(xs, ys))) / scale_yaw
             b = table.yaw(ang[0] + ang[3] - ang[1] - ang[2], zt)
         else:
             vx, _, vz = _vanish(xs, ys, f, 0, 1, 3, 2)
@@ -240,7 +244,7 @@ def _loop_core(xs, ys, f: float, area: float, method: str, iterations: int, m: _
         # Steps 4-5, pitch (11)-(12).
         if table is not None:
             ang = _angles(xs, ys, m)
-            zt = m.sqrt(ff / m.fabs(_area(xs, ys))) / scale
+            zt = m.sqrt(ff / m.fabs(_area(xs, ys))) / scale_pitch
             a = table.pitch(ang[2] + ang[3] - ang[0] - ang[1], zt)
         else:
             _, vy, vz = _vanish(xs, ys, f, 0, 3, 1, 2)
@@ -273,13 +277,14 @@ def _stack_R(R, batch) -> np.ndarray:
 
 
 def correction_loop(points: np.ndarray, f: float, area: float, *, method: str = "iterative",
-                    iterations: int = 5, trace: bool = False) -> LoopResult:
+                    iterations: int = 5, trace: bool = False, aspect: float = 1.0) -> LoopResult:
     """Run the paper's loop on (..., 4, 2) image points (see the module docstring).
 
     ``area`` is the marker's W*H (the paper's s^2) in the squared length unit the position
     comes out in. ``method`` "paper" maps e_beta/e_alpha to yaw/pitch through the simulated
     cubic (pose_daemon/data/paper_table.json); "iterative" takes them from the vanishing
-    points of the edges being straightened (no table, any camera and marker).
+    points of the edges being straightened (no table, any camera and marker). ``aspect`` is
+    W/H of a rectangular marker (it only matters to the "paper" table's depth scale).
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
@@ -294,7 +299,8 @@ def correction_loop(points: np.ndarray, f: float, area: float, *, method: str = 
     xs = [np.array(pts[..., j, 0]) for j in range(4)]
     ys = [np.array(pts[..., j, 1]) for j in range(4)]
     raw: Optional[list] = [] if trace else None
-    R, xs, ys, _ = _loop_core(xs, ys, f, area, method, iterations, NUMPY_OPS, table, raw)
+    R, xs, ys, _ = _loop_core(xs, ys, f, area, method, iterations, NUMPY_OPS, table, raw,
+                              aspect=float(aspect))
     corrected = np.stack([np.stack([x, y], -1) for x, y in zip(xs, ys)], -2)
     pos = np.stack(np.broadcast_arrays(*_position(xs, ys, f, f * f * area, NUMPY_OPS)), -1)
     rows: Optional[List[IterationTrace]] = None

@@ -5,6 +5,7 @@ a camera turned by a pure yaw (pitch), gives e_beta (e_alpha) for each angle; a 
 a e^3 + b e^2 + c e + d is fitted at each depth. Depth is the dimensionless
 z_rel = z / sqrt(W*H) (z a length, from eq. 1; equivalently z / (f sqrt(W*H)) with z in image
 units): image angles do not depend on f, so one table holds for every camera and marker size.
+A W x H rectangle looks yaw up at z / H and pitch at z / W (see loop.py).
 ``scripts/make_paper_table.py`` writes the shipped table ``pose_daemon/data/paper_table.json``.
 """
 

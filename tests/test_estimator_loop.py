@@ -1,0 +1,143 @@
+"""Pure maths of the paper's loop: corrections, depth from area, roll, the two methods."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pose_daemon import geometry
+from pose_daemon.pose import loop
+from pose_daemon.pose.paper_table import build_table, load_table
+
+
+def _image(R_cam_unrot, pos=(0.0, 0.0, 5.0), w=1.0, h=1.0, f=1.0):
+    return loop.project_unrot(np.asarray(R_cam_unrot), np.asarray(pos, float), w, h, f)
+
+
+@pytest.mark.parametrize("f", [1.0, 600.0])
+def test_corrections_undo_exact_camera_rotations(f):
+    pos = (0.3, -0.2, 4.0)
+    ideal = _image(np.eye(3), pos, f=f)
+    for k, (rot, correct) in enumerate([(geometry.rot_z, loop.correct_roll),
+                                        (geometry.rot_y, loop.correct_yaw),
+                                        (geometry.rot_x, loop.correct_pitch)]):
+        angle = np.array([-0.6, 0.35, 0.9])
+        img = _image(rot(angle), np.broadcast_to(pos, (3, 3)), f=f)
+        assert np.abs(img - ideal).max() > 1e-2 * f  # the rotation did move the image
+        back = correct(img, angle) if k == 0 else correct(img, angle, f)
+        assert np.abs(back - ideal).max() < 1e-12 * f
+
+
+def test_column_update_equals_geometry_products():
+    R = [[float(v) for v in row] for row in geometry.R_from_rvec(np.array([0.2, -0.4, 0.7]))]
+    R0 = np.array(R)
+    g = 0.37
+    for (i, j), rot in [((0, 1), geometry.rot_z), ((0, 2), geometry.rot_y), ((1, 2), geometry.rot_x)]:
+        Rl = [list(r) for r in R]
+        loop._rot_cols(Rl, i, j, math.cos(g), math.sin(g))
+        assert np.abs(np.array(Rl) - R0 @ rot(g)).max() < 1e-15
+
+
+def test_depth_from_area_is_exact_fronto_parallel_for_rectangles():
+    img = _image(np.eye(3), (0.4, 0.1, 7.5), w=0.3, h=0.2, f=600.0)
+    assert loop.depth_from_area(img, 600.0, 0.3 * 0.2) == pytest.approx(7.5, rel=1e-12)
+    # A quarter of the area = twice the distance.
+    assert loop.depth_from_area(img * 0.5, 600.0, 0.06) == pytest.approx(15.0, rel=1e-12)
+
+
+@pytest.mark.parametrize("gamma_deg", [0.0, 30.0, 89.0, 135.0, 179.0, -179.0, -100.0, -45.0, 270.5])
+def test_roll_from_labelled_edges_in_every_quadrant(gamma_deg):
+    g = math.radians(gamma_deg)
+    img = _image(geometry.rot_z(g), (0.1, 0.2, 3.0))
+    est = float(loop.roll_from_edges(img))
+    diff = (est - g + math.pi) % (2 * math.pi) - math.pi
+    assert abs(diff) < 1e-12
+
+
+def test_vanishing_point_steps_are_exact_for_pure_yaw_and_pitch():
+    for b in (-0.8, -0.1, 0.5):
+        img = _image(geometry.rot_y(b), (0.2, -0.3, 2.0))
+        assert float(loop.yaw_from_vanishing_point(img, 1.0)) == pytest.approx(b, abs=1e-12)
+    for a in (-0.7, 0.05, 0.6):
+        img = _image(geometry.rot_x(a), (0.2, -0.3, 2.0))
+        assert float(loop.pitch_from_vanishing_point(img, 1.0)) == pytest.approx(a, abs=1e-12)
+
+
+def test_paper_error_signs_are_consistent_with_the_table():
+    # Positive yaw turns the camera right (OpenCV x): the left side of the image shrinks,
+    # its angles open up; the table maps that e_beta back to the same positive yaw.
+    img = _image(geometry.rot_y(0.3), (0.0, 0.0, 4.0))
+    zeta = loop.internal_angles(img)
+    eb = float(loop.e_beta(zeta))
+    assert eb != 0.0
+    assert float(load_table().yaw(eb, 4.0)) == pytest.approx(0.3, abs=1e-2)
+    img = _image(geometry.rot_x(-0.4), (0.0, 0.0, 4.0))
+    ea = float(loop.e_alpha(loop.internal_angles(img)))
+    assert float(load_table().pitch(ea, 4.0)) == pytest.approx(-0.4, abs=1e-2)
+    # The float path of the table agrees with the array path.
+    assert load_table().yaw(eb, 4.0) == pytest.approx(float(load_table().yaw(np.array(eb), 4.0)), abs=1e-15)
+
+
+def test_shipped_table_is_what_the_script_generates():
+    fresh = build_table()
+    import json
+    from importlib import resources
+    shipped = json.loads(resources.files("pose_daemon").joinpath("data", "paper_table.json").read_text())
+    assert np.allclose(np.array(fresh["beta"]), np.array(shipped["beta"]), rtol=1e-9, atol=1e-12)
+    assert np.allclose(fresh["z_rel"], shipped["z_rel"])
+
+
+CASES = [  # (alpha, beta, gamma) deg, position: the paper's Cases 1 and 2
+    ((40.10, 28.65, -40.10), (0.0, 0.0, 100.0)),
+    ((34.38, -22.91, 28.66), (20.0, 40.0, 150.0)),
+]
+
+
+@pytest.mark.parametrize("method", ["iterative", "paper"])
+@pytest.mark.parametrize("case", CASES)
+def test_paper_cases_converge_by_iteration_4(method, case):
+    angles, pos = case
+    R = geometry.R_cam_unrot_from_paper_angles(*np.radians(angles))
+    s = 20.0
+    img = _image(R, pos, s, s, f=1.0)
+    res = loop.correction_loop(img, 1.0, s * s, method=method, iterations=5, trace=True)
+    assert len(res.trace) == 5
+    row4 = res.trace[3]
+    got = np.degrees(geometry.paper_angles_from_R_cam_unrot(row4.R_cam_unrot))
+    assert np.abs(got - np.array(angles)).max() < 0.01
+    assert abs(float(row4.x) - pos[0]) < 0.01 and abs(float(row4.y) - pos[1]) < 0.01
+    assert abs(float(row4.z) - pos[2]) < 0.01
+    # The first iteration had real work to do.
+    assert np.abs(np.degrees(res.trace[0].zeta_rad) - 90.0).max() > 5.0
+    assert np.allclose(res.position_unrot, pos, atol=1e-3)
+
+
+def test_sweep_sample_converges_far_below_the_paper():
+    # A coarse version of Section IV-A's sweep: the iterative method to rounding error.
+    ang = np.radians(np.arange(-45.0, 45.0, 9.0))
+    A, B, G = np.meshgrid(ang, ang, ang, indexing="ij")
+    R = geometry.R_cam_unrot_from_paper_angles(A.ravel(), B.ravel(), G.ravel())
+    pos = np.broadcast_to([0.0, 0.0, 100.0], (R.shape[0], 3))
+    img = loop.project_unrot(R, pos, 20.0, 20.0, 1.0)
+    ideal = loop.project_unrot(np.eye(3), pos[0], 20.0, 20.0, 1.0)
+    for method, limit in (("iterative", 1e-11), ("paper", 1e-6)):
+        res = loop.correction_loop(img, 1.0, 400.0, method=method, iterations=10)
+        e_image = np.linalg.norm(res.corrected - ideal, axis=-1).sum(-1)
+        assert e_image.max() < limit, method
+        assert geometry.rotation_angle_deg(res.R_cam_unrot, R).max() < 1e-6
+
+
+def test_rectangles_converge_with_both_methods():
+    R = geometry.R_cam_unrot_from_paper_angles(0.3, -0.4, 0.5)
+    img = _image(R, (0.1, 0.05, 1.2), w=0.3, h=0.15)
+    for method in ("iterative", "paper"):
+        res = loop.correction_loop(img, 1.0, 0.3 * 0.15, method=method, iterations=10, aspect=2.0)
+        assert geometry.rotation_angle_deg(res.R_cam_unrot, R) < 1e-6
+        assert np.allclose(res.position_unrot, (0.1, 0.05, 1.2), atol=1e-8)
+
+
+def test_unknown_method_is_refused():
+    with pytest.raises(ValueError, match="unknown method"):
+        loop.correction_loop(np.zeros((4, 2)), 1.0, 1.0, method="magic")
