@@ -15,6 +15,7 @@ UNICYCLE_FILES = ("fig7_trajectory.png", "fig8_heading.png", "fig9_heading_error
 
 
 PAPER_E_IMAGE = 1.4023e-6  # the value Fig. 4 of the paper shows for every orientation
+PAPER_MAX_HEADING_ERROR_DEG = 0.043  # Fig. 9
 
 
 def plot_sweep(result: SweepResult, path: str) -> Path:
@@ -89,7 +90,12 @@ def plot_unicycle(result: UnicycleResult, directory: str) -> List[Path]:
     paths.append(save_figure(fig, out / UNICYCLE_FILES[1]))
 
     fig, ax = new_figure()
-    ax.plot(est.t_s, est.theta_est_deg - est.theta_deg, "-", color="tab:red")
+    error = est.theta_est_deg - est.theta_deg
+    ax.plot(est.t_s, error, "-", color="tab:red")
+    ax.text(0.98, 0.95, f"max |error| {np.max(np.abs(error)):.2e} deg\n"
+            f"paper: {PAPER_MAX_HEADING_ERROR_DEG} deg",
+            transform=ax.transAxes, ha="right", va="top",
+            bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "0.8"})
     ax.set_xlabel("time (s)")
     ax.set_ylabel("heading error (deg)")
     ax.set_title(f"Fig. 9: error in the estimated heading ({s.method}{noise})")
