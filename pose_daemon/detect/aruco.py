@@ -1,0 +1,125 @@
+"""The ArUco marker: found by OpenCV's ArUco detector (its dictionary and id give the
+orientation), corners refined by edge fits, followed between frames by reading its bits.
+"""
+
+from __future__ import annotations
+
+from typing import List, Optional
+
+import numpy as np
+
+from ..camera import Marker
+from . import aruco_compat
+from .quads import Roi
+from .refine import EdgeFit, fit_edges, signed_area
+from .square import Candidate, SquareOptions, sample_canonical, side_lengths
+
+
+class ArucoFinder:
+    """Finds the configured dictionary + id; corners come out as TL, TR, BR, BL."""
+
+    oriented = True
+
+    def __init__(self, marker: Marker, options: SquareOptions, camera=None) -> None:
+        self.marker = marker
+        self.options = options
+        self.camera = camera
+        self.dictionary = aruco_compat.get_dictionary(marker.dictionary)
+        n_ids = aruco_compat.dictionary_size(self.dictionary)
+        if not 0 <= int(marker.id) < n_ids:
+            raise ValueError(f"ArUco id {marker.id} is not in {marker.dictionary} (ids 0..{n_ids - 1})")
+        self.marker_id = int(marker.id)
+        self.bits = aruco_compat.marker_bits(self.dictionary, self.marker_id)
+        self.n_bits = int(self.bits.shape[0])
+        self.max_bit_errors = int(getattr(self.dictionary, "maxCorrectionBits", 0))
+        # Our own edge fits replace OpenCV's refinement, so it is switched off.
+        self._finder = aruco_compat.ArucoMarkerFinder(
+            self.dictionary, aruco_compat.make_parameters(
+                corner_refine="none", minMarkerPerimeterRate=0.01,
+                minCornerDistanceRate=0.02))
+        cells = self.n_bits + 2
+        centres = (np.arange(cells) + 0.5) / cells
+        uu, vv = np.meshgrid(centres, centres)
+        self._cell_uv = np.column_stack([uu.ravel(), vv.ravel()])
+        expected = np.zeros((cells, cells), dtype=bool)
+        expected[1:-1, 1:-1] = self.bits.astype(bool)
+        self._expected_white = expected.ravel()
+        border = np.ones((cells, cells), dtype=bool)
+        border[1:-1, 1:-1] = False
+        self._border = border.ravel()
+        s = np.linspace(0.1, 0.9, 7)
+        self._ring = np.concatenate([np.column_stack([s, np.full_like(s, -0.08)]),
+                                     np.column_stack([np.full_like(s, 1.08), s]),
+                                     np.column_stack([s, np.full_like(s, 1.08)]),
+                                     np.column_stack([np.full_like(s, -0.08), s])])
+
+    def reach_px(self, corners: np.ndarray):
+        side = float(side_lengths(corners).min())
+        cell = side / (self.n_bits + 2)
+        # Inside, stay within the one-cell black border; outside, within the quiet zone.
+        return float(np.clip(0.6 * cell, 1.0, 3.0)), float(np.clip(0.15 * side, 1.5, 3.0))
+
+    def refine(self, gray: np.ndarray, corners: np.ndarray, iterations: int,
+               max_move_px: Optional[float] = None) -> Optional[EdgeFit]:
+        inner, outer = self.reach_px(corners)
+        return fit_edges(gray, corners, inner_px=inner, outer_px=outer, iterations=iterations,
+                         camera=self.camera, min_contrast=0.5 * self.options.min_contrast,
+                         max_move_px=max_move_px)
+
+    def verify(self, gray: np.ndarray, fit: EdgeFit) -> bool:
+        """Straight sides, and the marker's own bits read in this orientation."""
+        o = self.options
+        if fit.residual_px > o.max_edge_residual_px or fit.valid_fraction < 0.6:
+            return False
+        if fit.contrast < o.min_contrast or side_lengths(fit.corners).min() < o.min_side_px:
+            return False
+        cells = sample_canonical(gray, fit.corners, self._cell_uv)
+        ring = sample_canonical(gray, fit.corners, self._ring)
+        ring = ring[np.isfinite(ring)]
+        if not np.isfinite(cells).all() or len(ring) < 10:
+            return False
+        dark = float(np.median(cells[self._border]))
+        light = float(np.median(ring))
+        if light - dark < o.min_contrast:
+            return False
+        white = cells > 0.5 * (dark + light)
+        if np.count_nonzero(white[self._border]) > 1:
+            return False
+        errors = np.count_nonzero(white[~self._border] != self._expected_white[~self._border])
+        return errors <= self.max_bit_errors
+
+    def follow(self, gray: np.ndarray, predicted: np.ndarray) -> Optional[Candidate]:
+        """The marker near ``predicted`` corners (TL, TR, BR, BL): edge fits, then its bits."""
+        inner, outer = self.reach_px(predicted)
+        fit = self.refine(gray, predicted, iterations=2, max_move_px=0.8 * min(inner, outer) + 0.5)
+        if fit is None or not self.verify(gray, fit):
+            return None
+        return Candidate(fit.corners, True, fit)
+
+    def search(self, gray: np.ndarray, roi: Optional[Roi] = None,
+               expected_side_px: Optional[float] = None) -> List[Candidate]:
+        """Every instance of the marker in ``roi`` (or the whole frame), refined."""
+        x0, y0 = 0, 0
+        img = gray
+        if roi is not None:
+            x0, y0, x1, y1 = roi
+            img = gray[y0:y1, x0:x1]
+        corners_list, ids = self._finder.detect(img)
+        out: List[Candidate] = []
+        for corners, marker_id in zip(corners_list, ids):
+            if int(marker_id) != self.marker_id:
+                continue
+            # OpenCV's corners sit on the boundary pixels of the dark border: move them out
+            # by half a pixel onto its edge before fitting.
+            pts = corners.astype(np.float64)
+            centre = pts.mean(axis=0)
+            direction = pts - centre
+            direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-9)
+            pts = pts + 0.5 * direction + (x0, y0)
+            if signed_area(pts) <= 0 or side_lengths(pts).min() < self.options.min_side_px:
+                continue
+            fit = self.refine(gray, pts, iterations=2, max_move_px=3.0)
+            if fit is None:
+                continue
+            out.append(Candidate(fit.corners, True, fit))
+        return out

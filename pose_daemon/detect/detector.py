@@ -1,0 +1,220 @@
+"""MarkerDetector: the marker's four corners in a grey frame, tracked from frame to frame.
+
+Per frame, cheapest first: follow the last corners (edge fits where the marker is predicted
+to be), then search a region around them, then the whole frame. A track survives
+``max_misses`` frames without the marker. Corner labels: an ArUco marker's pattern gives
+them; a plain square is 4-fold symmetric, so the first detection assumes |roll| < 45 deg and
+later ones keep the labels continuous with the previous frame.
+"""
+
+from __future__ import annotations
+
+from typing import List, Optional, Tuple
+
+import cv2
+import numpy as np
+
+from ..camera import Camera, Marker
+from .quads import Roi
+from .square import Candidate, SquareFinder, SquareOptions, aspect_error, side_lengths
+
+#: Which step found the marker in the last call: "follow", "roi", "full" or None (not found).
+STAGES = ("follow", "roi", "full")
+
+
+def as_gray(image) -> np.ndarray:
+    """A 2-D uint8 grey image from what a camera or a file gives: uint8 or uint16, grey,
+    (H, W, 1), BGR or BGRA. ValueError naming the problem for anything else."""
+    if not isinstance(image, np.ndarray):
+        raise ValueError(f"image must be a numpy array, got {type(image).__name__}")
+    if image.size == 0:
+        raise ValueError(f"image is empty (shape {image.shape})")
+    if image.dtype == np.uint16:
+        # 10/12-bit sensors deliver uint16 scaled to the full range; keep the top byte.
+        image = (image >> 8).astype(np.uint8)
+    elif image.dtype != np.uint8:
+        raise ValueError(f"image must be uint8 (or uint16) grey levels, got dtype {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim == 3 and image.shape[2] == 3:
+        return cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_BGR2GRAY)
+    if image.ndim == 3 and image.shape[2] == 4:
+        return cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_BGRA2GRAY)
+    if image.ndim != 2:
+        raise ValueError(f"image must be grey (H, W) or BGR (H, W, 3), got shape {image.shape}")
+    return np.ascontiguousarray(image)
+
+
+def _cyclic_shift_to(corners: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Relabel clockwise corners so each lands nearest its previous label (continuity)."""
+    costs = [float(np.sum((np.roll(corners, -k, axis=0) - reference) ** 2)) for k in range(4)]
+    return np.roll(corners, -int(np.argmin(costs)), axis=0)
+
+
+def _upright_labels(corners: np.ndarray) -> np.ndarray:
+    """Labels for a first sighting: the top side (TL->TR, and BL->BR) points closest to +x."""
+    best, best_cos = corners, -2.0
+    for k in range(4):
+        c = np.roll(corners, -k, axis=0)
+        top = (c[1] - c[0]) + (c[2] - c[3])
+        cos = top[0] / max(float(np.hypot(top[0], top[1])), 1e-12)
+        if cos > best_cos:
+            best, best_cos = c, cos
+    return best
+
+
+def _rms_distance(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
+
+
+class MarkerDetector:
+    """Corners of ``marker`` (TL, TR, BR, BL, pixels) in grey frames, with tracking.
+
+    Keyword options (all optional):
+    - ``max_misses`` (5): frames the track survives without the marker; then it is forgotten.
+    - ``min_side_px`` (10.0): shortest side accepted, pixels.
+    - ``camera``: a Camera with lens distortion makes the side fits happen in undistorted
+      pixels (sides are straight only there); without it the image is taken as distortion-free.
+    - ``block_px`` (25): adaptive threshold window for a full-frame search of a square marker.
+    - ``threshold_offset`` (10.0): grey levels below the local mean that count as dark.
+    - ``min_contrast`` (20.0): least grey-level difference between surround and marker.
+    - ``max_edge_residual_px`` (0.4): RMS distance of edge points to their fitted sides.
+    - ``max_aspect_ratio_error`` (3.0): factor by which the outline's W:H may differ from
+      the marker's (perspective).
+    - ``roi_margin`` (0.5): the tracked search region extends this fraction of the marker's
+      size (at least 16 px) around the predicted corners.
+    """
+
+    def __init__(self, marker: Marker, *, max_misses: int = 5, min_side_px: float = 10.0,
+                 camera: Optional[Camera] = None, block_px: int = 25,
+                 threshold_offset: float = 10.0, min_contrast: float = 20.0,
+                 max_edge_residual_px: float = 0.4, max_aspect_ratio_error: float = 3.0,
+                 roi_margin: float = 0.5) -> None:
+        if not isinstance(marker, Marker):
+            raise ValueError(f"marker must be a pose_daemon.Marker, got {type(marker).__name__}")
+        if int(max_misses) != max_misses or max_misses < 0:
+            raise ValueError(f"max_misses must be a non-negative integer, got {max_misses!r}")
+        checks = (("min_side_px", min_side_px, 1.0), ("block_px", block_px, 3),
+                  ("min_contrast", min_contrast, 1.0), ("max_edge_residual_px", max_edge_residual_px, 0.01),
+                  ("max_aspect_ratio_error", max_aspect_ratio_error, 1.0), ("roi_margin", roi_margin, 0.0),
+                  ("threshold_offset", threshold_offset, 0.0))
+        for name, value, lowest in checks:
+            if not isinstance(value, (int, float)) or not np.isfinite(value) or value < lowest:
+                raise ValueError(f"{name} must be a number >= {lowest}, got {value!r}")
+        if camera is not None and not isinstance(camera, Camera):
+            raise ValueError(f"camera must be a pose_daemon.Camera, got {type(camera).__name__}")
+        self.marker = marker
+        self.max_misses = int(max_misses)
+        self.roi_margin = float(roi_margin)
+        self.options = SquareOptions(
+            min_side_px=float(min_side_px), block_px=int(block_px),
+            threshold_offset=float(threshold_offset), min_contrast=float(min_contrast),
+            max_edge_residual_px=float(max_edge_residual_px),
+            max_aspect_ratio_error=float(max_aspect_ratio_error))
+        if marker.type == "aruco":
+            from .aruco import ArucoFinder
+
+            self._finder = ArucoFinder(marker, self.options, camera)
+        else:
+            self._finder = SquareFinder(marker, self.options, camera)
+        self.last_stage: Optional[str] = None
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+
+    def reset(self) -> None:
+        """Forget the track: the next frame is searched whole and labelled afresh."""
+        self._last: Optional[np.ndarray] = None
+        self._previous: Optional[np.ndarray] = None
+        self.misses = 0
+
+    @property
+    def tracking(self) -> bool:
+        """True while a track exists (found in the last ``max_misses + 1`` frames)."""
+        return self._last is not None
+
+    # ------------------------------------------------------------------ detection
+
+    def detect(self, image: np.ndarray) -> Optional[np.ndarray]:
+        """The marker's corners (4, 2) float64 pixels TL, TR, BR, BL, or None if not seen.
+
+        ``image``: grey uint8 (H, W) (BGR/BGRA and uint16 are converted). ValueError for
+        something that is not an image.
+        """
+        gray = as_gray(image)
+        found, stage = self._find(gray)
+        self.last_stage = stage
+        if found is None:
+            self.misses += 1
+            self._previous = None  # no velocity across a gap
+            if self.misses > self.max_misses:
+                self.reset()
+            return None
+        self._previous = self._last if self.misses == 0 else None
+        self._last = found
+        self.misses = 0
+        return found.copy()
+
+    def _find(self, gray: np.ndarray) -> Tuple[Optional[np.ndarray], Optional[str]]:
+        h, w = gray.shape
+        if h < 8 or w < 8:
+            return None, None
+        if self._last is None:
+            return self._pick_first(self._finder.search(gray)), "full"
+        predicted = self._predict()
+        inside = ((predicted >= 1.0) & (predicted <= [w - 2.0, h - 2.0])).all()
+        if inside:
+            cand = self._finder.follow(gray, predicted)
+            if cand is not None:
+                return self._label(cand, predicted), "follow"
+        side = float(side_lengths(self._last).max())
+        roi = self._roi(predicted, side, w, h)
+        if roi is not None:
+            found = self._pick_continuous(self._finder.search(gray, roi, side), predicted)
+            if found is not None:
+                return found, "roi"
+        found = self._pick_continuous(self._finder.search(gray), predicted)
+        return found, ("full" if found is not None else None)
+
+    def _predict(self) -> np.ndarray:
+        """Where the corners should be now: constant velocity over the last two frames."""
+        assert self._last is not None
+        if self._previous is None:
+            return self._last.copy()
+        return self._last + (self._last - self._previous)
+
+    def _roi(self, predicted: np.ndarray, side: float, w: int, h: int) -> Optional[Roi]:
+        pts = np.vstack([predicted, self._last])
+        margin = max(self.roi_margin * side, 16.0)
+        x0 = int(max(0, np.floor(pts[:, 0].min() - margin)))
+        y0 = int(max(0, np.floor(pts[:, 1].min() - margin)))
+        x1 = int(min(w, np.ceil(pts[:, 0].max() + margin) + 1))
+        y1 = int(min(h, np.ceil(pts[:, 1].max() + margin) + 1))
+        if x1 - x0 < 16 or y1 - y0 < 16:
+            return None
+        if (x1 - x0) * (y1 - y0) > 0.6 * w * h:
+            return None  # as costly as the whole frame: skip straight to it
+        return x0, y0, x1, y1
+
+    def _label(self, cand: Candidate, reference: Optional[np.ndarray]) -> np.ndarray:
+        if cand.oriented:
+            return cand.corners
+        if reference is None:
+            return _upright_labels(cand.corners)
+        return _cyclic_shift_to(cand.corners, reference)
+
+    def _pick_first(self, cands: List[Candidate]) -> Optional[np.ndarray]:
+        """No track: the candidate closest to the marker's shape; the larger one on a tie."""
+        if not cands:
+            return None
+        def key(c: Candidate):
+            labelled = self._label(c, None)
+            return (round(aspect_error(labelled, self.marker), 1), -float(side_lengths(labelled).sum()))
+        return self._label(min(cands, key=key), None)
+
+    def _pick_continuous(self, cands: List[Candidate], predicted: np.ndarray) -> Optional[np.ndarray]:
+        """With a track: the candidate closest to where the marker was predicted."""
+        if not cands:
+            return None
+        labelled = [self._label(c, predicted) for c in cands]
+        return min(labelled, key=lambda c: _rms_distance(c, predicted))

@@ -1,0 +1,90 @@
+"""Candidate quadrilaterals: dark convex four-sided regions outlined by a local threshold.
+
+Shared by the square and the aruco detectors: threshold (adaptive mean, so lighting
+gradients do not matter), outer contours, polygon fit, convexity and size checks.
+"""
+
+from __future__ import annotations
+
+from typing import List, Optional, Tuple
+
+import cv2
+import numpy as np
+
+from .refine import signed_area
+
+#: (x0, y0, x1, y1) pixel bounds, x1/y1 exclusive.
+Roi = Tuple[int, int, int, int]
+
+
+def odd(n: float, lo: int = 3, hi: int = 255) -> int:
+    k = int(np.clip(round(n), lo, hi))
+    return k if k % 2 else k + 1
+
+
+def find_quads(gray: np.ndarray, *, min_side_px: float, block_px: int, offset_gray: float = 7.0,
+               roi: Optional[Roi] = None, approx_rate: float = 0.04,
+               max_candidates: int = 64, downscale: int = 1) -> List[np.ndarray]:
+    """Dark convex quadrilaterals in ``gray`` (within ``roi``), largest first.
+
+    Each is (4, 2) float64 pixels of the full image, in image-clockwise order (positive
+    signed area) from an arbitrary start corner, accurate to about a pixel.
+    ``block_px``: the adaptive threshold's window; ``offset_gray``: how much darker than
+    the local mean a pixel must be to count as dark (well above sensor noise).
+    ``downscale`` 2 thresholds a half-size image (4x fewer pixels; for large search areas).
+    """
+    x0, y0 = 0, 0
+    img = gray
+    if roi is not None:
+        x0, y0, x1, y1 = roi
+        img = gray[y0:y1, x0:x1]
+    if img.shape[0] < 8 * downscale or img.shape[1] < 8 * downscale:
+        return []
+    scale = 1.0
+    if downscale > 1:
+        img = cv2.resize(img, (img.shape[1] // downscale, img.shape[0] // downscale),
+                         interpolation=cv2.INTER_AREA)
+        scale = float(downscale)
+        block_px = block_px / scale
+        min_side_px = min_side_px / scale
+    binary = cv2.adaptiveThreshold(img, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY_INV,
+                                   odd(block_px), offset_gray)
+    found = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+    contours, hierarchy = found[-2], found[-1]
+    if hierarchy is None:
+        return []
+    min_perimeter = 4.0 * min_side_px
+    min_area = min_side_px * min_side_px * 0.5
+    quads: List[Tuple[float, np.ndarray]] = []
+    for contour, link in zip(contours, hierarchy[0]):
+        # Outer boundaries only: a hole's outline is the inside of a dark ring.
+        if link[3] != -1 or len(contour) < 4:
+            continue
+        perimeter = cv2.arcLength(contour, True)
+        if perimeter < min_perimeter:
+            continue
+        poly = cv2.approxPolyDP(contour, approx_rate * perimeter, True)
+        if len(poly) != 4 or not cv2.isContourConvex(poly):
+            continue
+        pts = poly.reshape(4, 2).astype(np.float64)
+        area = signed_area(pts)
+        if area < 0:
+            pts = pts[::-1].copy()
+            area = -area
+        if area < min_area:
+            continue
+        sides = np.linalg.norm(pts - np.roll(pts, -1, axis=0), axis=1)
+        if sides.min() < min_side_px:
+            continue
+        # Boundary pixels of the dark region lie half a pixel inside its true edge.
+        centre = pts.mean(axis=0)
+        direction = pts - centre
+        direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-9)
+        pts = pts + 0.5 * direction
+        if scale != 1.0:
+            # Pixel centres: full-size x = scale * x_small + (scale - 1) / 2.
+            pts = pts * scale + 0.5 * (scale - 1.0)
+        pts = pts + (x0, y0)
+        quads.append((area, pts))
+    quads.sort(key=lambda item: -item[0])
+    return [q for _, q in quads[:max_candidates]]

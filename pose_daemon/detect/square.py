@@ -1,0 +1,171 @@
+"""The plain marker: a dark rectangle on a light surround, found, refined and checked.
+
+A candidate is accepted only if it looks like the marker: straight sides that fit lines to
+a fraction of a pixel, a uniformly dark inside and a light ring just outside it. Shapes
+of a textured background fail these checks, so frames without the marker give nothing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import List, Optional
+
+import cv2
+import numpy as np
+
+from ..camera import Marker
+from .quads import Roi, find_quads, odd
+from .refine import EdgeFit, fit_edges
+
+
+@dataclass
+class Candidate:
+    """A verified marker outline: corners (4, 2) pixels in image-clockwise order.
+
+    ``oriented``: the corners are already TL, TR, BR, BL (the marker's pattern says so);
+    otherwise the start corner is arbitrary and the detector labels them.
+    """
+
+    corners: np.ndarray
+    oriented: bool
+    fit: EdgeFit
+
+
+@dataclass(frozen=True)
+class SquareOptions:
+    """Tuning of the square finder (MarkerDetector keyword options of the same names)."""
+
+    min_side_px: float = 10.0
+    block_px: int = 25               # adaptive threshold window for a full-frame search
+    threshold_offset: float = 10.0   # grey levels below the local mean that count as dark
+    min_contrast: float = 20.0       # light surround - dark inside, grey levels
+    max_edge_residual_px: float = 0.4
+    max_aspect_ratio_error: float = 3.0   # measured W:H may differ from the marker's by this factor
+    ring_px: float = 2.5             # how far outside the sides the light ring is sampled
+
+
+def side_lengths(corners: np.ndarray) -> np.ndarray:
+    """Lengths of the sides TL-TR, TR-BR, BR-BL, BL-TL (for any start corner), pixels."""
+    return np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1)
+
+
+# Canonical marker square [0, 1]^2, corners in image-clockwise order from its top-left.
+_UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
+_g = np.linspace(0.18, 0.82, 5)
+_INTERIOR = np.array([[u, v] for v in _g for u in _g], dtype=np.float64)
+_s = np.linspace(0.1, 0.9, 7)
+
+
+def _ring(r: float) -> np.ndarray:
+    """Points at canonical distance r outside each side, spread along it."""
+    return np.concatenate([
+        np.column_stack([_s, np.full_like(_s, -r)]),
+        np.column_stack([np.full_like(_s, 1 + r), _s]),
+        np.column_stack([_s[::-1], np.full_like(_s, 1 + r)]),
+        np.column_stack([np.full_like(_s, -r), _s[::-1]]),
+    ])
+
+
+def sample_canonical(gray: np.ndarray, corners: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Grey levels at canonical marker coordinates ``uv`` (N, 2) in [0, 1]^2 (plus margins),
+    NaN where the point falls outside the image."""
+    H = cv2.getPerspectiveTransform(_UNIT, np.asarray(corners, dtype=np.float32))
+    pts = cv2.perspectiveTransform(uv.reshape(-1, 1, 2).astype(np.float64), H).reshape(-1, 2)
+    h, w = gray.shape
+    inside = (pts[:, 0] >= 0) & (pts[:, 0] <= w - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= h - 1)
+    mx = pts[:, 0].astype(np.float32).reshape(1, -1)
+    my = pts[:, 1].astype(np.float32).reshape(1, -1)
+    values = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    out = values.reshape(-1).astype(np.float64)
+    out[~inside] = np.nan
+    return out
+
+
+def aspect_error(corners: np.ndarray, marker: Marker) -> float:
+    """How far the outline's W:H is from the marker's, as |log ratio| (0 = equal).
+
+    For unlabelled corners the smaller of the two possible readings is taken.
+    """
+    s = side_lengths(corners)
+    a = 0.5 * (s[0] + s[2]) / max(0.5 * (s[1] + s[3]), 1e-9)
+    want = marker.width / marker.height
+    return float(min(abs(np.log(a / want)), abs(np.log(a * want))))
+
+
+class SquareFinder:
+    """Finds and checks the dark rectangle of a ``square`` marker."""
+
+    oriented = False
+
+    def __init__(self, marker: Marker, options: SquareOptions, camera=None) -> None:
+        self.marker = marker
+        self.options = options
+        self.camera = camera
+
+    def reach_px(self, corners: np.ndarray):
+        """(inside, outside) reach of the edge profiles for an outline of this size."""
+        side = float(side_lengths(corners).min())
+        return float(np.clip(0.2 * side, 1.5, 3.0)), float(np.clip(0.15 * side, 1.5, 3.0))
+
+    def refine(self, gray: np.ndarray, corners: np.ndarray, iterations: int,
+               max_move_px: Optional[float] = None) -> Optional[EdgeFit]:
+        inner, outer = self.reach_px(corners)
+        return fit_edges(gray, corners, inner_px=inner, outer_px=outer, iterations=iterations,
+                         camera=self.camera, min_contrast=0.5 * self.options.min_contrast,
+                         max_move_px=max_move_px)
+
+    def shape_ok(self, corners: np.ndarray) -> bool:
+        if side_lengths(corners).min() < self.options.min_side_px:
+            return False
+        return aspect_error(corners, self.marker) <= np.log(self.options.max_aspect_ratio_error)
+
+    def verify(self, gray: np.ndarray, fit: EdgeFit) -> bool:
+        """Is this outline the marker? Straight sides, dark uniform inside, light ring outside."""
+        o = self.options
+        if fit.residual_px > o.max_edge_residual_px or fit.valid_fraction < 0.6:
+            return False
+        if fit.contrast < o.min_contrast or not self.shape_ok(fit.corners):
+            return False
+        r = float(np.clip(o.ring_px / max(float(side_lengths(fit.corners).min()), 1.0), 0.04, 0.2))
+        inside = sample_canonical(gray, fit.corners, _INTERIOR)
+        ring = sample_canonical(gray, fit.corners, _ring(r))
+        ring = ring[np.isfinite(ring)]
+        if len(ring) < 10:
+            return False
+        dark, light = float(np.median(inside)), float(np.median(ring))
+        if light - dark < o.min_contrast:
+            return False
+        mid = 0.5 * (dark + light)
+        # The inside is one dark ink; the ring is paper (a shadow or glare may touch a few).
+        if np.count_nonzero(inside >= mid) > 1 or float(inside.max() - inside.min()) > 0.5 * (light - dark):
+            return False
+        return np.count_nonzero(ring <= mid) <= 0.1 * len(ring)
+
+    def follow(self, gray: np.ndarray, predicted: np.ndarray) -> Optional[Candidate]:
+        """The marker near ``predicted`` corners (tracked frames): edge fits from there, checked."""
+        inner, outer = self.reach_px(predicted)
+        fit = self.refine(gray, predicted, iterations=2, max_move_px=0.8 * min(inner, outer) + 0.5)
+        if fit is None or not self.verify(gray, fit):
+            return None
+        return Candidate(fit.corners, False, fit)
+
+    def search(self, gray: np.ndarray, roi: Optional[Roi] = None,
+               expected_side_px: Optional[float] = None) -> List[Candidate]:
+        """Every verified marker outline in ``roi`` (or the whole frame)."""
+        o = self.options
+        block = o.block_px if expected_side_px is None else odd(np.clip(expected_side_px / 3.0, 7, 41))
+        # A whole frame is first searched at half size (4x cheaper); markers too small to
+        # show there are found by a full-size pass.
+        scales = (2, 1) if roi is None and min(gray.shape) >= 240 else (1,)
+        out: List[Candidate] = []
+        for scale in scales:
+            for quad in find_quads(gray, min_side_px=o.min_side_px, block_px=block,
+                                   offset_gray=o.threshold_offset, roi=roi, downscale=scale):
+                if not self.shape_ok(quad):
+                    continue
+                fit = self.refine(gray, quad, iterations=2, max_move_px=1.5 * scale + 1.0)
+                if fit is not None and self.verify(gray, fit):
+                    out.append(Candidate(fit.corners, False, fit))
+            if out:
+                break
+        return out
