@@ -190,7 +190,8 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
     (``method`` "iterative" or "paper", at most ``iterations`` passes; it stops early once
     converged), and with ``refine`` a Levenberg-Marquardt polish minimises the reprojection
     error. The other planar solution is polished too; the better one is returned, the other
-    is ``pose.alternative``. Pose in OpenCV's convention (X_cam = R X_marker + tvec, metres).
+    is ``pose.alternative`` (without ``refine`` the loop's pose is returned and the unpolished
+    mirror is only reported). Pose in OpenCV's convention (X_cam = R X_marker + tvec, metres).
     Raises EstimationError for corners that cannot be the marker's image.
     """
     _check_options(method, iterations)
@@ -247,7 +248,8 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
     err_alt = _error_px(R_alt, t_alt, cost_alt, camera, marker, flat) if alt_valid else math.inf
     if not math.isfinite(err):
         raise EstimationError("no finite pose fits these corners")
-    if err_alt < err:
+    # Without the polish the mirror is only a first guess: report it, never prefer it.
+    if refine and err_alt < err:
         R, t, err, R_alt, t_alt, err_alt = R_alt, t_alt, err_alt, R, t, err
     ratio = _ratio(err, err_alt)
     alternative = _pose_from(R_alt, t_alt, err_alt, method, used) if math.isfinite(err_alt) else None
@@ -486,7 +488,8 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
     for i in np.flatnonzero(good & (zmin > 0.0) & ~fin):
         errors[i] = "no finite pose fits these corners"
     ok = good & (zmin > 0.0) & fin
-    swap = err_alt < err
+    # Without the polish the mirror is only a first guess: report it, never prefer it.
+    swap = (err_alt < err) & bool(refine)
     R, R_alt = np.where(swap[:, None, None], R_alt, R), np.where(swap[:, None, None], R, R_alt)
     t, t_alt = np.where(swap[:, None], t_alt, t), np.where(swap[:, None], t, t_alt)
     err, err_alt = np.where(swap, err_alt, err), np.where(swap, err, err_alt)

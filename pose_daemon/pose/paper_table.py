@@ -42,7 +42,7 @@ def build_table() -> Dict[str, object]:
         "z_rel": [float(v) for v in z_rel],
     }
     for name, rot, err in (("beta", geometry.rot_y, e_beta), ("alpha", geometry.rot_x, e_alpha)):
-        coeffs = []
+        coeffs, e_max = [], []
         for zr in z_rel:
             R = rot(angles)
             pos = np.broadcast_to(np.array([0.0, 0.0, zr]), angles.shape + (3,))
@@ -51,7 +51,10 @@ def build_table() -> Dict[str, object]:
             # Fit in u = e * z_rel (well scaled at every depth), convert back to e.
             A, B, C, D = np.polyfit(e * zr, angles, 3)
             coeffs.append([float(A * zr ** 3), float(B * zr ** 2), float(C * zr), float(D)])
+            e_max.append(float(np.abs(e).max()))
         out[name] = coeffs
+        # The fit's range of |e|: a cubic must not be extrapolated beyond it.
+        out[name + "_e_max"] = e_max
     return out
 
 
@@ -62,21 +65,26 @@ class PaperTable:
         z_rel = np.asarray(data["z_rel"], dtype=np.float64)
         self._log_z = np.log(z_rel)
         self._norm: Dict[str, np.ndarray] = {}
+        self._u_max: Dict[str, np.ndarray] = {}
         for name in ("beta", "alpha"):
             c = np.asarray(data[name], dtype=np.float64)  # (n, 4): a, b, c, d
             # Coefficients of the cubic in u = e * z_rel: nearly constant in depth, so they
             # interpolate well and extend beyond the grid (weak perspective: e ~ 1 / z_rel).
             powers = np.stack([z_rel ** -3, z_rel ** -2, z_rel ** -1, np.ones_like(z_rel)], -1)
             self._norm[name] = c * powers
+            # Limit of |u| = |e| z_rel that the fit covered, per depth.
+            self._u_max[name] = np.asarray(data[name + "_e_max"], dtype=np.float64) * z_rel
         self._log_z_list = self._log_z.tolist()
         self._norm_list = {k: v.tolist() for k, v in self._norm.items()}
+        self._u_max_list = {k: v.tolist() for k, v in self._u_max.items()}
 
     def _evaluate(self, name: str, e: np.ndarray, z_rel: np.ndarray) -> np.ndarray:
         if isinstance(e, float):
             return self._evaluate_float(name, e, float(z_rel))
         table = self._norm[name]
         lz = np.log(np.clip(z_rel, 1e-6, None))
-        u = np.asarray(e) * z_rel
+        u_max = np.interp(lz, self._log_z, self._u_max[name])
+        u = np.clip(np.asarray(e) * z_rel, -u_max, u_max)
         out = np.zeros(np.broadcast(u, lz).shape)
         for k in range(4):
             coeff = np.interp(lz, self._log_z, table[:, k])
@@ -89,15 +97,17 @@ class PaperTable:
         grid = self._log_z_list
         rows = self._norm_list[name]
         k = bisect.bisect_right(grid, lz)
+        u_max = self._u_max_list[name]
         if k <= 0:
-            coeffs = rows[0]
+            coeffs, um = rows[0], u_max[0]
         elif k >= len(grid):
-            coeffs = rows[-1]
+            coeffs, um = rows[-1], u_max[-1]
         else:
             w = (lz - grid[k - 1]) / (grid[k] - grid[k - 1])
             lo, hi = rows[k - 1], rows[k]
             coeffs = [lo[j] + w * (hi[j] - lo[j]) for j in range(4)]
-        u = e * z_rel
+            um = u_max[k - 1] + w * (u_max[k] - u_max[k - 1])
+        u = min(max(e * z_rel, -um), um)
         out = ((coeffs[0] * u + coeffs[1]) * u + coeffs[2]) * u + coeffs[3]
         return min(max(out, -STEP_LIMIT), STEP_LIMIT)
 

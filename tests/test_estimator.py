@@ -1,0 +1,227 @@
+"""estimate_pose / estimate_pose_batch against poses projected with cv2.projectPoints."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from pose_daemon import (
+    Camera,
+    EstimationError,
+    Marker,
+    estimate_pose,
+    estimate_pose_batch,
+    geometry,
+)
+
+DISTORTED = Camera(fx=610.0, fy=590.0, cx=322.0, cy=236.0, dist=(-0.28, 0.09, 0.001, -0.0015, -0.012))
+
+
+def _random_pose(rng, d_min=0.5, d_max=4.0, tilt_max_deg=60.0):
+    d = rng.uniform(d_min, d_max)
+    axis = np.array([*rng.normal(size=2), 0.0])
+    axis /= np.linalg.norm(axis)
+    tilt = math.radians(rng.uniform(0.0, tilt_max_deg))
+    spin = rng.uniform(-math.pi, math.pi)
+    R = (geometry.R_from_rvec(axis * tilt) @ geometry.R_from_rvec(np.array([0.0, 0.0, spin]))
+         @ np.diag([1.0, -1.0, -1.0]))
+    t = np.array([rng.uniform(-0.25, 0.25) * d, rng.uniform(-0.18, 0.18) * d, d])
+    return R, t
+
+
+def _project(R, t, camera: Camera, marker: Marker) -> np.ndarray:
+    img, _ = cv2.projectPoints(marker.object_points, cv2.Rodrigues(R)[0], t, camera.K,
+                               camera.dist_coeffs)
+    return img.reshape(4, 2)
+
+
+def _cases(rng, camera, marker, n):
+    out = []
+    while len(out) < n:
+        R, t = _random_pose(rng)
+        img = _project(R, t, camera, marker)
+        if np.all((img > 0) & (img < [camera.width, camera.height])):
+            out.append((R, t, img))
+    return out
+
+
+@pytest.mark.pi
+@pytest.mark.parametrize("method", ["iterative", "paper"])
+def test_noise_free_poses_are_exact(camera, marker, rng, method):
+    for R, t, img in _cases(rng, camera, marker, 20):
+        pose = estimate_pose(img, camera, marker, method=method)
+        assert geometry.rotation_angle_deg(pose.R, R) < 1e-6
+        assert np.linalg.norm(pose.tvec - t) / np.linalg.norm(t) < 1e-8
+        assert pose.reprojection_error_px < 1e-6
+        assert np.allclose(cv2.Rodrigues(pose.rvec)[0], pose.R, atol=1e-12)
+        assert pose.method == method and 1 <= pose.iterations <= 5
+
+
+@pytest.mark.parametrize("method", ["iterative", "paper"])
+@pytest.mark.parametrize("shape", [(0.20, 0.20), (0.30, 0.12), (0.1, 0.25)])
+def test_distorted_lens_and_rectangles(rng, method, shape):
+    marker = Marker(width=shape[0], height=shape[1])
+    for R, t, img in _cases(rng, DISTORTED, marker, 12):
+        pose = estimate_pose(img, DISTORTED, marker, method=method)
+        # cv2.undistortPoints inverts the lens model iteratively, to ~1e-8 px here.
+        assert geometry.rotation_angle_deg(pose.R, R) < 1e-4
+        assert np.linalg.norm(pose.tvec - t) / np.linalg.norm(t) < 1e-6
+        # The reported error goes through the distortion: ~0 for an exact pose.
+        assert pose.reprojection_error_px < 1e-5
+
+
+@pytest.mark.parametrize("method", ["iterative", "paper"])
+def test_loop_alone_without_polish(camera, marker, rng, method):
+    # The table's cubic converges linearly: 5 passes leave up to ~1 deg when the first
+    # corrections are large (tilt 60 deg plus a large roll); more passes finish the job.
+    tol = 1e-6 if method == "iterative" else 2.0
+    for R, t, img in _cases(rng, camera, marker, 20):
+        pose = estimate_pose(img, camera, marker, method=method, refine=False)
+        assert geometry.rotation_angle_deg(pose.R, R) < tol
+        assert np.linalg.norm(pose.tvec - t) / np.linalg.norm(t) < tol / 10
+        more = estimate_pose(img, camera, marker, method=method, refine=False, iterations=25)
+        assert geometry.rotation_angle_deg(more.R, R) < 1e-6
+
+
+def test_paper_angles_and_camera_position(camera, marker):
+    R_unrot = geometry.R_cam_unrot_from_paper_angles(*np.radians([10.0, -20.0, 30.0]))
+    R = geometry.R_cam_marker_from_R_cam_unrot(R_unrot)
+    t = np.array([0.1, -0.05, 1.5])
+    pose = estimate_pose(_project(R, t, camera, marker), camera, marker)
+    assert (pose.alpha_deg, pose.beta_deg, pose.gamma_deg) == pytest.approx((10.0, -20.0, 30.0), abs=1e-7)
+    assert np.allclose(pose.camera_position, -R.T @ t, atol=1e-9)
+    d = pose.to_dict()
+    assert d["alpha_deg"] == pytest.approx(10.0, abs=1e-7) and len(d["rvec"]) == 3
+
+
+def test_alternative_solution_and_ambiguity_ratio(camera, marker):
+    # Close and strongly tilted: the mirror pose fits clearly worse.
+    R_unrot = geometry.R_cam_unrot_from_paper_angles(math.radians(35.0), 0.0, 0.0)
+    R = geometry.R_cam_marker_from_R_cam_unrot(R_unrot)
+    t = np.array([0.0, 0.0, 0.8])
+    pose = estimate_pose(_project(R, t, camera, marker), camera, marker)
+    assert pose.alternative is not None
+    alt = pose.alternative
+    assert alt.reprojection_error_px > 0.05
+    assert pose.ambiguity_ratio < 1e-3
+    # The alternative is the mirror: its tilt is on the other side of the line of sight.
+    assert geometry.rotation_angle_deg(alt.R, R) > 20.0
+    # Far and small, with noise: both fit about equally well, the ratio says so.
+    t = np.array([0.0, 0.0, 6.0])
+    R_unrot = geometry.R_cam_unrot_from_paper_angles(math.radians(10.0), 0.0, 0.0)
+    R = geometry.R_cam_marker_from_R_cam_unrot(R_unrot)
+    img = _project(R, t, camera, marker) + np.array([[0.3, -0.2], [-0.25, 0.1], [0.2, 0.3], [-0.1, -0.3]])
+    far = estimate_pose(img, camera, marker)
+    assert 0.3 < far.ambiguity_ratio <= 1.0
+    assert far.reprojection_error_px <= far.alternative.reprojection_error_px
+
+
+def test_noisy_corners_match_opencv_maximum_likelihood(camera, marker, rng):
+    for _, _, img in _cases(rng, camera, marker, 30):
+        noisy = img + rng.normal(scale=0.5, size=(4, 2))
+        pose = estimate_pose(noisy, camera, marker)
+        ok, rvecs, tvecs, errs = cv2.solvePnPGeneric(marker.object_points, noisy, camera.K, None,
+                                                     flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        best = None
+        for rv, tv in zip(rvecs, tvecs):
+            rv, tv = cv2.solvePnPRefineLM(marker.object_points, noisy, camera.K, None, rv.copy(), tv.copy())
+            proj, _ = cv2.projectPoints(marker.object_points, rv, tv, camera.K, None)
+            e = math.sqrt(np.sum((proj.reshape(4, 2) - noisy) ** 2) / 4.0)
+            if best is None or e < best[0]:
+                best = (e, cv2.Rodrigues(rv)[0], tv.ravel())
+        # Same minimum of the same cost: equal errors, equal poses.
+        assert pose.reprojection_error_px <= best[0] + 1e-6
+        assert geometry.rotation_angle_deg(pose.R, best[1]) < 1e-3 or \
+            abs(pose.reprojection_error_px - best[0]) < 1e-6
+
+
+@pytest.mark.pi
+def test_batch_equals_scalar(camera, marker, rng):
+    cases = _cases(rng, camera, marker, 40)
+    imgs = np.array([img for _, _, img in cases]) + rng.normal(scale=0.4, size=(40, 4, 2))
+    batch = estimate_pose_batch(imgs, camera, marker)
+    assert batch.ok.all() and len(batch) == 40
+    for i in range(40):
+        pose = estimate_pose(imgs[i], camera, marker)
+        assert geometry.rotation_angle_deg(pose.R, batch.R[i]) < 1e-5
+        assert np.allclose(pose.tvec, batch.tvec[i], rtol=1e-6, atol=1e-9)
+        assert np.allclose(pose.rvec, batch.rvec[i], atol=1e-6)
+        assert pose.reprojection_error_px == pytest.approx(batch.reprojection_error_px[i], rel=1e-5, abs=1e-9)
+        assert pose.ambiguity_ratio == pytest.approx(batch.ambiguity_ratio[i], rel=1e-4, abs=1e-9)
+        assert pose.alpha_deg == pytest.approx(batch.alpha_deg[i], abs=1e-5)
+
+
+def test_batch_with_distortion_paper_method_and_bad_rows(marker, rng):
+    cases = _cases(rng, DISTORTED, marker, 6)
+    imgs = np.array([img for _, _, img in cases])
+    imgs[2, 1] = np.nan
+    imgs[4] = imgs[4][[0, 2, 1, 3]]  # crossed
+    batch = estimate_pose_batch(imgs, DISTORTED, marker, method="paper")
+    assert batch.ok.tolist() == [True, True, False, True, False, True]
+    assert "NaN" in batch.errors[2] and "bow-tie" in batch.errors[4]
+    assert batch.errors[0] is None
+    assert np.isnan(batch.tvec[2]).all()
+    for i in (0, 1, 3, 5):
+        assert geometry.rotation_angle_deg(batch.R[i], cases[i][0]) < 1e-4
+        assert np.all(np.isfinite(batch.rvec[i]))
+
+
+GOOD = [[300.0, 200.0], [340.0, 202.0], [338.0, 241.0], [299.0, 239.0]]
+
+
+@pytest.mark.pi
+@pytest.mark.parametrize("corners, message", [
+    ([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]], "shape"),
+    ([[1.0, 2.0, 3.0]] * 4, "shape"),
+    ("abc", "shape|numbers"),
+    ([[300.0, 200.0], [np.nan, 202.0], [338.0, 241.0], [299.0, 239.0]], "NaN"),
+    ([[300.0, 200.0], [340.0, np.inf], [338.0, 241.0], [299.0, 239.0]], "NaN or infinity"),
+    ([[300.0, 200.0], [300.0, 200.0], [338.0, 241.0], [299.0, 239.0]], "repeated"),
+    ([[300.0, 200.0]] * 4, "same point"),
+    ([[300.0, 200.0], [320.0, 200.0], [340.0, 200.0], [299.0, 239.0]], "collinear"),
+    ([[300.0, 200.0], [320.0, 210.0], [340.0, 220.0], [360.0, 230.0]], "zero area"),
+    ([[300.0, 200.0], [338.0, 241.0], [340.0, 202.0], [299.0, 239.0]], "bow-tie"),
+    ([[300.0, 200.0], [340.0, 202.0], [310.0, 212.0], [299.0, 239.0]], "non-convex"),
+    ([[299.0, 239.0], [338.0, 241.0], [340.0, 202.0], [300.0, 200.0]], "behind the camera"),
+])
+def test_bad_input_is_named(camera, marker, corners, message):
+    with pytest.raises(EstimationError, match=message):
+        estimate_pose(corners, camera, marker)
+
+
+@pytest.mark.pi
+def test_good_reference_quad_and_bad_options(camera, marker):
+    pose = estimate_pose(GOOD, camera, marker)
+    assert np.all(np.isfinite(pose.tvec)) and pose.tvec[2] > 0
+    with pytest.raises(EstimationError, match="unknown method"):
+        estimate_pose(GOOD, camera, marker, method="magic")
+    with pytest.raises(EstimationError, match="iterations"):
+        estimate_pose(GOOD, camera, marker, iterations=0)
+    with pytest.raises(EstimationError, match="shape"):
+        estimate_pose_batch(np.zeros((3, 4, 3)), camera, marker)
+
+
+def test_marker_seen_from_behind_the_camera(camera, marker):
+    # A marker at z = -1 facing the camera projects (through the pinhole) to a mirrored quad.
+    pts = marker.object_points + np.array([0.05, 0.02, -1.0])
+    img = pts[:, :2] / pts[:, 2:3] * 600.0 + [319.5, 239.5]
+    with pytest.raises(EstimationError, match="behind the camera"):
+        estimate_pose(img, camera, marker)
+    batch = estimate_pose_batch(np.array([img, GOOD]), camera, marker)
+    assert batch.ok.tolist() == [False, True] and "behind the camera" in batch.errors[0]
+
+
+def test_corners_nearly_edge_on_never_give_nan(camera, marker, rng):
+    # Slivers and extreme quads: either a finite pose or a named error, never NaN.
+    for _ in range(200):
+        img = np.array(GOOD) + rng.normal(scale=25.0, size=(4, 2))
+        try:
+            pose = estimate_pose(img, camera, marker, method=str(rng.choice(["iterative", "paper"])))
+        except EstimationError as exc:
+            assert str(exc)
+            continue
+        assert np.all(np.isfinite(pose.tvec)) and np.all(np.isfinite(pose.R))
+        assert math.isfinite(pose.reprojection_error_px) and math.isfinite(pose.alpha_deg)
