@@ -52,6 +52,7 @@ class ArucoFinder:
                                      np.column_stack([np.full_like(s, 1.08), s]),
                                      np.column_stack([s, np.full_like(s, 1.08)]),
                                      np.column_stack([np.full_like(s, -0.08), s])])
+        self._cell_and_ring_uv = np.concatenate([self._cell_uv, self._ring])
 
     def reach_px(self, corners: np.ndarray):
         side = float(side_lengths(corners).min())
@@ -73,8 +74,8 @@ class ArucoFinder:
             return False
         if fit.contrast < o.min_contrast or side_lengths(fit.corners).min() < o.min_side_px:
             return False
-        cells = sample_canonical(gray, fit.corners, self._cell_uv)
-        ring = sample_canonical(gray, fit.corners, self._ring)
+        values = sample_canonical(gray, fit.corners, self._cell_and_ring_uv)
+        cells, ring = values[:len(self._cell_uv)], values[len(self._cell_uv):]
         ring = ring[np.isfinite(ring)]
         if not np.isfinite(cells).all() or len(ring) < 10:
             return False

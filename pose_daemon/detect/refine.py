@@ -48,22 +48,20 @@ def _distort_px(points: np.ndarray, camera) -> np.ndarray:
     return camera.project(np.column_stack([norm, np.ones(len(norm))]))
 
 
-def _interp(prof: np.ndarray, offsets: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """Each profile (row) linearly interpolated at its own offset ``s`` (clamped to the ends)."""
-    x = np.clip((s - offsets[0]) / PROFILE_STEP_PX, 0.0, prof.shape[1] - 1.000001)
+def _interp(prof: np.ndarray, rows: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Each profile (row) linearly interpolated at its own fractional sample index ``x``."""
+    x = np.minimum(np.maximum(x, 0.0), prof.shape[1] - 1.000001)
     i = x.astype(np.intp)
     f = x - i
-    rows = np.arange(prof.shape[0])
     return prof[rows, i] * (1.0 - f) + prof[rows, i + 1] * f
 
 
-def _crossing(prof: np.ndarray, offsets: np.ndarray, j: np.ndarray, level: np.ndarray) -> np.ndarray:
-    """Offset where each profile rises through ``level`` between samples j-1 and j."""
-    rows = np.arange(prof.shape[0])
-    jj = np.clip(j, 1, prof.shape[1] - 1)
-    lo, hi = prof[rows, jj - 1], prof[rows, jj]
-    frac = np.clip((level - lo) / np.maximum(hi - lo, 1e-9), 0.0, 1.0)
-    return offsets[jj - 1] + frac * PROFILE_STEP_PX
+def _crossing(prof: np.ndarray, rows: np.ndarray, level: np.ndarray) -> np.ndarray:
+    """Fractional sample index where each profile first rises through ``level``."""
+    j = np.minimum(np.maximum((prof >= level[:, None]).argmax(axis=1), 1), prof.shape[1] - 1)
+    lo, hi = prof[rows, j - 1], prof[rows, j]
+    frac = np.minimum(np.maximum((level - lo) / np.maximum(hi - lo, 1e-9), 0.0), 1.0)
+    return j - 1 + frac
 
 
 def _fit_lines(points: np.ndarray, weights: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -107,6 +105,8 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
     distorted = camera is not None and camera.has_distortion
     fit: Optional[EdgeFit] = None
     m = int(samples_per_side)
+    rows = np.arange(4 * m)
+    last = float(len(offsets) - 1)
     frac_along = (np.arange(m) + 0.5) / m
     for _ in range(iterations):
         p0 = current
@@ -134,18 +134,16 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
         contrast = light - dark
         mid = 0.5 * (dark + light)
         above = prof >= mid[:, None]
-        j = above.argmax(axis=1)
         # A clean crossing: dark at the inner end, light at the outer end.
-        ok = inside & (contrast >= min_contrast) & (j > 0) & above[:, -1]
-        s_edge = _crossing(prof, offsets, j, mid)
+        ok = inside & (contrast >= min_contrast) & (above.argmax(axis=1) > 0) & above[:, -1]
+        x = _crossing(prof, rows, mid)
         # Re-take the dark and light levels symmetrically about the edge just found: a
         # symmetric blur leaks the same amount into both, so their mean stays the
         # half-way level even when the profile is too short to reach either plateau.
         for _ in range(2):
-            r = np.maximum(np.minimum(s_edge - offsets[0], offsets[-1] - s_edge), PROFILE_STEP_PX)
-            mid = 0.5 * (_interp(prof, offsets, s_edge - r) + _interp(prof, offsets, s_edge + r))
-            j = np.maximum((prof >= mid[:, None]).argmax(axis=1), 1)
-            s_edge = _crossing(prof, offsets, j, mid)
+            r = np.maximum(np.minimum(x, last - x), 1.0)
+            x = _crossing(prof, rows, 0.5 * (_interp(prof, rows, x - r) + _interp(prof, rows, x + r)))
+        s_edge = offsets[0] + x * PROFILE_STEP_PX
         pts = base + s_edge.reshape(4, m)[..., None] * normal_out[:, None, :]
         if distorted:
             pts = _undistort_px(pts.reshape(-1, 2), camera).reshape(4, m, 2)
@@ -173,7 +171,7 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
             return None
         used = weights > 0
         fit = EdgeFit(corners=refined, residual_px=float(np.sqrt(np.mean(res[used] ** 2))),
-                      contrast=float(np.median(contrast[used.reshape(-1)])),
+                      contrast=float(np.mean(contrast[used.reshape(-1)])),
                       valid_fraction=float(used.mean()))
         moved = float(np.abs(refined - current).max())
         current = refined

@@ -44,9 +44,13 @@ class SquareOptions:
     ring_px: float = 2.5             # how far outside the sides the light ring is sampled
 
 
+_NEXT = np.array([1, 2, 3, 0])
+
+
 def side_lengths(corners: np.ndarray) -> np.ndarray:
     """Lengths of the sides TL-TR, TR-BR, BR-BL, BL-TL (for any start corner), pixels."""
-    return np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1)
+    d = corners[_NEXT] - corners
+    return np.hypot(d[:, 0], d[:, 1])
 
 
 # Canonical marker square [0, 1]^2, corners in image-clockwise order from its top-left.
@@ -127,8 +131,8 @@ class SquareFinder:
         if fit.contrast < o.min_contrast or not self.shape_ok(fit.corners):
             return False
         r = float(np.clip(o.ring_px / max(float(side_lengths(fit.corners).min()), 1.0), 0.04, 0.2))
-        inside = sample_canonical(gray, fit.corners, _INTERIOR)
-        ring = sample_canonical(gray, fit.corners, _ring(r))
+        values = sample_canonical(gray, fit.corners, np.concatenate([_INTERIOR, _ring(r)]))
+        inside, ring = values[:len(_INTERIOR)], values[len(_INTERIOR):]
         ring = ring[np.isfinite(ring)]
         if len(ring) < 10:
             return False
