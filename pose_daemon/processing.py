@@ -9,6 +9,7 @@ the previous frame's pose is kept (continuity), and a lost marker starts a new t
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from typing import Optional
 
@@ -16,32 +17,34 @@ import numpy as np
 
 from .camera import Camera, Marker
 from .capture.base import Frame
-from .geometry import rotation_angle_deg
 from .pose.types import EstimationError, Pose
 from .result import FrameResult
 
-# Pose.ambiguity_ratio (best residual / alternative's) at or above which the estimator's pick is
-# treated as a guess: the alternative then fits within a factor 1/0.5 = 2 of the best.
-AMBIGUOUS_RATIO = 0.5
+# Pose.ambiguity_ratio (best residual / alternative's) from which the alternative is a real
+# contender: with a small or distant square and 0.3 px of corner noise the wrong planar solution
+# often fits best with a ratio as low as 0.15, so "near 1" is far too strict.
+AMBIGUOUS_RATIO = 0.1
+# Weight of the newest pose in the track's smoothed marker normal: one wrong pick must not
+# drag the reference onto the wrong branch (measured: alone, the previous pose did worse).
+NORMAL_SMOOTHING = 0.3
 
 
-def _pose_distance(a: Pose, b: Pose) -> float:
-    """How far apart two poses are: rotation angle (degrees) + camera displacement (per cm)."""
-    angle_deg = float(rotation_angle_deg(a.R, b.R))
-    shift_m = float(np.linalg.norm(a.camera_position - b.camera_position))
-    return angle_deg + 100.0 * shift_m
+def _normal_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    cos = float(np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b)))
+    return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
 
 
-def choose_by_continuity(pose: Pose, previous: Optional[Pose]) -> Pose:
-    """The planar solution closer to ``previous`` when ``pose`` is ambiguous; else ``pose`` itself.
+def choose_by_continuity(pose: Pose, normal_ref: Optional[np.ndarray]) -> Pose:
+    """The planar solution whose marker normal (R[:, 2], camera frame) is closer to the
+    track's ``normal_ref`` when ``pose`` is ambiguous; else ``pose`` itself.
 
     The returned pose keeps the estimator's ambiguity_ratio and carries the other solution
     as its ``alternative``.
     """
     alt = pose.alternative
-    if previous is None or alt is None or not pose.ambiguity_ratio >= AMBIGUOUS_RATIO:
+    if normal_ref is None or alt is None or not pose.ambiguity_ratio >= AMBIGUOUS_RATIO:
         return pose
-    if _pose_distance(alt, previous) >= _pose_distance(pose, previous):
+    if _normal_angle_deg(alt.R[:, 2], normal_ref) >= _normal_angle_deg(pose.R[:, 2], normal_ref):
         return pose
     return dataclasses.replace(alt, alternative=dataclasses.replace(pose, alternative=None),
                                ambiguity_ratio=pose.ambiguity_ratio)
@@ -62,7 +65,8 @@ class FrameProcessor:
         self.refine = refine
         self.detector = detector if detector is not None else MarkerDetector(marker)
         self._estimate = estimate_pose
-        self._previous: Optional[Pose] = None
+        # The track: smoothed marker normal in the camera frame (None = no track).
+        self._normal_ref: Optional[np.ndarray] = None
         # Frames whose ambiguous pose was flipped to the alternative by continuity.
         self.flips = 0
 
@@ -83,7 +87,7 @@ class FrameProcessor:
     def reset(self) -> None:
         """Forget tracking state (after a source restart or a long gap)."""
         self.detector.reset()
-        self._previous = None
+        self._normal_ref = None
 
     def process(self, frame: Frame) -> FrameResult:
         result = FrameResult(seq=frame.seq, t_capture_s=frame.t_capture_s)
@@ -93,7 +97,7 @@ class FrameProcessor:
         result.stage_s["detect"] = t1 - t0
         if corners is None:
             result.error = "no marker"
-            self._previous = None  # lost: the next sighting starts a new track
+            self._normal_ref = None  # lost: the next sighting starts a new track
             return result
         result.corners = corners
         try:
@@ -101,11 +105,14 @@ class FrameProcessor:
                                   iterations=self.iterations, refine=self.refine)
         except EstimationError as exc:
             result.error = f"pose: {exc}"
-            self._previous = None
+            self._normal_ref = None
         else:
-            chosen = choose_by_continuity(pose, self._previous)
+            chosen = choose_by_continuity(pose, self._normal_ref)
             if chosen is not pose:
                 self.flips += 1
-            result.pose = self._previous = chosen
+            n = chosen.R[:, 2]
+            self._normal_ref = n.copy() if self._normal_ref is None else (
+                (1.0 - NORMAL_SMOOTHING) * self._normal_ref + NORMAL_SMOOTHING * n)
+            result.pose = chosen
         result.stage_s["estimate"] = time.perf_counter() - t1
         return result
