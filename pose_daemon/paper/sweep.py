@@ -95,6 +95,17 @@ def e_image(corrected: np.ndarray, ideal: np.ndarray) -> np.ndarray:
     return np.sqrt(((np.asarray(corrected) - np.asarray(ideal)) ** 2).sum(axis=-1)).sum(axis=-1)
 
 
+def _rotate_rays(R: np.ndarray, d: np.ndarray, transpose: bool = False) -> np.ndarray:
+    """R d (or R^T d) for rays d (N, 3, 4) and rotations R (N, 3, 3), column by column:
+    several times faster than numpy's stacked 3x3 matmul for large N."""
+    out = np.empty_like(d)
+    for a in range(3):
+        row = R[:, :, a] if transpose else R[:, a, :]
+        out[:, a, :] = (row[:, 0, None] * d[:, 0, :] + row[:, 1, None] * d[:, 1, :]
+                        + row[:, 2, None] * d[:, 2, :])
+    return out
+
+
 def run_sweep(*, method: str = "paper", iterations: int = 10, step_deg: float = 1.0,
               limit: Optional[int] = None, focal_px: float = FOCAL_PX, side: float = SIDE,
               distance: float = DISTANCE, chunk: int = CHUNK, per_iteration: bool = True,
@@ -113,6 +124,9 @@ def run_sweep(*, method: str = "paper", iterations: int = 10, step_deg: float = 
     total = n ** 3 if limit is None else min(int(limit), n ** 3)
     position = np.array([0.0, 0.0, distance])
     ideal = np.asarray(project_unrot(np.eye(3), position, side, side, focal_px))
+    # Corner rays (4, 3) in the unrotated frame, in project_unrot's order TL, TR, BR, BL.
+    h = 0.5 * side
+    corner_rays = position + np.array([[-h, -h, 0.0], [h, -h, 0.0], [h, h, 0.0], [-h, h, 0.0]])
     rad = np.radians(angles)
     out = np.empty(total)
     by_iteration = np.zeros((iterations, 2)) if per_iteration else None
@@ -127,9 +141,12 @@ def run_sweep(*, method: str = "paper", iterations: int = 10, step_deg: float = 
                                  iterations=iterations, trace=per_iteration)
         out[start:start + k.size] = e_image(result.corrected, ideal)
         if by_iteration is not None:
+            # The rays of the corners as the real camera sees them, (N, 3, 4).
+            rays = _rotate_rays(R, np.broadcast_to(corner_rays.T, (k.size, 3, 4)))
             for i, step in enumerate(result.trace or []):
-                R_left = np.swapaxes(step.R_cam_unrot, -1, -2) @ R
-                e = e_image(project_unrot(R_left, position, side, side, focal_px), ideal)
+                d = _rotate_rays(step.R_cam_unrot, rays, transpose=True)
+                image = focal_px * np.stack([d[:, 0] / d[:, 2], d[:, 1] / d[:, 2]], -1)
+                e = e_image(image, ideal)
                 by_iteration[i, 0] = max(by_iteration[i, 0], float(np.nanmax(e)))
                 by_iteration[i, 1] += float(np.nansum(e))
         if progress is not None:
