@@ -159,9 +159,13 @@ def simulate(setup: UnicycleSetup, *, feedback: str = "estimated") -> UnicycleRu
             last = feedback_from_pose(pose)
         except EstimationError:
             failures += 1
-            if last is None:
-                last = (x, z, theta)
-        xe[k], ze[k], the[k] = last
+        if last is None:
+            # No estimate yet: nothing to compare, and a robot steered by its camera waits.
+            xe[k] = ze[k] = the[k] = math.nan
+            if feedback == "estimated":
+                continue
+        else:
+            xe[k], ze[k], the[k] = last
         fx, fz, fth = (x, z, theta) if feedback == "true" else last
         distance = math.hypot(fx - setup.goal[0], fz - setup.goal[1])
         if t_arrived is None and distance < setup.goal_radius:
@@ -183,13 +187,20 @@ class UnicycleResult:
 
     def to_json_dict(self) -> dict:
         e = self.estimated_run
-        heading_err = np.abs(e.theta_est_deg - e.theta_deg)
+        # Frames before the first estimate (possible only under heavy noise) have none.
+        seen = np.isfinite(e.theta_est_deg)
+        heading_err = np.abs(e.theta_est_deg - e.theta_deg)[seen]
         deviation = np.hypot(e.x - self.true_run.x, e.z - self.true_run.z)
+
+        def worst(err: np.ndarray) -> Optional[float]:
+            return float(err.max()) if err.size else None
+
         return {
-            "max_heading_error_deg": float(heading_err.max()),
-            "max_x_error": float(np.abs(e.x_est - e.x).max()),
-            "max_z_error": float(np.abs(e.z_est - e.z).max()),
-            "rms_heading_error_deg": float(np.sqrt(np.mean(heading_err ** 2))),
+            "max_heading_error_deg": worst(heading_err),
+            "max_x_error": worst(np.abs(e.x_est - e.x)[seen]),
+            "max_z_error": worst(np.abs(e.z_est - e.z)[seen]),
+            "rms_heading_error_deg": (float(np.sqrt(np.mean(heading_err ** 2)))
+                                      if heading_err.size else None),
             "max_trajectory_deviation": float(deviation.max()),
             "t_arrived_s": e.t_arrived_s,
             "t_arrived_true_feedback_s": self.true_run.t_arrived_s,
@@ -211,6 +222,10 @@ def run_unicycle(setup: UnicycleSetup) -> UnicycleResult:
                           simulate(setup, feedback="estimated"))
 
 
+def _sci(value: Optional[float]) -> str:
+    return "n/a (no estimate)" if value is None else f"{value:.3e}"
+
+
 def _when(t_s: Optional[float]) -> str:
     return "never" if t_s is None else f"at {t_s:.2f} s"
 
@@ -228,10 +243,10 @@ def format_unicycle(result: UnicycleResult) -> str:
         f"estimator {s.method}, {s.iterations} iterations, refine {'on' if s.refine else 'off'}, "
         f"pixel noise {s.noise_px:g} px (seed {s.seed})",
         "",
-        f"{'max heading error':<30}{d['max_heading_error_deg']:.3e} deg",
-        f"{'rms heading error':<30}{d['rms_heading_error_deg']:.3e} deg",
-        f"{'max x error':<30}{d['max_x_error']:.3e} cm",
-        f"{'max z error':<30}{d['max_z_error']:.3e} cm",
+        f"{'max heading error':<30}{_sci(d['max_heading_error_deg'])} deg",
+        f"{'rms heading error':<30}{_sci(d['rms_heading_error_deg'])} deg",
+        f"{'max x error':<30}{_sci(d['max_x_error'])} cm",
+        f"{'max z error':<30}{_sci(d['max_z_error'])} cm",
         f"{'max deviation from the':<30}",
         f"{'  true-feedback trajectory':<30}{d['max_trajectory_deviation']:.3e} cm",
         f"{'final (estimated feedback)':<30}x {d['final']['x']:.3f}, z {d['final']['z']:.3f} cm, "
