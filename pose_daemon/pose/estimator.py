@@ -24,7 +24,7 @@ METHODS = loop.METHODS
 # The loop stops early once one pass corrects less than this (radians): it has converged.
 LOOP_TOL_RAD = 1e-10
 POLISH_MAX_ITER = 30
-POLISH_TOL = 1e-7
+POLISH_TOL = 1e-6
 # The second solution needs only enough polish to rank it; it is finished if it wins.
 ALT_POLISH_ITER = 4
 # Relative size below which two corners coincide / three corners are collinear.
@@ -208,24 +208,24 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
     problem = quad_problem(us, vs)
     if problem:
         raise EstimationError(problem)
-    table = None
-    if method == "paper":
-        from .paper_table import load_table
-
-        table = load_table()
     area = marker.width * marker.height
-    R_l, cxs, cys, used = loop._loop_core(list(us), list(vs), 1.0, area, method, iterations,
-                                          loop.MATH_OPS, table, None, LOOP_TOL_RAD,
-                                          marker.width / marker.height)
-    px, py, pz = loop._position(cxs, cys, 1.0, area, loop.MATH_OPS)
+    R_l, (px, py, pz), used = loop.loop_one(us, vs, area, method, iterations, LOOP_TOL_RAD,
+                                           marker.width / marker.height)
     R_cam_unrot = np.array(R_l)
     R = geometry.R_cam_marker_from_R_cam_unrot(R_cam_unrot)
     t = R_cam_unrot @ np.array([px, py, pz])
-    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
-        raise EstimationError("no finite pose fits these corners")
-
     obj = [(float(p[0]), float(p[1])) for p in marker.object_points]
     wx, wy = camera.fx, camera.fy
+    if refine and not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))
+                       and _residuals(R.tolist(), t.tolist(), obj, us, vs, wx, wy, False)[2] > 0.0):
+        # The loop went astray (a sliver of a quadrilateral under noise): let the polish
+        # start from the marker facing the camera at the depth its area gives.
+        R_l, (px, py, pz), _ = loop.loop_one(us, vs, area, method, 0)
+        R_cam_unrot = np.array(R_l)
+        R = geometry.R_cam_marker_from_R_cam_unrot(R_cam_unrot)
+        t = R_cam_unrot @ np.array([px, py, pz])
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        raise EstimationError("no finite pose fits these corners")
     # The mirror pose: 180 deg about the line of sight to the centre reflects the marker's
     # normal about it; the flip about the marker's z keeps its corners where they were.
     v = t / np.linalg.norm(t)
@@ -242,7 +242,9 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
     _, _, zmin = _residuals(R.tolist(), t.tolist(), obj, us, vs, wx, wy, False)
     _, _, zmin_alt = _residuals(R_alt.tolist(), t_alt.tolist(), obj, us, vs, wx, wy, False)
     if not zmin > 0.0:
-        raise EstimationError("the marker would be behind the camera")
+        # The input faced the camera (quad_problem), so the loop went astray.
+        raise EstimationError(f"the {method} correction loop did not converge to a pose in "
+                              "front of the camera")
     err = _error_px(R, t, cost, camera, marker, flat)
     alt_valid = zmin_alt > 0.0 and math.isfinite(cost_alt)
     err_alt = _error_px(R_alt, t_alt, cost_alt, camera, marker, flat) if alt_valid else math.inf
@@ -452,11 +454,20 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
                                aspect=marker.width / marker.height)
     R = geometry.R_cam_marker_from_R_cam_unrot(res.R_cam_unrot)
     t = np.einsum("nij,nj->ni", res.R_cam_unrot, res.position_unrot)
+    obj = [(float(p[0]), float(p[1])) for p in marker.object_points]
+    wx, wy = camera.fx, camera.fy
+    if refine:
+        # As estimate_pose: a loop that went astray hands the polish a fronto-parallel start.
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            z0 = _residuals_batch(R, t, obj, list(xs.T), list(ys.T), wx, wy, False)[2]
+        lost = ~(np.all(np.isfinite(R), axis=(1, 2)) & np.all(np.isfinite(t), axis=1) & (z0 > 0.0))
+        if np.any(lost):
+            start = loop.correction_loop(norm[lost], 1.0, area, iterations=0)
+            R[lost] = geometry.R_cam_marker_from_R_cam_unrot(start.R_cam_unrot)
+            t[lost] = start.position_unrot
     v = t / np.linalg.norm(t, axis=-1, keepdims=True)
     R_alt = geometry.R_from_rvec(math.pi * v) @ R @ _R_FLIP_Z
     t_alt = t.copy()
-    obj = [(float(p[0]), float(p[1])) for p in marker.object_points]
-    wx, wy = camera.fx, camera.fy
     if refine:
         R, t, cost = _polish_batch(R, t, obj, xs, ys, wx, wy)
         R_alt, t_alt, cost_alt = _polish_batch(R_alt, t_alt, obj, xs, ys, wx, wy, ALT_POLISH_ITER)
@@ -484,7 +495,8 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
     fin = (np.all(np.isfinite(R), axis=(1, 2)) & np.all(np.isfinite(t), axis=1)
            & np.isfinite(err))
     for i in np.flatnonzero(good & ~(zmin > 0.0)):
-        errors[i] = "the marker would be behind the camera"
+        errors[i] = (f"the {method} correction loop did not converge to a pose in front of "
+                     "the camera")
     for i in np.flatnonzero(good & (zmin > 0.0) & ~fin):
         errors[i] = "no finite pose fits these corners"
     ok = good & (zmin > 0.0) & fin

@@ -326,3 +326,79 @@ def project_unrot(R_cam_unrot: np.ndarray, position_unrot: np.ndarray, width: fl
     d_unrot = p[..., None, :] + offsets
     d_cam = np.einsum("...ij,...kj->...ki", R, d_unrot)
     return f * d_cam[..., :2] / d_cam[..., 2:3]
+
+
+def loop_one(us: List[float], vs: List[float], area: float, method: str, iterations: int,
+             tol_rad: float = 0.0, aspect: float = 1.0):
+    """The loop for one quadrilateral in normalized coordinates (f = 1), on plain floats and
+    unrolled: the per-frame path. Same arithmetic as _loop_core. Returns
+    (R_cam_unrot as 3x3 nested lists, position_unrot (x, y, z), iterations run)."""
+    sqrt, atan2, cos, sin, copysign = math.sqrt, math.atan2, math.cos, math.sin, math.copysign
+    x0, x1, x2, x3 = us
+    y0, y1, y2, y3 = vs
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
+    table = None
+    if method == "paper":
+        from .paper_table import load_table
+
+        table = load_table()
+        scale_yaw, scale_pitch = math.sqrt(area / aspect), math.sqrt(area * aspect)
+    i = 0
+    for i in range(1, int(iterations) + 1):  # noqa: B007 (i is the count run)
+        # Roll (8): edge j -> j+1 rotated back by j * 90 deg, unit vectors summed.
+        ax, ay = x1 - x0, y1 - y0
+        bx, by = y2 - y1, x1 - x2
+        cx, cy = x2 - x3, y2 - y3
+        dx, dy = y3 - y0, x0 - x3
+        na, nb, nc, nd = (sqrt(ax * ax + ay * ay), sqrt(bx * bx + by * by),
+                          sqrt(cx * cx + cy * cy), sqrt(dx * dx + dy * dy))
+        g = atan2(ay / na + by / nb + cy / nc + dy / nd, ax / na + bx / nb + cx / nc + dx / nd)
+        c, s = cos(g), sin(g)
+        x0, y0, x1, y1 = x0 * c + y0 * s, y0 * c - x0 * s, x1 * c + y1 * s, y1 * c - x1 * s
+        x2, y2, x3, y3 = x2 * c + y2 * s, y2 * c - x2 * s, x3 * c + y3 * s, y3 * c - x3 * s
+        r00, r01 = c * r00 + s * r01, c * r01 - s * r00
+        r10, r11 = c * r10 + s * r11, c * r11 - s * r10
+        r20, r21 = c * r20 + s * r21, c * r21 - s * r20
+        # Yaw (9)-(10).
+        if table is not None:
+            xs, ys = [x0, x1, x2, x3], [y0, y1, y2, y3]
+            ang = _angles(xs, ys, MATH_OPS)
+            b = table.yaw(ang[0] + ang[3] - ang[1] - ang[2], sqrt(area / abs(_area(xs, ys))) / scale_yaw)
+        else:
+            l0, l1_, l2 = y0 - y1, x1 - x0, x0 * y1 - y0 * x1
+            m0, m1, m2 = y3 - y2, x2 - x3, x3 * y2 - y3 * x2
+            vx, vz = l1_ * m2 - l2 * m1, l0 * m1 - l1_ * m0
+            sg = copysign(1.0, vx)
+            b = atan2(vz * sg, vx * sg)
+        c, s = cos(b), sin(b)
+        k0, k1, k2, k3 = 1.0 / (c - x0 * s), 1.0 / (c - x1 * s), 1.0 / (c - x2 * s), 1.0 / (c - x3 * s)
+        x0, x1, x2, x3 = (x0 * c + s) * k0, (x1 * c + s) * k1, (x2 * c + s) * k2, (x3 * c + s) * k3
+        y0, y1, y2, y3 = y0 * k0, y1 * k1, y2 * k2, y3 * k3
+        r00, r02 = c * r00 + s * r02, c * r02 - s * r00
+        r10, r12 = c * r10 + s * r12, c * r12 - s * r10
+        r20, r22 = c * r20 + s * r22, c * r22 - s * r20
+        # Pitch (11)-(12).
+        if table is not None:
+            xs, ys = [x0, x1, x2, x3], [y0, y1, y2, y3]
+            ang = _angles(xs, ys, MATH_OPS)
+            a = table.pitch(ang[2] + ang[3] - ang[0] - ang[1], sqrt(area / abs(_area(xs, ys))) / scale_pitch)
+        else:
+            l0, l1_, l2 = y0 - y3, x3 - x0, x0 * y3 - y0 * x3
+            m0, m1, m2 = y1 - y2, x2 - x1, x1 * y2 - y1 * x2
+            vy, vz = l2 * m0 - l0 * m2, l0 * m1 - l1_ * m0
+            sg = copysign(1.0, vy)
+            a = atan2(vz * sg, vy * sg)
+        c, s = cos(a), sin(a)
+        k0, k1, k2, k3 = 1.0 / (c - y0 * s), 1.0 / (c - y1 * s), 1.0 / (c - y2 * s), 1.0 / (c - y3 * s)
+        x0, x1, x2, x3 = x0 * k0, x1 * k1, x2 * k2, x3 * k3
+        y0, y1, y2, y3 = (y0 * c + s) * k0, (y1 * c + s) * k1, (y2 * c + s) * k2, (y3 * c + s) * k3
+        r01, r02 = c * r01 + s * r02, c * r02 - s * r01
+        r11, r12 = c * r11 + s * r12, c * r12 - s * r11
+        r21, r22 = c * r21 + s * r22, c * r22 - s * r21
+        if abs(g) < tol_rad and abs(b) < tol_rad and abs(a) < tol_rad:
+            break
+    area_img = 0.5 * abs((x0 * y1 - x1 * y0) + (x1 * y2 - x2 * y1) + (x2 * y3 - x3 * y2) + (x3 * y0 - x0 * y3))
+    z = sqrt(area / area_img)
+    k = 0.25 * z
+    return ([[r00, r01, r02], [r10, r11, r12], [r20, r21, r22]],
+            ((x0 + x1 + x2 + x3) * k, (y0 + y1 + y2 + y3) * k, z), i)
