@@ -6,13 +6,16 @@ from __future__ import annotations
 
 from typing import List, Optional
 
+import cv2
 import numpy as np
 
 from ..camera import Marker
 from . import aruco_compat
-from .quads import Roi
+from .quads import Roi, find_quads, odd
 from .refine import EdgeFit, fit_edges, signed_area
 from .square import Candidate, SquareOptions, sample_canonical, side_lengths
+
+_UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
 
 
 class ArucoFinder:
@@ -47,6 +50,14 @@ class ArucoFinder:
         border = np.ones((cells, cells), dtype=bool)
         border[1:-1, 1:-1] = False
         self._border = border.ravel()
+        self._inner = ~self._border
+        # Cell index permutations: the grid read from corners rolled by k is grid[perm[k]].
+        self._perms = []
+        for k in range(4):
+            H = cv2.getPerspectiveTransform(_UNIT, np.roll(_UNIT, -k, axis=0))
+            uv = cv2.perspectiveTransform(self._cell_uv.reshape(-1, 1, 2), H).reshape(-1, 2)
+            idx = np.floor(uv * cells).astype(int).clip(0, cells - 1)
+            self._perms.append(idx[:, 1] * cells + idx[:, 0])
         s = np.linspace(0.1, 0.9, 7)
         self._ring = np.concatenate([np.column_stack([s, np.full_like(s, -0.08)]),
                                      np.column_stack([np.full_like(s, 1.08), s]),
@@ -67,27 +78,35 @@ class ArucoFinder:
                          camera=self.camera, min_contrast=0.5 * self.options.min_contrast,
                          max_move_px=max_move_px)
 
-    def verify(self, gray: np.ndarray, fit: EdgeFit) -> bool:
-        """Straight sides, and the marker's own bits read in this orientation."""
+    def orientation(self, gray: np.ndarray, fit: EdgeFit) -> Optional[int]:
+        """k such that the corners rolled by k start at the marker's top-left, or None if
+        this is not the marker: straight sides, dark border, light quiet zone, its bits."""
         o = self.options
         if fit.residual_px > o.max_edge_residual_px or fit.valid_fraction < 0.6:
-            return False
+            return None
         if fit.contrast < o.min_contrast or side_lengths(fit.corners).min() < o.min_side_px:
-            return False
+            return None
         values = sample_canonical(gray, fit.corners, self._cell_and_ring_uv)
         cells, ring = values[:len(self._cell_uv)], values[len(self._cell_uv):]
         ring = ring[np.isfinite(ring)]
         if not np.isfinite(cells).all() or len(ring) < 10:
-            return False
+            return None
         dark = float(np.median(cells[self._border]))
         light = float(np.median(ring))
         if light - dark < o.min_contrast:
-            return False
+            return None
         white = cells > 0.5 * (dark + light)
         if np.count_nonzero(white[self._border]) > 1:
-            return False
-        errors = np.count_nonzero(white[~self._border] != self._expected_white[~self._border])
-        return errors <= self.max_bit_errors
+            return None
+        for k, perm in enumerate(self._perms):
+            errors = np.count_nonzero(white[perm][self._inner] != self._expected_white[self._inner])
+            if errors <= self.max_bit_errors:
+                return k
+        return None
+
+    def verify(self, gray: np.ndarray, fit: EdgeFit) -> bool:
+        """Is this the marker, with the corners already labelled TL, TR, BR, BL?"""
+        return self.orientation(gray, fit) == 0
 
     def follow(self, gray: np.ndarray, predicted: np.ndarray) -> Optional[Candidate]:
         """The marker near ``predicted`` corners (TL, TR, BR, BL): edge fits, then its bits."""
@@ -99,7 +118,29 @@ class ArucoFinder:
 
     def search(self, gray: np.ndarray, roi: Optional[Roi] = None,
                expected_side_px: Optional[float] = None) -> List[Candidate]:
-        """Every instance of the marker in ``roi`` (or the whole frame), refined."""
+        """Every instance of the marker in ``roi`` (or the whole frame), refined.
+
+        Our own quadrilaterals and bit reading first (cheap); OpenCV's ArUco detector, with
+        its several threshold scales, when they find nothing.
+        """
+        o = self.options
+        block = o.block_px if expected_side_px is None else odd(np.clip(expected_side_px / 3.0, 7, 41))
+        scales = (2, 1) if roi is None and min(gray.shape) >= 240 else (1,)
+        out: List[Candidate] = []
+        for scale in scales:
+            for quad in find_quads(gray, min_side_px=o.min_side_px, block_px=block,
+                                   offset_gray=o.threshold_offset, roi=roi, downscale=scale):
+                fit = self.refine(gray, quad, iterations=2, max_move_px=1.5 * scale + 1.0)
+                if fit is None:
+                    continue
+                k = self.orientation(gray, fit)
+                if k is not None:
+                    out.append(Candidate(np.roll(fit.corners, -k, axis=0), True, fit))
+            if out:
+                return out
+        return self._search_opencv(gray, roi)
+
+    def _search_opencv(self, gray: np.ndarray, roi: Optional[Roi]) -> List[Candidate]:
         x0, y0 = 0, 0
         img = gray
         if roi is not None:
