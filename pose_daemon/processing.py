@@ -73,16 +73,14 @@ class FrameProcessor:
     @classmethod
     def from_config(cls, cfg) -> FrameProcessor:
         """The processor a Config asks for: its camera, marker, estimator and detector keys."""
-        import inspect
-
         from .detect import MarkerDetector
 
-        marker = cfg.marker.model()
-        accepted = inspect.signature(MarkerDetector).parameters
-        options = {k: getattr(cfg.detector, k) for k in ("max_misses", "min_side_px") if k in accepted}
-        return cls(cfg.camera.model(), marker, method=cfg.estimator.method,
+        camera, marker = cfg.camera.model(), cfg.marker.model()
+        detector = MarkerDetector(marker, max_misses=cfg.detector.max_misses,
+                                  min_side_px=cfg.detector.min_side_px, camera=camera)
+        return cls(camera, marker, method=cfg.estimator.method,
                    iterations=cfg.estimator.iterations, refine=cfg.estimator.refine,
-                   detector=MarkerDetector(marker, **options))
+                   detector=detector)
 
     def reset(self) -> None:
         """Forget tracking state (after a source restart or a long gap)."""
