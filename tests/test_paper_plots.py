@@ -65,3 +65,20 @@ def test_missing_matplotlib_says_how_to_install_it(monkeypatch, tmp_path, capsys
     assert str(exc.value) == "plots need matplotlib: pip install 'pose-daemon[plot]'"
     assert main(["paper", "sweep", "--limit", "10", "--plot", str(tmp_path / "a.png")]) == 2
     assert "pip install 'pose-daemon[plot]'" in capsys.readouterr().err
+
+
+def test_figure_helpers_write_each_format(tmp_path) -> None:
+    pytest.importorskip("matplotlib")
+    from pose_daemon.plotting import check_plot_dir, new_figure, save_figure
+
+    out = check_plot_dir(tmp_path / "a" / "b")
+    assert out.is_dir()
+    fig, axes = new_figure(2, 3)
+    assert axes.shape == (2, 3)
+    axes[0, 0].plot([0, 1], [1, 0])
+    svg = save_figure(fig, out / "grid.svg")
+    assert svg.read_text().lstrip().startswith("<?xml")
+    fig, ax = new_figure()
+    ax.plot([0, 1], [0, 1])
+    pdf = save_figure(fig, out / "line.pdf")
+    assert pdf.read_bytes().startswith(b"%PDF")
