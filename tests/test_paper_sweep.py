@@ -106,3 +106,10 @@ def test_sweep_bad_arguments_exit_2(argv, message, capsys) -> None:
         main(argv)
     assert exc.value.code == 2
     assert message in capsys.readouterr().err
+
+
+def test_a_sweep_too_large_for_memory_is_refused_before_it_starts(capsys) -> None:
+    assert main(["paper", "sweep", "--step-deg", "0.2"]) == 2
+    err = capsys.readouterr().err
+    assert err == ("pose-daemon: error: --step-deg 0.2 gives 91,125,000 orientations, more than "
+                   "20,000,000; use a larger step or --limit\n")

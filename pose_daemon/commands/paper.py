@@ -7,7 +7,11 @@ import json
 import sys
 from typing import Callable
 
+from ..errors import UserError
+
 METHODS = ("paper", "iterative")
+# The sweep keeps one e_image per orientation: 20 million is 160 MB (the paper's is 729,000).
+MAX_SWEEP_ORIENTATIONS = 20_000_000
 
 
 def _number(kind: Callable[[str], float], name: str, *, low: float, high: float = float("inf"),
@@ -113,6 +117,9 @@ def run_sweep(args: argparse.Namespace) -> int:
     total = angle_grid(args.step_deg).size ** 3
     if args.limit is not None:
         total = min(total, args.limit)
+    if total > MAX_SWEEP_ORIENTATIONS:
+        raise UserError(f"--step-deg {args.step_deg:g} gives {total:,} orientations, more than "
+                        f"{MAX_SWEEP_ORIENTATIONS:,}; use a larger step or --limit")
     with ProgressBar(total, label="sweep", enabled=not args.no_progress) as bar:
         result = sweep(method=args.method, iterations=args.iterations, step_deg=args.step_deg,
                        limit=args.limit, progress=bar.update)
