@@ -60,13 +60,14 @@ _INTERIOR = np.array([[u, v] for v in _g for u in _g], dtype=np.float64)
 _s = np.linspace(0.1, 0.9, 7)
 
 
-def _ring(r: float) -> np.ndarray:
-    """Points at canonical distance r outside each side, spread along it."""
+def _ring(ru: float, rv: float) -> np.ndarray:
+    """Points just outside each side, ``ru`` (left/right) or ``rv`` (top/bottom) canonical
+    units away, spread along it."""
     return np.concatenate([
-        np.column_stack([_s, np.full_like(_s, -r)]),
-        np.column_stack([np.full_like(_s, 1 + r), _s]),
-        np.column_stack([_s[::-1], np.full_like(_s, 1 + r)]),
-        np.column_stack([np.full_like(_s, -r), _s[::-1]]),
+        np.column_stack([_s, np.full_like(_s, -rv)]),
+        np.column_stack([np.full_like(_s, 1 + ru), _s]),
+        np.column_stack([_s[::-1], np.full_like(_s, 1 + rv)]),
+        np.column_stack([np.full_like(_s, -ru), _s[::-1]]),
     ])
 
 
@@ -130,8 +131,11 @@ class SquareFinder:
             return False
         if fit.contrast < o.min_contrast or not self.shape_ok(fit.corners):
             return False
-        r = float(np.clip(o.ring_px / max(float(side_lengths(fit.corners).min()), 1.0), 0.04, 0.2))
-        values = sample_canonical(gray, fit.corners, np.concatenate([_INTERIOR, _ring(r)]))
+        # The ring sits ring_px outside each side (but within a fifth of the side's length).
+        s = side_lengths(fit.corners)
+        ru = float(np.clip(o.ring_px / max(min(s[0], s[2]), 1.0), 0.04, 0.2))
+        rv = float(np.clip(o.ring_px / max(min(s[1], s[3]), 1.0), 0.04, 0.2))
+        values = sample_canonical(gray, fit.corners, np.concatenate([_INTERIOR, _ring(ru, rv)]))
         inside, ring = values[:len(_INTERIOR)], values[len(_INTERIOR):]
         ring = ring[np.isfinite(ring)]
         if len(ring) < 10:

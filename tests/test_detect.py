@@ -1,0 +1,306 @@
+"""The corner detector on rendered frames: accuracy, labels, tracking, false positives, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from pose_daemon import Camera, Marker, MarkerDetector
+from pose_daemon.detect import aruco_compat
+from pose_daemon.geometry import R_UNROT_MARKER, R_from_rvec, rot_x, rot_z, rvec_from_R
+from pose_daemon.render import Effects, random_pose, render_empty, render_marker, render_plane
+
+# Smaller than the daemon's 640x480 so that rendering keeps the suite fast; same field of view.
+CAM = Camera(fx=250.0, fy=250.0, cx=159.5, cy=119.5, width=320, height=240)
+SQUARE = Marker(0.20, 0.20)
+ARUCO = Marker(0.20, 0.20, type="aruco", dictionary="DICT_4X4_50", id=7)
+
+
+def _aruco_texture(marker: Marker, white: float = 220.0, black: float = 25.0):
+    """OpenCV's own image of the marker with a quiet zone of a quarter side, and its size (m)."""
+    cells = aruco_compat.marker_image(aruco_compat.get_dictionary(marker.dictionary), marker.id, 600)
+    tex = cv2.copyMakeBorder(cells, 150, 150, 150, 150, cv2.BORDER_CONSTANT, value=255)
+    tex = black + (white - black) * (tex.astype(np.float32) / 255.0)
+    return tex, (marker.width * 1.5, marker.height * 1.5)
+
+
+DEFAULT_EFFECTS = Effects()
+
+
+def render(marker: Marker, rvec, tvec, *, seed: int, effects: Effects = DEFAULT_EFFECTS,
+           camera: Camera = CAM, background=None):
+    """(image, true corners TL, TR, BR, BL) for a marker at pose (rvec, tvec).
+
+    ArUco markers are drawn from OpenCV's own marker image on a plane, so the detector is
+    checked against OpenCV's pattern itself.
+    """
+    rng = np.random.default_rng(seed)
+    if marker.type == "aruco":
+        tex, size = _aruco_texture(marker)
+        image = render_plane(camera, tex, size, rvec, tvec, effects=effects, rng=rng,
+                             background=background)
+        pts = marker.object_points @ R_from_rvec(np.asarray(rvec, float)).T + np.asarray(tvec, float)
+        return image, camera.project(pts)
+    frame = render_marker(camera, marker, rvec, tvec, effects=effects, rng=rng, background=background)
+    return frame.image, frame.corners_px
+
+
+def facing_pose(roll_deg: float, distance_m: float = 1.0, tilt_deg: float = 0.0,
+                shift_m=(0.0, 0.0)):
+    """Marker straight ahead at ``distance_m``, turned by ``roll_deg`` in its plane (image
+    clockwise for positive roll) and tilted about its x axis by ``tilt_deg``."""
+    R = rot_z(math.radians(roll_deg)) @ rot_x(math.radians(tilt_deg)) @ R_UNROT_MARKER
+    return rvec_from_R(R), np.array([shift_m[0], shift_m[1], distance_m])
+
+
+def rms(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
+
+
+def aligned(found: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    return min((np.roll(found, -k, axis=0) for k in range(4)), key=lambda c: float(np.sum((c - truth) ** 2)))
+
+
+# ----------------------------------------------------------------------------- accuracy
+
+
+@pytest.mark.parametrize("marker", [SQUARE, ARUCO], ids=["square", "aruco"])
+def test_corners_on_random_rendered_frames(marker: Marker) -> None:
+    rng = np.random.default_rng(11)
+    errors = []
+    for i in range(10):
+        rvec, tvec = random_pose(rng, CAM, marker, distance_m=(0.4, 1.5), max_tilt_deg=60)
+        image, truth = render(marker, rvec, tvec, seed=100 + i)
+        corners = MarkerDetector(marker).detect(image)
+        assert corners is not None, f"frame {i}: marker not found"
+        assert corners.shape == (4, 2) and corners.dtype == np.float64
+        if marker.type == "square":
+            corners = aligned(corners, truth)   # labels of a plain square: see the turn tests
+        errors.append(corners - truth)
+    err = np.concatenate(errors)
+    assert float(np.abs(err).max()) < 0.3
+    assert float(np.sqrt(np.mean(np.sum(err ** 2, axis=1)))) < 0.1
+    # No systematic offset: neither a shift nor a growth/shrink of the outline.
+    assert np.all(np.abs(err.mean(axis=0)) < 0.03)
+
+
+@pytest.mark.pi
+@pytest.mark.parametrize("marker", [SQUARE, ARUCO], ids=["square", "aruco"])
+def test_corners_on_a_few_frames(marker: Marker) -> None:
+    for i, (roll, tilt, dist) in enumerate([(10, 0, 0.8), (-25, 40, 1.2), (30, -50, 0.6)]):
+        image, truth = render(marker, *facing_pose(roll, dist, tilt), seed=i)
+        corners = MarkerDetector(marker).detect(image)
+        assert corners is not None
+        assert rms(corners, truth) < 0.15
+
+
+def test_lens_distortion_fitted_in_undistorted_pixels() -> None:
+    cam = Camera(fx=250.0, fy=250.0, cx=159.5, cy=119.5, dist=(-0.35, 0.12, 0.0, 0.0, 0.0),
+                 width=320, height=240)
+    rvec, tvec = facing_pose(20, 0.5, 30, shift_m=(0.12, 0.05))
+    image, truth = render(SQUARE, rvec, tvec, seed=3, camera=cam)
+    with_model = MarkerDetector(SQUARE, camera=cam).detect(image)
+    without = MarkerDetector(SQUARE).detect(image)
+    assert with_model is not None and without is not None
+    # Barrel distortion bows the sides; straight-line fits in raw pixels miss the corners.
+    assert rms(with_model, truth) < 0.1
+    assert rms(without, truth) > 2 * rms(with_model, truth)
+
+
+# ----------------------------------------------------------------------------- labels
+
+
+@pytest.mark.parametrize("roll", [-40, -15, 0, 20, 44])
+def test_square_first_sighting_assumes_small_roll(roll: float) -> None:
+    image, truth = render(SQUARE, *facing_pose(roll, 1.0, 25), seed=5)
+    corners = MarkerDetector(SQUARE).detect(image)
+    assert corners is not None
+    assert rms(corners, truth) < 0.15
+
+
+def test_square_labels_continuous_through_a_full_turn() -> None:
+    detector = MarkerDetector(SQUARE)
+    for step, roll in enumerate(range(0, 361, 15)):
+        image, truth = render(SQUARE, *facing_pose(roll, 1.0, 20), seed=step)
+        corners = detector.detect(image)
+        assert corners is not None, f"lost at roll {roll}"
+        assert rms(corners, truth) < 0.15, f"labels jumped at roll {roll}"
+
+
+@pytest.mark.parametrize("roll", [0, 90, 135, 180, 270])
+def test_aruco_orientation_from_its_pattern(roll: float) -> None:
+    image, truth = render(ARUCO, *facing_pose(roll, 0.9, 30), seed=7)
+    corners = MarkerDetector(ARUCO).detect(image)
+    assert corners is not None
+    assert rms(corners, truth) < 0.15
+
+
+# ----------------------------------------------------------------------------- tracking
+
+
+def _turned_track(detector: MarkerDetector, final_roll: float) -> None:
+    for step, roll in enumerate(np.linspace(0, final_roll, 6)):
+        image, truth = render(SQUARE, *facing_pose(roll, 1.0), seed=50 + step)
+        corners = detector.detect(image)
+        assert corners is not None and rms(corners, truth) < 0.15
+
+
+def test_track_survives_max_misses_then_is_forgotten() -> None:
+    blank = render_empty(CAM, rng=np.random.default_rng(9))
+    image, truth = render(SQUARE, *facing_pose(80, 1.0), seed=60)
+
+    kept = MarkerDetector(SQUARE, max_misses=3)
+    _turned_track(kept, 80)
+    for _ in range(3):
+        assert kept.detect(blank) is None
+    assert kept.tracking and kept.misses == 3
+    corners = kept.detect(image)
+    # Still the same track: labels continue from the turned marker.
+    assert corners is not None and rms(corners, truth) < 0.15
+
+    forgotten = MarkerDetector(SQUARE, max_misses=3)
+    _turned_track(forgotten, 80)
+    for _ in range(4):
+        assert forgotten.detect(blank) is None
+    assert not forgotten.tracking
+    corners = forgotten.detect(image)
+    # A first sighting again: |roll| < 45 deg is assumed, so 80 deg reads as -10 deg.
+    assert corners is not None
+    assert rms(corners, np.roll(truth, 1, axis=0)) < 0.15
+
+
+def test_reset_forgets_the_track() -> None:
+    detector = MarkerDetector(SQUARE)
+    _turned_track(detector, 80)
+    detector.reset()
+    assert not detector.tracking
+    image, truth = render(SQUARE, *facing_pose(80, 1.0), seed=60)
+    assert rms(detector.detect(image), np.roll(truth, 1, axis=0)) < 0.15
+
+
+def test_tracked_frames_follow_and_jumps_fall_back_to_a_search() -> None:
+    detector = MarkerDetector(SQUARE)
+    image, truth = render(SQUARE, *facing_pose(5, 1.0, 20), seed=70)
+    assert detector.detect(image) is not None and detector.last_stage == "full"
+    image, truth = render(SQUARE, *facing_pose(6, 1.01, 20, shift_m=(0.003, 0.0)), seed=71)
+    corners = detector.detect(image)
+    assert detector.last_stage == "follow" and rms(corners, truth) < 0.15
+    # The marker jumps across the image: the region search and then the whole frame find it.
+    image, truth = render(SQUARE, *facing_pose(6, 1.0, 20, shift_m=(-0.35, 0.2)), seed=72)
+    corners = detector.detect(image)
+    assert detector.last_stage == "full" and rms(corners, truth) < 0.15
+    # A moderate move is found by the region search around the prediction.
+    image, truth = render(SQUARE, *facing_pose(6, 1.0, 20, shift_m=(-0.30, 0.2)), seed=73)
+    corners = detector.detect(image)
+    assert detector.last_stage == "roi" and rms(corners, truth) < 0.15
+
+
+def test_two_markers_pick_by_shape_then_by_continuity() -> None:
+    near = facing_pose(0, 0.9, 0, shift_m=(-0.25, 0.0))
+    far = facing_pose(10, 1.5, 0, shift_m=(0.35, 0.0))
+    base, truth_near = render(SQUARE, *near, seed=80, effects=Effects.clean())
+    image, truth_far = render(SQUARE, *far, seed=81, background=base.astype(np.float32))
+    # No track: the same shape, so the larger (nearer) one, whatever the order found in.
+    assert rms(MarkerDetector(SQUARE).detect(image), truth_near) < 0.2
+    # Tracking the far one: continuity keeps it.
+    detector = MarkerDetector(SQUARE)
+    only_far, _ = render(SQUARE, *far, seed=82)
+    assert rms(detector.detect(only_far), truth_far) < 0.2
+    assert rms(detector.detect(image), truth_far) < 0.2
+
+
+# ----------------------------------------------------------------------------- never a wrong quadrilateral
+
+
+def test_no_detections_on_marker_free_frames() -> None:
+    square, aruco = MarkerDetector(SQUARE), MarkerDetector(ARUCO)
+    for i in range(25):
+        effects = Effects(background="texture", lighting_gradient=0.1 * (i % 6))
+        image = render_empty(CAM, effects=effects, rng=np.random.default_rng(200 + i))
+        assert square.detect(image) is None, f"frame {i}"
+        assert aruco.detect(image) is None, f"frame {i}"
+
+
+def test_other_markers_are_not_the_marker() -> None:
+    rvec, tvec = facing_pose(10, 0.8, 20)
+    other_id, _ = render(Marker(0.2, 0.2, type="aruco", dictionary="DICT_4X4_50", id=3), rvec, tvec, seed=90)
+    assert MarkerDetector(ARUCO).detect(other_id) is None
+    # An ArUco marker is not a plain dark square (its inside is not uniform) ...
+    aruco_image, _ = render(ARUCO, rvec, tvec, seed=91)
+    assert MarkerDetector(SQUARE).detect(aruco_image) is None
+    # ... and a plain square carries no ArUco code.
+    square_image, _ = render(SQUARE, rvec, tvec, seed=92)
+    assert MarkerDetector(ARUCO).detect(square_image) is None
+
+
+def test_rectangle_of_the_wrong_shape_is_rejected() -> None:
+    long_marker = Marker(0.40, 0.10)
+    image, truth = render(long_marker, *facing_pose(0, 1.0), seed=93)
+    assert rms(MarkerDetector(long_marker).detect(image), truth) < 0.15
+    # A 4:1 strip is not a square marker, even under perspective (at most 3:1 by default).
+    assert MarkerDetector(SQUARE).detect(image) is None
+
+
+def test_too_small_marker_is_not_reported() -> None:
+    image, _ = render(SQUARE, *facing_pose(0, 4.0), seed=94)   # about 12 px sides
+    assert MarkerDetector(SQUARE, min_side_px=10).detect(image) is not None
+    assert MarkerDetector(SQUARE, min_side_px=20).detect(image) is None
+
+
+# ----------------------------------------------------------------------------- input
+
+
+@pytest.fixture(scope="module")
+def upright():
+    return render(SQUARE, *facing_pose(10, 1.0, 20), seed=95)
+
+
+def test_colour_and_wide_images_give_the_same_corners(upright) -> None:
+    image, truth = upright
+    grey = MarkerDetector(SQUARE).detect(image)
+    bgr = MarkerDetector(SQUARE).detect(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR))
+    bgra = MarkerDetector(SQUARE).detect(cv2.cvtColor(image, cv2.COLOR_GRAY2BGRA))
+    single = MarkerDetector(SQUARE).detect(image[:, :, None])
+    wide = MarkerDetector(SQUARE).detect(image.astype(np.uint16) << 8)
+    strided = MarkerDetector(SQUARE).detect(np.asfortranarray(image))
+    for corners in (bgr, bgra, single, wide, strided):
+        np.testing.assert_allclose(corners, grey, atol=1e-6)
+    assert rms(grey, truth) < 0.15
+
+
+@pytest.mark.parametrize("bad, message", [
+    (np.zeros((240, 320), np.float32), "dtype float32"),
+    (np.zeros(100, np.uint8), "shape (100,)"),
+    (np.zeros((0, 320), np.uint8), "empty"),
+    (np.zeros((240, 320, 2), np.uint8), "shape (240, 320, 2)"),
+    ([[0, 1], [2, 3]], "numpy array"),
+])
+def test_bad_images_raise_a_clear_error(bad, message: str) -> None:
+    with pytest.raises(ValueError) as info:
+        MarkerDetector(SQUARE).detect(bad)
+    assert message in str(info.value)
+
+
+def test_tiny_images_have_no_marker() -> None:
+    assert MarkerDetector(SQUARE).detect(np.full((6, 6), 128, np.uint8)) is None
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(max_misses=-1), "max_misses"),
+    (dict(min_side_px=0.0), "min_side_px"),
+    (dict(min_contrast=float("nan")), "min_contrast"),
+    (dict(camera="cam"), "camera"),
+])
+def test_bad_options_raise(kwargs, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        MarkerDetector(SQUARE, **kwargs)
+
+
+def test_aruco_marker_must_exist_in_its_dictionary() -> None:
+    with pytest.raises(ValueError, match="ids 0..49"):
+        MarkerDetector(Marker(0.2, type="aruco", dictionary="DICT_4X4_50", id=50))
+    with pytest.raises(ValueError, match="unknown ArUco dictionary 'DICT_4X4_51'"):
+        MarkerDetector(Marker(0.2, type="aruco", dictionary="DICT_4X4_51", id=1))
