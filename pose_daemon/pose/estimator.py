@@ -24,9 +24,12 @@ METHODS = loop.METHODS
 # The loop stops early once one pass corrects less than this (radians): it has converged.
 LOOP_TOL_RAD = 1e-10
 POLISH_MAX_ITER = 30
-POLISH_TOL = 1e-6
+POLISH_TOL = 1e-5
+POLISH_GAIN = 1e-6
+# Levenberg-Marquardt damping: first value after a rejected Gauss-Newton step, factors.
+LAM_FIRST, LAM_UP, LAM_DOWN = 1e-3, 10.0, 0.1
 # The second solution needs only enough polish to rank it; it is finished if it wins.
-ALT_POLISH_ITER = 4
+ALT_POLISH_ITER = 3
 # Relative size below which two corners coincide / three corners are collinear.
 _DEGENERATE_REL = 1e-9
 # 180 deg about the marker's z axis: maps the mirror pose's marker axes back onto the image.
@@ -127,14 +130,15 @@ def _residuals(R: Sequence[Sequence[float]], t: Sequence[float], obj: Sequence[T
 
 
 def _polish(R: np.ndarray, t: np.ndarray, obj, us, vs, wx: float, wy: float,
-            max_iter: int = POLISH_MAX_ITER) -> Tuple[np.ndarray, np.ndarray, float]:
+            max_iter: int = POLISH_MAX_ITER) -> Tuple[np.ndarray, np.ndarray, float, float]:
     """Levenberg-Marquardt on the 6 pose parameters minimising the squared pixel error of the
-    undistorted corners (the maximum-likelihood pose for four points). Returns R, t, cost.
+    undistorted corners (the maximum-likelihood pose for four points). Returns R, t, cost and
+    the smallest corner depth.
     Stops once a step moves the pose by less than POLISH_TOL (radians; translation relative
     to the distance): with noise Gauss-Newton converges only linearly, and steps below that
     change nothing measurable."""
     tl = t.tolist()
-    rows, cost, _ = _residuals(R.tolist(), tl, obj, us, vs, wx, wy, True)
+    rows, cost, zmin = _residuals(R.tolist(), tl, obj, us, vs, wx, wy, True)
     lam = 0.0
     for _ in range(max_iter):
         Q = cv2.mulTransposed(np.array(rows).reshape(8, 7), True)
@@ -147,19 +151,22 @@ def _polish(R: np.ndarray, t: np.ndarray, obj, us, vs, wx: float, wy: float,
         s = step.ravel().tolist()
         R_new = geometry.R_from_rvec(step[:3, 0]) @ R
         t_new = [tl[0] + s[3], tl[1] + s[4], tl[2] + s[5]]
-        rows_n, cost_n, zmin = _residuals(R_new.tolist(), t_new, obj, us, vs, wx, wy, True)
-        if zmin > 0.0 and cost_n <= cost * (1.0 + 1e-12):
-            R, tl, rows, cost = R_new, t_new, rows_n, cost_n
-            lam *= 0.1
+        rows_n, cost_n, zmin_n = _residuals(R_new.tolist(), t_new, obj, us, vs, wx, wy, True)
+        if zmin_n > 0.0 and cost_n <= cost * (1.0 + 1e-12):
+            gain = cost - cost_n
+            R, tl, rows, cost, zmin = R_new, t_new, rows_n, cost_n, zmin_n
+            lam *= LAM_DOWN
             move = max(abs(s[0]), abs(s[1]), abs(s[2]),
                        (abs(s[3]) + abs(s[4]) + abs(s[5])) / abs(t_new[2]))
-            if move < POLISH_TOL:
+            # Converged: the step is negligible, or it bought less than POLISH_GAIN of the
+            # cost (what remains is a tiny fraction of the noise's own spread).
+            if move < POLISH_TOL or gain <= POLISH_GAIN * cost:
                 break
         else:
-            lam = 1e-3 if lam == 0.0 else lam * 10.0
+            lam = LAM_FIRST if lam == 0.0 else lam * LAM_UP
             if lam > 1e6:
                 break
-    return R, np.array(tl), cost
+    return R, np.array(tl), cost, zmin
 
 
 # --------------------------------------------------------------------------- the estimator
@@ -232,15 +239,13 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
     R_alt = geometry.R_from_rvec(math.pi * v) @ R @ _R_FLIP_Z
     t_alt = t.copy()
     if refine:
-        R, t, cost = _polish(R, t, obj, us, vs, wx, wy)
-        R_alt, t_alt, cost_alt = _polish(R_alt, t_alt, obj, us, vs, wx, wy, ALT_POLISH_ITER)
+        R, t, cost, zmin = _polish(R, t, obj, us, vs, wx, wy)
+        R_alt, t_alt, cost_alt, zmin_alt = _polish(R_alt, t_alt, obj, us, vs, wx, wy, ALT_POLISH_ITER)
         if cost_alt < cost:
-            R_alt, t_alt, cost_alt = _polish(R_alt, t_alt, obj, us, vs, wx, wy)
+            R_alt, t_alt, cost_alt, zmin_alt = _polish(R_alt, t_alt, obj, us, vs, wx, wy)
     else:
-        _, cost, _ = _residuals(R.tolist(), t.tolist(), obj, us, vs, wx, wy, False)
-        _, cost_alt, _ = _residuals(R_alt.tolist(), t_alt.tolist(), obj, us, vs, wx, wy, False)
-    _, _, zmin = _residuals(R.tolist(), t.tolist(), obj, us, vs, wx, wy, False)
-    _, _, zmin_alt = _residuals(R_alt.tolist(), t_alt.tolist(), obj, us, vs, wx, wy, False)
+        _, cost, zmin = _residuals(R.tolist(), t.tolist(), obj, us, vs, wx, wy, False)
+        _, cost_alt, zmin_alt = _residuals(R_alt.tolist(), t_alt.tolist(), obj, us, vs, wx, wy, False)
     if not zmin > 0.0:
         # The input faced the camera (quad_problem), so the loop went astray.
         raise EstimationError(f"the {method} correction loop did not converge to a pose in "
@@ -392,8 +397,9 @@ def _polish_batch(R: np.ndarray, t: np.ndarray, obj, us: np.ndarray, vs: np.ndar
         cost[idx] = np.where(accept, cost_n, c_old)
         move = np.maximum(np.abs(step[:, :3]).max(-1),
                           np.abs(step[:, 3:]).sum(-1) / np.abs(t_new[:, 2]))
-        lam[idx] = np.where(accept, ls * 0.1, np.where(ls == 0.0, 1e-3, ls * 10.0))
-        done = (accept & (move < POLISH_TOL)) | (lam[idx] > 1e6)
+        gain = c_old - cost_n
+        lam[idx] = np.where(accept, ls * LAM_DOWN, np.where(ls == 0.0, LAM_FIRST, ls * LAM_UP))
+        done = (accept & ((move < POLISH_TOL) | (gain <= POLISH_GAIN * cost_n))) | (lam[idx] > 1e6)
         active[idx[done]] = False
     return R, t, cost
 
