@@ -50,17 +50,20 @@ def _wrong(poses, truths, limit_deg=10.0):
 
 
 @pytest.mark.parametrize("seed", [3, 4, 5])
-def test_continuity_halves_wrong_planar_solutions(seed):
+def test_continuity_picks_the_right_planar_solution_whenever_one_is_right(seed):
     from pose_daemon import estimate_pose
 
     truths, corners = _track(seed)
     raw = [estimate_pose(c, CAMERA, MARKER) for c in corners]
     proc = FrameProcessor(CAMERA, MARKER, detector=ScriptedDetector(corners))
     tracked = [proc.process(Frame(IMAGE, i / 30.0, i)).pose for i in range(len(corners))]
+    # Frames where neither solution is within 10 deg: noise, no choice can help.
+    hopeless = sum(min(float(rotation_angle_deg(p.R, R)), float(rotation_angle_deg(p.alternative.R, R))) > 10.0
+                   for p, R in zip(raw, truths))
     raw_wrong, tracked_wrong = _wrong(raw, truths), _wrong(tracked, truths)
-    assert raw_wrong >= 20  # the estimator alone picks the mirror pose often here
-    assert tracked_wrong <= 0.6 * raw_wrong, (raw_wrong, tracked_wrong)
-    assert proc.flips > 0
+    assert raw_wrong >= hopeless + 10  # the estimator alone often picks the mirror pose here
+    assert tracked_wrong <= hopeless + 3, (raw_wrong, tracked_wrong, hopeless)
+    assert proc.flips >= 10
     for p in tracked:  # the other solution always travels along
         assert p.alternative is not None and p.alternative.alternative is None
 
