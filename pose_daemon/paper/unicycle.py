@@ -11,7 +11,9 @@ Each control step (one camera frame) the window's corners are projected with the
 camera model at the robot's true pose, optionally disturbed by Gaussian pixel noise, and
 ``estimate_pose`` turns them into the feedback (x*, z*, theta*) of the controller
 v = kv * distance to the goal (21), w = kw * (bearing of the goal - theta*) (22). The
-controls are held over the step and the motion integrated exactly (arcs).
+controls are held over the step and the motion integrated exactly (arcs). A frame where a
+corner falls outside the image (or behind the camera) gives no estimate; until the next
+one the feedback is dead-reckoned from the last estimate with the commanded v and w.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import numpy as np
 
 from .. import geometry
 from ..camera import Camera, Marker
+from ..pose.types import Pose
 
 # A wide-angle Raspberry Pi camera (Camera Module 3 Wide: 102 deg horizontal field of view)
 # at 640x480, lens distortion already calibrated out. The wide lens matters: the robot
@@ -82,7 +85,7 @@ class UnicycleRun:
     z_est: np.ndarray = field(default_factory=lambda: np.empty(0))
     theta_est_deg: np.ndarray = field(default_factory=lambda: np.empty(0))
     t_arrived_s: Optional[float] = None  # when the feedback first put it within goal_radius
-    out_of_view: int = 0          # frames where a corner fell outside the image
+    out_of_view: int = 0          # frames where a corner fell outside the image (no estimate)
     failures: int = 0             # frames the estimator rejected (the last estimate was kept)
 
 
@@ -109,7 +112,7 @@ def camera_pose(x: float, z: float, theta_rad: float,
     return R_cam_marker, tvec
 
 
-def feedback_from_pose(pose) -> Tuple[float, float, float]:
+def feedback_from_pose(pose: Pose) -> Tuple[float, float, float]:
     """(x*, z*, theta* rad) from an estimated Pose: the camera's place and heading in the world."""
     cp = np.asarray(pose.camera_position, dtype=np.float64)
     # marker frame (x right, y up, z towards the robot) -> world (X right, Y down, Z to the window)
@@ -147,18 +150,22 @@ def simulate(setup: UnicycleSetup, *, feedback: str = "estimated") -> UnicycleRu
     for k in range(steps):
         xs[k], zs[k], ths[k] = x, z, theta
         R, tvec = camera_pose(x, z, theta, setup)
-        corners = camera.project(marker.object_points @ R.T + tvec)
+        points_cam = marker.object_points @ R.T + tvec
+        corners = camera.project(points_cam)
         if setup.noise_px > 0:
             corners = corners + rng.normal(0.0, setup.noise_px, corners.shape)
-        if (np.any(corners < -0.5) or np.any(corners[:, 0] > camera.width - 0.5)
+        if (np.any(points_cam[:, 2] <= 0.0) or np.any(corners < -0.5)
+                or np.any(corners[:, 0] > camera.width - 0.5)
                 or np.any(corners[:, 1] > camera.height - 0.5)):
+            # A real camera would not see the whole window: no detection this frame.
             out_of_view += 1
-        try:
-            pose = estimate_pose(corners, camera, marker, method=setup.method,
-                                 iterations=setup.iterations, refine=setup.refine)
-            last = feedback_from_pose(pose)
-        except EstimationError:
-            failures += 1
+        else:
+            try:
+                pose = estimate_pose(corners, camera, marker, method=setup.method,
+                                     iterations=setup.iterations, refine=setup.refine)
+                last = feedback_from_pose(pose)
+            except EstimationError:
+                failures += 1
         if last is None:
             # No estimate yet: nothing to compare, and a robot steered by its camera waits.
             xe[k] = ze[k] = the[k] = math.nan
@@ -175,6 +182,10 @@ def simulate(setup: UnicycleSetup, *, feedback: str = "estimated") -> UnicycleRu
         v = setup.kv * distance
         w = setup.kw * (goal_bearing_rad(fx, fz, setup.goal) - fth)
         x, z, theta = _step(x, z, theta, v, w, setup.dt_s)
+        if last is not None:
+            # Dead reckoning: until the next camera fix the feedback follows the commanded
+            # motion (a stale pose would make the robot circle with a constant turn rate).
+            last = _step(*last, v, w, setup.dt_s)
     return UnicycleRun(feedback, t, xs, zs, np.degrees(ths), xe, ze, np.degrees(the),
                        t_arrived, out_of_view, failures)
 
