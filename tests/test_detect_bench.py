@@ -1,0 +1,48 @@
+"""`pose-daemon bench detector` end to end on a handful of frames: figures and argument errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from pose_daemon.cli import main
+
+
+def test_bench_prints_figures_for_both_markers_and_the_anchor(capsys) -> None:
+    code = main(["bench", "detector", "--frames", "4", "--empty", "4", "--repeat", "1", "--json"])
+    assert code == 0
+    result = json.loads(capsys.readouterr().out)
+    rows = {row["name"]: row for row in result["rows"]}
+    assert set(rows) == {"square (pose-daemon)", "aruco (pose-daemon)", "aruco (OpenCV ArUco + IPPE)"}
+    for name in ("square (pose-daemon)", "aruco (pose-daemon)"):
+        row = rows[name]
+        assert row["frames"] == 4 and row["detection_rate"] == 1.0 and row["wrong_detections"] == 0
+        assert row["corner_rms_px"] < 0.15
+        assert abs(row["corner_mean_outward_px"]) < 0.05
+        assert row["rotation_err_median_deg"] < 1.0 and row["translation_err_median_mm"] < 20.0
+        assert row["false_detections"] == 0 and row["empty_frames"] == 4
+        assert row["tracked_detection_rate"] == 1.0
+        assert 0 < row["time_tracked_median_ms"] and 0 < row["time_full_median_ms"]
+    anchor = rows["aruco (OpenCV ArUco + IPPE)"]
+    assert anchor["detection_rate"] >= 0.75 and anchor["corner_rms_px"] < 1.0
+    labels = [label for label, _ in result["timing_rows"]]
+    assert labels[-1].startswith("anchor") and all(ms > 0 for _, ms in result["timing_rows"])
+    assert result["setup"]["width"] == 640 and result["setup"]["pi2_factor"] == 20.0
+
+
+def test_bench_table_is_readable(capsys) -> None:
+    assert main(["bench", "detector", "--frames", "1", "--empty", "1", "--repeat", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "corner RMS" in out and "Pi 2 (x20)" in out and "anchor: ArUco subpix + IPPE_SQUARE" in out
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--frames", "0"], "--frames must be at least 1, got 0"),
+    (["--empty", "-1"], "--empty must be 0 or more, got -1"),
+    (["--repeat", "0"], "--repeat must be at least 1, got 0"),
+])
+def test_bench_argument_errors_exit_2(args, message: str, capsys) -> None:
+    assert main(["bench", "detector", *args]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == f"pose-daemon: error: {message}"
