@@ -18,6 +18,7 @@ from typing import Callable, Dict, List, Mapping, Optional, Sequence
 
 from .capture.base import FrameSource
 from .config import Config
+from .errors import PoseDaemonError, UserError
 from .outputs.base import Output
 from .pipeline import Pipeline
 
@@ -230,7 +231,14 @@ class Service:
 def run_daemon(cfg: Config) -> int:
     """``pose-daemon run``: the service in the main thread until SIGTERM/SIGINT; exit status."""
     setup_logging(cfg.logging.level)
-    service = Service(cfg)
+    try:
+        service = Service(cfg)
+    except UserError:
+        raise
+    except PoseDaemonError as exc:
+        # A camera or link that cannot be set up at all: exit 1 so systemd retries later.
+        log.error("cannot start: %s", " ".join(str(exc).split()) or type(exc).__name__)
+        return 1
     previous = service.install_signal_handlers()
     try:
         return service.run()
