@@ -203,3 +203,12 @@ def test_check_config_cli(tmp_path):
     shown = _cli("check-config", "--print", str(ROOT / "config" / "pose-daemon.toml"))
     assert shown.returncode == 0
     assert 'source = "picamera2"' in shown.stdout and "[output.mavlink]" in shown.stdout
+
+
+def test_check_config_checks_the_mavlink_connection_string(tmp_path):
+    bad = tmp_path / "link.toml"
+    bad.write_text('[output.mavlink]\nconnection = "udpout:localhost"\n')
+    res = _cli("check-config", str(bad))
+    assert res.returncode == 2
+    assert res.stderr == (f"pose-daemon: error: {bad}: [output.mavlink] connection: expected "
+                          "udpout:HOST:PORT with a port in 1..65535, got 'udpout:localhost'\n")
