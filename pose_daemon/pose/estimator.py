@@ -30,6 +30,8 @@ POLISH_GAIN = 1e-6
 LAM_FIRST, LAM_UP, LAM_DOWN = 1e-3, 10.0, 0.1
 # The second solution needs only enough polish to rank it; it is finished if it wins.
 ALT_POLISH_ITER = 3
+# ... and is finished when its cost is below this multiple of the best one's.
+ALT_FINISH = 4.0
 # Relative size below which two corners coincide / three corners are collinear.
 _DEGENERATE_REL = 1e-9
 # 180 deg about the marker's z axis: maps the mirror pose's marker axes back onto the image.
@@ -171,6 +173,14 @@ def _polish(R: np.ndarray, t: np.ndarray, obj, us, vs, wx: float, wy: float,
 
 # --------------------------------------------------------------------------- the estimator
 
+def mirror_pose(R_cam_marker: np.ndarray, tvec: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """The other planar solution's first guess, (3, 3) / (3,) or stacks: 180 deg about the line
+    of sight to the marker's centre reflects its normal about that line; the flip about the
+    marker's own z keeps its corners where they were. Same centre."""
+    v = tvec / np.linalg.norm(tvec, axis=-1, keepdims=True)
+    return geometry.R_from_rvec(math.pi * v) @ R_cam_marker @ _R_FLIP_Z, np.array(tvec, dtype=np.float64)
+
+
 def _pose_from(R: np.ndarray, t: np.ndarray, error_px: float, method: str, iterations: int,
                alternative: Optional[Pose] = None, ratio: float = 0.0) -> Pose:
     a, b, g = geometry.paper_angles_deg_from_R_cam_marker(R)
@@ -233,15 +243,12 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
         t = R_cam_unrot @ np.array([px, py, pz])
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
         raise EstimationError("no finite pose fits these corners")
-    # The mirror pose: 180 deg about the line of sight to the centre reflects the marker's
-    # normal about it; the flip about the marker's z keeps its corners where they were.
-    v = t / np.linalg.norm(t)
-    R_alt = geometry.R_from_rvec(math.pi * v) @ R @ _R_FLIP_Z
-    t_alt = t.copy()
+    R_alt, t_alt = mirror_pose(R, t)
     if refine:
         R, t, cost, zmin = _polish(R, t, obj, us, vs, wx, wy)
         R_alt, t_alt, cost_alt, zmin_alt = _polish(R_alt, t_alt, obj, us, vs, wx, wy, ALT_POLISH_ITER)
-        if cost_alt < cost:
+        if cost_alt < ALT_FINISH * cost:
+            # A contender: finish it so that the two are ranked at their minima.
             R_alt, t_alt, cost_alt, zmin_alt = _polish(R_alt, t_alt, obj, us, vs, wx, wy)
     else:
         _, cost, zmin = _residuals(R.tolist(), t.tolist(), obj, us, vs, wx, wy, False)
@@ -471,13 +478,11 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
             start = loop.correction_loop(norm[lost], 1.0, area, iterations=0)
             R[lost] = geometry.R_cam_marker_from_R_cam_unrot(start.R_cam_unrot)
             t[lost] = start.position_unrot
-    v = t / np.linalg.norm(t, axis=-1, keepdims=True)
-    R_alt = geometry.R_from_rvec(math.pi * v) @ R @ _R_FLIP_Z
-    t_alt = t.copy()
+    R_alt, t_alt = mirror_pose(R, t)
     if refine:
         R, t, cost = _polish_batch(R, t, obj, xs, ys, wx, wy)
         R_alt, t_alt, cost_alt = _polish_batch(R_alt, t_alt, obj, xs, ys, wx, wy, ALT_POLISH_ITER)
-        better = cost_alt < cost
+        better = cost_alt < ALT_FINISH * cost
         if np.any(better):
             R_alt, t_alt, cost_alt = _polish_batch(R_alt, t_alt, obj, xs, ys, wx, wy,
                                                    active=better)
