@@ -55,8 +55,8 @@ def side_lengths(corners: np.ndarray) -> np.ndarray:
 
 # Canonical marker square [0, 1]^2, corners in image-clockwise order from its top-left.
 _UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
-_g = np.linspace(0.18, 0.82, 5)
-_INTERIOR = np.array([[u, v] for v in _g for u in _g], dtype=np.float64)
+_g = np.linspace(0.0, 1.0, 7)
+_GRID = np.array([[u, v] for v in _g for u in _g], dtype=np.float64)
 _s = np.linspace(0.1, 0.9, 7)
 
 
@@ -135,8 +135,11 @@ class SquareFinder:
         s = side_lengths(fit.corners)
         ru = float(np.clip(o.ring_px / max(min(s[0], s[2]), 1.0), 0.04, 0.2))
         rv = float(np.clip(o.ring_px / max(min(s[1], s[3]), 1.0), 0.04, 0.2))
-        values = sample_canonical(gray, fit.corners, np.concatenate([_INTERIOR, _ring(ru, rv)]))
-        inside, ring = values[:len(_INTERIOR)], values[len(_INTERIOR):]
+        # The inside is sampled out to ring_px from the sides: a dark frame around a lighter
+        # band (paper darker than the wall around it) is not a uniformly dark region.
+        interior = np.array([ru, rv]) + _GRID * (1.0 - 2.0 * np.array([ru, rv]))
+        values = sample_canonical(gray, fit.corners, np.concatenate([interior, _ring(ru, rv)]))
+        inside, ring = values[:len(interior)], values[len(interior):]
         ring = ring[np.isfinite(ring)]
         if len(ring) < 10:
             return False
