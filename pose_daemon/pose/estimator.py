@@ -32,6 +32,8 @@ LAM_FIRST, LAM_UP, LAM_DOWN = 1e-3, 10.0, 0.1
 ALT_POLISH_ITER = 3
 # ... and is finished when its cost is below this multiple of the best one's.
 ALT_FINISH = 4.0
+# Marker normals closer than ~20 deg: the loop's pose is on that side of the ambiguity.
+_COS_SAME_SIDE = math.cos(math.radians(20.0))
 # Relative size below which two corners coincide / three corners are collinear.
 _DEGENERATE_REL = 1e-9
 # 180 deg about the marker's z axis: maps the mirror pose's marker axes back onto the image.
@@ -173,6 +175,97 @@ def _polish(R: np.ndarray, t: np.ndarray, obj, us, vs, wx: float, wy: float,
 
 # --------------------------------------------------------------------------- the estimator
 
+def weak_perspective_pair(us: np.ndarray, vs: np.ndarray, width: float, height: float):
+    """The two poses a scaled-orthographic camera gives for the corners, as starts for the
+    polish: the two sides of the planar ambiguity. us, vs (..., 4) normalized coordinates.
+    Returns ((R_a, t_a), (R_b, t_b)) with R (..., 3, 3) R_cam_marker and t (..., 3).
+
+    The image is first turned so that the corners' mean lies on the optical axis (where the
+    affine model holds best); an affine fit of marker (X, Y) -> image gives
+    s [[R11, R12], [R21, R22]], and orthonormality fixes s and (R31, R32) up to one sign."""
+    us, vs = np.asarray(us, dtype=np.float64), np.asarray(vs, dtype=np.float64)
+    c = np.stack([us.mean(-1), vs.mean(-1), np.ones(us.shape[:-1])], -1)
+    d = c / np.linalg.norm(c, axis=-1, keepdims=True)
+    # Rotation taking the optical axis onto d: axis z x d, angle acos(d_z).
+    axis = np.stack([-d[..., 1], d[..., 0], np.zeros(d.shape[:-1])], -1)
+    n = np.linalg.norm(axis, axis=-1, keepdims=True)
+    angle = np.arctan2(n, d[..., 2:3])
+    Rc = geometry.R_from_rvec(np.where(n > 1e-15, axis / np.where(n > 1e-15, n, 1.0), 0.0) * angle)
+    rays = np.stack([us, vs, np.ones(us.shape)], -1)             # (..., 4, 3)
+    p = np.einsum("...ji,...kj->...ki", Rc, rays)                 # Rc^T rays
+    u, v = p[..., 0] / p[..., 2], p[..., 1] / p[..., 2]
+    w2, h2 = 0.5 * width, 0.5 * height
+    X = np.array([-w2, w2, w2, -w2])
+    Y = np.array([h2, h2, -h2, -h2])
+    a_, b_ = (u * X).sum(-1) / (X @ X), (u * Y).sum(-1) / (Y @ Y)
+    c_, d_ = (v * X).sum(-1) / (X @ X), (v * Y).sum(-1) / (Y @ Y)
+    P, Q, M = a_ * a_ + c_ * c_, b_ * b_ + d_ * d_, a_ * b_ + c_ * d_
+    D2 = (a_ * d_ - b_ * c_) ** 2
+    # k = 1/s^2 = depth^2 solves D^2 k^2 - (P + Q) k + 1 = 0; the smaller root (stable form).
+    k = 2.0 / ((P + Q) + np.sqrt(np.maximum((P + Q) ** 2 - 4.0 * D2, 0.0)))
+    sk = np.sqrt(k)
+    r31 = np.sqrt(np.maximum(1.0 - k * P, 0.0))
+    r32 = np.sqrt(np.maximum(1.0 - k * Q, 0.0)) * np.where(M > 0.0, -1.0, 1.0)
+    out = []
+    for sign in (1.0, -1.0):
+        c1 = np.stack([a_ * sk, c_ * sk, sign * r31], -1)
+        c1 = c1 / np.linalg.norm(c1, axis=-1, keepdims=True)
+        c2 = np.stack([b_ * sk, d_ * sk, sign * r32], -1)
+        c2 = c2 - (c1 * c2).sum(-1, keepdims=True) * c1
+        c2 = c2 / np.linalg.norm(c2, axis=-1, keepdims=True)
+        R = np.stack([c1, c2, np.cross(c1, c2)], -1)
+        out.append((Rc @ R, d * sk[..., None]))
+    return out[0], out[1]
+
+
+def _weak_perspective_pair_floats(us: Sequence[float], vs: Sequence[float], width: float,
+                                  height: float) -> List[Tuple[np.ndarray, np.ndarray]]:
+    """weak_perspective_pair for one quadrilateral on plain floats (the per-frame path)."""
+    cu, cv = 0.25 * (us[0] + us[1] + us[2] + us[3]), 0.25 * (vs[0] + vs[1] + vs[2] + vs[3])
+    nrm = math.sqrt(cu * cu + cv * cv + 1.0)
+    dx, dy, dz = cu / nrm, cv / nrm, 1.0 / nrm
+    n_ax = math.hypot(dx, dy)
+    if n_ax > 1e-15:
+        ang = math.atan2(n_ax, dz) / n_ax
+        Rc = geometry.R_from_rvec(np.array([-dy * ang, dx * ang, 0.0]))
+    else:
+        Rc = np.eye(3)
+    (c00, c01, c02), (c10, c11, c12), (c20, c21, c22) = Rc.tolist()
+    w2, h2 = 0.5 * width, 0.5 * height
+    sa = sb = sc = sd = 0.0
+    for (X, Y), u0, v0 in zip(((-w2, h2), (w2, h2), (w2, -h2), (-w2, -h2)), us, vs):
+        pz = c02 * u0 + c12 * v0 + c22
+        u = (c00 * u0 + c10 * v0 + c20) / pz
+        v = (c01 * u0 + c11 * v0 + c21) / pz
+        sa += u * X
+        sb += u * Y
+        sc += v * X
+        sd += v * Y
+    sxx, syy = 4.0 * w2 * w2, 4.0 * h2 * h2
+    a_, b_, c_, d_ = sa / sxx, sb / syy, sc / sxx, sd / syy
+    P, Q, M = a_ * a_ + c_ * c_, b_ * b_ + d_ * d_, a_ * b_ + c_ * d_
+    D2 = (a_ * d_ - b_ * c_) ** 2
+    k = 2.0 / ((P + Q) + math.sqrt(max((P + Q) ** 2 - 4.0 * D2, 0.0)))
+    sk = math.sqrt(k)
+    r31 = math.sqrt(max(1.0 - k * P, 0.0))
+    r32 = math.sqrt(max(1.0 - k * Q, 0.0)) * (-1.0 if M > 0.0 else 1.0)
+    t = np.array([dx * sk, dy * sk, dz * sk])
+    out = []
+    for sign in (1.0, -1.0):
+        x1, y1, z1 = a_ * sk, c_ * sk, sign * r31
+        n1 = math.sqrt(x1 * x1 + y1 * y1 + z1 * z1)
+        x1, y1, z1 = x1 / n1, y1 / n1, z1 / n1
+        x2, y2, z2 = b_ * sk, d_ * sk, sign * r32
+        dot = x1 * x2 + y1 * y2 + z1 * z2
+        x2, y2, z2 = x2 - dot * x1, y2 - dot * y1, z2 - dot * z1
+        n2 = math.sqrt(x2 * x2 + y2 * y2 + z2 * z2)
+        x2, y2, z2 = x2 / n2, y2 / n2, z2 / n2
+        R = np.array([[x1, x2, y1 * z2 - z1 * y2], [y1, y2, z1 * x2 - x1 * z2],
+                      [z1, z2, x1 * y2 - y1 * x2]])
+        out.append((Rc @ R, t))
+    return out
+
+
 def mirror_pose(R_cam_marker: np.ndarray, tvec: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """The other planar solution's first guess, (3, 3) / (3,) or stacks: 180 deg about the line
     of sight to the marker's centre reflects its normal about that line; the flip about the
@@ -243,14 +336,26 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
         t = R_cam_unrot @ np.array([px, py, pz])
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
         raise EstimationError("no finite pose fits these corners")
-    R_alt, t_alt = mirror_pose(R, t)
     if refine:
         R, t, cost, zmin = _polish(R, t, obj, us, vs, wx, wy)
-        R_alt, t_alt, cost_alt, zmin_alt = _polish(R_alt, t_alt, obj, us, vs, wx, wy, ALT_POLISH_ITER)
-        if cost_alt < ALT_FINISH * cost:
-            # A contender: finish it so that the two are ranked at their minima.
-            R_alt, t_alt, cost_alt, zmin_alt = _polish(R_alt, t_alt, obj, us, vs, wx, wy)
+        # The other planar solution starts from the weak-perspective pose on the far side of
+        # the ambiguity; if the loop ended near neither side, the near one is tried as well.
+        wp = _weak_perspective_pair_floats(us, vs, marker.width, marker.height)
+        n = R[:, 2]
+        dots = [float(n @ Rw[:, 2]) for Rw, _ in wp]
+        near, far = (0, 1) if dots[0] >= dots[1] else (1, 0)
+        starts = [wp[far]] + ([wp[near]] if dots[near] < _COS_SAME_SIDE else [])
+        cands = [(R, t, cost, zmin)]
+        for R0, t0 in starts:
+            R_c, t_c, cost_c, zmin_c = _polish(R0, t0, obj, us, vs, wx, wy, ALT_POLISH_ITER)
+            if cost_c < ALT_FINISH * cost:
+                # A contender: finish it so that the two are ranked at their minima.
+                R_c, t_c, cost_c, zmin_c = _polish(R_c, t_c, obj, us, vs, wx, wy)
+            cands.append((R_c, t_c, cost_c, zmin_c))
+        cands.sort(key=lambda c: c[2] if c[3] > 0.0 and math.isfinite(c[2]) else math.inf)
+        (R, t, cost, zmin), (R_alt, t_alt, cost_alt, zmin_alt) = cands[0], cands[1]
     else:
+        R_alt, t_alt = mirror_pose(R, t)
         _, cost, zmin = _residuals(R.tolist(), t.tolist(), obj, us, vs, wx, wy, False)
         _, cost_alt, zmin_alt = _residuals(R_alt.tolist(), t_alt.tolist(), obj, us, vs, wx, wy, False)
     if not zmin > 0.0:
@@ -478,15 +583,46 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
             start = loop.correction_loop(norm[lost], 1.0, area, iterations=0)
             R[lost] = geometry.R_cam_marker_from_R_cam_unrot(start.R_cam_unrot)
             t[lost] = start.position_unrot
-    R_alt, t_alt = mirror_pose(R, t)
     if refine:
         R, t, cost = _polish_batch(R, t, obj, xs, ys, wx, wy)
-        R_alt, t_alt, cost_alt = _polish_batch(R_alt, t_alt, obj, xs, ys, wx, wy, ALT_POLISH_ITER)
-        better = cost_alt < ALT_FINISH * cost
-        if np.any(better):
-            R_alt, t_alt, cost_alt = _polish_batch(R_alt, t_alt, obj, xs, ys, wx, wy,
-                                                   active=better)
+        (Ra, ta), (Rb, tb) = weak_perspective_pair(xs, ys, marker.width, marker.height)
+        da = np.einsum("ni,ni->n", R[:, :, 2], Ra[:, :, 2])
+        db = np.einsum("ni,ni->n", R[:, :, 2], Rb[:, :, 2])
+        a_near = da >= db
+        R_far = np.where(a_near[:, None, None], Rb, Ra)
+        t_far = np.where(a_near[:, None], tb, ta)
+        R_near = np.where(a_near[:, None, None], Ra, Rb)
+        t_near = np.where(a_near[:, None], ta, tb)
+        cands = [(R, t, cost)]
+        for R0, t0, rows in ((R_far, t_far, None),
+                             (R_near, t_near, np.maximum(da, db) < _COS_SAME_SIDE)):
+            if rows is not None and not np.any(rows):
+                continue
+            act = None if rows is None else rows
+            R_c, t_c, cost_c = _polish_batch(R0, t0, obj, xs, ys, wx, wy, ALT_POLISH_ITER, active=act)
+            finish = cost_c < ALT_FINISH * cost
+            if act is not None:
+                finish &= act
+            if np.any(finish):
+                R_c, t_c, cost_c = _polish_batch(R_c, t_c, obj, xs, ys, wx, wy, active=finish)
+            if act is not None:
+                cost_c = np.where(act, cost_c, np.inf)
+            cands.append((R_c, t_c, cost_c))
+        Rs = np.stack([c[0] for c in cands])
+        ts = np.stack([c[1] for c in cands])
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            zs = np.stack([_residuals_batch(c[0], c[1], obj, list(xs.T), list(ys.T), wx, wy, False)[2]
+                           for c in cands])
+        costs = np.stack([c[2] for c in cands])
+        costs = np.where((zs > 0.0) & np.isfinite(costs), costs, np.inf)
+        order = np.argsort(costs, axis=0, kind="stable")
+        rows_i = np.arange(N)
+        R, t, cost = Rs[order[0], rows_i], ts[order[0], rows_i], costs[order[0], rows_i]
+        R_alt, t_alt, cost_alt = Rs[order[1], rows_i], ts[order[1], rows_i], costs[order[1], rows_i]
+        # Rows where every candidate failed keep the loop's pose, to be refused below.
+        cost = np.where(np.isfinite(cost), cost, cands[0][2])
     else:
+        R_alt, t_alt = mirror_pose(R, t)
         cost = _residuals_batch(R, t, obj, list(xs.T), list(ys.T), wx, wy, False)[1]
         cost_alt = _residuals_batch(R_alt, t_alt, obj, list(xs.T), list(ys.T), wx, wy, False)[1]
     zmin = _residuals_batch(R, t, obj, list(xs.T), list(ys.T), wx, wy, False)[2]
