@@ -42,7 +42,8 @@ def new_figure(nrows: int = 1, ncols: int = 1, *, size_in: Tuple[float, float] =
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=size_in, dpi=dpi)
+    # "constrained" keeps the labels of neighbouring panels apart (matplotlib >= 3.5).
+    fig = Figure(figsize=size_in, dpi=dpi, layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(nrows, ncols, squeeze=True, subplot_kw=subplot_kw or None)
     return fig, axes
