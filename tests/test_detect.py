@@ -182,6 +182,18 @@ def test_other_markers_are_not_the_marker() -> None:
     assert MarkerDetector(ARUCO).detect(square_image) is None
 
 
+def test_grey_paper_on_a_bright_wall_is_not_the_marker() -> None:
+    # Paper darker than the wall: the sheet's outline is a dark quadrilateral on a light
+    # surround with the (darker) marker inside; its inside is not uniform, so not the marker.
+    effects = Effects(white=120.0, black=60.0, background="plain", plain_gray=200.0)
+    detector = MarkerDetector(SQUARE)
+    for i, (roll, tilt, dist) in enumerate([(10, 20, 1.5), (-30, 50, 2.5), (40, 0, 1.0)]):
+        image, truth = render(SQUARE, *facing_pose(roll, dist, tilt), seed=400 + i, effects=effects)
+        detector.reset()
+        corners = detector.detect(image)
+        assert corners is None or rms(aligned(corners, truth), truth) < 0.2
+
+
 def test_rectangle_of_the_wrong_shape_is_rejected() -> None:
     long_marker = Marker(0.40, 0.10)
     image, truth = render(long_marker, *facing_pose(0, 1.0), seed=93)

@@ -57,6 +57,7 @@ def side_lengths(corners: np.ndarray) -> np.ndarray:
 _UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
 _g = np.linspace(0.0, 1.0, 7)
 _GRID = np.array([[u, v] for v in _g for u in _g], dtype=np.float64)
+_GRID_RIM = (_GRID.min(axis=1) == 0.0) | (_GRID.max(axis=1) == 1.0)
 _s = np.linspace(0.1, 0.9, 7)
 
 
@@ -149,6 +150,9 @@ class SquareFinder:
         mid = 0.5 * (dark + light)
         # The inside is one dark ink; the ring is paper (a shadow or glare may touch a few).
         if np.count_nonzero(inside >= mid) > 1 or float(inside.max() - inside.min()) > 0.5 * (light - dark):
+            return False
+        # ... also no lighter band along its sides (a grey sheet with the marker inside it).
+        if abs(float(inside[_GRID_RIM].mean() - inside[~_GRID_RIM].mean())) > 0.2 * (light - dark):
             return False
         return np.count_nonzero(ring <= mid) <= 0.1 * len(ring)
 
