@@ -225,3 +225,37 @@ def test_corners_nearly_edge_on_never_give_nan(camera, marker, rng):
             continue
         assert np.all(np.isfinite(pose.tvec)) and np.all(np.isfinite(pose.R))
         assert math.isfinite(pose.reprojection_error_px) and math.isfinite(pose.alpha_deg)
+
+
+def test_weak_perspective_pair_brackets_the_planar_ambiguity(camera, marker, rng):
+    from pose_daemon.pose.estimator import _weak_perspective_pair_floats, weak_perspective_pair
+
+    for R, t, img in _cases(rng, camera, marker, 10):
+        n = camera.undistort_normalized(img)
+        pair = weak_perspective_pair(n[:, 0], n[:, 1], marker.width, marker.height)
+        floats = _weak_perspective_pair_floats(n[:, 0].tolist(), n[:, 1].tolist(), marker.width, marker.height)
+        for (Ra, ta), (Rb, tb) in zip(pair, floats):
+            assert np.abs(Ra - Rb).max() < 1e-12 and np.abs(ta - tb).max() < 1e-12
+            assert np.allclose(Ra.T @ Ra, np.eye(3), atol=1e-12) and np.linalg.det(Ra) > 0
+        # One of the two is a fair first guess of the true pose (the affine model's error).
+        best = min(float(geometry.rotation_angle_deg(Rw, R)) for Rw, _ in pair)
+        assert best < 15.0
+        assert abs(np.linalg.norm(pair[0][1]) - np.linalg.norm(t)) < 0.1 * np.linalg.norm(t)
+        # The two mirror each other: their normals lie on either side of the line of sight.
+        v = pair[0][1] / np.linalg.norm(pair[0][1])
+        n0, n1 = pair[0][0][:, 2], pair[1][0][:, 2]
+        assert abs(n0 @ v - n1 @ v) < 1e-9
+
+
+def test_mirror_pose_reflects_the_normal_about_the_line_of_sight(camera, marker):
+    from pose_daemon.pose.estimator import mirror_pose
+
+    R = geometry.R_cam_marker_from_R_cam_unrot(geometry.R_cam_unrot_from_paper_angles(0.4, 0.0, 0.2))
+    t = np.array([0.0, 0.0, 2.0])
+    R_m, t_m = mirror_pose(R, t)
+    assert np.allclose(t_m, t)
+    assert np.allclose(R_m[:, 2], R[:, 2] * [-1.0, -1.0, 1.0], atol=1e-12)
+    # Corners stay roughly in place (same image up to the perspective terms).
+    a = camera.project(marker.object_points @ R.T + t)
+    b = camera.project(marker.object_points @ R_m.T + t_m)
+    assert np.abs(a - b).max() < 15.0

@@ -12,7 +12,7 @@ import json
 import math
 import sys
 import time
-from typing import Callable, Dict, List, Tuple
+from typing import Callable, Dict, Tuple
 
 import cv2
 import numpy as np
