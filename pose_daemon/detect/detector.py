@@ -9,6 +9,7 @@ later ones keep the labels continuous with the previous frame.
 
 from __future__ import annotations
 
+import math
 from typing import List, Optional, Tuple
 
 import cv2
@@ -47,20 +48,24 @@ def as_gray(image) -> np.ndarray:
 
 def _cyclic_shift_to(corners: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """Relabel clockwise corners so each lands nearest its previous label (continuity)."""
-    costs = [float(np.sum((np.roll(corners, -k, axis=0) - reference) ** 2)) for k in range(4)]
-    return np.roll(corners, -int(np.argmin(costs)), axis=0)
+    c, r = corners.tolist(), reference.tolist()
+    costs = [sum((c[(i + k) % 4][0] - r[i][0]) ** 2 + (c[(i + k) % 4][1] - r[i][1]) ** 2
+                 for i in range(4)) for k in range(4)]
+    k = costs.index(min(costs))
+    return corners[[(i + k) % 4 for i in range(4)]]
 
 
 def _upright_labels(corners: np.ndarray) -> np.ndarray:
     """Labels for a first sighting: the top side (TL->TR, and BL->BR) points closest to +x."""
-    best, best_cos = corners, -2.0
+    c = corners.tolist()
+    best_k, best_cos = 0, -2.0
     for k in range(4):
-        c = np.roll(corners, -k, axis=0)
-        top = (c[1] - c[0]) + (c[2] - c[3])
-        cos = top[0] / max(float(np.hypot(top[0], top[1])), 1e-12)
+        tl, tr, br, bl = (c[(i + k) % 4] for i in range(4))
+        top_x, top_y = tr[0] - tl[0] + br[0] - bl[0], tr[1] - tl[1] + br[1] - bl[1]
+        cos = top_x / max(math.hypot(top_x, top_y), 1e-12)
         if cos > best_cos:
-            best, best_cos = c, cos
-    return best
+            best_k, best_cos = k, cos
+    return corners[[(i + best_k) % 4 for i in range(4)]]
 
 
 def _rms_distance(a: np.ndarray, b: np.ndarray) -> float:

@@ -8,6 +8,7 @@ towards the inside of the blurred corner; an edge fit uses the whole side.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Optional, Tuple
 
@@ -16,6 +17,7 @@ import numpy as np
 
 #: Step between profile samples along an edge normal, pixels.
 PROFILE_STEP_PX = 0.5
+RECENTER = 2
 
 _SIDES = np.arange(4)
 _NEXT = np.array([1, 2, 3, 0])
@@ -34,8 +36,8 @@ class EdgeFit:
 
 def signed_area(corners: np.ndarray) -> float:
     """Shoelace area in pixels^2; positive for TL,TR,BR,BL order in an image (y down)."""
-    x, y = corners[:, 0], corners[:, 1]
-    return 0.5 * float(np.dot(x, y[_NEXT]) - np.dot(x[_NEXT], y))
+    (x0, y0), (x1, y1), (x2, y2), (x3, y3) = np.asarray(corners, dtype=np.float64).tolist()
+    return 0.5 * (x0 * y1 - x1 * y0 + x1 * y2 - x2 * y1 + x2 * y3 - x3 * y2 + x3 * y0 - x0 * y3)
 
 
 def _undistort_px(points: np.ndarray, camera) -> np.ndarray:
@@ -97,82 +99,92 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
     """
     h, w = gray.shape
     start = np.asarray(corners, dtype=np.float64).reshape(4, 2)
-    current = start.copy()
+    current = start
     offsets = np.arange(-inner_px, outer_px + 1e-9, PROFILE_STEP_PX)
-    if len(offsets) < 4:
+    n_off = len(offsets)
+    if n_off < 4:
         return None
-    n_end = 2  # samples averaged for the dark and the light level of one profile
     distorted = camera is not None and camera.has_distortion
     fit: Optional[EdgeFit] = None
     m = int(samples_per_side)
-    rows = np.arange(4 * m)
-    last = float(len(offsets) - 1)
+    n = 4 * m
+    rows = np.arange(n)
+    rows2 = np.concatenate([rows, rows]) * n_off
+    last = float(n_off - 1)
     frac_along = (np.arange(m) + 0.5) / m
     for _ in range(iterations):
-        p0 = current
-        d = current[_NEXT] - p0
+        d = current[_NEXT] - current
         length = np.hypot(d[:, 0], d[:, 1])
         if length.min() < 4.0:
             return None
         u = d / length[:, None]
-        normal_out = np.column_stack([u[:, 1], -u[:, 0]])
         # Keep clear of the rounded, blurred corners where the side is not a straight edge.
         end = np.maximum(1.5 + inner_px, 0.1 * length)
-        span = length - 2 * end
+        span = length - 2.0 * end
         if span.min() < 2.0:
             return None
-        t = end[:, None] + frac_along[None, :] * span[:, None]                  # (4, m)
-        base = p0[:, None, :] + t[..., None] * u[:, None, :]                     # (4, m, 2)
-        grid = base[:, :, None, :] + offsets[None, None, :, None] * normal_out[:, None, None, :]
-        gx = grid[..., 0].reshape(4 * m, -1).astype(np.float32)
-        gy = grid[..., 1].reshape(4 * m, -1).astype(np.float32)
-        inside = ((gx >= 0) & (gx <= w - 1) & (gy >= 0) & (gy <= h - 1)).all(axis=1)
-        prof = cv2.remap(gray, gx, gy, cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
-        dark = prof[:, :n_end].mean(axis=1)
-        light = prof[:, -n_end:].mean(axis=1)
+        t = end[:, None] + frac_along * span[:, None]                            # (4, m)
+        bx = current[:, 0:1] + t * u[:, 0:1]                                      # (4, m)
+        by = current[:, 1:2] + t * u[:, 1:2]
+        # Outward normal of an image-clockwise outline: (u_y, -u_x).
+        gx = (bx[:, :, None] + offsets * u[:, 1, None, None]).reshape(n, n_off).astype(np.float32)
+        gy = (by[:, :, None] - offsets * u[:, 0, None, None]).reshape(n, n_off).astype(np.float32)
+        ends_x, ends_y = gx[:, [0, -1]], gy[:, [0, -1]]
+        inside = ((ends_x >= 0) & (ends_x <= w - 1) & (ends_y >= 0) & (ends_y <= h - 1)).all(axis=1)
+        prof = cv2.remap(gray, gx, gy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+        dark = 0.5 * (prof[:, 0] + prof[:, 1])
+        light = 0.5 * (prof[:, -1] + prof[:, -2])
         contrast = light - dark
         mid = 0.5 * (dark + light)
-        above = prof >= mid[:, None]
         # A clean crossing: dark at the inner end, light at the outer end.
-        ok = inside & (contrast >= min_contrast) & (above.argmax(axis=1) > 0) & above[:, -1]
+        ok = inside & (contrast >= min_contrast) & (prof[:, 0] < mid) & (prof[:, -1] >= mid)
         x = _crossing(prof, rows, mid)
         # Re-take the dark and light levels symmetrically about the edge just found: a
         # symmetric blur leaks the same amount into both, so their mean stays the
         # half-way level even when the profile is too short to reach either plateau.
-        for _ in range(2):
+        flat = prof.ravel()
+        for _ in range(RECENTER):
             r = np.maximum(np.minimum(x, last - x), 1.0)
-            x = _crossing(prof, rows, 0.5 * (_interp(prof, rows, x - r) + _interp(prof, rows, x + r)))
-        s_edge = offsets[0] + x * PROFILE_STEP_PX
-        pts = base + s_edge.reshape(4, m)[..., None] * normal_out[:, None, :]
+            xs = np.minimum(np.maximum(np.concatenate([x - r, x + r]), 0.0), last - 1e-6)
+            i = xs.astype(np.intp)
+            f = xs - i
+            k = rows2 + i
+            v = flat[k] * (1.0 - f) + flat[k + 1] * f
+            x = _crossing(prof, rows, 0.5 * (v[:n] + v[n:]))
+        s_edge = (offsets[0] + x * PROFILE_STEP_PX).reshape(4, m)
+        pts = np.stack([bx + s_edge * u[:, 1:2], by - s_edge * u[:, 0:1]], axis=-1)   # (4, m, 2)
         if distorted:
             pts = _undistort_px(pts.reshape(-1, 2), camera).reshape(4, m, 2)
         weights = ok.reshape(4, m).astype(np.float64)
-        if (weights.sum(axis=1) < 3).any():
+        counts = weights.sum(axis=1)
+        if counts.min() < 3:
             return None
         normal, offset, res = _fit_lines(pts, weights)
-        # One pass of outlier rejection: texture or a neighbouring blob on a few profiles.
-        abs_sorted = np.sort(np.where(weights > 0, np.abs(res), np.inf), axis=1)
-        mad = abs_sorted[_SIDES, (weights.sum(axis=1).astype(int) - 1) // 2]
-        keep = (weights > 0) & (np.abs(res) <= np.maximum(3.0 * 1.4826 * mad, 0.25)[:, None])
-        if (keep.sum(axis=1) >= 3).all():
-            weights = keep.astype(np.float64)
-            normal, offset, res = _fit_lines(pts, weights)
+        abs_res = np.abs(res)
+        if float((abs_res * weights).max()) > 0.25:
+            # One pass of outlier rejection: texture or a neighbouring blob on a few profiles.
+            abs_sorted = np.sort(np.where(weights > 0, abs_res, np.inf), axis=1)
+            mad = abs_sorted[_SIDES, (counts.astype(int) - 1) // 2]
+            keep = (weights > 0) & (abs_res <= np.maximum(3.0 * 1.4826 * mad, 0.25)[:, None])
+            if (keep.sum(axis=1) >= 3).all():
+                weights = keep.astype(np.float64)
+                normal, offset, res = _fit_lines(pts, weights)
         # Corner i is where side i-1 (into it) meets side i (out of it).
         n_a, c_a = normal[_PREV], offset[_PREV]
         det = n_a[:, 0] * normal[:, 1] - n_a[:, 1] * normal[:, 0]
         if np.abs(det).min() < 1e-6:
             return None
-        refined = np.column_stack([(c_a * normal[:, 1] - n_a[:, 1] * offset) / det,
-                                   (n_a[:, 0] * offset - c_a * normal[:, 0]) / det])
+        refined = np.empty((4, 2))
+        refined[:, 0] = (c_a * normal[:, 1] - n_a[:, 1] * offset) / det
+        refined[:, 1] = (n_a[:, 0] * offset - c_a * normal[:, 0]) / det
         if distorted:
             refined = _distort_px(refined, camera)
         if not np.isfinite(refined).all() or signed_area(refined) <= 0:
             return None
-        used = weights > 0
-        fit = EdgeFit(corners=refined, residual_px=float(np.sqrt(np.mean(res[used] ** 2))),
-                      contrast=float(np.mean(contrast[used.reshape(-1)])),
-                      valid_fraction=float(used.mean()))
+        n_used = float(weights.sum())
+        fit = EdgeFit(corners=refined, residual_px=math.sqrt(float((res * res * weights).sum()) / n_used),
+                      contrast=float((contrast * weights.ravel()).sum()) / n_used,
+                      valid_fraction=n_used / n)
         moved = float(np.abs(refined - current).max())
         current = refined
         # Profiles along normals a fraction of a degree off find the same edge points.

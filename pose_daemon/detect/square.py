@@ -7,6 +7,7 @@ of a textured background fail these checks, so frames without the marker give no
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import List, Optional
 
@@ -44,13 +45,12 @@ class SquareOptions:
     ring_px: float = 2.5             # how far outside the sides the light ring is sampled
 
 
-_NEXT = np.array([1, 2, 3, 0])
-
-
 def side_lengths(corners: np.ndarray) -> np.ndarray:
     """Lengths of the sides TL-TR, TR-BR, BR-BL, BL-TL (for any start corner), pixels."""
-    d = corners[_NEXT] - corners
-    return np.hypot(d[:, 0], d[:, 1])
+    # Plain floats: at four points numpy's per-call overhead costs more than the arithmetic.
+    (x0, y0), (x1, y1), (x2, y2), (x3, y3) = np.asarray(corners, dtype=np.float64).tolist()
+    return np.array([math.hypot(x1 - x0, y1 - y0), math.hypot(x2 - x1, y2 - y1),
+                     math.hypot(x3 - x2, y3 - y2), math.hypot(x0 - x3, y0 - y3)])
 
 
 # Canonical marker square [0, 1]^2, corners in image-clockwise order from its top-left.
