@@ -120,7 +120,7 @@ def _residuals(R: Sequence[Sequence[float]], t: Sequence[float], obj: Sequence[T
         pz = qz + t2
         if pz < zmin:
             zmin = pz
-        iz = 1.0 / pz
+        iz = 1.0 / pz if pz != 0.0 else math.inf
         u, v = (qx + t0) * iz, (qy + t1) * iz
         ru, rv = wx * (u - u_obs), wy * (v - v_obs)
         cost += ru * ru + rv * rv
@@ -319,8 +319,13 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
     if problem:
         raise EstimationError(problem)
     area = marker.width * marker.height
-    R_l, (px, py, pz), used = loop.loop_one(us, vs, area, method, iterations, LOOP_TOL_RAD,
-                                           marker.width / marker.height)
+    try:
+        R_l, (px, py, pz), used = loop.loop_one(us, vs, area, method, iterations, LOOP_TOL_RAD,
+                                               marker.width / marker.height)
+    except (ZeroDivisionError, OverflowError, ValueError):
+        # A correction sent a corner to infinity: the loop went astray.
+        nan = math.nan
+        R_l, (px, py, pz), used = [[nan] * 3] * 3, (nan, nan, nan), iterations
     R_cam_unrot = np.array(R_l)
     R = geometry.R_cam_marker_from_R_cam_unrot(R_cam_unrot)
     t = R_cam_unrot @ np.array([px, py, pz])
@@ -340,11 +345,14 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
         R, t, cost, zmin = _polish(R, t, obj, us, vs, wx, wy)
         # The other planar solution starts from the weak-perspective pose on the far side of
         # the ambiguity; if the loop ended near neither side, the near one is tried as well.
-        wp = _weak_perspective_pair_floats(us, vs, marker.width, marker.height)
-        n = R[:, 2]
-        dots = [float(n @ Rw[:, 2]) for Rw, _ in wp]
-        near, far = (0, 1) if dots[0] >= dots[1] else (1, 0)
-        starts = [wp[far]] + ([wp[near]] if dots[near] < _COS_SAME_SIDE else [])
+        try:
+            wp = _weak_perspective_pair_floats(us, vs, marker.width, marker.height)
+            n = R[:, 2]
+            dots = [float(n @ Rw[:, 2]) for Rw, _ in wp]
+            near, far = (0, 1) if dots[0] >= dots[1] else (1, 0)
+            starts = [wp[far]] + ([wp[near]] if dots[near] < _COS_SAME_SIDE else [])
+        except (ZeroDivisionError, ValueError, OverflowError):
+            starts = [mirror_pose(R, t)]  # a degenerate affine fit: fall back to the mirror
         cands = [(R, t, cost, zmin)]
         for R0, t0 in starts:
             R_c, t_c, cost_c, zmin_c = _polish(R0, t0, obj, us, vs, wx, wy, ALT_POLISH_ITER)
@@ -568,8 +576,9 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
     xs, ys = norm[..., 0], norm[..., 1]
 
     area = marker.width * marker.height
-    res = loop.correction_loop(norm, 1.0, area, method=method, iterations=iterations,
-                               aspect=marker.width / marker.height)
+    with np.errstate(all="ignore"):  # rows that go astray are caught below
+        res = loop.correction_loop(norm, 1.0, area, method=method, iterations=iterations,
+                                   aspect=marker.width / marker.height)
     R = geometry.R_cam_marker_from_R_cam_unrot(res.R_cam_unrot)
     t = np.einsum("nij,nj->ni", res.R_cam_unrot, res.position_unrot)
     obj = [(float(p[0]), float(p[1])) for p in marker.object_points]
