@@ -13,7 +13,7 @@ from ..camera import Marker
 from . import aruco_compat
 from .quads import Roi, find_quads, odd
 from .refine import EdgeFit, fit_edges, signed_area
-from .square import Candidate, SquareOptions, sample_canonical, side_lengths
+from .square import Candidate, SquareOptions, _clamp, _median, sample_canonical, side_lengths
 
 _UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
 
@@ -66,10 +66,10 @@ class ArucoFinder:
         self._cell_and_ring_uv = np.concatenate([self._cell_uv, self._ring])
 
     def reach_px(self, corners: np.ndarray):
-        side = float(side_lengths(corners).min())
+        side = min(side_lengths(corners).tolist())
         cell = side / (self.n_bits + 2)
         # Inside, stay within the one-cell black border; outside, within the quiet zone.
-        return float(np.clip(0.6 * cell, 1.0, 3.0)), float(np.clip(0.15 * side, 1.5, 3.0))
+        return _clamp(0.6 * cell, 1.0, 3.0), _clamp(0.15 * side, 1.5, 3.0)
 
     def refine(self, gray: np.ndarray, corners: np.ndarray, iterations: int,
                max_move_px: Optional[float] = None) -> Optional[EdgeFit]:
@@ -91,8 +91,8 @@ class ArucoFinder:
         ring = ring[np.isfinite(ring)]
         if not np.isfinite(cells).all() or len(ring) < 10:
             return None
-        dark = float(np.median(cells[self._border]))
-        light = float(np.median(ring))
+        dark = _median(cells[self._border])
+        light = _median(ring)
         if light - dark < o.min_contrast:
             return None
         white = cells > 0.5 * (dark + light)

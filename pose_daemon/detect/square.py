@@ -61,15 +61,21 @@ _GRID_RIM = (_GRID.min(axis=1) == 0.0) | (_GRID.max(axis=1) == 1.0)
 _s = np.linspace(0.1, 0.9, 7)
 
 
-def _ring(ru: float, rv: float) -> np.ndarray:
-    """Points just outside each side, ``ru`` (left/right) or ``rv`` (top/bottom) canonical
-    units away, spread along it."""
-    return np.concatenate([
-        np.column_stack([_s, np.full_like(_s, -rv)]),
-        np.column_stack([np.full_like(_s, 1 + ru), _s]),
-        np.column_stack([_s[::-1], np.full_like(_s, 1 + rv)]),
-        np.column_stack([np.full_like(_s, -ru), _s[::-1]]),
-    ])
+# Points just outside each side, spread along it: base + (ru, rv) * direction, where ru/rv
+# are how far outside the left/right and top/bottom sides, in canonical units.
+_RING_BASE = np.concatenate([np.column_stack([_s, 0 * _s]), np.column_stack([1 + 0 * _s, _s]),
+                             np.column_stack([_s[::-1], 1 + 0 * _s]), np.column_stack([0 * _s, _s[::-1]])])
+_RING_DIR = np.concatenate([np.tile([0.0, -1.0], (7, 1)), np.tile([1.0, 0.0], (7, 1)),
+                            np.tile([0.0, 1.0], (7, 1)), np.tile([-1.0, 0.0], (7, 1))])
+_N_GRID = len(_GRID)
+
+
+def _clamp(value: float, lo: float, hi: float) -> float:
+    return min(max(float(value), lo), hi)
+
+
+def _median(values: np.ndarray) -> float:
+    return float(np.partition(values, len(values) // 2)[len(values) // 2])
 
 
 def sample_canonical(gray: np.ndarray, corners: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -110,8 +116,8 @@ class SquareFinder:
 
     def reach_px(self, corners: np.ndarray):
         """(inside, outside) reach of the edge profiles for an outline of this size."""
-        side = float(side_lengths(corners).min())
-        return float(np.clip(0.2 * side, 1.5, 3.0)), float(np.clip(0.15 * side, 1.5, 3.0))
+        side = min(side_lengths(corners).tolist())
+        return _clamp(0.2 * side, 1.5, 3.0), _clamp(0.15 * side, 1.5, 3.0)
 
     def refine(self, gray: np.ndarray, corners: np.ndarray, iterations: int,
                max_move_px: Optional[float] = None) -> Optional[EdgeFit]:
@@ -133,18 +139,19 @@ class SquareFinder:
         if fit.contrast < o.min_contrast or not self.shape_ok(fit.corners):
             return False
         # The ring sits ring_px outside each side (but within a fifth of the side's length).
-        s = side_lengths(fit.corners)
-        ru = float(np.clip(o.ring_px / max(min(s[0], s[2]), 1.0), 0.04, 0.2))
-        rv = float(np.clip(o.ring_px / max(min(s[1], s[3]), 1.0), 0.04, 0.2))
+        s0, s1, s2, s3 = side_lengths(fit.corners).tolist()
+        ru = min(max(o.ring_px / max(min(s0, s2), 1.0), 0.04), 0.2)
+        rv = min(max(o.ring_px / max(min(s1, s3), 1.0), 0.04), 0.2)
+        r = np.array([ru, rv])
         # The inside is sampled out to ring_px from the sides: a dark frame around a lighter
         # band (paper darker than the wall around it) is not a uniformly dark region.
-        interior = np.array([ru, rv]) + _GRID * (1.0 - 2.0 * np.array([ru, rv]))
-        values = sample_canonical(gray, fit.corners, np.concatenate([interior, _ring(ru, rv)]))
-        inside, ring = values[:len(interior)], values[len(interior):]
+        values = sample_canonical(gray, fit.corners, np.concatenate(
+            [r + _GRID * (1.0 - 2.0 * r), _RING_BASE + _RING_DIR * r]))
+        inside, ring = values[:_N_GRID], values[_N_GRID:]
         ring = ring[np.isfinite(ring)]
         if len(ring) < 10:
             return False
-        dark, light = float(np.median(inside)), float(np.median(ring))
+        dark, light = _median(inside), _median(ring)
         if light - dark < o.min_contrast:
             return False
         mid = 0.5 * (dark + light)
