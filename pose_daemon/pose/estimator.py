@@ -25,9 +25,11 @@ METHODS = loop.METHODS
 LOOP_TOL_RAD = 1e-10
 POLISH_MAX_ITER = 30
 POLISH_TOL = 1e-5
-POLISH_GAIN = 1e-6
+POLISH_GAIN = 1e-4
 # Levenberg-Marquardt damping: first value after a rejected Gauss-Newton step, factors.
 LAM_FIRST, LAM_UP, LAM_DOWN = 1e-3, 10.0, 0.1
+# The batch polish hands its last rows to the per-row polish below this count.
+_TAIL_ROWS = 48
 # The second solution needs only enough polish to rank it; it is finished if it wins.
 ALT_POLISH_ITER = 3
 # ... and is finished when its cost is below this multiple of the best one's.
@@ -497,9 +499,16 @@ def _polish_batch(R: np.ndarray, t: np.ndarray, obj, us: np.ndarray, vs: np.ndar
     lam = np.zeros(N)
     cost = _residuals_batch(R, t, obj, list(us.T), list(vs.T), wx, wy, False)[1]
     active = np.ones(N, bool) if active is None else active.copy()
-    for _ in range(max_iter):
+    for it in range(max_iter):
         idx = np.flatnonzero(active)
         if idx.size == 0:
+            break
+        if idx.size <= _TAIL_ROWS < N:
+            # A few slow rows left: numpy's per-call overhead would dominate, finish them
+            # one by one.
+            for i in idx.tolist():
+                R[i], t[i], cost[i], _ = _polish(R[i], t[i], obj, us[i].tolist(), vs[i].tolist(),
+                                                 wx, wy, max_iter - it)
             break
         Rs, ts, ls = R[idx], t[idx], lam[idx]
         u_s, v_s = list(us[idx].T), list(vs[idx].T)
