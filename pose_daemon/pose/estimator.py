@@ -277,8 +277,9 @@ def mirror_pose(R_cam_marker: np.ndarray, tvec: np.ndarray) -> Tuple[np.ndarray,
 
 
 def _pose_from(R: np.ndarray, t: np.ndarray, error_px: float, method: str, iterations: int,
-               alternative: Optional[Pose] = None, ratio: float = 0.0) -> Pose:
-    a, b, g = geometry.paper_angles_deg_from_R_cam_marker(R)
+               alternative: Optional[Pose] = None, ratio: float = 0.0,
+               angles_deg: Optional[Tuple[float, float, float]] = None) -> Pose:
+    a, b, g = angles_deg if angles_deg is not None else geometry.paper_angles_deg_from_R_cam_marker(R)
     return Pose(rvec=geometry.rvec_from_R(R), tvec=t, R=R, alpha_deg=a, beta_deg=b, gamma_deg=g,
                 reprojection_error_px=error_px, method=method, iterations=iterations,
                 alternative=alternative, ambiguity_ratio=ratio)
@@ -381,8 +382,14 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
     if refine and err_alt < err:
         R, t, err, R_alt, t_alt, err_alt = R_alt, t_alt, err_alt, R, t, err
     ratio = _ratio(err, err_alt)
-    alternative = _pose_from(R_alt, t_alt, err_alt, method, used) if math.isfinite(err_alt) else None
-    return _pose_from(R, t, err, method, used, alternative, ratio)
+    # Both poses' angles in one call: numpy's per-call cost dominates at one matrix.
+    a, b, g = geometry.paper_angles_from_R_cam_unrot(
+        geometry.R_cam_unrot_from_R_cam_marker(np.stack([R, R_alt])))
+    a, b, g = np.degrees(a).tolist(), np.degrees(b).tolist(), np.degrees(g).tolist()
+    alternative = None
+    if math.isfinite(err_alt):
+        alternative = _pose_from(R_alt, t_alt, err_alt, method, used, angles_deg=(a[1], b[1], g[1]))
+    return _pose_from(R, t, err, method, used, alternative, ratio, angles_deg=(a[0], b[0], g[0]))
 
 
 def _ratio(err: float, err_alt: float) -> float:
