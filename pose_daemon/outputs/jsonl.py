@@ -27,7 +27,7 @@ class JsonlOutput(QueuedOutput):
 
     @classmethod
     def from_config(cls, cfg, **kwargs) -> JsonlOutput:
-        return cls(cfg.output.jsonl.path, queue_size=cfg.pipeline.output_buffer, **kwargs)
+        return cls(cfg.output.jsonl.path, **kwargs)
 
     def _open(self) -> None:
         if self._given_stream is not None:

@@ -26,7 +26,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import math
-import socket
+import select
 import time
 from typing import Any, Callable, List, Optional, Sequence, Tuple
 
@@ -178,10 +178,10 @@ class _MavlinkLink:
             if self.kind in ("udpout", "udpin"):
                 data = self.conn.recv()  # notes the sender as a peer (udpin)
                 return data if isinstance(data, (bytes, bytearray)) else b""
-            try:
-                data = port.recv(4096, socket.MSG_DONTWAIT)
-            except (BlockingIOError, InterruptedError):
+            # select, not MSG_DONTWAIT: the socket has a send timeout, which recv would wait out.
+            if not select.select([port], [], [], 0.0)[0]:
                 return b""
+            data = port.recv(4096)
             if not data:
                 raise LinkError("connection closed by peer")
             return data
@@ -246,6 +246,7 @@ class MavlinkOutput(QueuedOutput):
         self._last_pose_t: Optional[float] = None
         self._tracked = False
         self._lost = False
+        self._new_track = False
         super().__init__(queue_size=queue_size, retry_s=retry_s, retry_max_s=retry_max_s, clock=clock,
                          start=start)
 
@@ -259,7 +260,7 @@ class MavlinkOutput(QueuedOutput):
                    wait_heartbeat=m.wait_heartbeat, min_interval_s=m.min_interval_s,
                    lost_timeout_s=m.lost_timeout_s, jump_m=m.jump_m, jump_deg=m.jump_deg,
                    statustext=m.statustext, origin=m.origin, set_home=m.set_home, signing_key=m.signing_key,
-                   queue_size=cfg.pipeline.output_buffer, retry_s=m.retry_s, retry_max_s=m.retry_max_s,
+                   retry_s=m.retry_s, retry_max_s=m.retry_max_s,
                    **kwargs)
 
     def stats(self) -> dict:
@@ -272,6 +273,9 @@ class MavlinkOutput(QueuedOutput):
 
     # ------------------------------------------------------------------ link
 
+    def _open_is_quick(self) -> bool:
+        return self.kind != "tcp"
+
     def _open(self) -> None:
         self._link = _MavlinkLink(self.kind, self.device, self.baud, self.source_system,
                                   self.source_component, self._signing_key)
@@ -282,6 +286,8 @@ class MavlinkOutput(QueuedOutput):
             link.close()
 
     def _on_link_up(self) -> None:
+        # The autopilot saw nothing while the link was down: what follows is a new track.
+        self._new_track = self._last_sent_t is not None
         self._last_heartbeat_t = -1e18
         self._origin_sent = False
         self._send_heartbeat(self._clock())
@@ -300,6 +306,8 @@ class MavlinkOutput(QueuedOutput):
     def _on_message(self, msg: Any, now: float) -> None:
         if msg.get_type() != "HEARTBEAT":
             return
+        if msg.type == MAV_TYPE_GCS:
+            self._count("gcs_heard")
         if msg.autopilot == MAV_AUTOPILOT_INVALID or msg.type in (MAV_TYPE_GCS, MAV_TYPE_ONBOARD_CONTROLLER):
             return
         if self.autopilot_system is None:
@@ -364,14 +372,15 @@ class MavlinkOutput(QueuedOutput):
             self._drop("not_finite")
             return 0
         found_again = self._lost
-        if self._last_sent_t is not None and (found_again or t - self._last_sent_t > HEALTH_GAP_S
+        if self._last_sent_t is not None and (found_again or self._new_track or t - self._last_sent_t > HEALTH_GAP_S
                                               or self._jumped(p, R)):
             self.reset_counter = (self.reset_counter + 1) % 256
+        self._new_track = False
         if found_again and self.statustext:
             self._send_text(MAV_SEVERITY_INFO, "pose-daemon: marker found")
         self._lost = False
         self._tracked = True
-        n = self._send_pose(time_usec_from_s(t), pose, p, R)
+        n = self._send_pose(time_usec_from_s(t), pose)
         self._last_sent_t = t
         self._last_sent_pose = (p, R)
         return n
@@ -383,37 +392,57 @@ class MavlinkOutput(QueuedOutput):
         return (float(np.linalg.norm(p - p0)) > self.jump_m
                 or float(rotation_angle_deg(R0, R)) > self.jump_deg)
 
-    def _send_pose(self, t_us: int, pose: Pose, p: np.ndarray, R: np.ndarray) -> int:
+    def _send_pose(self, t_us: int, pose: Pose) -> int:
         assert self._link is not None
-        mav = self._link.mav
-        quality = pose_quality(pose.reprojection_error_px, pose.ambiguity_ratio)
-        cov = pose_covariance_local(pose, self.frames, self.fx_px, self.marker_width_m)
-        x, y, z = (float(v) for v in p)
-        n = 0
-        for name in self.messages:
-            if name == "ODOMETRY":
-                q = [float(v) for v in quaternion_from_R(R)]
-                mav.odometry_send(t_us, MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD, x, y, z, q,
-                                  NAN, NAN, NAN, NAN, NAN, NAN, cov, [NAN] * 21,
-                                  self.reset_counter, MAV_ESTIMATOR_TYPE_VISION, quality)
-            elif name == "VISION_POSITION_ESTIMATE":
-                roll, pitch, yaw = (float(v) for v in euler_rpy_from_R(R))
-                mav.vision_position_estimate_send(t_us, x, y, z, roll, pitch, yaw, cov, self.reset_counter)
-            else:
-                self._send_landing_target(t_us, pose)
-            n += 1
-        return n
+        msgs = encode_pose_messages(self._link.mav, self.messages, t_us, pose, self.frames,
+                                    fx_px=self.fx_px, marker_width_m=self.marker_width_m,
+                                    marker_height_m=self.marker_height_m, reset_counter=self.reset_counter)
+        for msg in msgs:
+            self._link.mav.send(msg)
+        return len(msgs)
 
-    def _send_landing_target(self, t_us: int, pose: Pose) -> None:
-        assert self._link is not None
-        t = np.asarray(pose.tvec, dtype=np.float64)
-        distance = float(np.linalg.norm(t))
-        angle_x = math.atan2(float(t[0]), float(t[2]))
-        angle_y = math.atan2(float(t[1]), float(t[2]))
-        size_x = 2.0 * math.atan2(self.marker_width_m / 2.0, distance)
-        size_y = 2.0 * math.atan2(self.marker_height_m / 2.0, distance)
-        xb, yb, zb = (float(v) for v in self.frames.marker_in_body(t))
-        q = [float(v) for v in quaternion_from_R(self.frames.R_body_cam @ np.asarray(pose.R))]
-        self._link.mav.landing_target_send(t_us, 0, MAV_FRAME_BODY_FRD, angle_x, angle_y, distance,
-                                           size_x, size_y, xb, yb, zb, q,
-                                           LANDING_TARGET_TYPE_VISION_FIDUCIAL, 1)
+
+def encode_pose_messages(mav: Any, messages: Sequence[str], t_us: int, pose: Pose, frames: VehicleFrames, *,
+                         fx_px: float, marker_width_m: float, marker_height_m: Optional[float] = None,
+                         reset_counter: int = 0) -> List[Any]:
+    """The MAVLink messages (pymavlink objects, not yet packed) for one pose, in ``messages`` order.
+
+    ``t_us``: capture time, integer microseconds. Positions in the local FRD frame of
+    ``frames`` (metres, radians); LANDING_TARGET in the body FRD frame.
+    """
+    t_us = int(t_us)
+    vehicle = frames.vehicle_pose(pose.R, pose.tvec)
+    R = vehicle.R_local_body
+    x, y, z = (float(v) for v in vehicle.p_local_body_m)
+    quality = pose_quality(pose.reprojection_error_px, pose.ambiguity_ratio)
+    cov = pose_covariance_local(pose, frames, fx_px, marker_width_m)
+    out: List[Any] = []
+    for name in messages:
+        if name == "ODOMETRY":
+            q = [float(v) for v in quaternion_from_R(R)]
+            out.append(mav.odometry_encode(t_us, MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD, x, y, z, q,
+                                           NAN, NAN, NAN, NAN, NAN, NAN, cov, [NAN] * 21,
+                                           int(reset_counter), MAV_ESTIMATOR_TYPE_VISION, quality))
+        elif name == "VISION_POSITION_ESTIMATE":
+            roll, pitch, yaw = (float(v) for v in euler_rpy_from_R(R))
+            out.append(mav.vision_position_estimate_encode(t_us, x, y, z, roll, pitch, yaw, cov, int(reset_counter)))
+        elif name == "LANDING_TARGET":
+            out.append(_landing_target(mav, t_us, pose, frames, marker_width_m,
+                                       marker_height_m if marker_height_m is not None else marker_width_m))
+        else:
+            raise ValueError(f"unknown pose message {name!r}")
+    return out
+
+
+def _landing_target(mav: Any, t_us: int, pose: Pose, frames: VehicleFrames, width_m: float, height_m: float) -> Any:
+    t = np.asarray(pose.tvec, dtype=np.float64)
+    distance = float(np.linalg.norm(t))
+    # Angles of the marker centre off the optical axis (image x right, image y down), radians.
+    angle_x = math.atan2(float(t[0]), float(t[2]))
+    angle_y = math.atan2(float(t[1]), float(t[2]))
+    size_x = 2.0 * math.atan2(width_m / 2.0, distance)
+    size_y = 2.0 * math.atan2(height_m / 2.0, distance)
+    xb, yb, zb = (float(v) for v in frames.marker_in_body(t))
+    q = [float(v) for v in quaternion_from_R(frames.R_body_cam @ np.asarray(pose.R))]
+    return mav.landing_target_encode(t_us, 0, MAV_FRAME_BODY_FRD, angle_x, angle_y, distance, size_x, size_y,
+                                     xb, yb, zb, q, LANDING_TARGET_TYPE_VISION_FIDUCIAL, 1)

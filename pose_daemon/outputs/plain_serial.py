@@ -101,7 +101,7 @@ class PlainSerialOutput(QueuedOutput):
         s = cfg.output.serial
         return cls(s.port, VehicleFrames.from_config(cfg.mount, cfg.marker.placement), baud=s.baud,
                    min_interval_s=s.min_interval_s, send_lost=s.send_lost,
-                   queue_size=cfg.pipeline.output_buffer, retry_s=s.retry_s, retry_max_s=s.retry_max_s, **kwargs)
+                   retry_s=s.retry_s, retry_max_s=s.retry_max_s, **kwargs)
 
     def _open(self) -> None:
         import serial

@@ -1,13 +1,21 @@
-"""The machinery every output shares: a bounded queue, a writer thread, reopen with backoff, counters.
+"""The machinery every output shares: the link's own thread, reopen with backoff, counters, and
+either a bounded queue or a direct write.
 
-``publish`` only appends to a small queue (the oldest waiting result is dropped and counted
-when it is full), so a slow or dead link never holds up processing. The writer thread owns
-the link: it opens it, reopens it after a failure with a doubling pause, writes, and stamps
-the moment the bytes left (``time.monotonic()``, the clock of ``Frame.t_capture_s``).
+Two ways to feed an output, both safe for the caller:
+- queued (``queue_size`` > 0): ``publish`` only appends to a small queue (the oldest waiting
+  result is dropped and counted when it is full) and a writer thread writes. For callers
+  that have no thread to spare.
+- direct (``queue_size`` = 0, what ``open_outputs`` gives the daemon, whose pipeline already
+  runs one bounded buffer and thread per output): ``publish`` writes in the caller's thread,
+  so it returns once the bytes are written and the caller's clock reads true end-to-end
+  latency. It never waits on a link being opened: a link that is down or busy drops the
+  result (counted); every write has a 0.25 s timeout.
+Either way the output's thread opens the link, reopens it after a failure with a doubling
+pause, and does the periodic work (MAVLink heartbeats, reading the autopilot).
 
-End-to-end latency: after each write the thread calls ``on_written(result, t_written_s)`` if
-set (the pipeline uses it for capture -> bytes-written latency); the last figure is also in
-``stats()["last_latency_s"]``.
+After each write ``on_written(result, t_written_s)`` is called if set (``time.monotonic()``,
+the clock of ``Frame.t_capture_s``); the last capture -> written latency is also in
+``stats()["last_latency_s"]`` and ``status()`` gives a short text for the status line.
 """
 
 from __future__ import annotations
@@ -37,12 +45,16 @@ class QueuedOutput:
 
     name = "output"
     tick_s = 0.25
+    # Longest a direct publish waits for the link (held by a reopen or a tick).
+    lock_timeout_s = 0.25
 
     def __init__(self, *, queue_size: int = 4, retry_s: float = 0.5, retry_max_s: float = 5.0,
                  clock: Callable[[], float] = time.monotonic, start: bool = True) -> None:
         self._queue: Deque[FrameResult] = collections.deque()
-        self._queue_size = max(1, int(queue_size))
+        self._queue_size = max(0, int(queue_size))
+        self._direct = self._queue_size == 0
         self._cond = threading.Condition()
+        self._io_lock = threading.RLock()
         self._stopping = False
         self._clock = clock
         self._retry_s = float(retry_s)
@@ -64,19 +76,32 @@ class QueuedOutput:
     # ------------------------------------------------------------------ the outside
 
     def start(self) -> None:
+        """Open the link now if that is quick (so the first result is not lost), then start the thread."""
         if self._thread is None:
+            if self._open_is_quick():
+                with self._io_lock:
+                    self._try_open(self._clock())
             self._thread = threading.Thread(target=self._run, name=f"output-{self.name}", daemon=True)
             self._thread.start()
 
     def publish(self, result: FrameResult) -> None:
-        """Queue one result; never blocks. A full queue drops its oldest result (counted)."""
+        """Queue one result (queued mode) or write it now (direct mode); never waits on a link."""
         with self._cond:
             self._counts["published"] += 1
-            if len(self._queue) >= self._queue_size:
-                self._queue.popleft()
-                self._dropped["queue_full"] += 1
-            self._queue.append(result)
-            self._cond.notify()
+            if not self._direct:
+                if len(self._queue) >= self._queue_size:
+                    self._queue.popleft()
+                    self._dropped["queue_full"] += 1
+                self._queue.append(result)
+                self._cond.notify()
+                return
+        if not self._io_lock.acquire(timeout=self.lock_timeout_s):
+            self._drop("link_busy")
+            return
+        try:
+            self._handle(result)
+        finally:
+            self._io_lock.release()
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Write what is queued (within ``timeout_s``), stop the thread, close the link."""
@@ -88,7 +113,8 @@ class QueuedOutput:
             if self._thread.is_alive():
                 self.log.warning("%s output did not stop within %.1f s", self.name, timeout_s)
                 return
-        self._shut_link()
+        with self._io_lock:
+            self._shut_link()
         self._set_state("closed")
 
     def stats(self) -> dict:
@@ -105,6 +131,16 @@ class QueuedOutput:
                 "last_error": self._last_error,
                 "last_latency_s": self._last_latency_s,
             }
+
+    def status(self) -> str:
+        """One short text for the daemon's status line: link state and drops by cause."""
+        s = self.stats()
+        parts = [f"link {s['link']}"]
+        if s["dropped"]:
+            parts.append("dropped " + " ".join(f"{k}={v}" for k, v in sorted(s["dropped"].items())))
+        if s["errors"]:
+            parts.append(f"errors {s['errors']} (last: {s['last_error']})")
+        return ", ".join(parts)
 
     @property
     def link_up(self) -> bool:
@@ -124,11 +160,15 @@ class QueuedOutput:
         a rule held it back, after counting why with ``_drop``). LinkError/LinkBusy on failure."""
         raise NotImplementedError
 
+    def _open_is_quick(self) -> bool:
+        """False for links whose opening may wait on the network (TCP): only the thread opens those."""
+        return True
+
     def _tick(self, now: float) -> None:
         """Periodic work while the link is up; LinkError on failure."""
 
     def _on_link_up(self) -> None:
-        """Called after each successful (re)open, in the writer thread."""
+        """Called after each successful (re)open, with the link held."""
 
     def _drop(self, cause: str) -> None:
         with self._cond:
@@ -142,7 +182,7 @@ class QueuedOutput:
         with self._cond:
             self._link_state = state
 
-    # ------------------------------------------------------------------ the writer thread
+    # ------------------------------------------------------------------ the output's thread
 
     def _run(self) -> None:
         while True:
@@ -153,55 +193,59 @@ class QueuedOutput:
                 stop = self._stopping and item is None
             if stop:
                 return
-            now = self._clock()
-            if not self._link_up and now >= self._next_open_t:
-                self._try_open(now)
-            if self._link_up:
-                try:
-                    self._tick(now)
-                except LinkError as exc:
-                    self._link_failed(str(exc))
-                except Exception as exc:  # never let the thread die; the status line shows it
-                    self._error(f"{type(exc).__name__}: {exc}")
-            if item is None:
-                continue
-            if not self._link_up:
-                self._drop("link_down")
-                continue
-            try:
-                n = self._write(item)
-            except LinkBusy as exc:
-                self._drop("link_busy")
-                self._error(str(exc))
-                continue
-            except LinkError as exc:
-                self._drop("link_down")
-                self._link_failed(str(exc))
-                continue
-            except Exception as exc:
-                self._drop("error")
-                self._error(f"{type(exc).__name__}: {exc}")
-                continue
-            if n:
-                t_written = self._clock()
-                with self._cond:
-                    self._counts["sent"] += n
-                    self._last_latency_s = t_written - float(item.t_capture_s)
-                cb = self.on_written
-                if cb is not None:
+            with self._io_lock:
+                now = self._clock()
+                if not self._link_up and now >= self._next_open_t:
+                    self._try_open(now)
+                if self._link_up:
                     try:
-                        cb(item, t_written)
-                    except Exception as exc:
-                        self._error(f"on_written: {type(exc).__name__}: {exc}")
+                        self._tick(now)
+                    except LinkError as exc:
+                        self._link_failed(str(exc))
+                    except Exception as exc:  # never let the thread die; the status line shows it
+                        self._error(f"{type(exc).__name__}: {exc}")
+                if item is not None:
+                    self._handle(item)
+
+    def _handle(self, item: FrameResult) -> None:
+        """Write one result (link held)."""
+        if not self._link_up:
+            self._drop("link_down")
+            return
+        try:
+            n = self._write(item)
+        except LinkBusy as exc:
+            self._drop("link_busy")
+            self._error(str(exc))
+            return
+        except LinkError as exc:
+            self._drop("link_down")
+            self._link_failed(str(exc))
+            return
+        except Exception as exc:
+            self._drop("error")
+            self._error(f"{type(exc).__name__}: {exc}")
+            return
+        if n:
+            t_written = self._clock()
+            with self._cond:
+                self._counts["sent"] += n
+                self._last_latency_s = t_written - float(item.t_capture_s)
+            cb = self.on_written
+            if cb is not None:
+                try:
+                    cb(item, t_written)
+                except Exception as exc:
+                    self._error(f"on_written: {type(exc).__name__}: {exc}")
 
     def _try_open(self, now: float) -> None:
         try:
             self._open()
         except Exception as exc:
             self._next_open_t = now + self._pause_s
-            msg = f"down: cannot open: {exc} (retry in {self._pause_s:.1f} s)"
+            msg = f"down: cannot open: {' '.join(str(exc).split())}"
             if self._link_state != msg:
-                self.log.warning("%s output %s", self.name, msg)
+                self.log.warning("%s output %s (retrying, first in %.1f s)", self.name, msg, self._pause_s)
             self._pause_s = min(self._pause_s * 2.0, self._retry_max_s)
             with self._cond:
                 self._last_error = str(exc)
@@ -226,7 +270,7 @@ class QueuedOutput:
         with self._cond:
             self._counts["link_failures"] += 1
             self._last_error = why
-            self._link_state = f"down: {why}"
+            self._link_state = f"down: {' '.join(why.split())}"
 
     def _shut_link(self) -> None:
         was_up = self._link_up

@@ -1,0 +1,220 @@
+"""Flight-controller acceptance check: would ArduPilot and PX4 take this vision feed?
+
+Written from shared/autopilot-rules.md (ArduPilot AP_VisualOdom / AP_NavEKF3, PX4 EKF2 and
+the MAVLink common.xml definitions), independently of pose_daemon's code: it looks only at
+decoded messages. Used by the tests on every message the MAVLink output sends, and on its own:
+
+    python tests/fc_acceptance.py CAPTURE      # a .tlog (MAVProxy) or raw MAVLink bytes
+
+prints every violation and exits 1 if there is any.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass, field
+from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple
+
+# common.xml values, spelled out rather than imported from the code under test.
+MAV_FRAME_BODY_FRD = 12
+MAV_FRAME_LOCAL_FRD = 20
+MAV_ESTIMATOR_TYPE_VISION = 2
+PX4_ACCEPTED_ESTIMATORS = (0, 1, 2, 3, 6)   # UNKNOWN, NAIVE, VISION, VIO, MOCAP
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+MAV_AUTOPILOT_INVALID = 8
+MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY = 197
+MAVLINK2_MAGIC = 0xFD
+
+EKF_MIN_INTERVAL_S = 0.020      # AP_NavEKF3.h extNavIntervalMin_ms
+HEALTH_TIMEOUT_S = 0.300        # AP_VISUALODOM_TIMEOUT_MS
+HEARTBEAT_MAX_GAP_S = 1.5       # "1 Hz" with some slack for scheduling
+POSE_TYPES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
+# PX4 reads variances from these covariance indices (x, y, z, roll, pitch, yaw).
+PX4_VARIANCE_INDICES = (0, 6, 11, 15, 18, 20)
+
+
+@dataclass
+class Received:
+    """One decoded message and when it arrived (seconds, any clock; None if unknown)."""
+
+    msg: Any
+    t_arrival_s: Optional[float] = None
+
+
+@dataclass
+class Report:
+    violations: List[str] = field(default_factory=list)
+    counts: Dict[str, int] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return not self.violations
+
+    def __str__(self) -> str:
+        head = ", ".join(f"{k} {v}" for k, v in sorted(self.counts.items()))
+        if self.ok:
+            return f"accepted: {head}"
+        return f"{len(self.violations)} violations ({head}):\n  " + "\n  ".join(self.violations[:50])
+
+
+def _finite(values: Iterable[float]) -> bool:
+    return all(math.isfinite(float(v)) for v in values)
+
+
+def _time_us(msg: Any) -> int:
+    return int(msg.usec if msg.get_type() == "VISION_POSITION_ESTIMATE" else msg.time_usec)
+
+
+def check(received: Sequence[Any], *, component: int = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY,
+          jump_m: float = 0.5, require_heartbeat: bool = True) -> Report:
+    """Every rule, over the messages one sender sent, in arrival order.
+
+    ``received``: pymavlink messages or ``Received``. ``jump_m``: a position step larger than
+    this between two messages of a type must come with a new reset_counter.
+    """
+    items = [r if isinstance(r, Received) else Received(r) for r in received]
+    rep = Report()
+    v = rep.violations
+    last: Dict[str, Any] = {}
+    heartbeats: List[Optional[float]] = []
+    for i, item in enumerate(items):
+        m = item.msg
+        kind = m.get_type()
+        if kind == "BAD_DATA":
+            v.append(f"#{i}: undecodable bytes")
+            continue
+        rep.counts[kind] = rep.counts.get(kind, 0) + 1
+        buf = m.get_msgbuf()
+        if not buf or buf[0] != MAVLINK2_MAGIC:
+            v.append(f"#{i} {kind}: not MAVLink 2")
+        if m.get_srcComponent() != component:
+            v.append(f"#{i} {kind}: from component {m.get_srcComponent()}, expected {component}")
+        if kind == "HEARTBEAT":
+            if m.type != MAV_TYPE_ONBOARD_CONTROLLER or m.autopilot != MAV_AUTOPILOT_INVALID:
+                v.append(f"#{i} HEARTBEAT: type {m.type} autopilot {m.autopilot}, expected "
+                         f"ONBOARD_CONTROLLER (18) and INVALID (8)")
+            heartbeats.append(item.t_arrival_s)
+            continue
+        if kind not in POSE_TYPES:
+            continue
+        t_us = _time_us(m)
+        if not 0 < t_us < 2 ** 63:
+            v.append(f"#{i} {kind}: time_usec {t_us} out of range")
+        if kind == "ODOMETRY":
+            if (m.frame_id, m.child_frame_id) != (MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD):
+                v.append(f"#{i} ODOMETRY: frames ({m.frame_id}, {m.child_frame_id}); ArduPilot uses only "
+                         f"LOCAL_FRD (20) / BODY_FRD (12)")
+            if m.estimator_type != MAV_ESTIMATOR_TYPE_VISION:
+                v.append(f"#{i} ODOMETRY: estimator_type {m.estimator_type}, expected VISION (2)")
+            if m.estimator_type not in PX4_ACCEPTED_ESTIMATORS:
+                v.append(f"#{i} ODOMETRY: estimator_type {m.estimator_type} is dropped by PX4")
+            if not 1 <= m.quality <= 100:
+                v.append(f"#{i} ODOMETRY: quality {m.quality} with a pose (expected 1..100; -1 means failed)")
+            if not _finite([m.x, m.y, m.z, *m.q]):
+                v.append(f"#{i} ODOMETRY: NaN or inf in position or attitude")
+            if _finite(m.q) and abs(math.sqrt(sum(c * c for c in m.q)) - 1.0) > 1e-3:
+                v.append(f"#{i} ODOMETRY: quaternion not of unit length")
+            if not _finite(m.pose_covariance):
+                v.append(f"#{i} ODOMETRY: NaN in pose_covariance")
+            elif any(m.pose_covariance[k] <= 0 for k in PX4_VARIANCE_INDICES):
+                v.append(f"#{i} ODOMETRY: a pose variance is not positive")
+        elif kind == "VISION_POSITION_ESTIMATE":
+            if not _finite([m.x, m.y, m.z, m.roll, m.pitch, m.yaw]):
+                v.append(f"#{i} VISION_POSITION_ESTIMATE: NaN or inf in the pose")
+            if not _finite(m.covariance):
+                v.append(f"#{i} VISION_POSITION_ESTIMATE: NaN in covariance")
+            elif any(m.covariance[k] <= 0 for k in PX4_VARIANCE_INDICES):
+                v.append(f"#{i} VISION_POSITION_ESTIMATE: a variance is not positive")
+        else:
+            if m.frame != MAV_FRAME_BODY_FRD:
+                v.append(f"#{i} LANDING_TARGET: frame {m.frame}, expected BODY_FRD (12) with position_valid")
+            if m.position_valid != 1:
+                v.append(f"#{i} LANDING_TARGET: position_valid {m.position_valid}, expected 1")
+            if not (math.isfinite(m.distance) and m.distance > 0):
+                v.append(f"#{i} LANDING_TARGET: distance {m.distance}, expected > 0")
+            if not _finite([m.x, m.y, m.z, m.angle_x, m.angle_y, m.size_x, m.size_y, *m.q]):
+                v.append(f"#{i} LANDING_TARGET: NaN or inf")
+        prev = last.get(kind)
+        last[kind] = m
+        if prev is None:
+            continue
+        dt = (t_us - _time_us(prev)) * 1e-6
+        if dt <= 0:
+            v.append(f"#{i} {kind}: time_usec not increasing ({_time_us(prev)} -> {t_us})")
+            continue
+        if dt < EKF_MIN_INTERVAL_S - 1e-6:
+            v.append(f"#{i} {kind}: {dt * 1e3:.1f} ms after the previous one (EKF3 drops < 20 ms)")
+        if kind == "LANDING_TARGET":
+            continue
+        step = m.reset_counter - prev.reset_counter
+        if step not in (0, 1, -255):
+            v.append(f"#{i} {kind}: reset_counter {prev.reset_counter} -> {m.reset_counter} (expected +1)")
+        if dt > HEALTH_TIMEOUT_S and step == 0:
+            v.append(f"#{i} {kind}: {dt * 1e3:.0f} ms gap (> 300 ms: the feed went unhealthy) "
+                     f"without a new reset_counter")
+        moved = math.dist((m.x, m.y, m.z), (prev.x, prev.y, prev.z))
+        if moved > jump_m and step == 0:
+            v.append(f"#{i} {kind}: jumped {moved:.2f} m without a new reset_counter")
+    if require_heartbeat and not heartbeats:
+        v.append("no HEARTBEAT")
+    times = [t for t in heartbeats if t is not None]
+    for a, b in zip(times, times[1:]):
+        if b - a > HEARTBEAT_MAX_GAP_S:
+            v.append(f"HEARTBEAT gap of {b - a:.2f} s (expected 1 Hz)")
+    return rep
+
+
+def decode_bytes(data: bytes) -> List[Any]:
+    """Every message in a raw MAVLink byte stream (MAVLink 1 and 2)."""
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    parser = mavlink2.MAVLink(None)
+    parser.robust_parsing = True
+    return list(parser.parse_buffer(data) or [])
+
+
+def read_capture(path: str) -> List[Received]:
+    """Messages of a .tlog (with arrival times) or of a file of raw MAVLink bytes."""
+    if path.endswith(".tlog"):
+        from pymavlink import mavutil
+
+        conn = mavutil.mavlink_connection(path, dialect="common")
+        out: List[Received] = []
+        while True:
+            m = conn.recv_match()
+            if m is None:
+                return out
+            out.append(Received(m, getattr(m, "_timestamp", None)))
+    with open(path, "rb") as f:
+        return [Received(m) for m in decode_bytes(f.read())]
+
+
+def split_by_sender(received: Sequence[Received]) -> Dict[Tuple[int, int], List[Received]]:
+    out: Dict[Tuple[int, int], List[Received]] = {}
+    for r in received:
+        if r.msg.get_type() == "BAD_DATA":
+            continue
+        out.setdefault((r.msg.get_srcSystem(), r.msg.get_srcComponent()), []).append(r)
+    return out
+
+
+def main(argv: Sequence[str]) -> int:
+    if len(argv) != 1:
+        print("usage: fc_acceptance.py CAPTURE(.tlog or raw bytes)", file=sys.stderr)
+        return 2
+    senders = split_by_sender(read_capture(argv[0]))
+    ours = {k: v for k, v in senders.items() if k[1] == MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY}
+    if not ours:
+        print(f"no messages from component {MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY}")
+        return 1
+    bad = 0
+    for (sysid, comp), msgs in sorted(ours.items()):
+        rep = check(msgs, component=comp)
+        print(f"system {sysid} component {comp}: {rep}")
+        bad += len(rep.violations)
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,385 @@
+"""MAVLink output: real pymavlink encoding and decoding, over real UDP, TCP and a pseudo-terminal,
+checked message by message and by the flight-controller acceptance rules (fc_acceptance.py)."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import socket
+
+import numpy as np
+import pytest
+from fc_acceptance import check
+from mavlink_helpers import (
+    UdpPeer,
+    VanishingPty,
+    autopilot_heartbeat,
+    camera_pose,
+    lost_result,
+    of_type,
+    parser,
+    vehicle_result,
+    wait_for,
+)
+
+from pose_daemon import geometry as g
+from pose_daemon.config import parse_config
+from pose_daemon.errors import ConfigError
+from pose_daemon.outputs import MavlinkOutput, open_outputs
+from pose_daemon.outputs.mavlink import encode_pose_messages, parse_connection, time_usec_from_s
+
+ALL = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
+WALL = g.VehicleFrames.from_settings("forward", placement="wall")
+
+
+def output(connection: str, **kw) -> MavlinkOutput:
+    kw.setdefault("wait_heartbeat", False)
+    kw.setdefault("queue_size", 0)
+    return MavlinkOutput(connection, kw.pop("frames", WALL), fx_px=500.0, marker_width_m=0.2, **kw)
+
+
+@pytest.mark.pi
+def test_encoding_round_trip_with_time_usec_beyond_32_bits():
+    """Bytes a flight controller decodes; capture times past 2^31 and 2^32 us survive exactly."""
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
+    # Facing a wall marker 2 m ahead, 0.5 m to its right (tests/test_frames.py works it out).
+    pose = camera_pose(np.diag([1.0, -1.0, -1.0]), [-0.5, 0.0, 2.0], err_px=0.3, ambiguity=0.0)
+    for t_s in (np.float64(2 ** 31 / 1e6 + 0.000001), 2 ** 32 / 1e6 + 0.123457, 1.0e9 + 0.25):
+        t_us = time_usec_from_s(t_s)
+        assert type(t_us) is int and t_us == int(round(float(t_s) * 1e6))
+        wire = b"".join(m.pack(mav) for m in encode_pose_messages(
+            mav, ALL, t_us, pose, WALL, fx_px=500.0, marker_width_m=0.2, reset_counter=7))
+        assert wire[0] == 0xFD  # MAVLink 2
+        odo, vpe, lt = parser().parse_buffer(wire)
+        assert (odo.time_usec, vpe.usec, lt.time_usec) == (t_us, t_us, t_us)
+        assert (odo.frame_id, odo.child_frame_id, odo.estimator_type) == (20, 12, 2)
+        assert (odo.x, odo.y, odo.z) == pytest.approx((-2.0, 0.5, 0.0), abs=1e-6)
+        assert odo.q == pytest.approx([1.0, 0.0, 0.0, 0.0], abs=1e-6)
+        assert 1 <= odo.quality <= 100 and odo.reset_counter == 7 == vpe.reset_counter
+        assert all(math.isnan(v) for v in (odo.vx, odo.vy, odo.vz, odo.rollspeed, odo.pitchspeed, odo.yawspeed))
+        assert all(math.isfinite(c) for c in odo.pose_covariance)
+        assert (vpe.x, vpe.y, vpe.z, vpe.roll, vpe.pitch, vpe.yaw) == pytest.approx((-2, 0.5, 0, 0, 0, 0), abs=1e-6)
+        assert list(vpe.covariance) == list(odo.pose_covariance)
+        # LANDING_TARGET: body FRD, marker 2 m ahead and 0.5 m to the left.
+        assert (lt.frame, lt.position_valid, lt.type) == (12, 1, 2)
+        assert (lt.x, lt.y, lt.z) == pytest.approx((2.0, -0.5, 0.0), abs=1e-6)
+        assert lt.distance == pytest.approx(math.sqrt(4.25), rel=1e-6)
+        assert lt.angle_x == pytest.approx(math.atan2(-0.5, 2.0), rel=1e-6)
+        assert lt.angle_y == pytest.approx(0.0, abs=1e-7)
+        assert lt.size_x == pytest.approx(2 * math.atan2(0.1, math.sqrt(4.25)), rel=1e-6)
+
+
+def test_quality_and_covariance_follow_residual_and_ambiguity():
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
+    R = np.diag([1.0, -1.0, -1.0])
+
+    def odo(t, err, amb):
+        (m,) = encode_pose_messages(mav, ["ODOMETRY"], 1, camera_pose(R, t, err, amb), WALL,
+                                    fx_px=500.0, marker_width_m=0.2)
+        return m
+
+    clear, noisy, ambiguous = odo([0, 0, 2.0], 0.1, 0.0), odo([0, 0, 2.0], 2.0, 0.0), odo([0, 0, 2.0], 0.1, 0.9)
+    assert clear.quality == 99 and noisy.quality == 20 and ambiguous.quality == 10
+    # Depth (local x for a wall marker) is the least certain axis; variance grows with the residual,
+    # with ambiguity, and with distance.
+    assert clear.pose_covariance[0] > clear.pose_covariance[6] > 0
+    assert noisy.pose_covariance[0] > 50 * clear.pose_covariance[0]
+    assert ambiguous.pose_covariance[0] > 50 * clear.pose_covariance[0]
+    far = odo([0, 0, 4.0], 0.1, 0.0)
+    assert far.pose_covariance[0] == pytest.approx(16 * clear.pose_covariance[0], rel=1e-3)
+
+
+def test_stream_over_udp_keeps_every_autopilot_rule():
+    """A scripted flight: steady tracking, frames faster than 20 ms, a loss, a jump, a gap."""
+    peer = UdpPeer()
+    out = output(f"udpout:127.0.0.1:{peer.port}", messages=ALL)
+    t0 = 5000.0  # 5e9 us: beyond 2^32
+    script = []
+    seq = 0
+
+    def pose_at(t, x, y=0.0):
+        nonlocal seq
+        script.append(vehicle_result(WALL, seq, t, (x, y, -0.1), yaw_deg=5.0))
+        seq += 1
+
+    for k in range(10):                       # 30 Hz
+        pose_at(t0 + k / 30, -2.0 + 0.01 * k)
+    t = t0 + 9 / 30
+    for k in range(1, 7):                     # 100 Hz: every other one is within 20 ms
+        pose_at(t + 0.01 * k, -1.9)
+    t += 0.06
+    for k in range(1, 16):                    # 0.5 s without the marker
+        script.append(lost_result(seq, t + k / 30))
+        seq += 1
+    t += 15 / 30
+    for k in range(1, 6):                     # found again
+        pose_at(t + k / 30, -1.8)
+    t += 5 / 30
+    pose_at(t + 1 / 30, -0.7)                 # a 1.1 m jump
+    t += 1 / 30
+    pose_at(t + 0.4, -0.7)                    # a 0.4 s gap (frames dropped upstream)
+    for r in script:
+        out.publish(r)
+    msgs = peer.collect(3.0, until=lambda ms: len(of_type(ms, "LANDING_TARGET")) >= 20)
+    out.close()
+    peer.close()
+    odo = of_type(msgs, "ODOMETRY")
+    sent_t = [r.t_capture_s for r in script if r.pose is not None]
+    # Rate rule: of the 100 Hz frames, the ones 10 ms after a sent one are held back.
+    expected = [s for i, s in enumerate(sent_t) if not (10 <= i < 16 and (i - 10) % 2 == 0)]
+    assert [m.time_usec for m in odo] == [time_usec_from_s(s) for s in expected]
+    assert [m.reset_counter for m in odo] == [0] * 13 + [1] * 5 + [2, 3]
+    texts = [m.text for m in of_type(msgs, "STATUSTEXT")]
+    assert texts == ["pose-daemon started", "pose-daemon: marker lost", "pose-daemon: marker found"]
+    assert of_type(msgs, "STATUSTEXT")[1].severity == 4
+    assert len(of_type(msgs, "VISION_POSITION_ESTIMATE")) == len(of_type(msgs, "LANDING_TARGET")) == len(odo)
+    truth = [r for r in script if r.pose is not None and r.t_capture_s in expected]
+    for m, r in zip(odo, truth):
+        v = WALL.vehicle_pose(r.pose.R, r.pose.tvec)
+        assert (m.x, m.y, m.z) == pytest.approx(tuple(v.p_local_body_m), abs=1e-5)
+    assert odo[0].x == pytest.approx(-2.0, abs=1e-5) and odo[0].z == pytest.approx(-0.1, abs=1e-5)
+    assert math.degrees(g.euler_rpy_from_R(g.R_from_euler_rpy(0, 0, 0))[2]) == 0.0
+    report = check(msgs)
+    assert report.ok, str(report)
+    s = out.stats()
+    assert s["dropped"]["rate"] == 3 and s["dropped"]["no_pose"] == 15 and s["reset_counter"] == 3
+
+
+def test_acceptance_check_catches_broken_streams():
+    """The checker itself must fail on the known mistakes (else a passing stream proves nothing)."""
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
+    cov = [0.01 if i in (0, 6, 11, 15, 18, 20) else 0.0 for i in range(21)]
+
+    def odo(t_us, x=0.0, frame=20, est=2, quality=50, reset=0, q=(1.0, 0.0, 0.0, 0.0)):
+        m = mav.odometry_encode(t_us, frame, 12, x, 0.0, 0.0, list(q), *([math.nan] * 6), cov,
+                                [math.nan] * 21, reset, est, quality)
+        return parser().parse_buffer(m.pack(mav))[0]
+
+    hb = parser().parse_buffer(mav.heartbeat_encode(18, 8, 0, 0, 4).pack(mav))[0]
+    good = [hb, odo(10_000_000), odo(10_040_000), odo(10_400_000, reset=1)]
+    assert check(good).ok
+    cases = {
+        "frames": [hb, odo(1_000_000, frame=1)],
+        "estimator_type": [hb, odo(1_000_000, est=0)],
+        "quality": [hb, odo(1_000_000, quality=-1)],
+        "NaN": [hb, odo(1_000_000, x=math.nan)],
+        "20 ms": [hb, odo(1_000_000), odo(1_010_000)],
+        "gap": [hb, odo(1_000_000), odo(1_400_000)],
+        "jumped": [hb, odo(1_000_000), odo(1_040_000, x=2.0)],
+        "not increasing": [hb, odo(1_000_000), odo(1_000_000)],
+        "reset_counter": [hb, odo(1_000_000), odo(1_040_000, reset=3)],
+        "no HEARTBEAT": [odo(1_000_000)],
+    }
+    for word, stream in cases.items():
+        rep = check(stream)
+        assert not rep.ok and any(word in v for v in rep.violations), (word, rep.violations)
+
+
+def test_waits_for_the_autopilot_then_sends_origin_and_home():
+    peer = UdpPeer()
+    out = output(f"udpout:127.0.0.1:{peer.port}", wait_heartbeat=True, origin=(47.397742, 8.545594, 488.0),
+                 set_home=True)
+    frames_t = iter(10.0 + k / 30 for k in range(1000))
+    for _ in range(5):
+        out.publish(vehicle_result(WALL, 0, next(frames_t), (-2.0, 0.0, 0.0)))
+    msgs = peer.collect(0.3, until=lambda ms: bool(of_type(ms, "HEARTBEAT")))
+    assert of_type(msgs, "HEARTBEAT") and not of_type(msgs, "ODOMETRY")
+    assert "waiting for the autopilot" in out.status()
+    peer.send(autopilot_heartbeat(mav_type=6, autopilot=8))   # a ground station is not an autopilot
+    peer.collect(0.2)
+    assert out.autopilot_system is None
+    peer.send(autopilot_heartbeat(system=3))
+    assert wait_for(lambda: out.autopilot_system == 3, 2.0)
+    for _ in range(5):
+        out.publish(vehicle_result(WALL, 0, next(frames_t), (-2.0, 0.0, 0.0)))
+    msgs = peer.collect(2.5)  # also long enough for the 1 Hz heartbeat
+    out.close()
+    peer.close()
+    assert len(of_type(msgs, "ODOMETRY")) == 5
+    assert out.stats()["dropped"]["no_autopilot"] == 5
+    (origin,) = of_type(msgs, "SET_GPS_GLOBAL_ORIGIN")
+    assert (origin.target_system, origin.latitude, origin.longitude, origin.altitude) == (3, 473977420, 85455940,
+                                                                                        488000)
+    (home,) = of_type(msgs, "SET_HOME_POSITION")
+    assert (home.target_system, home.latitude, home.altitude) == (3, 473977420, 488000)
+    beats = [t for m, t in zip(peer.messages, peer.arrivals) if m.get_type() == "HEARTBEAT"]
+    assert len(beats) >= 3
+    gaps = np.diff(beats)
+    assert np.all(gaps < 1.3) and np.all(gaps[1:] > 0.7), gaps
+    hb = of_type(msgs, "HEARTBEAT")[0]
+    assert (hb.type, hb.autopilot, hb.get_srcComponent(), hb.get_srcSystem()) == (18, 8, 197, 1)
+
+
+def test_signed_stream_verifies_only_with_the_key():
+    key = hashlib.sha256(b"correct horse battery staple").digest()
+    peer = UdpPeer(signing_key=key)
+    out = output(f"udpout:127.0.0.1:{peer.port}", signing_key="correct horse battery staple")
+    for k in range(3):
+        out.publish(vehicle_result(WALL, k, 20.0 + k / 30, (-2.0, 0.0, 0.0)))
+    msgs = peer.collect(1.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 3)
+    out.close()
+    assert len(of_type(msgs, "ODOMETRY")) == 3 and all(m._signed for m in msgs)
+    # The same bytes under another key do not verify.
+    wrong = parser(signing_key=hashlib.sha256(b"wrong").digest())
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
+    mav.signing.secret_key, mav.signing.sign_outgoing, mav.signing.link_id = key, True, 0
+    mav.signing.timestamp = 10 ** 9
+    data = mav.heartbeat_encode(18, 8, 0, 0, 4).pack(mav)
+    assert [m.get_type() for m in wrong.parse_buffer(data) or []] != ["HEARTBEAT"]
+    assert [m.get_type() for m in parser(signing_key=key).parse_buffer(data)] == ["HEARTBEAT"]
+    # A 64-hex-digit key is taken as the key itself.
+    out = output(f"udpout:127.0.0.1:{peer.port}", signing_key=key.hex())
+    out.publish(vehicle_result(WALL, 0, 30.0, (-2.0, 0.0, 0.0)))
+    msgs = peer.collect(1.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 4)
+    out.close()
+    peer.close()
+    assert len(of_type(msgs, "ODOMETRY")) == 4
+
+
+def test_serial_link_over_a_pty_vanishes_and_comes_back(tmp_path):
+    port = VanishingPty(str(tmp_path / "ttyFC"))
+    out = output(f"{port.path}:57600", retry_s=0.05, retry_max_s=0.2)
+    t = [40.0]
+
+    def send(n):
+        for _ in range(n):
+            t[0] += 1 / 30
+            out.publish(vehicle_result(WALL, 0, t[0], (-2.0, 0.1, 0.0)))
+
+    try:
+        send(5)
+        first = parser().parse_buffer(port.read(2.0, until=lambda b: len(of_type(parser().parse_buffer(b) or [], "ODOMETRY")) >= 5)) or []
+        assert len(of_type(first, "ODOMETRY")) == 5 and of_type(first, "HEARTBEAT")
+        port.vanish()
+        send(3)                                   # written into a dead port: link fails
+        assert wait_for(lambda: not out.link_up, 1.0)
+        assert "down" in out.status()
+        send(3)                                   # dropped while the port is gone
+        port.appear()
+        assert wait_for(lambda: out.link_up, 3.0), out.status()
+        send(5)
+        second = parser().parse_buffer(port.read(2.0, until=lambda b: len(of_type(parser().parse_buffer(b) or [], "ODOMETRY")) >= 5)) or []
+    finally:
+        out.close()
+        port.close()
+    odo = of_type(second, "ODOMETRY")
+    assert len(odo) == 5 and [m.text for m in of_type(second, "STATUSTEXT")] == ["pose-daemon link reopened"]
+    assert odo[0].reset_counter == 1   # the gap of the outage starts a new track
+    s = out.stats()
+    assert s["opens"] == 2 and s["link_failures"] == 1 and s["dropped"]["link_down"] >= 3
+    assert check(first + second).ok, str(check(first + second))
+
+
+def test_tcp_link_reconnects_after_the_peer_closes():
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    server.settimeout(3.0)
+    out = output(f"tcp:127.0.0.1:{server.getsockname()[1]}", retry_s=0.05, retry_max_s=0.2)
+    try:
+        conn, _ = server.accept()
+        conn.settimeout(2.0)
+        msgs = parser().parse_buffer(conn.recv(4096)) or []
+        assert of_type(msgs, "HEARTBEAT")
+        conn.close()
+        conn2, _ = server.accept()            # the output noticed and came back
+        conn2.settimeout(2.0)
+        data = b""
+        while b"reopened" not in data:
+            chunk = conn2.recv(4096)
+            assert chunk, "connection closed again"
+            data += chunk
+        out.publish(vehicle_result(WALL, 0, 50.0, (-2.0, 0.0, 0.0)))
+        while True:
+            msgs = parser().parse_buffer(data) or []
+            if of_type(msgs, "ODOMETRY"):
+                break
+            chunk = conn2.recv(4096)
+            assert chunk, "connection closed again"
+            data += chunk
+        conn2.close()
+    finally:
+        out.close()
+        server.close()
+    assert of_type(msgs, "ODOMETRY")[0].time_usec == 50_000_000
+    assert out.stats()["opens"] == 2
+
+
+def test_connection_strings():
+    assert parse_connection("udpout:127.0.0.1:14550", 921600) == ("udpout", "udpout:127.0.0.1:14550", 921600)
+    assert parse_connection("udp:0.0.0.0:14550", 1)[0] == "udpin"
+    assert parse_connection("/dev/serial0", 921600) == ("serial", "/dev/serial0", 921600)
+    assert parse_connection("/dev/ttyUSB0:57600", 921600) == ("serial", "/dev/ttyUSB0", 57600)
+    assert parse_connection("/dev/ttyACM0,115200", 921600) == ("serial", "/dev/ttyACM0", 115200)
+    for bad in ("udpout:127.0.0.1", "tcp:host:99999", "serial0", "udpout::14550"):
+        with pytest.raises(ValueError):
+            parse_connection(bad, 9600)
+    cfg = parse_config('[output.mavlink]\nconnection = "udpout:localhost"\n', "fc.toml")
+    with pytest.raises(ConfigError, match=r"^fc.toml: \[output.mavlink\] connection: expected udpout:HOST:PORT"):
+        open_outputs(cfg)
+
+
+def test_mavproxy_ground_station_receives_the_stream(tmp_path):
+    """MAVProxy, a real ground station, logs the stream; its log passes the acceptance check."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    import time
+
+    exe = shutil.which("mavproxy.py", path=os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", ""))
+    if exe is None:
+        pytest.skip("mavproxy.py not installed (pip install MAVProxy, in the test extra)")
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    tlog = tmp_path / "gcs.tlog"
+    proc = subprocess.Popen([sys.executable, exe, f"--master=udpin:127.0.0.1:{port}", "--daemon",
+                             "--non-interactive", "--nowait", "--default-modules=", f"--logfile={tlog}",
+                             f"--state-basedir={tmp_path}"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            env={**os.environ, "MAVLINK20": "1"}, cwd=tmp_path)
+    out = output(f"udpout:127.0.0.1:{port}")
+    try:
+        # Stream at 30 Hz until MAVProxy has detected us (it answers with its own HEARTBEAT).
+        end = time.monotonic() + 20.0
+        while time.monotonic() < end and not (out.stats().get("opens") and _gcs_heard(out)):
+            out.publish(vehicle_result(WALL, 0, time.monotonic(), (-2.0, 0.0, 0.0)))
+            time.sleep(1 / 30)
+        if proc.poll() is not None:
+            pytest.skip(f"MAVProxy could not start here: {proc.stdout.read().decode(errors='replace')[-300:]}")
+        assert _gcs_heard(out), "MAVProxy never answered"
+        for k in range(70):  # 1.5 s tracked, 0.5 s without the marker, then found again
+            t = time.monotonic()
+            lost = 45 <= k < 60
+            out.publish(lost_result(k, t) if lost else vehicle_result(WALL, k, t, (-2.0, 0.0, 0.0)))
+            time.sleep(1 / 30)
+        time.sleep(0.5)
+    finally:
+        out.close()
+        proc.terminate()
+        try:
+            log, _ = proc.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            log, _ = proc.communicate()
+    from fc_acceptance import read_capture
+
+    received = [r for r in read_capture(str(tlog)) if r.msg.get_srcComponent() == 197]
+    assert len(of_type([r.msg for r in received], "ODOMETRY")) >= 30
+    assert b"Detected vehicle 1:197" in log
+    assert b"pose-daemon: marker lost" in log and b"pose-daemon: marker found" in log
+    report = check(received)
+    assert report.ok, str(report)
+
+
+def _gcs_heard(out: MavlinkOutput) -> bool:
+    return out.stats().get("gcs_heard", 0) > 0
