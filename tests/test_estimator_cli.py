@@ -93,3 +93,22 @@ def test_estimate_reads_stdin_as_a_subprocess():
     out = [json.loads(s) for s in io.StringIO(proc.stdout)]
     assert out[0]["ok"] is True and out[0]["id"] == "a"
     assert out[1]["ok"] is False and "same point" in out[1]["error"]
+
+
+def test_bench_estimator_json_small(capsys):
+    assert main(["bench", "estimator", "--n", "40", "--timing-n", "5", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["n"] == 40 and [row["noise_px"] for row in res["levels"]] == [0.0, 0.25, 0.5, 1.0]
+    clean = res["levels"][0]
+    # Noise-free targets: rotation < 1e-6 deg, translation < 1e-8 relative (1e-6 %).
+    assert clean["iterative+polish"]["rot_max_deg"] < 1e-6
+    assert clean["iterative"]["trans_p95_pct"] < 1e-6
+    for row in res["levels"]:
+        for name in ("paper", "paper+polish", "iterative", "iterative+polish", "IPPE_SQUARE", "IPPE_SQUARE+LM"):
+            assert 0.0 <= row[name]["flip_rate"] <= 1.0
+    assert res["us_per_call"]["iterative+polish"] > 0 and res["batch_poses_per_s"] > 0
+
+
+def test_bench_estimator_refuses_tiny_n(capsys):
+    assert main(["bench", "estimator", "--n", "3"]) == 2
+    assert "--n must be at least 10" in capsys.readouterr().err
