@@ -121,7 +121,7 @@ class PlainSerialOutput(QueuedOutput):
         if result.pose is None and not self.send_lost:
             self._drop("no_pose")
             return 0
-        if self._last_sent_t is not None and self.min_interval_s > 0 and t - self._last_sent_t < self.min_interval_s:
+        if self._last_sent_t is not None and t - self._last_sent_t < self.min_interval_s - 1e-9:
             self._drop("rate")
             return 0
         line = pose_line(result, self.frames)

@@ -1,0 +1,118 @@
+"""The outputs' shared behaviour: JSON lines, open_outputs from a config, queued mode never blocking,
+drops counted by cause, write times reported."""
+
+from __future__ import annotations
+
+import io
+import json
+import threading
+import time
+
+from mavlink_helpers import VanishingPty, lost_result, vehicle_result, wait_for
+
+from pose_daemon import geometry as g
+from pose_daemon.config import parse_config
+from pose_daemon.outputs import JsonlOutput, MavlinkOutput, Output, PlainSerialOutput, open_outputs
+
+WALL = g.VehicleFrames.from_settings("forward", placement="wall")
+
+
+def test_jsonl_appends_one_flushed_object_per_line(tmp_path):
+    path = tmp_path / "poses.jsonl"
+    path.write_text('{"frame": -1}\n')
+    out = JsonlOutput(str(path), queue_size=0)
+    out.publish(vehicle_result(WALL, 0, 12.5, (-2.0, 0.0, 0.0)))
+    # Flushed at once: readable before close.
+    assert len(path.read_text().splitlines()) == 2
+    out.publish(lost_result(1, 12.6))
+    out.close()
+    lines = [json.loads(s) for s in path.read_text().splitlines()]
+    assert lines[0] == {"frame": -1}
+    assert lines[1]["frame"] == 0 and lines[1]["ok"] is True and lines[1]["t"] == 12.5
+    assert lines[1]["camera_position"][2] > 1.9 and len(lines[1]["rvec"]) == 3
+    assert lines[2] == {"frame": 1, "t": 12.6, "ok": False, "error": "no marker"}
+    assert out.stats()["sent"] == 2
+
+
+def test_open_outputs_builds_what_the_config_asks(tmp_path):
+    pty = VanishingPty(str(tmp_path / "ttyX"))
+    cfg = parse_config(f"""
+[marker]
+placement = "floor"
+[mount]
+preset = "down"
+offset_m = [0.1, 0.0, 0.05]
+[output.mavlink]
+connection = "udpout:127.0.0.1:9"
+messages = ["LANDING_TARGET", "ODOMETRY"]
+jump_m = 0.8
+[output.serial]
+port = "{pty.path}"
+baud = 57600
+[output.jsonl]
+path = "{tmp_path / 'p.jsonl'}"
+""", "t.toml")
+    outs = open_outputs(cfg)
+    try:
+        assert [type(o) for o in outs] == [MavlinkOutput, PlainSerialOutput, JsonlOutput]
+        assert all(isinstance(o, Output) for o in outs)
+        m, s, _ = outs
+        assert m.messages == ("LANDING_TARGET", "ODOMETRY") and m.jump_m == 0.8 and s.baud == 57600
+        assert m.frames.marker_in_body([0.0, 0.0, 1.5]).tolist() == [0.1, 0.0, 1.55]
+        assert all(o.link_up for o in outs)   # quick links are open before the first publish
+    finally:
+        for o in outs:
+            o.close()
+        pty.close()
+    assert open_outputs(parse_config("[camera]\nsource = \"synthetic\"\n")) == []
+
+
+class _StuckStream(io.StringIO):
+    """A stdout whose reader stopped reading: write blocks until released."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.release = threading.Event()
+        self.entered = threading.Event()
+
+    def write(self, s: str) -> int:
+        self.entered.set()
+        self.release.wait(10)
+        return super().write(s)
+
+
+def test_queued_mode_never_blocks_and_counts_drops():
+    stream = _StuckStream()
+    out = JsonlOutput("-", queue_size=4, stream=stream)
+    written = []
+    out.on_written = lambda result, t: written.append((result.seq, t))
+    out.publish(vehicle_result(WALL, 0, time.monotonic(), (-2.0, 0.0, 0.0)))
+    assert stream.entered.wait(2)          # the writer thread is now stuck in write()
+    for k in range(1, 51):                  # these return although nothing can be written
+        out.publish(vehicle_result(WALL, k, time.monotonic(), (-2.0, 0.0, 0.0)))
+    s = out.stats()
+    assert s["published"] == 51 and s["queued"] == 4 and s["dropped"] == {"queue_full": 46}
+    stream.release.set()
+    out.close()
+    # The oldest were dropped: the newest four follow the one that was stuck.
+    assert [seq for seq, _ in written] == [0, 47, 48, 49, 50]
+    assert [json.loads(s)["frame"] for s in stream.getvalue().splitlines()] == [0, 47, 48, 49, 50]
+    assert all(t > 0 for _, t in written) and out.stats()["last_latency_s"] >= 0
+
+
+def test_direct_mode_drops_while_the_link_is_down_and_reports_it(tmp_path):
+    missing = tmp_path / "no-such-dir" / "p.jsonl"
+    out = JsonlOutput(str(missing), queue_size=0, retry_s=0.05, retry_max_s=0.1)
+    try:
+        for k in range(3):
+            out.publish(lost_result(k, float(k)))
+        s = out.stats()
+        assert s["dropped"] == {"link_down": 3} and not s["link_up"]
+        assert out.status().startswith("link down: cannot open: [Errno 2]")
+        missing.parent.mkdir()
+        assert wait_for(lambda: out.link_up, 2.0)
+        out.publish(lost_result(3, 3.0))
+    finally:
+        out.close()
+    assert json.loads(missing.read_text())["frame"] == 3
+    assert out.stats()["link"] == "closed"
