@@ -202,6 +202,9 @@ class OutputWorker:
         self._finishing = False
         self._stopping = False
         self.last_written_s: Optional[float] = None
+        # When a result was last handed over: the output may rightly write nothing for it
+        # (no marker in view, a rate rule), yet frames are flowing.
+        self.last_delivered_s: Optional[float] = None
         self.last_error: Optional[str] = None
         self.asynchronous = hasattr(output, "on_written")
         # Dispatch times of results handed to an asynchronous output, by (seq, t_capture_s);
@@ -287,8 +290,9 @@ class OutputWorker:
             self._stats.count(f"failed[{self.name}]")
             log.warning("output %s failed: %s", self.name, self.last_error)
             return False
+        self.last_delivered_s = self._clock()
         if not self.asynchronous:
-            self._written(mine, self._clock(), t_dispatch_s)
+            self._written(mine, self.last_delivered_s, t_dispatch_s)
         return True
 
     def _written(self, result: FrameResult, t_written_s: float,
@@ -398,8 +402,9 @@ class Pipeline:
 
     @property
     def last_progress_s(self) -> Optional[float]:
-        """Monotonic time a result last reached an output (was processed, without outputs)."""
-        times: List[float] = [w.last_written_s for w in self.workers if w.last_written_s is not None]
+        """Monotonic time a result was last handed to the outputs (processed, without outputs):
+        frames flow even while a marker is out of view and the outputs write nothing."""
+        times: List[float] = [w.last_delivered_s for w in self.workers if w.last_delivered_s is not None]
         if self._last_processed_s is not None and not self.workers:
             times.append(self._last_processed_s)
         return max(times) if times else None

@@ -138,9 +138,10 @@ class FakeQueuedOutput:
     """An output that queues in ``publish`` and writes ``write_s`` later in its own thread,
     reporting through ``on_written`` as pose_daemon.outputs do."""
 
-    def __init__(self, name: str = "queued", write_s: float = 0.02) -> None:
+    def __init__(self, name: str = "queued", write_s: float = 0.02, only_ok: bool = False) -> None:
         self.name = name
         self.write_s = write_s
+        self.only_ok = only_ok  # like MAVLink: nothing is written while the marker is lost
         self.on_written = None
         self.max_age_s = None
         self.got: List[tuple] = []
@@ -163,6 +164,8 @@ class FakeQueuedOutput:
                 if not self._items:
                     return
                 item = self._items.pop(0)
+            if self.only_ok and not item.ok:
+                continue
             time.sleep(self.write_s)
             self.got.append((item.seq, item.t_capture_s))
             if self.on_written is not None:

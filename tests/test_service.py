@@ -9,7 +9,7 @@ import threading
 import time
 
 import pytest
-from pipeline_fakes import FakeOutput, FakeProcessor, FakeSource
+from pipeline_fakes import FakeOutput, FakeProcessor, FakeQueuedOutput, FakeSource
 
 from pose_daemon.config import parse_config
 from pose_daemon.service import SdNotifier, Service, watchdog_interval_s
@@ -163,3 +163,17 @@ def test_crashing_source_exits_1(listener):
                   notifier=SdNotifier(path), env={})
     assert svc.run() == 1
     assert svc.stop_reason == "source crashed: ZeroDivisionError: bug"
+
+
+def test_watchdog_keeps_pinging_while_the_marker_is_out_of_view(listener):
+    path, lst = listener
+    out = FakeQueuedOutput(write_s=0.0, only_ok=True)  # writes nothing without a pose
+    svc = Service(_cfg(), source=FakeSource(frames=80, period_s=0.01), outputs=[out],
+                  processor=FakeProcessor(detect=lambda s: False), notifier=SdNotifier(path),
+                  env={"WATCHDOG_USEC": "200000"})
+    assert svc.run() == 0
+    time.sleep(0.05)
+    out.close()
+    assert out.got == []
+    assert svc.watchdog_pings >= 4  # ~0.8 s of frames, a ping every 0.1 s
+    assert [line for _, line in lst.lines()].count("WATCHDOG=1") == svc.watchdog_pings
