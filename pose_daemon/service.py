@@ -231,6 +231,9 @@ class Service:
 def run_daemon(cfg: Config) -> int:
     """``pose-daemon run``: the service in the main thread until SIGTERM/SIGINT; exit status."""
     setup_logging(cfg.logging.level)
+    # A thread that becomes runnable (a frame handed over, an output woken) waits for the GIL
+    # at most this long instead of the default 5 ms, which would eat the latency budget.
+    sys.setswitchinterval(0.001)
     try:
         service = Service(cfg)
     except UserError:
