@@ -24,6 +24,10 @@ from .pipeline import Pipeline
 
 log = logging.getLogger("pose_daemon.service")
 
+# A thread that becomes runnable (a frame handed over, an output woken) waits for the GIL at
+# most this long instead of Python's default 5 ms, which would eat into the latency budget.
+GIL_SWITCH_INTERVAL_S = 0.001
+
 # Longest a clean stop may take (systemd and users expect SIGTERM -> exit within 2 s).
 STOP_TIMEOUT_S = 1.5
 
@@ -231,9 +235,7 @@ class Service:
 def run_daemon(cfg: Config) -> int:
     """``pose-daemon run``: the service in the main thread until SIGTERM/SIGINT; exit status."""
     setup_logging(cfg.logging.level)
-    # A thread that becomes runnable (a frame handed over, an output woken) waits for the GIL
-    # at most this long instead of the default 5 ms, which would eat the latency budget.
-    sys.setswitchinterval(0.001)
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     try:
         service = Service(cfg)
     except UserError:

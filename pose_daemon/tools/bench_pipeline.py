@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import os
 import socket
+import sys
 import threading
 import time
 from typing import List, Optional
@@ -114,6 +115,9 @@ def run(args: argparse.Namespace) -> int:
     from ..outputs import open_outputs
     from ..pipeline import Pipeline
     from ..processing import FrameProcessor
+    from ..service import GIL_SWITCH_INTERVAL_S
+
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)  # as `pose-daemon run` does
 
     # A ground station stand-in that drains the UDP port.
     sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
