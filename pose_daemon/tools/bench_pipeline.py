@@ -117,7 +117,15 @@ def run(args: argparse.Namespace) -> int:
     from ..processing import FrameProcessor
     from ..service import GIL_SWITCH_INTERVAL_S
 
+    previous_interval = sys.getswitchinterval()
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)  # as `pose-daemon run` does
+    try:
+        return _run(args, Pipeline, FrameProcessor, open_outputs)
+    finally:
+        sys.setswitchinterval(previous_interval)
+
+
+def _run(args: argparse.Namespace, Pipeline, FrameProcessor, open_outputs) -> int:
 
     # A ground station stand-in that drains the UDP port.
     sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
