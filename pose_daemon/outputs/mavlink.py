@@ -32,7 +32,12 @@ from typing import Any, Callable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from ..geometry import VehicleFrames, euler_rpy_from_R, quaternion_from_R, rotation_angle_deg
+from ..geometry import (
+    VehicleFrames,
+    euler_rpy_from_R,
+    quaternion_from_R_3x3,
+    rotation_angle_deg_3x3,
+)
 from ..pose.types import Pose
 from ..result import FrameResult
 from .quality import pose_covariance_local, pose_quality
@@ -390,7 +395,7 @@ class MavlinkOutput(QueuedOutput):
             return False
         p0, R0 = self._last_sent_pose
         return (float(np.linalg.norm(p - p0)) > self.jump_m
-                or float(rotation_angle_deg(R0, R)) > self.jump_deg)
+                or rotation_angle_deg_3x3(R0, R) > self.jump_deg)
 
     def _send_pose(self, t_us: int, pose: Pose) -> int:
         assert self._link is not None
@@ -419,7 +424,7 @@ def encode_pose_messages(mav: Any, messages: Sequence[str], t_us: int, pose: Pos
     out: List[Any] = []
     for name in messages:
         if name == "ODOMETRY":
-            q = [float(v) for v in quaternion_from_R(R)]
+            q = [float(v) for v in quaternion_from_R_3x3(R)]
             out.append(mav.odometry_encode(t_us, MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD, x, y, z, q,
                                            NAN, NAN, NAN, NAN, NAN, NAN, cov, [NAN] * 21,
                                            int(reset_counter), MAV_ESTIMATOR_TYPE_VISION, quality))
@@ -443,6 +448,6 @@ def _landing_target(mav: Any, t_us: int, pose: Pose, frames: VehicleFrames, widt
     size_x = 2.0 * math.atan2(width_m / 2.0, distance)
     size_y = 2.0 * math.atan2(height_m / 2.0, distance)
     xb, yb, zb = (float(v) for v in frames.marker_in_body(t))
-    q = [float(v) for v in quaternion_from_R(frames.R_body_cam @ np.asarray(pose.R))]
+    q = [float(v) for v in quaternion_from_R_3x3(frames.R_body_cam @ np.asarray(pose.R))]
     return mav.landing_target_encode(t_us, 0, MAV_FRAME_BODY_FRD, angle_x, angle_y, distance, size_x, size_y,
                                      xb, yb, zb, q, LANDING_TARGET_TYPE_VISION_FIDUCIAL, 1)
