@@ -17,11 +17,12 @@ build_only=0
 if [ "${1:-}" = "--build-only" ]; then build_only=1; shift; fi
 
 cache=${PI_STACK_CACHE:-$HOME/.cache/pose-daemon-pi-stack}
-packages="libc-bin python3 python3-numpy python3-opencv python3-serial python3-pip python3-venv python3-pytest"
+packages="libc-bin cython3 python3 python3-numpy python3-opencv python3-serial python3-pip python3-venv python3-pytest"
 pymavlink_req=${PI_STACK_PYMAVLINK:-pymavlink==2.4.50}
-# libc-bin (Essential, so in no closure) brings ldconfig.
+# libc-bin (Essential, so in no closure) brings ldconfig; cython3 lets pymavlink's setup.py
+# run under emulation when the host cannot build its wheel.
 # Bump when the way the root or the venv is made changes, so cached stacks get rebuilt.
-layout_version=4
+layout_version=5
 root=$cache/root
 venv=$cache/venv
 aptdir=$cache/apt
@@ -85,6 +86,14 @@ if [ ! -e "$root_stamp" ]; then
     nsrc=$((nsrc + 1))
   done
   [ "$nsrc" -gt 0 ] || die "the host has no apt sources to copy (/etc/apt/sources.list*)"
+  # The host's download settings (proxy, validity of a snapshot archive's Release files),
+  # but none of its hooks: only files that set Acquire:: options and run nothing.
+  for f in /etc/apt/apt.conf /etc/apt/apt.conf.d/*; do
+    [ -f "$f" ] || continue
+    if grep -q 'Acquire::' "$f" && ! grep -qiE 'Invoke|Pre-Install|Dir::|Architecture' "$f"; then
+      cp "$f" "$aptdir/etc/apt.conf.d/host-$(basename "$f")"
+    fi
+  done
   cat >"$aptdir/apt.conf" <<EOF
 APT::Architecture "armhf";
 APT::Architectures { "armhf"; };
@@ -193,15 +202,19 @@ EOF
   # machine, so the wheel is built on the host (seconds, not minutes under emulation) without
   # its optional Cython index; its optional lxml and fastcrc are left out as on a bare Pi.
   rm -rf "$cache/wheels"
-  PYMAVLINK_FAST_INDEX=0 python3 -m pip wheel -q --disable-pip-version-check --no-deps \
-    --no-binary pymavlink -w "$cache/wheels" "$pymavlink_req" >"$cache/pymavlink-wheel.log" 2>&1 || {
-    tail -n 20 "$cache/pymavlink-wheel.log" >&2
-    die "building the $pymavlink_req wheel on the host failed (log: $cache/pymavlink-wheel.log)"
-  }
-  wheel=$(ls "$cache"/wheels/pymavlink-*-py3-none-any.whl 2>/dev/null | head -n 1)
-  [ -n "$wheel" ] || die "the host built no pure-Python pymavlink wheel (see $cache/pymavlink-wheel.log)"
-  "$venv/bin/python" -m pip install -q --disable-pip-version-check --no-deps --no-compile \
-    "$wheel" || die "pip install $wheel failed"
+  wheel=""
+  if PYMAVLINK_FAST_INDEX=0 python3 -m pip wheel -q --disable-pip-version-check --no-deps \
+    --no-binary pymavlink -w "$cache/wheels" "$pymavlink_req" >"$cache/pymavlink-wheel.log" 2>&1; then
+    wheel=$(ls "$cache"/wheels/pymavlink-*-py3-none-any.whl 2>/dev/null | head -n 1)
+  fi
+  if [ -n "$wheel" ]; then
+    "$venv/bin/python" -m pip install -q --disable-pip-version-check --no-deps --no-compile \
+      "$wheel" || die "pip install $wheel failed"
+  else
+    log "the host could not build the pymavlink wheel ($cache/pymavlink-wheel.log); building it under emulation (minutes)"
+    PYMAVLINK_FAST_INDEX=0 "$venv/bin/python" -m pip install -q --disable-pip-version-check \
+      --no-deps --no-build-isolation --no-compile "$pymavlink_req" || die "pip install $pymavlink_req failed"
+  fi
   touch "$venv_stamp"
   log "venv ready in $(($(date +%s) - t0)) s"
 fi
