@@ -116,3 +116,15 @@ def test_direct_mode_drops_while_the_link_is_down_and_reports_it(tmp_path):
         out.close()
     assert json.loads(missing.read_text())["frame"] == 3
     assert out.stats()["link"] == "closed"
+
+
+def test_results_older_than_max_age_are_dropped_not_sent_late(tmp_path):
+    path = tmp_path / "p.jsonl"
+    out = JsonlOutput(str(path), queue_size=4)
+    out.max_age_s = 0.1   # the pipeline sets its latency budget here
+    now = time.monotonic()
+    out.publish(lost_result(0, now - 0.5))   # captured half a second ago: too late
+    out.publish(lost_result(1, now))
+    out.close()
+    assert [json.loads(s)["frame"] for s in path.read_text().splitlines()] == [1]
+    assert out.stats()["dropped"] == {"late": 1}

@@ -2,20 +2,22 @@
 either a bounded queue or a direct write.
 
 Two ways to feed an output, both safe for the caller:
-- queued (``queue_size`` > 0): ``publish`` only appends to a small queue (the oldest waiting
-  result is dropped and counted when it is full) and a writer thread writes. For callers
-  that have no thread to spare.
-- direct (``queue_size`` = 0, what ``open_outputs`` gives the daemon, whose pipeline already
-  runs one bounded buffer and thread per output): ``publish`` writes in the caller's thread,
-  so it returns once the bytes are written and the caller's clock reads true end-to-end
-  latency. It never waits on a link being opened: a link that is down or busy drops the
-  result (counted); every write has a 0.25 s timeout.
+- queued (``queue_size`` > 0, what ``open_outputs`` gives the daemon): ``publish`` only appends
+  to a small queue (the oldest waiting result is dropped and counted when it is full) and
+  the output's thread writes, so processing never waits on a link. A result older than
+  ``max_age_s`` (the pipeline sets its latency budget) when its turn comes is dropped as
+  "late", never sent late.
+- direct (``queue_size`` = 0): ``publish`` writes in the caller's thread and returns once the
+  bytes are written; for a caller with a thread of its own per output. It never waits on a
+  link being opened: a link that is down or busy drops the result (counted); every write
+  has a 0.25 s timeout.
 Either way the output's thread opens the link, reopens it after a failure with a doubling
 pause, and does the periodic work (MAVLink heartbeats, reading the autopilot).
 
 After each write ``on_written(result, t_written_s)`` is called if set (``time.monotonic()``,
-the clock of ``Frame.t_capture_s``); the last capture -> written latency is also in
-``stats()["last_latency_s"]`` and ``status()`` gives a short text for the status line.
+the clock of ``Frame.t_capture_s``): the pipeline's hook for capture -> bytes-written
+latency. The last such latency is also in ``stats()["last_latency_s"]``, and ``status()``
+gives a short text for the status line.
 """
 
 from __future__ import annotations
@@ -64,6 +66,8 @@ class QueuedOutput:
         self._link_up = False
         self._link_state = "not opened"
         self.on_written: Optional[WrittenCallback] = None
+        # Results older than this (seconds after capture) when written are dropped as "late".
+        self.max_age_s: Optional[float] = None
         self.log = logging.getLogger(f"pose_daemon.outputs.{self.name}")
         self._counts: Dict[str, int] = {"published": 0, "sent": 0, "errors": 0, "opens": 0, "link_failures": 0}
         self._dropped: Dict[str, int] = collections.defaultdict(int)
@@ -211,6 +215,10 @@ class QueuedOutput:
         """Write one result (link held)."""
         if not self._link_up:
             self._drop("link_down")
+            return
+        max_age = self.max_age_s
+        if max_age is not None and self._clock() - float(item.t_capture_s) > max_age:
+            self._drop("late")
             return
         try:
             n = self._write(item)
