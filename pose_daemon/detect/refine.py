@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional, Tuple
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -19,9 +19,7 @@ import numpy as np
 PROFILE_STEP_PX = 0.5
 RECENTER = 2
 
-_SIDES = np.arange(4)
 _NEXT = np.array([1, 2, 3, 0])
-_PREV = np.array([3, 0, 1, 2])
 
 
 @dataclass
@@ -64,23 +62,6 @@ def _crossing(prof: np.ndarray, rows: np.ndarray, level: np.ndarray) -> np.ndarr
     lo, hi = prof[rows, j - 1], prof[rows, j]
     frac = np.minimum(np.maximum((level - lo) / np.maximum(hi - lo, 1e-9), 0.0), 1.0)
     return j - 1 + frac
-
-
-def _fit_lines(points: np.ndarray, weights: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Weighted total least squares per side: points (4, m, 2), weights (4, m) -> unit
-    normals (4, 2), offsets (4,) with n.x = c, and signed residuals (4, m)."""
-    wsum = np.maximum(weights.sum(axis=1), 1e-12)
-    centre = (weights[..., None] * points).sum(axis=1) / wsum[:, None]
-    d = points - centre[:, None, :]
-    sxx = (weights * d[..., 0] ** 2).sum(axis=1)
-    syy = (weights * d[..., 1] ** 2).sum(axis=1)
-    sxy = (weights * d[..., 0] * d[..., 1]).sum(axis=1)
-    # Direction of greatest spread in closed form; the normal is perpendicular to it.
-    theta = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
-    normal = np.column_stack([-np.sin(theta), np.cos(theta)])
-    offset = (normal * centre).sum(axis=1)
-    residual = (d * normal[:, None, :]).sum(axis=2)
-    return normal, offset, residual
 
 
 def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_px: float,
@@ -150,41 +131,53 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
             f = xs - i
             k = rows2 + i
             v = flat[k] * (1.0 - f) + flat[k + 1] * f
-            x = _crossing(prof, rows, 0.5 * (v[:n] + v[n:]))
+            x_new = _crossing(prof, rows, 0.5 * (v[:n] + v[n:]))
+            # Profiles already centred on their edge (a good prediction) settle at once.
+            settled = float(np.abs(x_new - x).max()) < 0.1
+            x = x_new
+            if settled:
+                break
         s_edge = (offsets[0] + x * PROFILE_STEP_PX).reshape(4, m)
         pts = np.stack([bx + s_edge * u[:, 1:2], by - s_edge * u[:, 0:1]], axis=-1)   # (4, m, 2)
         if distorted:
             pts = _undistort_px(pts.reshape(-1, 2), camera).reshape(4, m, 2)
-        weights = ok.reshape(4, m).astype(np.float64)
-        counts = weights.sum(axis=1)
-        if counts.min() < 3:
-            return None
-        normal, offset, res = _fit_lines(pts, weights)
-        abs_res = np.abs(res)
-        if float((abs_res * weights).max()) > 0.25:
-            # One pass of outlier rejection: texture or a neighbouring blob on a few profiles.
-            abs_sorted = np.sort(np.where(weights > 0, abs_res, np.inf), axis=1)
-            mad = abs_sorted[_SIDES, (counts.astype(int) - 1) // 2]
-            keep = (weights > 0) & (abs_res <= np.maximum(3.0 * 1.4826 * mad, 0.25)[:, None])
-            if (keep.sum(axis=1) >= 3).all():
-                weights = keep.astype(np.float64)
-                normal, offset, res = _fit_lines(pts, weights)
+        ok4 = ok.reshape(4, m)
+        lines = []
+        sq_sum = 0.0
+        n_used = 0
+        for side in range(4):
+            p = pts[side][ok4[side]]
+            if len(p) < 3:
+                return None
+            # Huber weights: a few profiles crossing texture or a neighbouring blob do not
+            # pull the side (distances beyond a quarter pixel count linearly).
+            vx, vy, x0, y0 = cv2.fitLine(p.astype(np.float32), cv2.DIST_L2, 0, 1e-4,
+                                         1e-4).ravel().tolist()
+            nx, ny = -vy, vx
+            c = nx * x0 + ny * y0
+            res = p[:, 0] * nx + p[:, 1] * ny - c
+            inlier = np.abs(res) <= 0.5
+            sq_sum += float(np.dot(res[inlier], res[inlier]))
+            n_used += int(inlier.sum())
+            lines.append((nx, ny, c))
         # Corner i is where side i-1 (into it) meets side i (out of it).
-        n_a, c_a = normal[_PREV], offset[_PREV]
-        det = n_a[:, 0] * normal[:, 1] - n_a[:, 1] * normal[:, 0]
-        if np.abs(det).min() < 1e-6:
-            return None
         refined = np.empty((4, 2))
-        refined[:, 0] = (c_a * normal[:, 1] - n_a[:, 1] * offset) / det
-        refined[:, 1] = (n_a[:, 0] * offset - c_a * normal[:, 0]) / det
+        for i in range(4):
+            ax, ay, ac = lines[i - 1]
+            bx_, by_, bc = lines[i]
+            det = ax * by_ - ay * bx_
+            if abs(det) < 1e-6:
+                return None
+            refined[i, 0] = (ac * by_ - ay * bc) / det
+            refined[i, 1] = (ax * bc - ac * bx_) / det
         if distorted:
             refined = _distort_px(refined, camera)
         if not np.isfinite(refined).all() or signed_area(refined) <= 0:
             return None
-        n_used = float(weights.sum())
-        fit = EdgeFit(corners=refined, residual_px=math.sqrt(float((res * res * weights).sum()) / n_used),
-                      contrast=float((contrast * weights.ravel()).sum()) / n_used,
-                      valid_fraction=n_used / n)
+        if n_used < 12:
+            return None
+        fit = EdgeFit(corners=refined, residual_px=math.sqrt(sq_sum / n_used),
+                      contrast=float(contrast[ok].mean()), valid_fraction=n_used / n)
         moved = float(np.abs(refined - current).max())
         current = refined
         # Profiles along normals a fraction of a degree off find the same edge points.
