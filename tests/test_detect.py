@@ -56,6 +56,18 @@ def test_lens_distortion_fitted_in_undistorted_pixels() -> None:
     assert rms(without, truth) > 2 * rms(with_model, truth)
 
 
+@pytest.mark.parametrize("marker", [SQUARE, ARUCO], ids=["square", "aruco"])
+def test_a_speck_against_a_side_does_not_pull_it(marker: Marker) -> None:
+    image, truth = render(marker, *facing_pose(10, 0.6, 20), seed=500)
+    top = truth[1] - truth[0]
+    normal_out = np.array([top[1], -top[0]]) / np.linalg.norm(top)
+    centre = truth[0] + 0.35 * top + 2.0 * normal_out
+    cv2.circle(image, (int(round(centre[0] * 16)), int(round(centre[1] * 16))), 32, 40, -1,
+               cv2.LINE_AA, 4)
+    corners = MarkerDetector(marker).detect(image)
+    assert corners is not None and rms(corners, truth) < 0.04
+
+
 # ----------------------------------------------------------------------------- labels
 
 

@@ -64,6 +64,15 @@ def _crossing(prof: np.ndarray, rows: np.ndarray, level: np.ndarray) -> np.ndarr
     return j - 1 + frac
 
 
+def _fit_line(points: np.ndarray):
+    """Least-squares line through points (k, 2): unit normal (nx, ny), offset c with
+    n.x = c, and the signed residuals (k,)."""
+    vx, vy, x0, y0 = cv2.fitLine(points.astype(np.float32), cv2.DIST_L2, 0, 1e-4, 1e-4).ravel().tolist()
+    nx, ny = -vy, vx
+    c = nx * x0 + ny * y0
+    return nx, ny, c, points[:, 0] * nx + points[:, 1] * ny - c
+
+
 def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_px: float,
               iterations: int = 2, camera=None, min_contrast: float = 8.0,
               max_move_px: Optional[float] = None, samples_per_side: int = 24,
@@ -149,13 +158,15 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
             p = pts[side][ok4[side]]
             if len(p) < 3:
                 return None
-            # Huber weights: a few profiles crossing texture or a neighbouring blob do not
-            # pull the side (distances beyond a quarter pixel count linearly).
-            vx, vy, x0, y0 = cv2.fitLine(p.astype(np.float32), cv2.DIST_L2, 0, 1e-4,
-                                         1e-4).ravel().tolist()
-            nx, ny = -vy, vx
-            c = nx * x0 + ny * y0
-            res = p[:, 0] * nx + p[:, 1] * ny - c
+            nx, ny, c, res = _fit_line(p)
+            abs_res = np.abs(res)
+            if float(abs_res.max()) > 0.3:
+                # One pass of outlier rejection: a few profiles crossing glare, texture or a
+                # neighbouring blob must not pull the side.
+                keep = abs_res <= max(0.3, 3.0 * 1.4826 * float(np.median(abs_res)))
+                if keep.sum() >= 3:
+                    nx, ny, c, _ = _fit_line(p[keep])
+                    res = p[:, 0] * nx + p[:, 1] * ny - c
             inlier = np.abs(res) <= 0.5
             sq_sum += float(np.dot(res[inlier], res[inlier]))
             n_used += int(inlier.sum())
