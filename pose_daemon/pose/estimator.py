@@ -334,28 +334,45 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
     t = R_cam_unrot @ np.array([px, py, pz])
     obj = [(float(p[0]), float(p[1])) for p in marker.object_points]
     wx, wy = camera.fx, camera.fy
-    if refine and not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))
-                       and _residuals(R.tolist(), t.tolist(), obj, us, vs, wx, wy, False)[2] > 0.0):
-        # The loop went astray (a sliver of a quadrilateral under noise): let the polish
-        # start from the marker facing the camera at the depth its area gives.
-        R_l, (px, py, pz), _ = loop.loop_one(us, vs, area, method, 0)
-        R_cam_unrot = np.array(R_l)
-        R = geometry.R_cam_marker_from_R_cam_unrot(R_cam_unrot)
-        t = R_cam_unrot @ np.array([px, py, pz])
+    wp = None
+    if refine:
+        try:
+            wp = _weak_perspective_pair_floats(us, vs, marker.width, marker.height)
+        except (ZeroDivisionError, ValueError, OverflowError):
+            wp = None  # a degenerate affine fit: the mirror stands in below
+        # The polish starts from whichever fits the corners best: the loop's pose or one of
+        # the two weak-perspective poses. Under pixel noise the loop's vanishing-point steps
+        # can end far from the minimum; the polish then takes longer or stops in a worse one.
+        starts = [(R, t)] + (list(wp) if wp is not None else [])
+        costs = []
+        for R0, t0 in starts:
+            if np.all(np.isfinite(R0)) and np.all(np.isfinite(t0)):
+                _, c0, z0 = _residuals(R0.tolist(), t0.tolist(), obj, us, vs, wx, wy, False)
+                costs.append(c0 if z0 > 0.0 and math.isfinite(c0) else math.inf)
+            else:
+                costs.append(math.inf)
+        best = min(range(len(starts)), key=costs.__getitem__)
+        if math.isfinite(costs[best]):
+            R, t = starts[best]
+        else:
+            # Nothing usable: the marker facing the camera at the depth its area gives.
+            R_l, (px, py, pz), _ = loop.loop_one(us, vs, area, method, 0)
+            R_cam_unrot = np.array(R_l)
+            R = geometry.R_cam_marker_from_R_cam_unrot(R_cam_unrot)
+            t = R_cam_unrot @ np.array([px, py, pz])
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
         raise EstimationError("no finite pose fits these corners")
     if refine:
         R, t, cost, zmin = _polish(R, t, obj, us, vs, wx, wy)
         # The other planar solution starts from the weak-perspective pose on the far side of
-        # the ambiguity; if the loop ended near neither side, the near one is tried as well.
-        try:
-            wp = _weak_perspective_pair_floats(us, vs, marker.width, marker.height)
+        # the ambiguity; if the polished pose is near neither side, the near one is tried too.
+        if wp is not None:
             n = R[:, 2]
             dots = [float(n @ Rw[:, 2]) for Rw, _ in wp]
             near, far = (0, 1) if dots[0] >= dots[1] else (1, 0)
             starts = [wp[far]] + ([wp[near]] if dots[near] < _COS_SAME_SIDE else [])
-        except (ZeroDivisionError, ValueError, OverflowError):
-            starts = [mirror_pose(R, t)]  # a degenerate affine fit: fall back to the mirror
+        else:
+            starts = [mirror_pose(R, t)]
         cands = [(R, t, cost, zmin)]
         for R0, t0 in starts:
             R_c, t_c, cost_c, zmin_c = _polish(R0, t0, obj, us, vs, wx, wy, ALT_POLISH_ITER)
@@ -600,17 +617,25 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
     obj = [(float(p[0]), float(p[1])) for p in marker.object_points]
     wx, wy = camera.fx, camera.fy
     if refine:
-        # As estimate_pose: a loop that went astray hands the polish a fronto-parallel start.
-        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            z0 = _residuals_batch(R, t, obj, list(xs.T), list(ys.T), wx, wy, False)[2]
-        lost = ~(np.all(np.isfinite(R), axis=(1, 2)) & np.all(np.isfinite(t), axis=1) & (z0 > 0.0))
+        # As estimate_pose: start from the best fitting of the loop's pose and the two
+        # weak-perspective poses (fronto-parallel if none is usable).
+        with np.errstate(all="ignore"):
+            (Ra, ta), (Rb, tb) = weak_perspective_pair(xs, ys, marker.width, marker.height)
+            costs = []
+            for R0, t0 in ((R, t), (Ra, ta), (Rb, tb)):
+                _, c0, z0 = _residuals_batch(R0, t0, obj, list(xs.T), list(ys.T), wx, wy, False)
+                fin0 = np.all(np.isfinite(R0), axis=(1, 2)) & np.all(np.isfinite(t0), axis=1)
+                costs.append(np.where(fin0 & (z0 > 0.0) & np.isfinite(c0), c0, np.inf))
+        costs = np.stack(costs)
+        pick = np.argmin(costs, axis=0)
+        R = np.where((pick == 1)[:, None, None], Ra, np.where((pick == 2)[:, None, None], Rb, R))
+        t = np.where((pick == 1)[:, None], ta, np.where((pick == 2)[:, None], tb, t))
+        lost = ~np.isfinite(costs.min(axis=0))
         if np.any(lost):
             start = loop.correction_loop(norm[lost], 1.0, area, iterations=0)
             R[lost] = geometry.R_cam_marker_from_R_cam_unrot(start.R_cam_unrot)
             t[lost] = start.position_unrot
-    if refine:
         R, t, cost = _polish_batch(R, t, obj, xs, ys, wx, wy)
-        (Ra, ta), (Rb, tb) = weak_perspective_pair(xs, ys, marker.width, marker.height)
         da = np.einsum("ni,ni->n", R[:, :, 2], Ra[:, :, 2])
         db = np.einsum("ni,ni->n", R[:, :, 2], Rb[:, :, 2])
         a_near = da >= db
