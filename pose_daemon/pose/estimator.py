@@ -346,11 +346,9 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
         starts = [(R, t)] + (list(wp) if wp is not None else [])
         costs = []
         for R0, t0 in starts:
-            if np.all(np.isfinite(R0)) and np.all(np.isfinite(t0)):
-                _, c0, z0 = _residuals(R0.tolist(), t0.tolist(), obj, us, vs, wx, wy, False)
-                costs.append(c0 if z0 > 0.0 and math.isfinite(c0) else math.inf)
-            else:
-                costs.append(math.inf)
+            # A NaN or infinite pose gives a NaN or infinite cost.
+            _, c0, z0 = _residuals(R0.tolist(), t0.tolist(), obj, us, vs, wx, wy, False)
+            costs.append(c0 if z0 > 0.0 and math.isfinite(c0) else math.inf)
         best = min(range(len(starts)), key=costs.__getitem__)
         if math.isfinite(costs[best]):
             R, t = starts[best]
