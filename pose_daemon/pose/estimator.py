@@ -36,6 +36,8 @@ ALT_POLISH_ITER = 2
 ALT_FINISH = 4.0
 # Marker normals closer than ~20 deg: the loop's pose is on that side of the ambiguity.
 _COS_SAME_SIDE = math.cos(math.radians(20.0))
+# Rotation matrices closer than this (max element) are one and the same minimum.
+_SAME_POSE = 1e-4
 # Relative size below which two corners coincide / three corners are collinear.
 _DEGENERATE_REL = 1e-9
 # 180 deg about the marker's z axis: maps the mirror pose's marker axes back onto the image.
@@ -379,7 +381,9 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
                 R_c, t_c, cost_c, zmin_c = _polish(R_c, t_c, obj, us, vs, wx, wy)
             cands.append((R_c, t_c, cost_c, zmin_c))
         cands.sort(key=lambda c: c[2] if c[3] > 0.0 and math.isfinite(c[2]) else math.inf)
-        (R, t, cost, zmin), (R_alt, t_alt, cost_alt, zmin_alt) = cands[0], cands[1]
+        # Two starts can end in the same minimum: the alternative is the best other one.
+        others = [c for c in cands[1:] if not np.abs(c[0] - cands[0][0]).max() < _SAME_POSE]
+        (R, t, cost, zmin), (R_alt, t_alt, cost_alt, zmin_alt) = cands[0], (others or cands[1:])[0]
     else:
         R_alt, t_alt = mirror_pose(R, t)
         _, cost, zmin = _residuals(R.tolist(), t.tolist(), obj, us, vs, wx, wy, False)
@@ -666,7 +670,12 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
         order = np.argsort(costs, axis=0, kind="stable")
         rows_i = np.arange(N)
         R, t, cost = Rs[order[0], rows_i], ts[order[0], rows_i], costs[order[0], rows_i]
-        R_alt, t_alt, cost_alt = Rs[order[1], rows_i], ts[order[1], rows_i], costs[order[1], rows_i]
+        second = order[1]
+        if len(cands) > 2:
+            # Two starts can end in the same minimum: the alternative is the best other one.
+            same = np.abs(Rs[second, rows_i] - R).max(axis=(1, 2)) < _SAME_POSE
+            second = np.where(same, order[2], second)
+        R_alt, t_alt, cost_alt = Rs[second, rows_i], ts[second, rows_i], costs[second, rows_i]
         # Rows where every candidate failed keep the loop's pose, to be refused below.
         cost = np.where(np.isfinite(cost), cost, cands[0][2])
     else:
