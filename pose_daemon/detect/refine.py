@@ -17,7 +17,8 @@ import numpy as np
 
 #: Step between profile samples along an edge normal, pixels.
 PROFILE_STEP_PX = 0.5
-RECENTER = 2
+#: At most this many times the half-way level is re-taken about the edge found.
+_RECENTER_PASSES = 2
 
 _NEXT = np.array([1, 2, 3, 0])
 
@@ -28,7 +29,7 @@ class EdgeFit:
 
     corners: np.ndarray
     residual_px: float          # RMS distance of the edge points to their side's line
-    contrast: float             # median light - dark grey levels across the edges
+    contrast: float             # mean light - dark grey levels across the edges
     valid_fraction: float       # share of profiles that crossed the edge cleanly
 
 
@@ -133,7 +134,7 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
         # symmetric blur leaks the same amount into both, so their mean stays the
         # half-way level even when the profile is too short to reach either plateau.
         flat = prof.ravel()
-        for _ in range(RECENTER):
+        for _ in range(_RECENTER_PASSES):
             r = np.maximum(np.minimum(x, last - x), 1.0)
             xs = np.minimum(np.maximum(np.concatenate([x - r, x + r]), 0.0), last - 1e-6)
             i = xs.astype(np.intp)
@@ -173,14 +174,14 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
             lines.append((nx, ny, c))
         # Corner i is where side i-1 (into it) meets side i (out of it).
         refined = np.empty((4, 2))
-        for i in range(4):
-            ax, ay, ac = lines[i - 1]
-            bx_, by_, bc = lines[i]
-            det = ax * by_ - ay * bx_
+        for corner in range(4):
+            ax, ay, ac = lines[corner - 1]
+            nbx, nby, bc = lines[corner]
+            det = ax * nby - ay * nbx
             if abs(det) < 1e-6:
                 return None
-            refined[i, 0] = (ac * by_ - ay * bc) / det
-            refined[i, 1] = (ax * bc - ac * bx_) / det
+            refined[corner, 0] = (ac * nby - ay * bc) / det
+            refined[corner, 1] = (ax * bc - ac * nbx) / det
         if distorted:
             refined = _distort_px(refined, camera)
         if not np.isfinite(refined).all() or signed_area(refined) <= 0:
