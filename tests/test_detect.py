@@ -180,6 +180,7 @@ def test_no_detections_on_marker_free_frames() -> None:
         image = render_empty(CAM, effects=effects, rng=np.random.default_rng(200 + i))
         assert square.detect(image) is None, f"frame {i}"
         assert aruco.detect(image) is None, f"frame {i}"
+        assert square.last_stage is None and not square.tracking
 
 
 def test_other_markers_are_not_the_marker() -> None:
@@ -254,12 +255,20 @@ def test_bad_images_raise_a_clear_error(bad, message: str) -> None:
     assert message in str(info.value)
 
 
+def test_image_size_must_match_the_camera_model(upright) -> None:
+    image, _ = upright
+    detector = MarkerDetector(SQUARE, camera=Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5))
+    with pytest.raises(ValueError, match="image is 320x240 but the camera model is 640x480"):
+        detector.detect(image)
+
+
 def test_tiny_images_have_no_marker() -> None:
     assert MarkerDetector(SQUARE).detect(np.full((6, 6), 128, np.uint8)) is None
 
 
 @pytest.mark.parametrize("kwargs, message", [
     (dict(max_misses=-1), "max_misses"),
+    (dict(max_misses=2.5), "max_misses"),
     (dict(min_side_px=0.0), "min_side_px"),
     (dict(min_contrast=float("nan")), "min_contrast"),
     (dict(camera="cam"), "camera"),

@@ -97,7 +97,7 @@ class MarkerDetector:
                  roi_margin: float = 0.5) -> None:
         if not isinstance(marker, Marker):
             raise ValueError(f"marker must be a pose_daemon.Marker, got {type(marker).__name__}")
-        if int(max_misses) != max_misses or max_misses < 0:
+        if isinstance(max_misses, bool) or not isinstance(max_misses, (int, np.integer)) or max_misses < 0:
             raise ValueError(f"max_misses must be a non-negative integer, got {max_misses!r}")
         checks = (("min_side_px", min_side_px, 1.0), ("block_px", block_px, 3),
                   ("min_contrast", min_contrast, 1.0), ("max_edge_residual_px", max_edge_residual_px, 0.01),
@@ -109,6 +109,7 @@ class MarkerDetector:
         if camera is not None and not isinstance(camera, Camera):
             raise ValueError(f"camera must be a pose_daemon.Camera, got {type(camera).__name__}")
         self.marker = marker
+        self.camera = camera
         self.max_misses = int(max_misses)
         self.roi_margin = float(roi_margin)
         self.options = SquareOptions(
@@ -147,8 +148,11 @@ class MarkerDetector:
         something that is not an image.
         """
         gray = as_gray(image)
+        if self.camera is not None and gray.shape != (self.camera.height, self.camera.width):
+            raise ValueError(f"image is {gray.shape[1]}x{gray.shape[0]} but the camera model is "
+                             f"{self.camera.width}x{self.camera.height}")
         found, stage = self._find(gray)
-        self.last_stage = stage
+        self.last_stage = stage if found is not None else None
         if found is None:
             self.misses += 1
             self._previous = None  # no velocity across a gap
