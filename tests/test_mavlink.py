@@ -383,3 +383,19 @@ def test_mavproxy_ground_station_receives_the_stream(tmp_path):
 
 def _gcs_heard(out: MavlinkOutput) -> bool:
     return out.stats().get("gcs_heard", 0) > 0
+
+
+def test_udp_output_writes_in_publish_when_its_thread_is_idle():
+    """Datagrams cannot block: a queued UDP output sends at once instead of waking its thread."""
+    peer = UdpPeer()
+    out = output(f"udpout:127.0.0.1:{peer.port}", queue_size=4)
+    try:
+        for k in range(5):
+            out.publish(vehicle_result(WALL, k, 60.0 + k / 30, (-2.0, 0.0, 0.0)))
+            # Already sent when publish returns (unless the thread held the link at that moment).
+            assert out.stats()["sent"] + out.stats()["queued"] >= k + 1
+        msgs = peer.collect(1.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 5)
+    finally:
+        out.close()
+        peer.close()
+    assert [m.time_usec for m in of_type(msgs, "ODOMETRY")] == [time_usec_from_s(60.0 + k / 30) for k in range(5)]

@@ -281,6 +281,9 @@ class MavlinkOutput(QueuedOutput):
     def _open_is_quick(self) -> bool:
         return self.kind != "tcp"
 
+    def _writes_never_block(self) -> bool:
+        return self.kind in ("udpout", "udpin") and self._link_up
+
     def _open(self) -> None:
         self._link = _MavlinkLink(self.kind, self.device, self.baud, self.source_system,
                                   self.source_component, self._signing_key)

@@ -92,14 +92,26 @@ class QueuedOutput:
         """Queue one result (queued mode) or write it now (direct mode); never waits on a link."""
         with self._cond:
             self._counts["published"] += 1
-            if not self._direct:
+            inline = self._direct or (not self._queue and self._writes_never_block())
+            if not inline:
                 if len(self._queue) >= self._queue_size:
                     self._queue.popleft()
                     self._dropped["queue_full"] += 1
                 self._queue.append(result)
                 self._cond.notify()
                 return
-        if not self._io_lock.acquire(timeout=self.lock_timeout_s):
+        if not self._direct:
+            # A link whose writes cannot block (a non-blocking UDP socket): write now, in the
+            # caller's thread, unless the output's thread holds the link; then queue after all.
+            if not self._io_lock.acquire(blocking=False):
+                with self._cond:
+                    if len(self._queue) >= self._queue_size:
+                        self._queue.popleft()
+                        self._dropped["queue_full"] += 1
+                    self._queue.append(result)
+                    self._cond.notify()
+                return
+        elif not self._io_lock.acquire(timeout=self.lock_timeout_s):
             self._drop("link_busy")
             return
         try:
@@ -163,6 +175,11 @@ class QueuedOutput:
         """Send what this result calls for; return the number of messages/lines written (0 when
         a rule held it back, after counting why with ``_drop``). LinkError/LinkBusy on failure."""
         raise NotImplementedError
+
+    def _writes_never_block(self) -> bool:
+        """True when a write cannot wait (non-blocking datagrams): publish may then write at once
+        instead of waking the output's thread (saves the thread hand-over, ~0.3 ms)."""
+        return False
 
     def _open_is_quick(self) -> bool:
         """False for links whose opening may wait on the network (TCP): only the thread opens those."""
