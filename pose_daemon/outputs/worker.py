@@ -111,6 +111,7 @@ class QueuedOutput:
                     self._queue.append(result)
                     self._cond.notify()
                 return
+            self._count("written_inline")
         elif not self._io_lock.acquire(timeout=self.lock_timeout_s):
             self._drop("link_busy")
             return
