@@ -242,6 +242,7 @@ print(f"pi-stack: python {platform.python_version()} on {platform.machine()}, "
       f"opencv {cv2.__version__}, pymavlink {version('pymavlink')}, pyserial {serial.__version__}, "
       f"pytest {version('pytest')}")
 PY
+log "emulator: $("$qemu" --version | head -n 1), CPU cortex-a7"
 log "stack ready after $(($(date +%s) - t_start_s)) s"
 [ "$build_only" = 0 ] || exit 0
 
@@ -250,12 +251,16 @@ log "stack ready after $(($(date +%s) - t_start_s)) s"
 # minutes under emulation, and some need packages that are not on the Pi stack.
 if [ $# -eq 0 ]; then
   mapfile -t files < <(grep -lE 'mark\.pi\b' tests/test_*.py | sort)
-  [ "${#files[@]}" -gt 0 ] || die "no test file uses the pi marker"
+  if [ "${#files[@]}" -eq 0 ]; then
+    echo "pi-stack: no test file in tests/ uses the pi marker" >&2
+    exit 1
+  fi
   set -- -m pi -p no:cacheprovider "${files[@]}"
 fi
 t0=$(date +%s)
 set +e
-"$venv/bin/python" -m pytest "$@"
+# The venv's bin first, so a test that starts `pose-daemon` by name stays on the armhf stack.
+PATH="$venv/bin:$PATH" "$venv/bin/python" -m pytest "$@"
 rc=$?
 set -e
 log "pytest took $(($(date +%s) - t0)) s; the whole job $(($(date +%s) - t_start_s)) s"
