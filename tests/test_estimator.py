@@ -259,3 +259,12 @@ def test_mirror_pose_reflects_the_normal_about_the_line_of_sight(camera, marker)
     a = camera.project(marker.object_points @ R.T + t)
     b = camera.project(marker.object_points @ R_m.T + t_m)
     assert np.abs(a - b).max() < 15.0
+
+
+def test_vectorised_rotation_update_matches_geometry(rng):
+    from pose_daemon.pose.estimator import _rotate_batch
+
+    R = geometry.R_from_rvec(rng.normal(size=(50, 3)))
+    for scale in (0.0, 1e-9, 1e-3, 0.5, 3.0):
+        w = rng.normal(scale=scale, size=(50, 3)) if scale else np.zeros((50, 3))
+        assert np.abs(_rotate_batch(w, R) - geometry.R_from_rvec(w) @ R).max() < 1e-12
