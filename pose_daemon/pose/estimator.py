@@ -540,13 +540,18 @@ def _solve_batch(rows, lam: np.ndarray) -> List[np.ndarray]:
 
 def _polish_batch(R: np.ndarray, t: np.ndarray, obj, us: np.ndarray, vs: np.ndarray, wx: float,
                   wy: float, max_iter: int = POLISH_MAX_ITER,
-                  active: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  active: Optional[np.ndarray] = None,
+                  cost: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """_polish over N poses at once (us, vs: (N, 4)); each row stops on its own criterion.
-    Only rows still moving are computed. Returns R, t, cost (N,)."""
+    Only rows still moving are computed; ``cost`` (N,) of the start when already known.
+    Returns R, t, cost (N,)."""
     R, t = R.copy(), t.copy()
     N = R.shape[0]
     lam = np.zeros(N)
-    cost = _residuals_batch(R, t, obj, list(us.T), list(vs.T), wx, wy, False)[1]
+    if cost is None:
+        cost = _residuals_batch(R, t, obj, list(us.T), list(vs.T), wx, wy, False)[1]
+    else:
+        cost = cost.copy()
     active = np.ones(N, bool) if active is None else active.copy()
     for it in range(max_iter):
         idx = np.flatnonzero(active)
@@ -655,12 +660,14 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
         pick = np.argmin(costs, axis=0)
         R = np.where((pick == 1)[:, None, None], Ra, np.where((pick == 2)[:, None, None], Rb, R))
         t = np.where((pick == 1)[:, None], ta, np.where((pick == 2)[:, None], tb, t))
-        lost = ~np.isfinite(costs.min(axis=0))
+        start_cost = costs.min(axis=0)
+        lost = ~np.isfinite(start_cost)
         if np.any(lost):
             start = loop.correction_loop(norm[lost], 1.0, area, iterations=0)
             R[lost] = geometry.R_cam_marker_from_R_cam_unrot(start.R_cam_unrot)
             t[lost] = start.position_unrot
-        R, t, cost = _polish_batch(R, t, obj, xs, ys, wx, wy)
+            start_cost = None
+        R, t, cost = _polish_batch(R, t, obj, xs, ys, wx, wy, cost=start_cost)
         da = np.einsum("ni,ni->n", R[:, :, 2], Ra[:, :, 2])
         db = np.einsum("ni,ni->n", R[:, :, 2], Rb[:, :, 2])
         a_near = da >= db
@@ -668,18 +675,22 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
         t_far = np.where(a_near[:, None], tb, ta)
         R_near = np.where(a_near[:, None, None], Ra, Rb)
         t_near = np.where(a_near[:, None], ta, tb)
+        cost_far = np.where(a_near, costs[2], costs[1])
+        cost_near = np.where(a_near, costs[1], costs[2])
         cands = [(R, t, cost)]
-        for R0, t0, rows in ((R_far, t_far, None),
-                             (R_near, t_near, np.maximum(da, db) < _COS_SAME_SIDE)):
+        for R0, t0, c0, rows in ((R_far, t_far, cost_far, None),
+                                 (R_near, t_near, cost_near, np.maximum(da, db) < _COS_SAME_SIDE)):
             if rows is not None and not np.any(rows):
                 continue
             act = None if rows is None else rows
-            R_c, t_c, cost_c = _polish_batch(R0, t0, obj, xs, ys, wx, wy, ALT_POLISH_ITER, active=act)
+            R_c, t_c, cost_c = _polish_batch(R0, t0, obj, xs, ys, wx, wy, ALT_POLISH_ITER,
+                                             active=act, cost=c0)
             finish = cost_c < ALT_FINISH * cost
             if act is not None:
                 finish &= act
             if np.any(finish):
-                R_c, t_c, cost_c = _polish_batch(R_c, t_c, obj, xs, ys, wx, wy, active=finish)
+                R_c, t_c, cost_c = _polish_batch(R_c, t_c, obj, xs, ys, wx, wy, active=finish,
+                                                 cost=cost_c)
             if act is not None:
                 cost_c = np.where(act, cost_c, np.inf)
             cands.append((R_c, t_c, cost_c))
