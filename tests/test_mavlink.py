@@ -211,7 +211,7 @@ def test_waits_for_the_autopilot_then_sends_origin_and_home():
     beats = [t for m, t in zip(peer.messages, peer.arrivals) if m.get_type() == "HEARTBEAT"]
     assert len(beats) >= 3
     gaps = np.diff(beats)
-    assert np.all(gaps < 1.3) and np.all(gaps[1:] > 0.7), gaps
+    assert np.all(gaps < 1.5) and np.all(gaps[1:] > 0.5), gaps
     hb = of_type(msgs, "HEARTBEAT")[0]
     assert (hb.type, hb.autopilot, hb.get_srcComponent(), hb.get_srcSystem()) == (18, 8, 197, 1)
 
