@@ -374,7 +374,9 @@ def test_mavproxy_ground_station_receives_the_stream(tmp_path):
     from fc_acceptance import read_capture
 
     received = [r for r in read_capture(str(tlog)) if r.msg.get_srcComponent() == 197]
-    assert len(of_type([r.msg for r in received], "ODOMETRY")) >= 30
+    odo = of_type([r.msg for r in received], "ODOMETRY")
+    assert len(odo) >= 30
+    assert all((m.x, m.y, m.z) == pytest.approx((-2.0, 0.0, 0.0), abs=1e-5) for m in odo)
     assert b"Detected vehicle 1:197" in log
     assert b"pose-daemon: marker lost" in log and b"pose-daemon: marker found" in log
     report = check(received)
