@@ -79,6 +79,15 @@ def test_square_first_sighting_assumes_small_roll(roll: float) -> None:
     assert rms(corners, truth) < 0.15
 
 
+@pytest.mark.parametrize("roll", [-80, -50, 0, 60, 85])
+def test_long_rectangle_first_sighting_reads_roll_up_to_90(roll: float) -> None:
+    strip = Marker(0.30, 0.12)
+    image, truth = render(strip, *facing_pose(roll, 1.0, 20), seed=6)
+    corners = MarkerDetector(strip).detect(image)
+    assert corners is not None
+    assert rms(corners, truth) < 0.15
+
+
 def test_square_labels_continuous_through_a_full_turn() -> None:
     detector = MarkerDetector(SQUARE)
     for step, roll in enumerate(range(0, 361, 15)):

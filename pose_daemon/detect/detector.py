@@ -4,7 +4,8 @@ Per frame, cheapest first: follow the last corners (edge fits where the marker i
 to be), then search a region around them, then the whole frame. A track survives
 ``max_misses`` frames without the marker. Corner labels: an ArUco marker's pattern gives
 them; a plain square is 4-fold symmetric, so the first detection assumes |roll| < 45 deg and
-later ones keep the labels continuous with the previous frame.
+later ones keep the labels continuous with the previous frame (a rectangle clearly longer
+one way reads right up to |roll| < 90 deg).
 """
 
 from __future__ import annotations
@@ -55,16 +56,30 @@ def _cyclic_shift_to(corners: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return corners[[(i + k) % 4 for i in range(4)]]
 
 
-def _upright_labels(corners: np.ndarray) -> np.ndarray:
-    """Labels for a first sighting: the top side (TL->TR, and BL->BR) points closest to +x."""
+def _upright_labels(corners: np.ndarray, aspect_w_h: float = 1.0) -> np.ndarray:
+    """Labels for a first sighting: the top side (TL->TR, and BL->BR) points closest to +x.
+
+    For a rectangle clearly longer one way (``aspect_w_h`` = W/H), the sides that look
+    longer are taken as its width first when the image agrees, so |roll| up to 90 deg reads
+    right; a square's labels assume |roll| < 45 deg.
+    """
     c = corners.tolist()
-    best_k, best_cos = 0, -2.0
+    best_k, best_key = 0, (2, 0.0)
     for k in range(4):
         tl, tr, br, bl = (c[(i + k) % 4] for i in range(4))
         top_x, top_y = tr[0] - tl[0] + br[0] - bl[0], tr[1] - tl[1] + br[1] - bl[1]
         cos = top_x / max(math.hypot(top_x, top_y), 1e-12)
-        if cos > best_cos:
-            best_k, best_cos = k, cos
+        rank = 0
+        if abs(math.log(aspect_w_h)) > 0.2:
+            across = math.hypot(tr[0] - tl[0], tr[1] - tl[1]) + math.hypot(br[0] - bl[0], br[1] - bl[1])
+            down = math.hypot(bl[0] - tl[0], bl[1] - tl[1]) + math.hypot(br[0] - tr[0], br[1] - tr[1])
+            measured = math.log(max(across, 1e-9) / max(down, 1e-9))
+            # Only a clear elongation in the image decides; perspective can squash either way.
+            if abs(measured) > 0.2 and (measured > 0) != (aspect_w_h > 1.0):
+                rank = 1
+        key = (rank, -cos)
+        if key < best_key:
+            best_k, best_key = k, key
     return corners[[(i + best_k) % 4 for i in range(4)]]
 
 
@@ -209,7 +224,7 @@ class MarkerDetector:
         if cand.oriented:
             return cand.corners
         if reference is None:
-            return _upright_labels(cand.corners)
+            return _upright_labels(cand.corners, self.marker.width / self.marker.height)
         return _cyclic_shift_to(cand.corners, reference)
 
     def _pick_first(self, cands: List[Candidate]) -> Optional[np.ndarray]:
