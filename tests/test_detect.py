@@ -105,6 +105,20 @@ def test_aruco_orientation_from_its_pattern(roll: float) -> None:
     assert rms(corners, truth) < 0.15
 
 
+@pytest.mark.parametrize("dictionary, marker_id", [
+    ("DICT_5X5_100", 42), ("DICT_6X6_250", 100), ("DICT_7X7_50", 3), ("DICT_APRILTAG_36h11", 5),
+    ("DICT_ARUCO_ORIGINAL", 9),
+])
+def test_aruco_dictionaries(dictionary: str, marker_id: int) -> None:
+    marker = Marker(0.2, type="aruco", dictionary=dictionary, id=marker_id)
+    image, truth = render(marker, *facing_pose(200, 0.9, 45), seed=1)
+    corners = MarkerDetector(marker).detect(image)
+    assert corners is not None and rms(corners, truth) < 0.1
+    # Another id of the same dictionary is not this marker.
+    other = Marker(0.2, type="aruco", dictionary=dictionary, id=marker_id + 1)
+    assert MarkerDetector(other).detect(image) is None
+
+
 # ----------------------------------------------------------------------------- tracking
 
 
