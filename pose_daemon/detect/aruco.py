@@ -1,5 +1,6 @@
-"""The ArUco marker: found by OpenCV's ArUco detector (its dictionary and id give the
-orientation), corners refined by edge fits, followed between frames by reading its bits.
+"""The ArUco marker: found among the dark quadrilaterals by reading its bits (OpenCV's ArUco
+detector as the fallback); its dictionary and id give the orientation. Corners refined by
+edge fits, and followed between frames by reading its bits again.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from ..camera import Marker
 from . import aruco_compat
 from .quads import Roi, find_quads, odd
 from .refine import EdgeFit, fit_edges, signed_area
-from .square import Candidate, SquareOptions, _clamp, _median, sample_canonical, side_lengths
+from .square import Candidate, SquareOptions, clamp, median_of, sample_canonical, side_lengths
 
 _UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
 
@@ -69,7 +70,7 @@ class ArucoFinder:
         side = min(side_lengths(corners).tolist())
         cell = side / (self.n_bits + 2)
         # Inside, stay within the one-cell black border; outside, within the quiet zone.
-        return _clamp(0.6 * cell, 1.0, 3.0), _clamp(0.15 * side, 1.5, 3.0)
+        return clamp(0.6 * cell, 1.0, 3.0), clamp(0.15 * side, 1.5, 3.0)
 
     def refine(self, gray: np.ndarray, corners: np.ndarray, iterations: int,
                max_move_px: Optional[float] = None) -> Optional[EdgeFit]:
@@ -91,8 +92,8 @@ class ArucoFinder:
         ring = ring[np.isfinite(ring)]
         if not np.isfinite(cells).all() or len(ring) < 10:
             return None
-        dark = _median(cells[self._border])
-        light = _median(ring)
+        dark = median_of(cells[self._border])
+        light = median_of(ring)
         if light - dark < o.min_contrast:
             return None
         white = cells > 0.5 * (dark + light)

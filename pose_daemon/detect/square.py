@@ -70,11 +70,11 @@ _RING_DIR = np.concatenate([np.tile([0.0, -1.0], (7, 1)), np.tile([1.0, 0.0], (7
 _N_GRID = len(_GRID)
 
 
-def _clamp(value: float, lo: float, hi: float) -> float:
+def clamp(value: float, lo: float, hi: float) -> float:
     return min(max(float(value), lo), hi)
 
 
-def _median(values: np.ndarray) -> float:
+def median_of(values: np.ndarray) -> float:
     return float(np.partition(values, len(values) // 2)[len(values) // 2])
 
 
@@ -117,7 +117,7 @@ class SquareFinder:
     def reach_px(self, corners: np.ndarray):
         """(inside, outside) reach of the edge profiles for an outline of this size."""
         side = min(side_lengths(corners).tolist())
-        return _clamp(0.2 * side, 1.5, 3.0), _clamp(0.15 * side, 1.5, 3.0)
+        return clamp(0.2 * side, 1.5, 3.0), clamp(0.15 * side, 1.5, 3.0)
 
     def refine(self, gray: np.ndarray, corners: np.ndarray, iterations: int,
                max_move_px: Optional[float] = None) -> Optional[EdgeFit]:
@@ -151,7 +151,7 @@ class SquareFinder:
         ring = ring[np.isfinite(ring)]
         if len(ring) < 10:
             return False
-        dark, light = _median(inside), _median(ring)
+        dark, light = median_of(inside), median_of(ring)
         if light - dark < o.min_contrast:
             return False
         mid = 0.5 * (dark + light)
