@@ -85,7 +85,9 @@ def test_shipped_table_is_what_the_script_generates():
     import json
     from importlib import resources
     shipped = json.loads(resources.files("pose_daemon").joinpath("data", "paper_table.json").read_text())
-    assert np.allclose(np.array(fresh["beta"]), np.array(shipped["beta"]), rtol=1e-9, atol=1e-12)
+    # atol: coefficients that are zero in exact arithmetic come out as +-5e-12 rounding noise
+    # that differs between machines (Debian armhf under QEMU gives other noise than x86-64).
+    assert np.allclose(np.array(fresh["beta"]), np.array(shipped["beta"]), rtol=1e-9, atol=1e-10)
     assert np.allclose(fresh["z_rel"], shipped["z_rel"])
 
 
