@@ -252,20 +252,16 @@ class OutputWorker:
         return not self._thread.is_alive()
 
     def state(self) -> str:
-        """"name: N sent (...)" with the output's own counters when it keeps them."""
+        """"name N sent (...)" with the output's own ``status()`` text when it has one."""
         extra: List[str] = []
-        stats = getattr(self.output, "stats", None)
-        if callable(stats):
+        status = getattr(self.output, "status", None)
+        if callable(status):
             try:
-                s = stats()
-                extra.append(f"link {s.get('link', '?')}")
-                dropped = {k: v for k, v in dict(s.get("dropped", {})).items() if v}
-                if dropped:
-                    extra.append("dropped " + ", ".join(f"{k} {v}" for k, v in sorted(dropped.items())))
-                if s.get("last_error"):
-                    extra.append(f"last error: {s['last_error']}")
+                text = str(status())
             except Exception as exc:  # a status hook must never take the daemon down
-                extra.append(f"stats failed: {exc}")
+                text = f"status failed: {exc}"
+            if text:
+                extra.append(text)
         if self.last_error:
             extra.append(f"last error: {self.last_error}")
         sent = self._stats.written.get(self.name, 0)
