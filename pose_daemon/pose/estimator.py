@@ -30,9 +30,9 @@ POLISH_GAIN = 1e-4
 LAM_FIRST, LAM_UP, LAM_DOWN = 1e-3, 10.0, 0.1
 # The batch polish hands its last rows to the per-row polish below this count.
 _TAIL_ROWS = 48
-# The second solution needs only enough polish to rank it; it is finished if it wins.
+# The second solution needs only enough polish to rank it: one step, then it is finished
+# only when its cost is below ALT_FINISH times the best one's (a contender).
 ALT_POLISH_ITER = 1
-# ... and is finished when its cost is below this multiple of the best one's.
 ALT_FINISH = 4.0
 # Marker normals closer than ~20 deg: the loop's pose is on that side of the ambiguity.
 _COS_SAME_SIDE = math.cos(math.radians(20.0))
