@@ -227,3 +227,37 @@ wait_heartbeat = false
         assert m.distance == pytest.approx(float(np.linalg.norm(t)), rel=0.03)
     report = check(msgs)
     assert report.ok, str(report)
+
+
+def test_service_runs_a_recording_to_its_end_and_closes_the_outputs(tmp_path, caplog):
+    """The daemon's service (what `pose-daemon run` starts) opens the outputs from the config,
+    streams a recording to its end, reports the outputs in its status line and closes them."""
+    import logging
+
+    from pose_daemon.service import Service
+
+    peer = UdpPeer()
+    cfg = config("wall", "forward", (0.0, 0.0, 0.0), f"""
+[output.mavlink]
+connection = "udpout:127.0.0.1:{peer.port}"
+wait_heartbeat = false
+[output.jsonl]
+path = "{tmp_path / 'poses.jsonl'}"
+""")
+    camera, marker = cfg.camera.model(), cfg.marker.model()
+    truth = render.trajectory("wall", 30, FPS, seed=5, camera=camera, marker=marker)
+    source = RecordingSource([render.render_marker(camera, marker, p.rvec, p.tvec,
+                                                   rng=np.random.default_rng(i)).image
+                              for i, p in enumerate(truth)])
+    service = Service(cfg, source=source)
+    with caplog.at_level(logging.INFO):
+        assert service.run() == 0
+    msgs = peer.collect(1.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 30)
+    peer.close()
+    assert [m.time_usec for m in of_type(msgs, "ODOMETRY")] == source.stamps_us
+    assert check(msgs).ok
+    records = [json.loads(s) for s in (tmp_path / "poses.jsonl").read_text().splitlines()]
+    assert [r["frame"] for r in records] == list(range(30)) and all(r["ok"] for r in records)
+    assert all(o.stats()["link"] == "closed" for o in service.outputs)
+    status = [r.getMessage() for r in caplog.records if r.getMessage().startswith("status:")]
+    assert status and "mavlink 30 sent (link closed)" in status[-1] and "jsonl 30 sent" in status[-1], status
