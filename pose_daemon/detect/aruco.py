@@ -12,9 +12,17 @@ import numpy as np
 
 from ..camera import Marker
 from . import aruco_compat
-from .quads import Roi, find_quads, odd
-from .refine import EdgeFit, fit_edges, signed_area
-from .square import Candidate, SquareOptions, clamp, median_of, sample_canonical, side_lengths
+from .quads import Roi, find_quads, inside_any, odd
+from .refine import SEARCH_CONVERGED_PX, EdgeFit, fit_edges, signed_area
+from .square import (
+    Candidate,
+    SquareOptions,
+    clamp,
+    darker_inside,
+    median_of,
+    sample_canonical,
+    side_lengths,
+)
 
 _UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
 
@@ -73,11 +81,11 @@ class ArucoFinder:
         return clamp(0.6 * cell, 1.0, 3.0), clamp(0.15 * side, 1.5, 3.0)
 
     def refine(self, gray: np.ndarray, corners: np.ndarray, iterations: int,
-               max_move_px: Optional[float] = None) -> Optional[EdgeFit]:
+               max_move_px: Optional[float] = None, converged_px: float = 0.5) -> Optional[EdgeFit]:
         inner, outer = self.reach_px(corners)
         return fit_edges(gray, corners, inner_px=inner, outer_px=outer, iterations=iterations,
                          camera=self.camera, min_contrast=0.5 * self.options.min_contrast,
-                         max_move_px=max_move_px)
+                         max_move_px=max_move_px, converged_px=converged_px)
 
     def orientation(self, gray: np.ndarray, fit: EdgeFit) -> Optional[int]:
         """k such that the corners rolled by k start at the marker's top-left, or None if
@@ -131,7 +139,13 @@ class ArucoFinder:
         for scale in scales:
             for quad in find_quads(gray, min_side_px=o.min_side_px, block_px=block,
                                    offset_gray=o.threshold_offset, roi=roi, downscale=scale):
-                fit = self.refine(gray, quad, iterations=2, max_move_px=1.5 * scale + 1.0)
+                # Quads come largest first: one inside a marker already found is part of it.
+                if inside_any(quad.mean(axis=0), [c.corners for c in out]):
+                    continue
+                if not darker_inside(gray, quad, 0.5 / (self.n_bits + 2), 0.5 * o.min_contrast):
+                    continue
+                fit = self.refine(gray, quad, iterations=2, max_move_px=1.5 * scale + 1.0,
+                                  converged_px=SEARCH_CONVERGED_PX)
                 if fit is None:
                     continue
                 k = self.orientation(gray, fit)

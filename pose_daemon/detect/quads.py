@@ -88,3 +88,14 @@ def find_quads(gray: np.ndarray, *, min_side_px: float, block_px: int, offset_gr
         quads.append((area, pts))
     quads.sort(key=lambda item: -item[0])
     return [q for _, q in quads[:max_candidates]]
+
+
+def inside_any(point: np.ndarray, outlines: List[np.ndarray]) -> bool:
+    """Is ``point`` (2,) inside any of the convex image-clockwise ``outlines`` (4, 2)?"""
+    px, py = float(point[0]), float(point[1])
+    for outline in outlines:
+        c = outline.tolist()
+        if all((c[(i + 1) % 4][0] - c[i][0]) * (py - c[i][1]) - (c[(i + 1) % 4][1] - c[i][1]) * (px - c[i][0]) >= 0
+               for i in range(4)):
+            return True
+    return False

@@ -21,6 +21,9 @@ PROFILE_STEP_PX = 0.5
 _RECENTER_PASSES = 2
 
 _NEXT = np.array([1, 2, 3, 0])
+#: A search starts from polygon corners about a pixel off: one pass of edge fits is as good
+#: as two unless it moves them further than this (pixels).
+SEARCH_CONVERGED_PX = 1.5
 
 
 @dataclass
