@@ -195,8 +195,9 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
                       contrast=float(contrast[ok].mean()), valid_fraction=n_used / n)
         moved = float(np.abs(refined - current).max())
         current = refined
-        # Profiles along normals a fraction of a degree off find the same edge points.
-        if moved < converged_px:
+        # Profiles along normals a fraction of a degree off find the same edge points, but
+        # short profiles need to be centred on the edge to take its levels symmetrically.
+        if moved < min(converged_px, 0.3 * min(inner_px, outer_px)):
             break
     if fit is None:
         return None
