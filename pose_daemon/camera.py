@@ -11,6 +11,11 @@ import numpy as np
 
 MARKER_TYPES = ("square", "aruco")
 
+# OpenCV >= 4.7 exposes the undistortion iterations to Python: run them to convergence
+# (residual ~1e-13 px instead of ~1e-4 px with strong distortion). 4.6 keeps its default.
+_UNDISTORT_ITER = getattr(cv2, "undistortPointsIter", None)
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-14)
+
 
 @dataclass(frozen=True)
 class Camera:
@@ -75,6 +80,9 @@ class Camera:
             out[..., 0] = (pts[..., 0] - self.cx) / self.fx
             out[..., 1] = (pts[..., 1] - self.cy) / self.fy
             return out.reshape(-1, 2)
+        if _UNDISTORT_ITER is not None:
+            return _UNDISTORT_ITER(pts, self._K, self._dist, None, None,
+                                   _UNDISTORT_CRITERIA).reshape(-1, 2)
         return cv2.undistortPoints(pts, self._K, self._dist).reshape(-1, 2)
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
