@@ -210,8 +210,8 @@ class MavlinkOutput(QueuedOutput):
     tick_s = 0.05  # how often incoming bytes are read and the heartbeat is checked
 
     def __init__(self, connection: str, frames: VehicleFrames, *, fx_px: float, marker_width_m: float,
-                 marker_height_m: Optional[float] = None, baud: int = 921600, messages: Sequence[str] = ("ODOMETRY",), source_system: int = 1,
-                 source_component: int = 197, wait_heartbeat: bool = True, min_interval_s: float = 0.02,
+                 marker_height_m: Optional[float] = None, baud: int = 921600,
+                 messages: Sequence[str] = ("ODOMETRY",), source_system: int = 1, source_component: int = 197, wait_heartbeat: bool = True, min_interval_s: float = 0.02,
                  lost_timeout_s: float = 0.3, jump_m: float = 0.5, jump_deg: float = 30.0,
                  statustext: bool = True, origin: Optional[Sequence[float]] = None, set_home: bool = False,
                  signing_key: Optional[str] = None, queue_size: int = 4, retry_s: float = 0.5,
@@ -244,7 +244,7 @@ class MavlinkOutput(QueuedOutput):
         self._autopilot_heard_t: Optional[float] = None
         self._origin_sent = False
         self._started_text_sent = False
-        # Track state (touched by the writer thread only).
+        # Track state: touched only with the link held (the io lock of QueuedOutput).
         self.reset_counter = 0
         self._last_sent_t: Optional[float] = None
         self._last_sent_pose: Optional[Tuple[np.ndarray, np.ndarray]] = None
