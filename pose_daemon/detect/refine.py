@@ -196,8 +196,10 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
         moved = float(np.abs(refined - current).max())
         current = refined
         # Profiles along normals a fraction of a degree off find the same edge points, but
-        # short profiles need to be centred on the edge to take its levels symmetrically.
-        if moved < min(converged_px, 0.3 * min(inner_px, outer_px)):
+        # the levels need a symmetric window reaching past most of the blur on both sides
+        # of the edge; profiles that found their edge near one end get another pass.
+        window_px = float(np.median(np.minimum(x, last - x))) * PROFILE_STEP_PX
+        if moved < converged_px and window_px >= 1.25:
             break
     if fit is None:
         return None
