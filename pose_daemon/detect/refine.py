@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Tuple
 
 import cv2
 import numpy as np
@@ -68,13 +68,10 @@ def _crossing(prof: np.ndarray, rows: np.ndarray, level: np.ndarray) -> np.ndarr
     return j - 1 + frac
 
 
-def _fit_line(points: np.ndarray):
-    """Least-squares line through points (k, 2): unit normal (nx, ny), offset c with
-    n.x = c, and the signed residuals (k,)."""
+def _fit_line(points: np.ndarray) -> Tuple[float, float, float]:
+    """Least-squares line through points (k, 2): unit normal (nx, ny) and offset c, n.x = c."""
     vx, vy, x0, y0 = cv2.fitLine(points.astype(np.float32), cv2.DIST_L2, 0, 1e-4, 1e-4).ravel().tolist()
-    nx, ny = -vy, vx
-    c = nx * x0 + ny * y0
-    return nx, ny, c, points[:, 0] * nx + points[:, 1] * ny - c
+    return -vy, vx, -vy * x0 + vx * y0
 
 
 def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_px: float,
@@ -155,31 +152,31 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
         if distorted:
             pts = _undistort_px(pts.reshape(-1, 2), camera).reshape(4, m, 2)
         ok4 = ok.reshape(4, m)
-        lines = []
-        sq_sum = 0.0
-        n_used = 0
+        lines = np.empty((4, 3))
         for side in range(4):
             p = pts[side][ok4[side]]
             if len(p) < 3:
                 return None
-            nx, ny, c, res = _fit_line(p)
-            abs_res = np.abs(res)
-            if float(abs_res.max()) > 0.3:
-                # One pass of outlier rejection: a few profiles crossing glare, texture or a
-                # neighbouring blob must not pull the side.
-                keep = abs_res <= max(0.3, 3.0 * 1.4826 * float(np.median(abs_res)))
-                if keep.sum() >= 3:
-                    nx, ny, c, _ = _fit_line(p[keep])
-                    res = p[:, 0] * nx + p[:, 1] * ny - c
-            inlier = np.abs(res) <= 0.5
-            sq_sum += float(np.dot(res[inlier], res[inlier]))
-            n_used += int(inlier.sum())
-            lines.append((nx, ny, c))
+            lines[side] = _fit_line(p)
+        res = pts[..., 0] * lines[:, 0:1] + pts[..., 1] * lines[:, 1:2] - lines[:, 2:3]   # (4, m)
+        abs_res = np.where(ok4, np.abs(res), 0.0)
+        for side in np.nonzero(abs_res.max(axis=1) > 0.3)[0].tolist():
+            # One pass of outlier rejection: a few profiles crossing glare, texture or a
+            # neighbouring blob must not pull the side.
+            r = abs_res[side][ok4[side]]
+            keep = ok4[side] & (abs_res[side] <= max(0.3, 3.0 * 1.4826 * float(np.median(r))))
+            if keep.sum() >= 3:
+                lines[side] = _fit_line(pts[side][keep])
+                res[side] = pts[side, :, 0] * lines[side, 0] + pts[side, :, 1] * lines[side, 1] - lines[side, 2]
+        inlier = ok4 & (np.abs(res) <= 0.5)
+        n_used = int(inlier.sum())
+        sq_sum = float(np.square(res[inlier]).sum())
         # Corner i is where side i-1 (into it) meets side i (out of it).
         refined = np.empty((4, 2))
+        line_list = lines.tolist()
         for corner in range(4):
-            ax, ay, ac = lines[corner - 1]
-            nbx, nby, bc = lines[corner]
+            ax, ay, ac = line_list[corner - 1]
+            nbx, nby, bc = line_list[corner]
             det = ax * nby - ay * nbx
             if abs(det) < 1e-6:
                 return None
