@@ -6,19 +6,19 @@ gradients do not matter), outer contours, polygon fit, convexity and size checks
 
 from __future__ import annotations
 
+import math
 from typing import List, Optional, Tuple
 
 import cv2
 import numpy as np
-
-from .refine import signed_area
 
 #: (x0, y0, x1, y1) pixel bounds, x1/y1 exclusive.
 Roi = Tuple[int, int, int, int]
 
 
 def odd(n: float, lo: int = 3, hi: int = 255) -> int:
-    k = int(np.clip(round(n), lo, hi))
+    """The odd window size nearest ``n`` within [lo, hi]."""
+    k = min(max(int(round(float(n))), lo), hi)
     return k if k % 2 else k + 1
 
 
@@ -56,7 +56,8 @@ def find_quads(gray: np.ndarray, *, min_side_px: float, block_px: int, offset_gr
     min_perimeter = 4.0 * min_side_px
     min_area = min_side_px * min_side_px * 0.5
     quads: List[Tuple[float, np.ndarray]] = []
-    for contour, link in zip(contours, hierarchy[0]):
+    # Plain floats per polygon: a handful of points, where numpy's call overhead dominates.
+    for contour, link in zip(contours, hierarchy[0].tolist()):
         # Outer boundaries only: a hole's outline is the inside of a dark ring.
         if link[3] != -1 or len(contour) < 4:
             continue
@@ -66,26 +67,26 @@ def find_quads(gray: np.ndarray, *, min_side_px: float, block_px: int, offset_gr
         poly = cv2.approxPolyDP(contour, approx_rate * perimeter, True)
         if len(poly) != 4 or not cv2.isContourConvex(poly):
             continue
-        pts = poly.reshape(4, 2).astype(np.float64)
-        area = signed_area(pts)
+        pts = [(float(x), float(y)) for x, y in poly.reshape(4, 2).tolist()]
+        area = 0.5 * sum(pts[i][0] * pts[(i + 1) % 4][1] - pts[(i + 1) % 4][0] * pts[i][1] for i in range(4))
         if area < 0:
-            pts = pts[::-1].copy()
+            pts.reverse()
             area = -area
         if area < min_area:
             continue
-        sides = np.linalg.norm(pts - np.roll(pts, -1, axis=0), axis=1)
-        if sides.min() < min_side_px:
+        if min(math.hypot(pts[(i + 1) % 4][0] - pts[i][0], pts[(i + 1) % 4][1] - pts[i][1])
+               for i in range(4)) < min_side_px:
             continue
-        # Boundary pixels of the dark region lie half a pixel inside its true edge.
-        centre = pts.mean(axis=0)
-        direction = pts - centre
-        direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-9)
-        pts = pts + 0.5 * direction
-        if scale != 1.0:
-            # Pixel centres: full-size x = scale * x_small + (scale - 1) / 2.
-            pts = pts * scale + 0.5 * (scale - 1.0)
-        pts = pts + (x0, y0)
-        quads.append((area, pts))
+        # Boundary pixels of the dark region lie half a pixel inside its true edge; then
+        # pixel centres of the half-size image: full-size x = scale * x_small + (scale - 1) / 2.
+        cx = sum(p[0] for p in pts) / 4.0
+        cy = sum(p[1] for p in pts) / 4.0
+        out = []
+        for x, y in pts:
+            norm = max(math.hypot(x - cx, y - cy), 1e-9)
+            x, y = x + 0.5 * (x - cx) / norm, y + 0.5 * (y - cy) / norm
+            out.append((x * scale + 0.5 * (scale - 1.0) + x0, y * scale + 0.5 * (scale - 1.0) + y0))
+        quads.append((area, np.array(out)))
     quads.sort(key=lambda item: -item[0])
     return [q for _, q in quads[:max_candidates]]
 
