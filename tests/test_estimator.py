@@ -268,3 +268,86 @@ def test_vectorised_rotation_update_matches_geometry(rng):
     for scale in (0.0, 1e-9, 1e-3, 0.5, 3.0):
         w = rng.normal(scale=scale, size=(50, 3)) if scale else np.zeros((50, 3))
         assert np.abs(_rotate_batch(w, R) - geometry.R_from_rvec(w) @ R).max() < 1e-12
+
+
+def test_float_rotation_helpers_match_geometry(rng):
+    from pose_daemon.pose.estimator import (
+        _exp_f,
+        _matmul_f,
+        _mirror_f,
+        _paper_angles_deg_f,
+        _unrot_to_marker_f,
+        mirror_pose,
+    )
+
+    for scale in (0.0, 1e-13, 1e-9, 1e-3, 0.5, 3.0):
+        for _ in range(20):
+            w = rng.normal(scale=scale, size=3) if scale else np.zeros(3)
+            E = np.reshape(_exp_f(*w.tolist()), (3, 3))
+            assert np.abs(E - geometry.R_from_rvec(w)).max() < 1e-12
+    # A NaN or infinite step gives a NaN matrix (refused by its cost), never an exception.
+    assert all(math.isnan(v) for v in _exp_f(math.inf, 0.0, 0.0))
+    assert all(math.isnan(v) for v in _exp_f(math.nan, 0.0, 0.0))
+    for _ in range(20):
+        A, B = geometry.R_from_rvec(rng.normal(size=(2, 3)))
+        AB = _matmul_f(A.ravel().tolist(), B.ravel().tolist())
+        assert np.abs(np.reshape(AB, (3, 3)) - A @ B).max() < 1e-15
+        p = rng.normal(size=3)
+        R9, t3 = _unrot_to_marker_f(A.tolist(), p.tolist())
+        assert np.array_equal(np.reshape(R9, (3, 3)), geometry.R_cam_marker_from_R_cam_unrot(A))
+        assert np.abs(np.array(t3) - A @ p).max() < 1e-15
+        # Angles over the whole sphere, beta beyond +-90 deg included.
+        assert _paper_angles_deg_f(R9) == pytest.approx(
+            geometry.paper_angles_deg_from_R_cam_marker(np.reshape(R9, (3, 3))), abs=1e-12)
+        t = np.array([*rng.normal(scale=0.5, size=2), rng.uniform(0.5, 4.0)])
+        R_m, t_m = _mirror_f(R9, t.tolist())
+        R_ref, t_ref = mirror_pose(np.reshape(R9, (3, 3)), t)
+        assert np.abs(np.reshape(R_m, (3, 3)) - R_ref).max() < 1e-12
+        assert np.array_equal(np.array(t_m), t_ref)
+
+
+def test_float_normal_equations_and_cholesky_solve(camera, marker, rng):
+    from pose_daemon.pose.estimator import _cost_f, _normal_f, _solve6
+
+    obj = [(float(p[0]), float(p[1])) for p in marker.object_points]
+    wx, wy = camera.fx, camera.fy
+
+    def residuals(R, t, us, vs):
+        p = marker.object_points @ R.T + t
+        return np.concatenate([wx * (p[:, 0] / p[:, 2] - us), wy * (p[:, 1] / p[:, 2] - vs)])
+
+    for R, t, img in _cases(rng, camera, marker, 10):
+        n = camera.undistort_normalized(img + rng.normal(scale=1.0, size=(4, 2)))
+        us, vs = n[:, 0].tolist(), n[:, 1].tolist()
+        # Evaluated a little off the true pose: a non-zero gradient.
+        R0 = geometry.R_from_rvec(rng.normal(scale=0.05, size=3)) @ R
+        t0 = t + rng.normal(scale=0.02, size=3)
+        A, g, cost, zmin = _normal_f(R0.ravel().tolist(), t0.tolist(), obj, us, vs, wx, wy)
+        r = residuals(R0, t0, n[:, 0], n[:, 1])
+        # J by central differences on R <- exp(omega) R, t <- t + dt.
+        J = np.empty((8, 6))
+        h = 1e-6
+        for k in range(6):
+            d = np.zeros(6)
+            d[k] = h
+            plus = residuals(geometry.R_from_rvec(d[:3]) @ R0, t0 + d[3:], n[:, 0], n[:, 1])
+            minus = residuals(geometry.R_from_rvec(-d[:3]) @ R0, t0 - d[3:], n[:, 0], n[:, 1])
+            J[:, k] = (plus - minus) / (2 * h)
+        JtJ = J.T @ J
+        upper = [JtJ[i, j] for i in range(6) for j in range(i, 6)]
+        assert np.allclose(A, upper, rtol=1e-6, atol=1e-6 * np.abs(JtJ).max())
+        assert np.allclose(g, J.T @ r, rtol=1e-6, atol=1e-6 * np.abs(J.T @ r).max())
+        assert cost == pytest.approx(float(r @ r), rel=1e-12)
+        assert zmin == pytest.approx(float((marker.object_points @ R0.T + t0)[:, 2].min()), rel=1e-12)
+        assert _cost_f(R0.ravel().tolist(), t0.tolist(), obj, us, vs, wx, wy) == (cost, zmin)
+    # The solve against numpy, damped and undamped; not positive definite gives None.
+    for lam in (0.0, 1e-3, 10.0):
+        M = rng.normal(size=(9, 6))
+        M = M.T @ M
+        b = rng.normal(size=6)
+        x = _solve6([M[i, j] for i in range(6) for j in range(i, 6)], b.tolist(), lam)
+        ref = np.linalg.solve(M + np.diag(lam * np.diag(M)), -b)
+        assert np.allclose(x, ref, rtol=1e-9, atol=1e-12)
+    singular = np.ones((6, 6))
+    assert _solve6([singular[i, j] for i in range(6) for j in range(i, 6)], [1.0] * 6, 0.0) is None
+    assert _solve6([math.nan] * 21, [1.0] * 6, 0.0) is None

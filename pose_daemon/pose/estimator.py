@@ -12,7 +12,6 @@ import math
 from dataclasses import dataclass
 from typing import List, Optional, Sequence, Tuple
 
-import cv2
 import numpy as np
 
 from .. import geometry
@@ -42,6 +41,7 @@ _SAME_POSE = 1e-4
 _DEGENERATE_REL = 1e-9
 # 180 deg about the marker's z axis: maps the mirror pose's marker axes back onto the image.
 _R_FLIP_Z = geometry.R_from_rvec(np.array([0.0, 0.0, math.pi]))
+_FLIP_Z_F = tuple(_R_FLIP_Z.ravel().tolist())
 _NAMES = ("top-left", "top-right", "bottom-right", "bottom-left")
 
 
@@ -106,18 +106,76 @@ def _corners_as_floats(corners_px) -> List[float]:
 
 
 # --------------------------------------------------------------------------- polish (floats)
+# One pose on plain floats: R a row-major 9-tuple (R_cam_marker), t a 3-tuple. At four points
+# every numpy or cv2 call costs more than the arithmetic it saves.
 
-def _residuals(R: Sequence[Sequence[float]], t: Sequence[float], obj: Sequence[Tuple[float, float]],
-               us: Sequence[float], vs: Sequence[float], wx: float, wy: float, jac: bool):
-    """Weighted residuals (pixels) of the 4 corners; with ``jac`` a flat list of 8 rows
-    [d r / d (omega, dt), r] for R <- exp(omega) R, t <- t + dt. Also the cost and the
-    smallest corner depth."""
-    r00, r01, _ = R[0]
-    r10, r11, _ = R[1]
-    r20, r21, _ = R[2]
+# OpenCV's Cholesky refuses a pivot below this; the float solve does the same.
+_EPS = 2.220446049250313e-16
+
+
+def _exp_f(x: float, y: float, z: float) -> Tuple[float, ...]:
+    """exp([w]x) for w = (x, y, z) radians (Rodrigues' formula) as a row-major 9-tuple;
+    geometry.R_from_rvec on floats (the tests check the two agree)."""
+    t2 = x * x + y * y + z * z
+    if t2 < 1e-24:
+        a, b = 1.0, 0.5
+    elif t2 < math.inf:
+        th = math.sqrt(t2)
+        h = math.sin(0.5 * th)
+        a, b = math.sin(th) / th, 2.0 * h * h / t2  # 1 - cos = 2 sin^2(th / 2): no cancellation
+    else:
+        a = b = math.nan  # a NaN or infinite step: a NaN matrix, whose cost is refused
+    bxy, bxz, byz = b * x * y, b * x * z, b * y * z
+    ax, ay, az = a * x, a * y, a * z
+    return (1.0 + b * (x * x - t2), bxy - az, bxz + ay,
+            bxy + az, 1.0 + b * (y * y - t2), byz - ax,
+            bxz - ay, byz + ax, 1.0 + b * (z * z - t2))
+
+
+def _matmul_f(A: Sequence[float], B: Sequence[float]) -> Tuple[float, ...]:
+    """A @ B for row-major 9-tuples."""
+    a00, a01, a02, a10, a11, a12, a20, a21, a22 = A
+    b00, b01, b02, b10, b11, b12, b20, b21, b22 = B
+    return (a00 * b00 + a01 * b10 + a02 * b20, a00 * b01 + a01 * b11 + a02 * b21,
+            a00 * b02 + a01 * b12 + a02 * b22,
+            a10 * b00 + a11 * b10 + a12 * b20, a10 * b01 + a11 * b11 + a12 * b21,
+            a10 * b02 + a11 * b12 + a12 * b22,
+            a20 * b00 + a21 * b10 + a22 * b20, a20 * b01 + a21 * b11 + a22 * b21,
+            a20 * b02 + a21 * b12 + a22 * b22)
+
+
+def _cost_f(R: Sequence[float], t: Sequence[float], obj, us: Sequence[float], vs: Sequence[float],
+            wx: float, wy: float) -> Tuple[float, float]:
+    """Squared pixel error of the 4 undistorted corners (weights wx, wy = fx, fy) and the
+    smallest corner depth; a NaN or infinite pose gives a NaN or infinite cost."""
+    r00, r01, _, r10, r11, _, r20, r21, _ = R
     t0, t1, t2 = t
-    rows: List[float] = []
     cost = 0.0
+    zmin = math.inf
+    for (X, Y), u_obs, v_obs in zip(obj, us, vs):
+        pz = r20 * X + r21 * Y + t2
+        if pz < zmin:
+            zmin = pz
+        iz = 1.0 / pz if pz != 0.0 else math.inf
+        ru = wx * ((r00 * X + r01 * Y + t0) * iz - u_obs)
+        rv = wy * ((r10 * X + r11 * Y + t1) * iz - v_obs)
+        cost += ru * ru + rv * rv
+    return cost, zmin
+
+
+def _normal_f(R: Sequence[float], t: Sequence[float], obj, us: Sequence[float],
+              vs: Sequence[float], wx: float, wy: float):
+    """Gauss-Newton normal equations of the 8 weighted residuals for R <- exp(omega) R,
+    t <- t + dt: the 21 upper entries of J^T J (row by row), J^T r (6), the cost (as
+    _cost_f) and the smallest corner depth.
+
+    d u / d P = (1, 0, -u) / z, d u / d omega = q x (d u / d P); a u row has no dt_y entry
+    and a v row no dt_x entry, so J^T J[3][4] is 0 and those products are skipped."""
+    r00, r01, _, r10, r11, _, r20, r21, _ = R
+    t0, t1, t2 = t
+    a00 = a01 = a02 = a03 = a04 = a05 = a11 = a12 = a13 = a14 = a15 = 0.0
+    a22 = a23 = a24 = a25 = a33 = a35 = a44 = a45 = a55 = 0.0
+    g0 = g1 = g2 = g3 = g4 = g5 = cost = 0.0
     zmin = math.inf
     for (X, Y), u_obs, v_obs in zip(obj, us, vs):
         qx, qy, qz = r00 * X + r01 * Y, r10 * X + r11 * Y, r20 * X + r21 * Y
@@ -128,53 +186,135 @@ def _residuals(R: Sequence[Sequence[float]], t: Sequence[float], obj: Sequence[T
         u, v = (qx + t0) * iz, (qy + t1) * iz
         ru, rv = wx * (u - u_obs), wy * (v - v_obs)
         cost += ru * ru + rv * rv
-        if jac:
-            # d u / d P = (1, 0, -u) / z; d u / d omega = q x (d u / d P).
-            ax, az = wx * iz, -wx * u * iz
-            by, bz = wy * iz, -wy * v * iz
-            rows += (qy * az, qz * ax - qx * az, -qy * ax, ax, 0.0, az, ru,
-                     qy * bz - qz * by, -qx * bz, qx * by, 0.0, by, bz, rv)
-    return rows, cost, zmin
+        # The u row (j0, j1, j2, ax, 0, az) and the v row (k0, k1, k2, 0, by, bz).
+        ax, by = wx * iz, wy * iz
+        az, bz = -u * ax, -v * by
+        j0, j1, j2 = qy * az, qz * ax - qx * az, -qy * ax
+        k0, k1, k2 = qy * bz - qz * by, -qx * bz, qx * by
+        a00 += j0 * j0 + k0 * k0
+        a01 += j0 * j1 + k0 * k1
+        a02 += j0 * j2 + k0 * k2
+        a03 += j0 * ax
+        a04 += k0 * by
+        a05 += j0 * az + k0 * bz
+        a11 += j1 * j1 + k1 * k1
+        a12 += j1 * j2 + k1 * k2
+        a13 += j1 * ax
+        a14 += k1 * by
+        a15 += j1 * az + k1 * bz
+        a22 += j2 * j2 + k2 * k2
+        a23 += j2 * ax
+        a24 += k2 * by
+        a25 += j2 * az + k2 * bz
+        a33 += ax * ax
+        a35 += ax * az
+        a44 += by * by
+        a45 += by * bz
+        a55 += az * az + bz * bz
+        g0 += j0 * ru + k0 * rv
+        g1 += j1 * ru + k1 * rv
+        g2 += j2 * ru + k2 * rv
+        g3 += ax * ru
+        g4 += by * rv
+        g5 += az * ru + bz * rv
+    return ((a00, a01, a02, a03, a04, a05, a11, a12, a13, a14, a15, a22, a23, a24, a25, a33, 0.0,
+             a35, a44, a45, a55), (g0, g1, g2, g3, g4, g5), cost, zmin)
 
 
-def _polish(R: np.ndarray, t: np.ndarray, obj, us, vs, wx: float, wy: float,
-            max_iter: int = POLISH_MAX_ITER) -> Tuple[np.ndarray, np.ndarray, float, float]:
+def _solve6(A: Sequence[float], g: Sequence[float], lam: float) -> Optional[Tuple[float, ...]]:
+    """x with (A + lam diag(A)) x = -g by Cholesky, A the 21 upper entries of a symmetric 6x6
+    (row by row); None when it is not positive definite (as cv2.solve's DECOMP_CHOLESKY).
+    Written out: loops would cost more than the arithmetic."""
+    a00, a01, a02, a03, a04, a05, a11, a12, a13, a14, a15, a22, a23, a24, a25, a33, a34, \
+        a35, a44, a45, a55 = A
+    g0, g1, g2, g3, g4, g5 = g
+    sqrt = math.sqrt
+    damp = 1.0 + lam
+    s = a00 * damp
+    if not s >= _EPS:
+        return None
+    d0 = 1.0 / sqrt(s)
+    l10, l20, l30, l40, l50 = a01 * d0, a02 * d0, a03 * d0, a04 * d0, a05 * d0
+    s = a11 * damp - l10 * l10
+    if not s >= _EPS:
+        return None
+    d1 = 1.0 / sqrt(s)
+    l21 = (a12 - l20 * l10) * d1
+    l31 = (a13 - l30 * l10) * d1
+    l41 = (a14 - l40 * l10) * d1
+    l51 = (a15 - l50 * l10) * d1
+    s = a22 * damp - (l20 * l20 + l21 * l21)
+    if not s >= _EPS:
+        return None
+    d2 = 1.0 / sqrt(s)
+    l32 = (a23 - l30 * l20 - l31 * l21) * d2
+    l42 = (a24 - l40 * l20 - l41 * l21) * d2
+    l52 = (a25 - l50 * l20 - l51 * l21) * d2
+    s = a33 * damp - (l30 * l30 + l31 * l31 + l32 * l32)
+    if not s >= _EPS:
+        return None
+    d3 = 1.0 / sqrt(s)
+    l43 = (a34 - l40 * l30 - l41 * l31 - l42 * l32) * d3
+    l53 = (a35 - l50 * l30 - l51 * l31 - l52 * l32) * d3
+    s = a44 * damp - (l40 * l40 + l41 * l41 + l42 * l42 + l43 * l43)
+    if not s >= _EPS:
+        return None
+    d4 = 1.0 / sqrt(s)
+    l54 = (a45 - l50 * l40 - l51 * l41 - l52 * l42 - l53 * l43) * d4
+    s = a55 * damp - (l50 * l50 + l51 * l51 + l52 * l52 + l53 * l53 + l54 * l54)
+    if not s >= _EPS:
+        return None
+    d5 = 1.0 / sqrt(s)
+    # L y = -g, then L^T x = y (d_i = 1 / L_ii).
+    y0 = -g0 * d0
+    y1 = (-g1 - l10 * y0) * d1
+    y2 = (-g2 - l20 * y0 - l21 * y1) * d2
+    y3 = (-g3 - l30 * y0 - l31 * y1 - l32 * y2) * d3
+    y4 = (-g4 - l40 * y0 - l41 * y1 - l42 * y2 - l43 * y3) * d4
+    y5 = (-g5 - l50 * y0 - l51 * y1 - l52 * y2 - l53 * y3 - l54 * y4) * d5
+    x5 = y5 * d5
+    x4 = (y4 - l54 * x5) * d4
+    x3 = (y3 - l43 * x4 - l53 * x5) * d3
+    x2 = (y2 - l32 * x3 - l42 * x4 - l52 * x5) * d2
+    x1 = (y1 - l21 * x2 - l31 * x3 - l41 * x4 - l51 * x5) * d1
+    x0 = (y0 - l10 * x1 - l20 * x2 - l30 * x3 - l40 * x4 - l50 * x5) * d0
+    return x0, x1, x2, x3, x4, x5
+
+
+def _polish(R: Sequence[float], t: Sequence[float], obj, us, vs, wx: float, wy: float,
+            max_iter: int = POLISH_MAX_ITER):
     """Levenberg-Marquardt on the 6 pose parameters minimising the squared pixel error of the
-    undistorted corners (the maximum-likelihood pose for four points). Returns R, t, cost and
-    the smallest corner depth.
+    undistorted corners (the maximum-likelihood pose for four points). R a row-major 9-tuple,
+    t a 3-tuple; returns R, t, cost and the smallest corner depth.
     Stops once a step moves the pose by less than POLISH_TOL (radians; translation relative
     to the distance): with noise Gauss-Newton converges only linearly, and steps below that
-    change nothing measurable."""
-    tl = t.tolist()
-    rows, cost, zmin = _residuals(R.tolist(), tl, obj, us, vs, wx, wy, True)
+    change nothing measurable. A trial step is judged on its cost alone; the normal
+    equations are formed only where the next step starts."""
+    A, g, cost, zmin = _normal_f(R, t, obj, us, vs, wx, wy)
     lam = 0.0
     for _ in range(max_iter):
-        Q = cv2.mulTransposed(np.array(rows).reshape(8, 7), True)
-        A = Q[:6, :6]
-        if lam > 0.0:
-            A = A + np.diag(lam * np.diag(A))
-        ok, step = cv2.solve(A, -Q[:6, 6:7], flags=cv2.DECOMP_CHOLESKY)
-        if not ok:
+        s = _solve6(A, g, lam)
+        if s is None:
             break
-        s = step.ravel().tolist()
-        R_new = geometry.R_from_rvec(step[:3, 0]) @ R
-        t_new = [tl[0] + s[3], tl[1] + s[4], tl[2] + s[5]]
-        rows_n, cost_n, zmin_n = _residuals(R_new.tolist(), t_new, obj, us, vs, wx, wy, True)
+        s0, s1, s2, s3, s4, s5 = s
+        R_new = _matmul_f(_exp_f(s0, s1, s2), R)
+        t_new = (t[0] + s3, t[1] + s4, t[2] + s5)
+        cost_n, zmin_n = _cost_f(R_new, t_new, obj, us, vs, wx, wy)
         if zmin_n > 0.0 and cost_n <= cost * (1.0 + 1e-12):
             gain = cost - cost_n
-            R, tl, rows, cost, zmin = R_new, t_new, rows_n, cost_n, zmin_n
+            R, t, cost, zmin = R_new, t_new, cost_n, zmin_n
             lam *= LAM_DOWN
-            move = max(abs(s[0]), abs(s[1]), abs(s[2]),
-                       (abs(s[3]) + abs(s[4]) + abs(s[5])) / abs(t_new[2]))
+            move = max(abs(s0), abs(s1), abs(s2), (abs(s3) + abs(s4) + abs(s5)) / abs(t_new[2]))
             # Converged: the step is negligible, or it bought less than POLISH_GAIN of the
             # cost (what remains is a tiny fraction of the noise's own spread).
             if move < POLISH_TOL or gain <= POLISH_GAIN * cost:
                 break
+            A, g, _, _ = _normal_f(R, t, obj, us, vs, wx, wy)
         else:
             lam = LAM_FIRST if lam == 0.0 else lam * LAM_UP
             if lam > 1e6:
                 break
-    return R, np.array(tl), cost, zmin
+    return R, t, cost, zmin
 
 
 # --------------------------------------------------------------------------- the estimator
@@ -222,19 +362,30 @@ def weak_perspective_pair(us: np.ndarray, vs: np.ndarray, width: float, height: 
     return out[0], out[1]
 
 
-def _weak_perspective_pair_floats(us: Sequence[float], vs: Sequence[float], width: float,
-                                  height: float) -> List[Tuple[np.ndarray, np.ndarray]]:
-    """weak_perspective_pair for one quadrilateral on plain floats (the per-frame path)."""
+def _weak_perspective_pair_f(us: Sequence[float], vs: Sequence[float], width: float,
+                             height: float):
+    """weak_perspective_pair for one quadrilateral on plain floats (the per-frame path):
+    ((R_a, t_a), (R_b, t_b)) with R a row-major 9-tuple, t a 3-tuple."""
     cu, cv = 0.25 * (us[0] + us[1] + us[2] + us[3]), 0.25 * (vs[0] + vs[1] + vs[2] + vs[3])
     nrm = math.sqrt(cu * cu + cv * cv + 1.0)
     dx, dy, dz = cu / nrm, cv / nrm, 1.0 / nrm
     n_ax = math.hypot(dx, dy)
     if n_ax > 1e-15:
+        # Rodrigues as cv2.Rodrigues (geometry.R_from_rvec for one vector) writes it,
+        # c I + (1 - c) k k^T + s [k]x: a near fronto-parallel affine fit below amplifies
+        # rounding, and this keeps the same as the batch form.
         ang = math.atan2(n_ax, dz) / n_ax
-        Rc = geometry.R_from_rvec(np.array([-dy * ang, dx * ang, 0.0]))
+        rx, ry = -dy * ang, dx * ang
+        theta = math.sqrt(rx * rx + ry * ry)
+        kx, ky = rx * (1.0 / theta), ry * (1.0 / theta)
+        c, s = math.cos(theta), math.sin(theta)
+        c1 = 1.0 - c
+        Rc = (c + c1 * (kx * kx), c1 * (kx * ky), s * ky,
+              c1 * (kx * ky), c + c1 * (ky * ky), -s * kx,
+              -s * ky, s * kx, c)
     else:
-        Rc = np.eye(3)
-    (c00, c01, c02), (c10, c11, c12), (c20, c21, c22) = Rc.tolist()
+        Rc = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    c00, c01, c02, c10, c11, c12, c20, c21, c22 = Rc
     w2, h2 = 0.5 * width, 0.5 * height
     sa = sb = sc = sd = 0.0
     for (X, Y), u0, v0 in zip(((-w2, h2), (w2, h2), (w2, -h2), (-w2, -h2)), us, vs):
@@ -253,7 +404,7 @@ def _weak_perspective_pair_floats(us: Sequence[float], vs: Sequence[float], widt
     sk = math.sqrt(k)
     r31 = math.sqrt(max(1.0 - k * P, 0.0))
     r32 = math.sqrt(max(1.0 - k * Q, 0.0)) * (-1.0 if M > 0.0 else 1.0)
-    t = np.array([dx * sk, dy * sk, dz * sk])
+    t = (dx * sk, dy * sk, dz * sk)
     out = []
     for sign in (1.0, -1.0):
         x1, y1, z1 = a_ * sk, c_ * sk, sign * r31
@@ -264,10 +415,16 @@ def _weak_perspective_pair_floats(us: Sequence[float], vs: Sequence[float], widt
         x2, y2, z2 = x2 - dot * x1, y2 - dot * y1, z2 - dot * z1
         n2 = math.sqrt(x2 * x2 + y2 * y2 + z2 * z2)
         x2, y2, z2 = x2 / n2, y2 / n2, z2 / n2
-        R = np.array([[x1, x2, y1 * z2 - z1 * y2], [y1, y2, z1 * x2 - x1 * z2],
-                      [z1, z2, x1 * y2 - y1 * x2]])
-        out.append((Rc @ R, t))
-    return out
+        R = (x1, x2, y1 * z2 - z1 * y2, y1, y2, z1 * x2 - x1 * z2, z1, z2, x1 * y2 - y1 * x2)
+        out.append((_matmul_f(Rc, R), t))
+    return out[0], out[1]
+
+
+def _weak_perspective_pair_floats(us: Sequence[float], vs: Sequence[float], width: float,
+                                  height: float) -> List[Tuple[np.ndarray, np.ndarray]]:
+    """_weak_perspective_pair_f as arrays: [(R (3, 3), t (3,)), ...]."""
+    return [(np.array(R).reshape(3, 3), np.array(t))
+            for R, t in _weak_perspective_pair_f(us, vs, width, height)]
 
 
 def mirror_pose(R_cam_marker: np.ndarray, tvec: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
@@ -278,23 +435,56 @@ def mirror_pose(R_cam_marker: np.ndarray, tvec: np.ndarray) -> Tuple[np.ndarray,
     return geometry.R_from_rvec(math.pi * v) @ R_cam_marker @ _R_FLIP_Z, np.array(tvec, dtype=np.float64)
 
 
-def _pose_from(R: np.ndarray, t: np.ndarray, error_px: float, method: str, iterations: int,
-               alternative: Optional[Pose] = None, ratio: float = 0.0,
-               angles_deg: Optional[Tuple[float, float, float]] = None) -> Pose:
-    a, b, g = angles_deg if angles_deg is not None else geometry.paper_angles_deg_from_R_cam_marker(R)
-    return Pose(rvec=geometry.rvec_from_R(R), tvec=t, R=R, alpha_deg=a, beta_deg=b, gamma_deg=g,
-                reprojection_error_px=error_px, method=method, iterations=iterations,
-                alternative=alternative, ambiguity_ratio=ratio)
+def _mirror_f(R: Sequence[float], t: Sequence[float]):
+    """mirror_pose on floats (9-tuple, 3-tuple)."""
+    n = math.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
+    k = math.pi / n
+    return _matmul_f(_matmul_f(_exp_f(k * t[0], k * t[1], k * t[2]), R), _FLIP_Z_F), tuple(t)
 
 
-def _error_px(R: np.ndarray, t: np.ndarray, cost: float, camera: Camera, marker: Marker,
-              corners: List[float]) -> float:
+def _unrot_to_marker_f(R_l, p) -> Tuple[Tuple[float, ...], Tuple[float, float, float]]:
+    """The loop's R_cam_unrot (3x3 nested lists) and marker centre p in the unrotated frame as
+    (R_cam_marker 9-tuple, tvec): R_cam_marker = R_cam_unrot geometry.R_UNROT_MARKER, i.e.
+    its last two columns negated, and tvec = R_cam_unrot p."""
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = R_l
+    px, py, pz = p
+    return ((a00, -a01, -a02, a10, -a11, -a12, a20, -a21, -a22),
+            (a00 * px + a01 * py + a02 * pz, a10 * px + a11 * py + a12 * pz,
+             a20 * px + a21 * py + a22 * pz))
+
+
+def _paper_angles_deg_f(R: Sequence[float]) -> Tuple[float, float, float]:
+    """geometry.paper_angles_deg_from_R_cam_marker on a 9-tuple: R_cam_unrot = R_cam_marker
+    diag(1, -1, -1), so its (2,0), (1,0), (0,0) entries are R's and (2,1), (2,2) are negated."""
+    beta = math.asin(min(1.0, max(-1.0, R[6])))
+    return (math.degrees(math.atan2(-R[7], -R[8])), math.degrees(beta),
+            math.degrees(math.atan2(R[3], R[0])))
+
+
+def _pose_from(R: Sequence[float], t: Sequence[float], error_px: float, method: str,
+               iterations: int, alternative: Optional[Pose] = None, ratio: float = 0.0) -> Pose:
+    a, b, g = _paper_angles_deg_f(R)
+    R_np = np.array(R).reshape(3, 3)
+    return Pose(rvec=geometry.rvec_from_R(R_np), tvec=np.array(t), R=R_np, alpha_deg=a,
+                beta_deg=b, gamma_deg=g, reprojection_error_px=error_px, method=method,
+                iterations=iterations, alternative=alternative, ambiguity_ratio=ratio)
+
+
+def _error_px(R: Sequence[float], t: Sequence[float], cost: float, camera: Camera,
+              marker: Marker, corners: List[float]) -> float:
     """RMS reprojection error over the 4 corners in pixels, through the lens distortion."""
     if not camera.has_distortion:
         return math.sqrt(cost / 4.0)
-    proj = camera.project(marker.object_points @ R.T + t)
+    proj = camera.project(marker.object_points @ np.array(R).reshape(3, 3).T + np.array(t))
     d = proj.ravel() - np.array(corners)
     return math.sqrt(float(d @ d) / 4.0)
+
+
+def _all_finite(values: Sequence[float]) -> bool:
+    for v in values:
+        if not math.isfinite(v):
+            return False
+    return True
 
 
 def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "iterative",
@@ -318,61 +508,59 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
         norm = [(flat[0] - cx) / fx, (flat[1] - cy) / fy, (flat[2] - cx) / fx, (flat[3] - cy) / fy,
                 (flat[4] - cx) / fx, (flat[5] - cy) / fy, (flat[6] - cx) / fx, (flat[7] - cy) / fy]
     us, vs = norm[0::2], norm[1::2]
-    if not all(math.isfinite(v) for v in norm):
+    if not _all_finite(norm):
         raise EstimationError("corners cannot be undistorted with this camera model")
     problem = quad_problem(us, vs)
     if problem:
         raise EstimationError(problem)
-    area = marker.width * marker.height
+    width, height = marker.width, marker.height
+    area = width * height
     try:
-        R_l, (px, py, pz), used = loop.loop_one(us, vs, area, method, iterations, LOOP_TOL_RAD,
-                                               marker.width / marker.height)
+        R_l, p, used = loop.loop_one(us, vs, area, method, iterations, LOOP_TOL_RAD, width / height)
     except (ZeroDivisionError, OverflowError, ValueError):
         # A correction sent a corner to infinity: the loop went astray.
         nan = math.nan
-        R_l, (px, py, pz), used = [[nan] * 3] * 3, (nan, nan, nan), iterations
-    R_cam_unrot = np.array(R_l)
-    R = geometry.R_cam_marker_from_R_cam_unrot(R_cam_unrot)
-    t = R_cam_unrot @ np.array([px, py, pz])
-    obj = [(float(p[0]), float(p[1])) for p in marker.object_points]
+        R_l, p, used = [[nan] * 3] * 3, (nan, nan, nan), iterations
+    R, t = _unrot_to_marker_f(R_l, p)
+    # marker.object_points' (X, Y): the same halves of the same floats.
+    w2, h2 = width / 2.0, height / 2.0
+    obj = ((-w2, h2), (w2, h2), (w2, -h2), (-w2, -h2))
     wx, wy = camera.fx, camera.fy
     wp = None
     if refine:
         try:
-            wp = _weak_perspective_pair_floats(us, vs, marker.width, marker.height)
+            wp = _weak_perspective_pair_f(us, vs, width, height)
         except (ZeroDivisionError, ValueError, OverflowError):
             wp = None  # a degenerate affine fit: the mirror stands in below
         # The polish starts from whichever fits the corners best: the loop's pose or one of
         # the two weak-perspective poses. Under pixel noise the loop's vanishing-point steps
         # can end far from the minimum; the polish then takes longer or stops in a worse one.
         starts = [(R, t)] + (list(wp) if wp is not None else [])
-        costs = []
-        for R0, t0 in starts:
+        best_cost, best = math.inf, 0
+        for i, (R0, t0) in enumerate(starts):
             # A NaN or infinite pose gives a NaN or infinite cost.
-            _, c0, z0 = _residuals(R0.tolist(), t0.tolist(), obj, us, vs, wx, wy, False)
-            costs.append(c0 if z0 > 0.0 and math.isfinite(c0) else math.inf)
-        best = min(range(len(starts)), key=costs.__getitem__)
-        if math.isfinite(costs[best]):
+            c0, z0 = _cost_f(R0, t0, obj, us, vs, wx, wy)
+            if z0 > 0.0 and c0 < best_cost:
+                best_cost, best = c0, i
+        if best_cost < math.inf:
             R, t = starts[best]
         else:
             # Nothing usable: the marker facing the camera at the depth its area gives.
-            R_l, (px, py, pz), _ = loop.loop_one(us, vs, area, method, 0)
-            R_cam_unrot = np.array(R_l)
-            R = geometry.R_cam_marker_from_R_cam_unrot(R_cam_unrot)
-            t = R_cam_unrot @ np.array([px, py, pz])
-    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+            R_l, p, _ = loop.loop_one(us, vs, area, method, 0)
+            R, t = _unrot_to_marker_f(R_l, p)
+    if not (_all_finite(R) and _all_finite(t)):
         raise EstimationError("no finite pose fits these corners")
     if refine:
         R, t, cost, zmin = _polish(R, t, obj, us, vs, wx, wy)
         # The other planar solution starts from the weak-perspective pose on the far side of
         # the ambiguity; if the polished pose is near neither side, the near one is tried too.
         if wp is not None:
-            n = R[:, 2]
-            dots = [float(n @ Rw[:, 2]) for Rw, _ in wp]
+            n0, n1, n2 = R[2], R[5], R[8]
+            dots = [n0 * Rw[2] + n1 * Rw[5] + n2 * Rw[8] for Rw, _ in wp]
             near, far = (0, 1) if dots[0] >= dots[1] else (1, 0)
             starts = [wp[far]] + ([wp[near]] if dots[near] < _COS_SAME_SIDE else [])
         else:
-            starts = [mirror_pose(R, t)]
+            starts = [_mirror_f(R, t)]
         cands = [(R, t, cost, zmin)]
         for R0, t0 in starts:
             R_c, t_c, cost_c, zmin_c = _polish(R0, t0, obj, us, vs, wx, wy, ALT_POLISH_ITER)
@@ -382,12 +570,14 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
             cands.append((R_c, t_c, cost_c, zmin_c))
         cands.sort(key=lambda c: c[2] if c[3] > 0.0 and math.isfinite(c[2]) else math.inf)
         # Two starts can end in the same minimum: the alternative is the best other one.
-        others = [c for c in cands[1:] if not np.abs(c[0] - cands[0][0]).max() < _SAME_POSE]
+        R0 = cands[0][0]
+        others = [c for c in cands[1:]
+                  if not all(abs(a - b) < _SAME_POSE for a, b in zip(c[0], R0))]
         (R, t, cost, zmin), (R_alt, t_alt, cost_alt, zmin_alt) = cands[0], (others or cands[1:])[0]
     else:
-        R_alt, t_alt = mirror_pose(R, t)
-        _, cost, zmin = _residuals(R.tolist(), t.tolist(), obj, us, vs, wx, wy, False)
-        _, cost_alt, zmin_alt = _residuals(R_alt.tolist(), t_alt.tolist(), obj, us, vs, wx, wy, False)
+        R_alt, t_alt = _mirror_f(R, t)
+        cost, zmin = _cost_f(R, t, obj, us, vs, wx, wy)
+        cost_alt, zmin_alt = _cost_f(R_alt, t_alt, obj, us, vs, wx, wy)
     if not zmin > 0.0:
         # The input faced the camera (quad_problem), so the loop went astray.
         raise EstimationError(f"the {method} correction loop did not converge to a pose in "
@@ -400,15 +590,10 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
     # Without the polish the mirror is only a first guess: report it, never prefer it.
     if refine and err_alt < err:
         R, t, err, R_alt, t_alt, err_alt = R_alt, t_alt, err_alt, R, t, err
-    ratio = _ratio(err, err_alt)
-    # Both poses' angles in one call: numpy's per-call cost dominates at one matrix.
-    a, b, g = geometry.paper_angles_from_R_cam_unrot(
-        geometry.R_cam_unrot_from_R_cam_marker(np.stack([R, R_alt])))
-    a, b, g = np.degrees(a).tolist(), np.degrees(b).tolist(), np.degrees(g).tolist()
     alternative = None
     if math.isfinite(err_alt):
-        alternative = _pose_from(R_alt, t_alt, err_alt, method, used, angles_deg=(a[1], b[1], g[1]))
-    return _pose_from(R, t, err, method, used, alternative, ratio, angles_deg=(a[0], b[0], g[0]))
+        alternative = _pose_from(R_alt, t_alt, err_alt, method, used)
+    return _pose_from(R, t, err, method, used, alternative, _ratio(err, err_alt))
 
 
 def _ratio(err: float, err_alt: float) -> float:
@@ -561,8 +746,10 @@ def _polish_batch(R: np.ndarray, t: np.ndarray, obj, us: np.ndarray, vs: np.ndar
             # A few slow rows left: numpy's per-call overhead would dominate, finish them
             # one by one.
             for i in idx.tolist():
-                R[i], t[i], cost[i], _ = _polish(R[i], t[i], obj, us[i].tolist(), vs[i].tolist(),
-                                                 wx, wy, max_iter - it)
+                R_i, t_i, cost[i], _ = _polish(tuple(R[i].ravel().tolist()), tuple(t[i].tolist()),
+                                               obj, us[i].tolist(), vs[i].tolist(), wx, wy,
+                                               max_iter - it)
+                R[i], t[i] = np.reshape(R_i, (3, 3)), t_i
             break
         Rs, ts, ls = R[idx], t[idx], lam[idx]
         u_s, v_s = list(us[idx].T), list(vs[idx].T)
