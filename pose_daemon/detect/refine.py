@@ -164,7 +164,8 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
             # One pass of outlier rejection: a few profiles crossing glare, texture or a
             # neighbouring blob must not pull the side.
             r = abs_res[side][ok4[side]]
-            keep = ok4[side] & (abs_res[side] <= max(0.3, 3.0 * 1.4826 * float(np.median(r))))
+            mad = float(np.partition(r, len(r) // 2)[len(r) // 2])
+            keep = ok4[side] & (abs_res[side] <= max(0.3, 3.0 * 1.4826 * mad))
             if keep.sum() >= 3:
                 lines[side] = _fit_line(pts[side][keep])
                 res[side] = pts[side, :, 0] * lines[side, 0] + pts[side, :, 1] * lines[side, 1] - lines[side, 2]
@@ -195,7 +196,8 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
         # Profiles along normals a fraction of a degree off find the same edge points, but
         # the levels need a symmetric window reaching past most of the blur on both sides
         # of the edge; profiles that found their edge near one end get another pass.
-        window_px = float(np.median(np.minimum(x, last - x))) * PROFILE_STEP_PX
+        half = np.minimum(x, last - x)
+        window_px = float(np.partition(half, n // 2)[n // 2]) * PROFILE_STEP_PX
         if moved < converged_px and window_px >= 1.25:
             break
     if fit is None:
