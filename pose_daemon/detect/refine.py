@@ -120,8 +120,15 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
         # Outward normal of an image-clockwise outline: (u_y, -u_x).
         gx = (bx[:, :, None] + offsets * u[:, 1, None, None]).reshape(n, n_off).astype(np.float32)
         gy = (by[:, :, None] - offsets * u[:, 0, None, None]).reshape(n, n_off).astype(np.float32)
-        ends_x, ends_y = gx[:, [0, -1]], gy[:, [0, -1]]
-        inside = ((ends_x >= 0) & (ends_x <= w - 1) & (ends_y >= 0) & (ends_y <= h - 1)).all(axis=1)
+        # Every profile lies within the outline grown by the reach: when that is well inside
+        # the image, none needs checking.
+        (xmin, ymin), (xmax, ymax) = current.min(axis=0).tolist(), current.max(axis=0).tolist()
+        grow = max(inner_px, outer_px) + 1.0
+        if xmin >= grow and ymin >= grow and xmax + grow <= w - 1 and ymax + grow <= h - 1:
+            inside = True
+        else:
+            ends_x, ends_y = gx[:, [0, -1]], gy[:, [0, -1]]
+            inside = ((ends_x >= 0) & (ends_x <= w - 1) & (ends_y >= 0) & (ends_y <= h - 1)).all(axis=1)
         prof = cv2.remap(gray, gx, gy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
         dark = 0.5 * (prof[:, 0] + prof[:, 1])
         light = 0.5 * (prof[:, -1] + prof[:, -2])
