@@ -137,7 +137,8 @@ EOF
   find "$aptdir/cache/archives" -maxdepth 1 -name '*.deb' -print0 |
     xargs -0 -n 16 -P 2 sh -c 'for d in "$@"; do dpkg-deb --fsys-tarfile "$d" | tar -x --keep-directory-symlink -C "'"$root"'" || exit 255; done' sh ||
     die "unpacking the packages failed"
-  rm -f "$aptdir"/cache/archives/*.deb
+  # Only the logs are kept: the package lists and archives (~280 MB) are not needed again.
+  rm -rf "$aptdir/cache" "$aptdir/state/lists"
   log "unpacked after $(($(date +%s) - t0)) s"
 
   # What the maintainer scripts would have done, as far as python needs it: absolute
