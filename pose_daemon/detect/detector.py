@@ -32,7 +32,7 @@ def as_gray(image) -> np.ndarray:
     if image.size == 0:
         raise ValueError(f"image is empty (shape {image.shape})")
     if image.dtype == np.uint16:
-        # 10/12-bit sensors deliver uint16 scaled to the full range; keep the top byte.
+        # 16-bit grey (a PNG, a camera's wide output) spans 0..65535: keep the top byte.
         image = (image >> 8).astype(np.uint8)
     elif image.dtype != np.uint8:
         raise ValueError(f"image must be uint8 (or uint16) grey levels, got dtype {image.dtype}")
