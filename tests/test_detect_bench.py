@@ -26,8 +26,8 @@ def test_bench_prints_figures_for_both_markers_and_the_anchor(capsys) -> None:
         assert 0 < row["time_tracked_median_ms"] and 0 < row["time_full_median_ms"]
     anchor = rows["aruco (OpenCV ArUco + IPPE)"]
     assert anchor["detection_rate"] >= 0.75 and anchor["corner_rms_px"] < 1.0
-    labels = [label for label, _ in result["timing_rows"]]
-    assert labels[-1].startswith("anchor") and all(ms > 0 for _, ms in result["timing_rows"])
+    labels = [label for label, _, _ in result["timing_rows"]]
+    assert labels[-1].startswith("anchor") and all(ms > 0 and cpu > 0 for _, ms, cpu in result["timing_rows"])
     assert result["setup"]["width"] == 640 and result["setup"]["pi2_factor"] == 20.0
 
 
