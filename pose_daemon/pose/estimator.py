@@ -665,62 +665,124 @@ def _residuals_batch(R: np.ndarray, t: np.ndarray, obj, us, vs, wx: float, wy: f
     return (rows if jac else None), cost, zmin
 
 
-def _rotate_batch(w: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """exp([w]x) R for stacks (n, 3) and (n, 3, 3): geometry.R_from_rvec(w) @ R written out per
-    component (Rodrigues' formula), several times faster for the vectorised polish's small
-    steps; the tests check it against geometry."""
-    theta = np.sqrt(np.einsum("ni,ni->n", w, w))
+def _rotate_comp(w0: np.ndarray, w1: np.ndarray, w2: np.ndarray, Rc) -> List[np.ndarray]:
+    """exp([w]x) R on components: w0..w2 (n,) and R as 9 (n,) arrays (row-major); returns 9.
+    Rodrigues' formula written out per component, several times faster than stacked 3x3
+    matrices for the vectorised polish's small steps; the tests check it against geometry."""
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    theta = np.sqrt(t2)
     small = theta < 1e-12
     safe = np.where(small, 1.0, theta)
     a = np.where(small, 1.0, np.sin(safe) / safe)             # sin(t) / t
     b = np.where(small, 0.5, (1.0 - np.cos(safe)) / (safe * safe))  # (1 - cos t) / t^2
-    x, y, z = w[:, 0], w[:, 1], w[:, 2]
     # E = I + a [w]x + b [w]x^2, with [w]x^2 = w w^T - |w|^2 I.
-    t2 = theta * theta
-    e = [[1.0 + b * (x * x - t2), -a * z + b * x * y, a * y + b * x * z],
-         [a * z + b * x * y, 1.0 + b * (y * y - t2), -a * x + b * y * z],
-         [-a * y + b * x * z, a * x + b * y * z, 1.0 + b * (z * z - t2)]]
-    out = np.empty_like(R)
-    for i in range(3):
-        ei0, ei1, ei2 = e[i]
+    bxy, bxz, byz = b * w0 * w1, b * w0 * w2, b * w1 * w2
+    ax, ay, az = a * w0, a * w1, a * w2
+    e = ((1.0 + b * (w0 * w0 - t2), bxy - az, bxz + ay),
+         (bxy + az, 1.0 + b * (w1 * w1 - t2), byz - ax),
+         (bxz - ay, byz + ax, 1.0 + b * (w2 * w2 - t2)))
+    out = []
+    for ei0, ei1, ei2 in e:
         for j in range(3):
-            out[:, i, j] = ei0 * R[:, 0, j] + ei1 * R[:, 1, j] + ei2 * R[:, 2, j]
+            out.append(ei0 * Rc[j] + ei1 * Rc[3 + j] + ei2 * Rc[6 + j])
     return out
 
 
-def _solve_batch(rows, lam: np.ndarray) -> List[np.ndarray]:
-    """Vectorised Cholesky solve of (J^T J + lam diag) x = -J^T r from the 8 rows."""
-    n = 6
-    A = [[None] * n for _ in range(n)]
-    g = [None] * n
-    for a in range(n):
-        g[a] = sum(row[a] * row[6] for row in rows)
-        for b in range(a + 1):
-            A[a][b] = sum(row[a] * row[b] for row in rows)
-    L = [[None] * n for _ in range(n)]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        for i in range(n):
-            for j in range(i + 1):
-                acc = A[i][j] * (1.0 + lam) if i == j else A[i][j]
-                for k in range(j):
-                    acc = acc - L[i][k] * L[j][k]
-                if i == j:
-                    L[i][i] = np.sqrt(np.where(acc > 0.0, acc, np.nan))
-                else:
-                    L[i][j] = acc / L[j][j]
-        y = [None] * n
-        for i in range(n):
-            acc = -g[i]
-            for k in range(i):
-                acc = acc - L[i][k] * y[k]
-            y[i] = acc / L[i][i]
-        x = [None] * n
-        for i in range(n - 1, -1, -1):
-            acc = y[i]
-            for k in range(i + 1, n):
-                acc = acc - L[k][i] * x[k]
-            x[i] = acc / L[i][i]
-    return x
+def _rotate_batch(w: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """exp([w]x) R for stacks (n, 3) and (n, 3, 3): geometry.R_from_rvec(w) @ R."""
+    n = R.shape[0]
+    out = _rotate_comp(w[:, 0], w[:, 1], w[:, 2], list(R.reshape(n, 9).T))
+    return np.stack(out, -1).reshape(n, 3, 3)
+
+
+def _cost_comp(P, us, vs, obj, wx: float, wy: float) -> Tuple[np.ndarray, np.ndarray]:
+    """Vectorised _cost_f: P the 12 (n,) components (R row-major, then t), us/vs 4 (n,)
+    arrays. Returns cost (n,) and the smallest corner depth (n,)."""
+    r00, r01, _, r10, r11, _, r20, r21, _, t0, t1, t2 = P
+    cost = zmin = None
+    for (X, Y), u_obs, v_obs in zip(obj, us, vs):
+        pz = r20 * X + r21 * Y + t2
+        iz = 1.0 / pz
+        ru = wx * ((r00 * X + r01 * Y + t0) * iz - u_obs)
+        rv = wy * ((r10 * X + r11 * Y + t1) * iz - v_obs)
+        if cost is None:
+            cost, zmin = ru * ru + rv * rv, pz
+        else:
+            cost += ru * ru + rv * rv
+            zmin = np.minimum(zmin, pz)
+    return cost, zmin
+
+
+def _normal_comp(P, us, vs, obj, wx: float, wy: float) -> List[np.ndarray]:
+    """Vectorised _normal_f on components (as _cost_comp): 26 (n,) arrays, the 20 upper
+    entries of J^T J row by row without the structural zero [3][4], then J^T r (6)."""
+    r00, r01, _, r10, r11, _, r20, r21, _, t0, t1, t2 = P
+    out: List[np.ndarray] = []
+    for (X, Y), u_obs, v_obs in zip(obj, us, vs):
+        qx, qy, qz = r00 * X + r01 * Y, r10 * X + r11 * Y, r20 * X + r21 * Y
+        iz = 1.0 / (qz + t2)
+        u, v = (qx + t0) * iz, (qy + t1) * iz
+        ru, rv = wx * (u - u_obs), wy * (v - v_obs)
+        ax, by = wx * iz, wy * iz
+        az, bz = -u * ax, -v * by
+        j0, j1, j2 = qy * az, qz * ax - qx * az, -qy * ax
+        k0, k1, k2 = qy * bz - qz * by, -qx * bz, qx * by
+        terms = (j0 * j0 + k0 * k0, j0 * j1 + k0 * k1, j0 * j2 + k0 * k2, j0 * ax, k0 * by,
+                 j0 * az + k0 * bz,
+                 j1 * j1 + k1 * k1, j1 * j2 + k1 * k2, j1 * ax, k1 * by, j1 * az + k1 * bz,
+                 j2 * j2 + k2 * k2, j2 * ax, k2 * by, j2 * az + k2 * bz,
+                 ax * ax, ax * az, by * by, by * bz, az * az + bz * bz,
+                 j0 * ru + k0 * rv, j1 * ru + k1 * rv, j2 * ru + k2 * rv, ax * ru, by * rv,
+                 az * ru + bz * rv)
+        if not out:
+            out = list(terms)
+        else:
+            for acc, x in zip(out, terms):
+                acc += x
+    return out
+
+
+def _solve_batch(ne, lam: np.ndarray) -> List[np.ndarray]:
+    """Vectorised Cholesky solve of (J^T J + lam diag) x = -J^T r from _normal_comp's 26
+    rows; a row that is not positive definite gives NaN (refused by the caller)."""
+    (a00, a01, a02, a03, a04, a05, a11, a12, a13, a14, a15, a22, a23, a24, a25, a33, a35,
+     a44, a45, a55, g0, g1, g2, g3, g4, g5) = ne
+    damp = 1.0 + lam
+    nan = np.nan
+
+    def inv_sqrt(s):
+        return 1.0 / np.sqrt(np.where(s > 0.0, s, nan))
+
+    d0 = inv_sqrt(a00 * damp)
+    l10, l20, l30, l40, l50 = a01 * d0, a02 * d0, a03 * d0, a04 * d0, a05 * d0
+    d1 = inv_sqrt(a11 * damp - l10 * l10)
+    l21 = (a12 - l20 * l10) * d1
+    l31 = (a13 - l30 * l10) * d1
+    l41 = (a14 - l40 * l10) * d1
+    l51 = (a15 - l50 * l10) * d1
+    d2 = inv_sqrt(a22 * damp - (l20 * l20 + l21 * l21))
+    l32 = (a23 - l30 * l20 - l31 * l21) * d2
+    l42 = (a24 - l40 * l20 - l41 * l21) * d2
+    l52 = (a25 - l50 * l20 - l51 * l21) * d2
+    d3 = inv_sqrt(a33 * damp - (l30 * l30 + l31 * l31 + l32 * l32))
+    l43 = -(l40 * l30 + l41 * l31 + l42 * l32) * d3   # J^T J [3][4] is 0
+    l53 = (a35 - l50 * l30 - l51 * l31 - l52 * l32) * d3
+    d4 = inv_sqrt(a44 * damp - (l40 * l40 + l41 * l41 + l42 * l42 + l43 * l43))
+    l54 = (a45 - l50 * l40 - l51 * l41 - l52 * l42 - l53 * l43) * d4
+    d5 = inv_sqrt(a55 * damp - (l50 * l50 + l51 * l51 + l52 * l52 + l53 * l53 + l54 * l54))
+    y0 = -g0 * d0
+    y1 = (-g1 - l10 * y0) * d1
+    y2 = (-g2 - l20 * y0 - l21 * y1) * d2
+    y3 = (-g3 - l30 * y0 - l31 * y1 - l32 * y2) * d3
+    y4 = (-g4 - l40 * y0 - l41 * y1 - l42 * y2 - l43 * y3) * d4
+    y5 = (-g5 - l50 * y0 - l51 * y1 - l52 * y2 - l53 * y3 - l54 * y4) * d5
+    x5 = y5 * d5
+    x4 = (y4 - l54 * x5) * d4
+    x3 = (y3 - l43 * x4 - l53 * x5) * d3
+    x2 = (y2 - l32 * x3 - l42 * x4 - l52 * x5) * d2
+    x1 = (y1 - l21 * x2 - l31 * x3 - l41 * x4 - l51 * x5) * d1
+    x0 = (y0 - l10 * x1 - l20 * x2 - l30 * x3 - l40 * x4 - l50 * x5) * d0
+    return [x0, x1, x2, x3, x4, x5]
 
 
 def _polish_batch(R: np.ndarray, t: np.ndarray, obj, us: np.ndarray, vs: np.ndarray, wx: float,
@@ -729,49 +791,68 @@ def _polish_batch(R: np.ndarray, t: np.ndarray, obj, us: np.ndarray, vs: np.ndar
                   cost: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """_polish over N poses at once (us, vs: (N, 4)); each row stops on its own criterion.
     Only rows still moving are computed; ``cost`` (N,) of the start when already known.
-    Returns R, t, cost (N,)."""
-    R, t = R.copy(), t.copy()
+    Returns R, t, cost (N,).
+
+    The poses live as 12 contiguous component rows (R row-major, then t) so that every
+    operation runs on plain (n,) arrays; the normal equations of a row are formed again only
+    after it moved (a refused step keeps them: only the damping changes)."""
     N = R.shape[0]
+    P = np.empty((12, N))
+    P[:9] = R.reshape(N, 9).T
+    P[9:] = t.T
+    U, V = np.ascontiguousarray(us.T), np.ascontiguousarray(vs.T)
     lam = np.zeros(N)
     if cost is None:
-        cost = _residuals_batch(R, t, obj, list(us.T), list(vs.T), wx, wy, False)[1]
+        cost = _cost_comp(P, U, V, obj, wx, wy)[0]
     else:
         cost = cost.copy()
     active = np.ones(N, bool) if active is None else active.copy()
+    idx = np.flatnonzero(active)
+    NE = np.empty((26, N))
+    stale = np.ones(N, bool)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        P, cost = _polish_rows(P, U, V, obj, wx, wy, max_iter, idx, cost, lam, NE, stale)
+    return P[:9].T.reshape(N, 3, 3).copy(), P[9:].T.copy(), cost
+
+
+def _polish_rows(P, U, V, obj, wx, wy, max_iter, idx, cost, lam, NE, stale):
+    """The iterations of _polish_batch on its component rows, in place."""
+    N = P.shape[1]
     for it in range(max_iter):
-        idx = np.flatnonzero(active)
         if idx.size == 0:
             break
         if idx.size <= _TAIL_ROWS < N:
             # A few slow rows left: numpy's per-call overhead would dominate, finish them
             # one by one.
             for i in idx.tolist():
-                R_i, t_i, cost[i], _ = _polish(tuple(R[i].ravel().tolist()), tuple(t[i].tolist()),
-                                               obj, us[i].tolist(), vs[i].tolist(), wx, wy,
+                R_i, t_i, cost[i], _ = _polish(tuple(P[:9, i].tolist()), tuple(P[9:, i].tolist()),
+                                               obj, U[:, i].tolist(), V[:, i].tolist(), wx, wy,
                                                max_iter - it)
-                R[i], t[i] = np.reshape(R_i, (3, 3)), t_i
+                P[:9, i], P[9:, i] = R_i, t_i
             break
-        Rs, ts, ls = R[idx], t[idx], lam[idx]
-        u_s, v_s = list(us[idx].T), list(vs[idx].T)
-        rows, _, _ = _residuals_batch(Rs, ts, obj, u_s, v_s, wx, wy, True)
-        step = np.stack(_solve_batch(rows, ls), -1)
-        finite = np.all(np.isfinite(step), axis=-1)
-        step = np.where(finite[:, None], step, 0.0)
-        R_new = _rotate_batch(step[:, :3], Rs)
-        t_new = ts + step[:, 3:]
-        _, cost_n, zmin = _residuals_batch(R_new, t_new, obj, u_s, v_s, wx, wy, False)
-        c_old = cost[idx]
+        new = idx[stale[idx]]
+        if new.size:
+            NE[:, new] = _normal_comp(P[:, new], U[:, new], V[:, new], obj, wx, wy)
+            stale[new] = False
+        Ps, ls, c_old = P[:, idx], lam[idx], cost[idx]
+        s0, s1, s2, s3, s4, s5 = _solve_batch(NE[:, idx], ls)
+        Pn = np.empty_like(Ps)
+        Pn[:9] = _rotate_comp(s0, s1, s2, Ps[:9])
+        Pn[9], Pn[10], Pn[11] = Ps[9] + s3, Ps[10] + s4, Ps[11] + s5
+        cost_n, zmin = _cost_comp(Pn, U[:, idx], V[:, idx], obj, wx, wy)
+        finite = np.isfinite(s0 + s1 + s2 + s3 + s4 + s5)
         accept = finite & (zmin > 0.0) & (cost_n <= c_old * (1.0 + 1e-12))
-        R[idx] = np.where(accept[:, None, None], R_new, Rs)
-        t[idx] = np.where(accept[:, None], t_new, ts)
+        P[:, idx] = np.where(accept, Pn, Ps)
         cost[idx] = np.where(accept, cost_n, c_old)
-        move = np.maximum(np.abs(step[:, :3]).max(-1),
-                          np.abs(step[:, 3:]).sum(-1) / np.abs(t_new[:, 2]))
+        move = np.maximum(np.maximum(np.abs(s0), np.abs(s1)), np.abs(s2))
+        move = np.maximum(move, (np.abs(s3) + np.abs(s4) + np.abs(s5)) / np.abs(Pn[11]))
         gain = c_old - cost_n
-        lam[idx] = np.where(accept, ls * LAM_DOWN, np.where(ls == 0.0, LAM_FIRST, ls * LAM_UP))
-        done = (accept & ((move < POLISH_TOL) | (gain <= POLISH_GAIN * cost_n))) | (lam[idx] > 1e6)
-        active[idx[done]] = False
-    return R, t, cost
+        lam_n = np.where(accept, ls * LAM_DOWN, np.where(ls == 0.0, LAM_FIRST, ls * LAM_UP))
+        lam[idx] = lam_n
+        done = (accept & ((move < POLISH_TOL) | (gain <= POLISH_GAIN * cost_n))) | (lam_n > 1e6)
+        stale[idx[accept]] = True
+        idx = idx[~done]
+    return P, cost
 
 
 def _quad_screen(xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
