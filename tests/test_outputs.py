@@ -8,6 +8,7 @@ import json
 import threading
 import time
 
+import numpy as np
 from mavlink_helpers import VanishingPty, lost_result, vehicle_result, wait_for
 
 from pose_daemon import geometry as g
@@ -128,3 +129,33 @@ def test_results_older_than_max_age_are_dropped_not_sent_late(tmp_path):
     out.close()
     assert [json.loads(s)["frame"] for s in path.read_text().splitlines()] == [1]
     assert out.stats()["dropped"] == {"late": 1}
+
+
+def test_a_pose_with_nan_is_never_sent(tmp_path):
+    from mavlink_helpers import UdpPeer, camera_pose, of_type
+
+    from pose_daemon.result import FrameResult
+
+    bad = FrameResult(seq=0, t_capture_s=5.0, pose=camera_pose(np.diag([1.0, -1.0, -1.0]), [np.nan, 0.0, 2.0]))
+    good = vehicle_result(WALL, 1, 5.1, (-2.0, 0.0, 0.0))
+    peer = UdpPeer()
+    pty = VanishingPty(str(tmp_path / "tty"))
+    outs = [MavlinkOutput(f"udpout:127.0.0.1:{peer.port}", WALL, fx_px=500.0, marker_width_m=0.2,
+                          wait_heartbeat=False, queue_size=0),
+            PlainSerialOutput(pty.path, WALL, queue_size=0),
+            JsonlOutput(str(tmp_path / "p.jsonl"), queue_size=0)]
+    try:
+        for o in outs:
+            o.publish(bad)
+            o.publish(good)
+        msgs = peer.collect(1.0, until=lambda ms: bool(of_type(ms, "ODOMETRY")))
+        serial_text = pty.read(0.5, until=lambda b: b.endswith(b"\r\n")).decode()
+    finally:
+        for o in outs:
+            o.close()
+        pty.close()
+        peer.close()
+    assert [m.time_usec for m in of_type(msgs, "ODOMETRY")] == [5_100_000]
+    assert serial_text.count("$POSE") == 1 and serial_text.startswith("$POSE,5100000,")
+    assert [json.loads(s)["frame"] for s in (tmp_path / "p.jsonl").read_text().splitlines()] == [1]
+    assert all(o.stats()["dropped"] == {"not_finite": 1} for o in outs)

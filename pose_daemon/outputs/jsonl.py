@@ -47,7 +47,11 @@ class JsonlOutput(QueuedOutput):
             stream.close()
 
     def _write(self, result: FrameResult) -> int:
-        line = json.dumps(result.to_json_dict(), allow_nan=False, separators=(", ", ": "))
+        try:
+            line = json.dumps(result.to_json_dict(), allow_nan=False, separators=(", ", ": "))
+        except ValueError:  # a NaN or infinity: never written
+            self._drop("not_finite")
+            return 0
         try:
             self._stream.write(line + "\n")
             self._stream.flush()
