@@ -83,6 +83,7 @@ def test_lines_over_a_pty_port_that_vanishes_and_comes_back(tmp_path):
     assert len(second) == 3 and second[0]["t_us"] == round((100.0 + 10 / 30) * 1e6)
     s = out.stats()
     assert s["sent"] == 9 and s["opens"] == 2 and s["link_failures"] == 1 and s["dropped"]["link_down"] == 3
+    assert out.status() == "link closed, dropped link_down=3"
 
 
 def test_rate_limit_and_lost_lines_option(tmp_path):
