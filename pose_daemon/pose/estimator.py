@@ -326,23 +326,40 @@ def weak_perspective_pair(us: np.ndarray, vs: np.ndarray, width: float, height: 
 
     The image is first turned so that the corners' mean lies on the optical axis (where the
     affine model holds best); an affine fit of marker (X, Y) -> image gives
-    s [[R11, R12], [R21, R22]], and orthonormality fixes s and (R31, R32) up to one sign."""
+    s [[R11, R12], [R21, R22]], and orthonormality fixes s and (R31, R32) up to one sign.
+    Written per component, as _weak_perspective_pair_f on floats (the same arithmetic)."""
     us, vs = np.asarray(us, dtype=np.float64), np.asarray(vs, dtype=np.float64)
-    c = np.stack([us.mean(-1), vs.mean(-1), np.ones(us.shape[:-1])], -1)
-    d = c / np.linalg.norm(c, axis=-1, keepdims=True)
-    # Rotation taking the optical axis onto d: axis z x d, angle acos(d_z).
-    axis = np.stack([-d[..., 1], d[..., 0], np.zeros(d.shape[:-1])], -1)
-    n = np.linalg.norm(axis, axis=-1, keepdims=True)
-    angle = np.arctan2(n, d[..., 2:3])
-    Rc = geometry.R_from_rvec(np.where(n > 1e-15, axis / np.where(n > 1e-15, n, 1.0), 0.0) * angle)
-    rays = np.stack([us, vs, np.ones(us.shape)], -1)             # (..., 4, 3)
-    p = np.einsum("...ji,...kj->...ki", Rc, rays)                 # Rc^T rays
-    u, v = p[..., 0] / p[..., 2], p[..., 1] / p[..., 2]
+    shape = us.shape[:-1]
+    u_, v_ = [us[..., j] for j in range(4)], [vs[..., j] for j in range(4)]
+    cu, cv = 0.25 * (u_[0] + u_[1] + u_[2] + u_[3]), 0.25 * (v_[0] + v_[1] + v_[2] + v_[3])
+    nrm = np.sqrt(cu * cu + cv * cv + 1.0)
+    dx, dy, dz = cu / nrm, cv / nrm, 1.0 / nrm
+    n_ax = np.hypot(dx, dy)
+    turned = n_ax > 1e-15
+    # Rotation taking the optical axis onto d (axis z x d), in cv2.Rodrigues' form.
+    ang = np.arctan2(n_ax, dz) / np.where(turned, n_ax, 1.0)
+    rx, ry = -dy * ang, dx * ang
+    theta = np.sqrt(rx * rx + ry * ry)
+    inv = 1.0 / np.where(turned, theta, 1.0)
+    kx, ky = rx * inv, ry * inv
+    c, s = np.where(turned, np.cos(theta), 1.0), np.where(turned, np.sin(theta), 0.0)
+    c1 = 1.0 - c
+    Rc = (c + c1 * (kx * kx), c1 * (kx * ky), s * ky,
+          c1 * (kx * ky), c + c1 * (ky * ky), -s * kx,
+          -s * ky, s * kx, c)
+    c00, c01, c02, c10, c11, c12, c20, c21, c22 = Rc
     w2, h2 = 0.5 * width, 0.5 * height
-    X = np.array([-w2, w2, w2, -w2])
-    Y = np.array([h2, h2, -h2, -h2])
-    a_, b_ = (u * X).sum(-1) / (X @ X), (u * Y).sum(-1) / (Y @ Y)
-    c_, d_ = (v * X).sum(-1) / (X @ X), (v * Y).sum(-1) / (Y @ Y)
+    sa = sb = sc = sd = 0.0
+    for (X, Y), u0, v0 in zip(((-w2, h2), (w2, h2), (w2, -h2), (-w2, -h2)), u_, v_):
+        pz = c02 * u0 + c12 * v0 + c22
+        u = (c00 * u0 + c10 * v0 + c20) / pz
+        v = (c01 * u0 + c11 * v0 + c21) / pz
+        sa = sa + u * X
+        sb = sb + u * Y
+        sc = sc + v * X
+        sd = sd + v * Y
+    sxx, syy = 4.0 * w2 * w2, 4.0 * h2 * h2
+    a_, b_, c_, d_ = sa / sxx, sb / syy, sc / sxx, sd / syy
     P, Q, M = a_ * a_ + c_ * c_, b_ * b_ + d_ * d_, a_ * b_ + c_ * d_
     D2 = (a_ * d_ - b_ * c_) ** 2
     # k = 1/s^2 = depth^2 solves D^2 k^2 - (P + Q) k + 1 = 0; the smaller root (stable form).
@@ -350,15 +367,22 @@ def weak_perspective_pair(us: np.ndarray, vs: np.ndarray, width: float, height: 
     sk = np.sqrt(k)
     r31 = np.sqrt(np.maximum(1.0 - k * P, 0.0))
     r32 = np.sqrt(np.maximum(1.0 - k * Q, 0.0)) * np.where(M > 0.0, -1.0, 1.0)
+    t = np.stack([dx * sk, dy * sk, dz * sk], -1)
     out = []
     for sign in (1.0, -1.0):
-        c1 = np.stack([a_ * sk, c_ * sk, sign * r31], -1)
-        c1 = c1 / np.linalg.norm(c1, axis=-1, keepdims=True)
-        c2 = np.stack([b_ * sk, d_ * sk, sign * r32], -1)
-        c2 = c2 - (c1 * c2).sum(-1, keepdims=True) * c1
-        c2 = c2 / np.linalg.norm(c2, axis=-1, keepdims=True)
-        R = np.stack([c1, c2, np.cross(c1, c2)], -1)
-        out.append((Rc @ R, d * sk[..., None]))
+        x1, y1, z1 = a_ * sk, c_ * sk, sign * r31
+        n1 = np.sqrt(x1 * x1 + y1 * y1 + z1 * z1)
+        x1, y1, z1 = x1 / n1, y1 / n1, z1 / n1
+        x2, y2, z2 = b_ * sk, d_ * sk, sign * r32
+        dot = x1 * x2 + y1 * y2 + z1 * z2
+        x2, y2, z2 = x2 - dot * x1, y2 - dot * y1, z2 - dot * z1
+        n2 = np.sqrt(x2 * x2 + y2 * y2 + z2 * z2)
+        x2, y2, z2 = x2 / n2, y2 / n2, z2 / n2
+        R = (x1, x2, y1 * z2 - z1 * y2, y1, y2, z1 * x2 - x1 * z2, z1, z2, x1 * y2 - y1 * x2)
+        Rw = np.empty(shape + (9,))
+        for i, e in enumerate(_matmul_f(Rc, R)):
+            Rw[..., i] = e
+        out.append((Rw.reshape(shape + (3, 3)), t.copy()))
     return out[0], out[1]
 
 
@@ -855,18 +879,24 @@ def _polish_rows(P, U, V, obj, wx, wy, max_iter, idx, cost, lam, NE, stale):
     return P, cost
 
 
-def _quad_screen(xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+def _quad_screen(xs, ys) -> np.ndarray:
     """(N,) True where a quadrilateral might fail quad_problem (checked exactly afterwards):
-    conservative margins, so every clean row passes without the per-row check."""
-    ext = np.maximum(xs.max(-1) - xs.min(-1), ys.max(-1) - ys.min(-1))
-    ax, ay = xs - np.roll(xs, 1, -1), ys - np.roll(ys, 1, -1)
-    bx, by = np.roll(xs, -1, -1) - xs, np.roll(ys, -1, -1) - ys
-    cross = ax * by - ay * bx
-    la, lb = np.hypot(ax, ay), np.hypot(bx, by)
-    area = 0.5 * np.sum(xs * np.roll(ys, -1, -1) - np.roll(xs, -1, -1) * ys, -1)
+    conservative margins, so every clean row passes without the per-row check. xs, ys: the
+    4 corners' (N,) coordinate arrays."""
+    ext = np.maximum(np.maximum(np.maximum(xs[0], xs[1]), np.maximum(xs[2], xs[3]))
+                     - np.minimum(np.minimum(xs[0], xs[1]), np.minimum(xs[2], xs[3])),
+                     np.maximum(np.maximum(ys[0], ys[1]), np.maximum(ys[2], ys[3]))
+                     - np.minimum(np.minimum(ys[0], ys[1]), np.minimum(ys[2], ys[3])))
+    # Edge j runs from corner j to corner j + 1; corner j turns from edge j - 1 to edge j.
+    ex = [xs[(j + 1) % 4] - xs[j] for j in range(4)]
+    ey = [ys[(j + 1) % 4] - ys[j] for j in range(4)]
+    le = [np.hypot(ex[j], ey[j]) for j in range(4)]
+    area = 0.5 * sum(xs[j] * ys[(j + 1) % 4] - xs[(j + 1) % 4] * ys[j] for j in range(4))
     with np.errstate(invalid="ignore"):
         bad = ~(ext > 0.0)
-        bad |= np.any(cross <= 10.0 * _DEGENERATE_REL * la * lb, -1)
+        for j in range(4):
+            cross = ex[j - 1] * ey[j] - ey[j - 1] * ex[j]
+            bad |= cross <= 10.0 * _DEGENERATE_REL * le[j - 1] * le[j]
         bad |= ~(area > 10.0 * _DEGENERATE_REL * ext * ext)
     return bad
 
@@ -897,7 +927,8 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
     for i in np.flatnonzero(finite & ~good):
         errors[i] = "corners cannot be undistorted with this camera model"
     xs, ys = norm[..., 0], norm[..., 1]
-    for i in np.flatnonzero(good & _quad_screen(xs, ys)):
+    cols = np.ascontiguousarray(norm.transpose(2, 1, 0))  # (2, 4, N): contiguous corner columns
+    for i in np.flatnonzero(good & _quad_screen(list(cols[0]), list(cols[1]))):
         problem = quad_problem(xs[i].tolist(), ys[i].tolist())
         if problem:
             errors[i] = problem
