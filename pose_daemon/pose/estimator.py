@@ -689,6 +689,17 @@ def _residuals_batch(R: np.ndarray, t: np.ndarray, obj, us, vs, wx: float, wy: f
     return (rows if jac else None), cost, zmin
 
 
+def _zmin_batch(R: np.ndarray, t: np.ndarray, obj) -> np.ndarray:
+    """The smallest corner depth (n,) of poses R (n, 3, 3), t (n, 3): _residuals_batch's
+    zmin without the projections."""
+    r20, r21, t2 = R[:, 2, 0], R[:, 2, 1], t[:, 2]
+    zmin = None
+    for X, Y in obj:
+        pz = r20 * X + r21 * Y + t2
+        zmin = pz if zmin is None else np.minimum(zmin, pz)
+    return zmin
+
+
 def _rotate_comp(w0: np.ndarray, w1: np.ndarray, w2: np.ndarray, Rc) -> List[np.ndarray]:
     """exp([w]x) R on components: w0..w2 (n,) and R as 9 (n,) arrays (row-major); returns 9.
     Rodrigues' formula written out per component, several times faster than stacked 3x3
@@ -825,57 +836,65 @@ def _polish_batch(R: np.ndarray, t: np.ndarray, obj, us: np.ndarray, vs: np.ndar
     P[:9] = R.reshape(N, 9).T
     P[9:] = t.T
     U, V = np.ascontiguousarray(us.T), np.ascontiguousarray(vs.T)
-    lam = np.zeros(N)
     if cost is None:
         cost = _cost_comp(P, U, V, obj, wx, wy)[0]
     else:
         cost = cost.copy()
     active = np.ones(N, bool) if active is None else active.copy()
-    idx = np.flatnonzero(active)
-    NE = np.empty((26, N))
-    stale = np.ones(N, bool)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        P, cost = _polish_rows(P, U, V, obj, wx, wy, max_iter, idx, cost, lam, NE, stale)
+        P, cost = _polish_rows(P, U, V, obj, wx, wy, max_iter, np.flatnonzero(active), cost)
     return P[:9].T.reshape(N, 3, 3).copy(), P[9:].T.copy(), cost
 
 
-def _polish_rows(P, U, V, obj, wx, wy, max_iter, idx, cost, lam, NE, stale):
-    """The iterations of _polish_batch on its component rows, in place."""
+def _polish_rows(P, U, V, obj, wx, wy, max_iter, idx, cost):
+    """The iterations of _polish_batch on the component rows idx of P (12, N), in place.
+
+    The rows still moving are kept compacted (contiguous copies of their state); a row that
+    finishes is written back once."""
     N = P.shape[1]
+    Pa, Ua, Va, ca = P[:, idx], U[:, idx], V[:, idx], cost[idx]
+    la = np.zeros(idx.size)
+    NE = None
+    stale = None  # rows whose normal equations are out of date (None: all)
     for it in range(max_iter):
         if idx.size == 0:
             break
         if idx.size <= _TAIL_ROWS < N:
             # A few slow rows left: numpy's per-call overhead would dominate, finish them
             # one by one.
-            for i in idx.tolist():
-                R_i, t_i, cost[i], _ = _polish(tuple(P[:9, i].tolist()), tuple(P[9:, i].tolist()),
-                                               obj, U[:, i].tolist(), V[:, i].tolist(), wx, wy,
-                                               max_iter - it)
-                P[:9, i], P[9:, i] = R_i, t_i
+            for k in range(idx.size):
+                R_i, t_i, ca[k], _ = _polish(tuple(Pa[:9, k].tolist()), tuple(Pa[9:, k].tolist()),
+                                             obj, Ua[:, k].tolist(), Va[:, k].tolist(), wx, wy,
+                                             max_iter - it)
+                Pa[:9, k], Pa[9:, k] = R_i, t_i
             break
-        new = idx[stale[idx]]
-        if new.size:
-            NE[:, new] = _normal_comp(P[:, new], U[:, new], V[:, new], obj, wx, wy)
-            stale[new] = False
-        Ps, ls, c_old = P[:, idx], lam[idx], cost[idx]
-        s0, s1, s2, s3, s4, s5 = _solve_batch(NE[:, idx], ls)
-        Pn = np.empty_like(Ps)
-        Pn[:9] = _rotate_comp(s0, s1, s2, Ps[:9])
-        Pn[9], Pn[10], Pn[11] = Ps[9] + s3, Ps[10] + s4, Ps[11] + s5
-        cost_n, zmin = _cost_comp(Pn, U[:, idx], V[:, idx], obj, wx, wy)
+        if stale is None:
+            NE = np.array(_normal_comp(Pa, Ua, Va, obj, wx, wy))
+        else:
+            sub = np.flatnonzero(stale)
+            if sub.size:
+                NE[:, sub] = _normal_comp(Pa[:, sub], Ua[:, sub], Va[:, sub], obj, wx, wy)
+        s0, s1, s2, s3, s4, s5 = _solve_batch(NE, la)
+        Pn = np.empty_like(Pa)
+        Pn[:9] = _rotate_comp(s0, s1, s2, Pa[:9])
+        Pn[9], Pn[10], Pn[11] = Pa[9] + s3, Pa[10] + s4, Pa[11] + s5
+        cost_n, zmin = _cost_comp(Pn, Ua, Va, obj, wx, wy)
         finite = np.isfinite(s0 + s1 + s2 + s3 + s4 + s5)
-        accept = finite & (zmin > 0.0) & (cost_n <= c_old * (1.0 + 1e-12))
-        P[:, idx] = np.where(accept, Pn, Ps)
-        cost[idx] = np.where(accept, cost_n, c_old)
+        accept = finite & (zmin > 0.0) & (cost_n <= ca * (1.0 + 1e-12))
+        Pa = np.where(accept, Pn, Pa)
         move = np.maximum(np.maximum(np.abs(s0), np.abs(s1)), np.abs(s2))
         move = np.maximum(move, (np.abs(s3) + np.abs(s4) + np.abs(s5)) / np.abs(Pn[11]))
-        gain = c_old - cost_n
-        lam_n = np.where(accept, ls * LAM_DOWN, np.where(ls == 0.0, LAM_FIRST, ls * LAM_UP))
-        lam[idx] = lam_n
-        done = (accept & ((move < POLISH_TOL) | (gain <= POLISH_GAIN * cost_n))) | (lam_n > 1e6)
-        stale[idx[accept]] = True
-        idx = idx[~done]
+        gain = ca - cost_n
+        ca = np.where(accept, cost_n, ca)
+        la = np.where(accept, la * LAM_DOWN, np.where(la == 0.0, LAM_FIRST, la * LAM_UP))
+        done = (accept & ((move < POLISH_TOL) | (gain <= POLISH_GAIN * cost_n))) | (la > 1e6)
+        stale = accept
+        if done.any():
+            P[:, idx[done]], cost[idx[done]] = Pa[:, done], ca[done]
+            keep = ~done
+            idx, Pa, Ua, Va, ca, la = idx[keep], Pa[:, keep], Ua[:, keep], Va[:, keep], ca[keep], la[keep]
+            NE, stale = NE[:, keep], stale[keep]
+    P[:, idx], cost[idx] = Pa, ca
     return P, cost
 
 
@@ -996,8 +1015,7 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
         Rs = np.stack([c[0] for c in cands])
         ts = np.stack([c[1] for c in cands])
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            zs = np.stack([_residuals_batch(c[0], c[1], obj, list(xs.T), list(ys.T), wx, wy, False)[2]
-                           for c in cands])
+            zs = np.stack([_zmin_batch(c[0], c[1], obj) for c in cands])
         costs = np.stack([c[2] for c in cands])
         costs = np.where((zs > 0.0) & np.isfinite(costs), costs, np.inf)
         order = np.argsort(costs, axis=0, kind="stable")
@@ -1015,8 +1033,7 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
         R_alt, t_alt = mirror_pose(R, t)
         cost = _residuals_batch(R, t, obj, list(xs.T), list(ys.T), wx, wy, False)[1]
         cost_alt = _residuals_batch(R_alt, t_alt, obj, list(xs.T), list(ys.T), wx, wy, False)[1]
-    zmin = _residuals_batch(R, t, obj, list(xs.T), list(ys.T), wx, wy, False)[2]
-    zmin_alt = _residuals_batch(R_alt, t_alt, obj, list(xs.T), list(ys.T), wx, wy, False)[2]
+    zmin, zmin_alt = _zmin_batch(R, t, obj), _zmin_batch(R_alt, t_alt, obj)
 
     def error_px(R_, t_, cost_):
         if not camera.has_distortion:
