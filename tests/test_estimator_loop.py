@@ -143,3 +143,29 @@ def test_rectangles_converge_with_both_methods():
 def test_unknown_method_is_refused():
     with pytest.raises(ValueError, match="unknown method"):
         loop.correction_loop(np.zeros((4, 2)), 1.0, 1.0, method="magic")
+
+
+def test_cos_sin_of_atan2_without_trigonometry():
+    rng = np.random.default_rng(5)
+    y, x = rng.normal(scale=3.0, size=(2, 200))
+    y[:4], x[:4] = [0.0, 0.0, 1e-3, -2.0], [0.0, 1.0, -5.0, 0.0]
+    c, s = loop.NUMPY_OPS.cos_sin_atan2(y, x)
+    assert np.abs(c - np.cos(np.arctan2(y, x))).max() < 1e-15
+    assert np.abs(s - np.sin(np.arctan2(y, x))).max() < 1e-15
+    for yi, xi, ci, si in zip(y, x, c, s):
+        # The per-frame form is the same arithmetic: the same bits.
+        assert loop.MATH_OPS.cos_sin_atan2(yi, xi) == (ci, si)
+
+
+@pytest.mark.parametrize("method", ["iterative", "paper"])
+def test_stacked_loop_equals_the_per_frame_loop(method):
+    rng = np.random.default_rng(6)
+    R_cam_unrot = geometry.R_cam_unrot_from_paper_angles(*rng.uniform(-0.6, 0.6, size=(3, 50)))
+    pos = np.stack([rng.uniform(-0.5, 0.5, 50), rng.uniform(-0.4, 0.4, 50), rng.uniform(1.0, 4.0, 50)], -1)
+    img = loop.project_unrot(R_cam_unrot, pos, 0.2, 0.2, 1.0) + rng.normal(scale=1e-3, size=(50, 4, 2))
+    res = loop.correction_loop(img, 1.0, 0.04, method=method, iterations=5)
+    for i in range(50):
+        R, p, used = loop.loop_one(img[i, :, 0].tolist(), img[i, :, 1].tolist(), 0.04, method, 5)
+        assert used == 5
+        assert np.abs(np.array(R) - res.R_cam_unrot[i]).max() < 1e-14
+        assert np.abs(np.array(p) - res.position_unrot[i]).max() < 1e-13 * np.abs(p).max()

@@ -137,6 +137,16 @@ def position_from_image(points: np.ndarray, f: float, area: float) -> np.ndarray
     return np.stack([c[..., 0] * z / f, c[..., 1] * z / f, z], axis=-1)
 
 
+def _cos_sin_atan2(y: float, x: float):
+    """(cos, sin) of atan2(y, x) as x / |(x, y)|, y / |(x, y)| (loop_one writes it out): on
+    stacks (_Ops.cos_sin_atan2) this saves three transcendental functions, and the per-frame
+    loop does the same arithmetic so that both give the same poses."""
+    h = math.sqrt(x * x + y * y)
+    if h == 0.0:
+        return 1.0, 0.0
+    return x / h, y / h
+
+
 class _Ops:
     """The few functions the loop needs, from numpy (stacks) or math (one quadrilateral: the
     per-frame path, where numpy's per-call overhead would dominate at four points)."""
@@ -146,6 +156,18 @@ class _Ops:
         self.atan2 = getattr(mod, "arctan2", None) or mod.atan2
         self.copysign = mod.copysign
         self.fabs = mod.fabs
+        self.vectorised = mod is np
+
+    def cos_sin_atan2(self, y, x):
+        """(cos, sin) of atan2(y, x)."""
+        if not self.vectorised:
+            return _cos_sin_atan2(y, x)
+        # x / |(x, y)| and y / |(x, y)| as _cos_sin_atan2: on stacks each transcendental
+        # function costs ~30 additions.
+        with np.errstate(invalid="ignore", divide="ignore"):
+            h = np.sqrt(x * x + y * y)
+            zero = h == 0.0
+            return np.where(zero, 1.0, x / h), np.where(zero, 0.0, y / h)
 
 
 NUMPY_OPS = _Ops(np)
@@ -168,6 +190,11 @@ def _area(xs, ys):
 
 
 def _roll(xs, ys, m: _Ops):
+    sx, sy = _roll_vector(xs, ys, m)
+    return m.atan2(sy, sx)
+
+
+def _roll_vector(xs, ys, m: _Ops):
     # Edge j -> j+1 of an unrotated image points at j * 90 deg (y down); rotating each edge
     # direction back by that and averaging the unit vectors gives the roll in every quadrant.
     sx = sy = 0.0
@@ -183,7 +210,7 @@ def _roll(xs, ys, m: _Ops):
         n = m.sqrt(dx * dx + dy * dy)
         sx = sx + dx / n
         sy = sy + dy / n
-    return m.atan2(sy, sx)
+    return sx, sy
 
 
 def _vanish(xs, ys, f, a, b, c, d):
@@ -224,8 +251,9 @@ def _loop_core(xs, ys, f: float, area: float, method: str, iterations: int, m: _
     for i in range(1, int(iterations) + 1):
         zeta = _angles(xs, ys, m) if rows is not None else None
         # Step 2, roll (8).
-        g = _roll(xs, ys, m)
-        c, s = m.cos(g), m.sin(g)
+        rx, ry = _roll_vector(xs, ys, m)
+        c, s = m.cos_sin_atan2(ry, rx)
+        g = m.atan2(ry, rx) if rows is not None or tol_rad > 0.0 else None
         xs, ys = [x * c + y * s for x, y in zip(xs, ys)], [y * c - x * s for x, y in zip(xs, ys)]
         _rot_cols(R, 0, 1, c, s)
         # Step 3, yaw (9)-(10).
@@ -233,11 +261,12 @@ def _loop_core(xs, ys, f: float, area: float, method: str, iterations: int, m: _
             ang = _angles(xs, ys, m)
             zt = m.sqrt(ff / m.fabs(_area(xs, ys))) / scale_yaw
             b = table.yaw(ang[0] + ang[3] - ang[1] - ang[2], zt)
+            c, s = m.cos(b), m.sin(b)
         else:
             vx, _, vz = _vanish(xs, ys, f, 0, 1, 3, 2)
             sg = m.copysign(1.0, vx)
-            b = m.atan2(vz * sg, vx * sg)
-        c, s = m.cos(b), m.sin(b)
+            c, s = m.cos_sin_atan2(vz * sg, vx * sg)
+            b = m.atan2(vz * sg, vx * sg) if rows is not None or tol_rad > 0.0 else None
         ks = [f / (f * c - x * s) for x in xs]
         xs, ys = [(x * c + f * s) * k for x, k in zip(xs, ks)], [y * k for y, k in zip(ys, ks)]
         _rot_cols(R, 0, 2, c, s)
@@ -246,11 +275,12 @@ def _loop_core(xs, ys, f: float, area: float, method: str, iterations: int, m: _
             ang = _angles(xs, ys, m)
             zt = m.sqrt(ff / m.fabs(_area(xs, ys))) / scale_pitch
             a = table.pitch(ang[2] + ang[3] - ang[0] - ang[1], zt)
+            c, s = m.cos(a), m.sin(a)
         else:
             _, vy, vz = _vanish(xs, ys, f, 0, 3, 1, 2)
             sg = m.copysign(1.0, vy)
-            a = m.atan2(vz * sg, vy * sg)
-        c, s = m.cos(a), m.sin(a)
+            c, s = m.cos_sin_atan2(vz * sg, vy * sg)
+            a = m.atan2(vz * sg, vy * sg) if rows is not None or tol_rad > 0.0 else None
         ks = [f / (f * c - y * s) for y in ys]
         xs, ys = [x * k for x, k in zip(xs, ks)], [(y * c + f * s) * k for y, k in zip(ys, ks)]
         _rot_cols(R, 1, 2, c, s)
@@ -352,8 +382,10 @@ def loop_one(us: List[float], vs: List[float], area: float, method: str, iterati
         dx, dy = y3 - y0, x0 - x3
         na, nb, nc, nd = (sqrt(ax * ax + ay * ay), sqrt(bx * bx + by * by),
                           sqrt(cx * cx + cy * cy), sqrt(dx * dx + dy * dy))
-        g = atan2(ay / na + by / nb + cy / nc + dy / nd, ax / na + bx / nb + cx / nc + dx / nd)
-        c, s = cos(g), sin(g)
+        gy, gx = ay / na + by / nb + cy / nc + dy / nd, ax / na + bx / nb + cx / nc + dx / nd
+        g = atan2(gy, gx)
+        h = sqrt(gx * gx + gy * gy)  # cos, sin of g as _cos_sin_atan2, written out
+        c, s = (gx / h, gy / h) if h != 0.0 else (1.0, 0.0)
         x0, y0, x1, y1 = x0 * c + y0 * s, y0 * c - x0 * s, x1 * c + y1 * s, y1 * c - x1 * s
         x2, y2, x3, y3 = x2 * c + y2 * s, y2 * c - x2 * s, x3 * c + y3 * s, y3 * c - x3 * s
         r00, r01 = c * r00 + s * r01, c * r01 - s * r00
@@ -364,13 +396,15 @@ def loop_one(us: List[float], vs: List[float], area: float, method: str, iterati
             xs, ys = [x0, x1, x2, x3], [y0, y1, y2, y3]
             ang = _angles(xs, ys, MATH_OPS)
             b = table.yaw(ang[0] + ang[3] - ang[1] - ang[2], sqrt(area / abs(_area(xs, ys))) / scale_yaw)
+            c, s = cos(b), sin(b)
         else:
             l0, l1_, l2 = y0 - y1, x1 - x0, x0 * y1 - y0 * x1
             m0, m1, m2 = y3 - y2, x2 - x3, x3 * y2 - y3 * x2
             vx, vz = l1_ * m2 - l2 * m1, l0 * m1 - l1_ * m0
             sg = copysign(1.0, vx)
             b = atan2(vz * sg, vx * sg)
-        c, s = cos(b), sin(b)
+            h = sqrt(vx * vx + vz * vz)  # |vx sg| = |vx|
+            c, s = (vx * sg / h, vz * sg / h) if h != 0.0 else (1.0, 0.0)
         k0, k1, k2, k3 = 1.0 / (c - x0 * s), 1.0 / (c - x1 * s), 1.0 / (c - x2 * s), 1.0 / (c - x3 * s)
         x0, x1, x2, x3 = (x0 * c + s) * k0, (x1 * c + s) * k1, (x2 * c + s) * k2, (x3 * c + s) * k3
         y0, y1, y2, y3 = y0 * k0, y1 * k1, y2 * k2, y3 * k3
@@ -382,13 +416,15 @@ def loop_one(us: List[float], vs: List[float], area: float, method: str, iterati
             xs, ys = [x0, x1, x2, x3], [y0, y1, y2, y3]
             ang = _angles(xs, ys, MATH_OPS)
             a = table.pitch(ang[2] + ang[3] - ang[0] - ang[1], sqrt(area / abs(_area(xs, ys))) / scale_pitch)
+            c, s = cos(a), sin(a)
         else:
             l0, l1_, l2 = y0 - y3, x3 - x0, x0 * y3 - y0 * x3
             m0, m1, m2 = y1 - y2, x2 - x1, x1 * y2 - y1 * x2
             vy, vz = l2 * m0 - l0 * m2, l0 * m1 - l1_ * m0
             sg = copysign(1.0, vy)
             a = atan2(vz * sg, vy * sg)
-        c, s = cos(a), sin(a)
+            h = sqrt(vy * vy + vz * vz)
+            c, s = (vy * sg / h, vz * sg / h) if h != 0.0 else (1.0, 0.0)
         k0, k1, k2, k3 = 1.0 / (c - y0 * s), 1.0 / (c - y1 * s), 1.0 / (c - y2 * s), 1.0 / (c - y3 * s)
         x0, x1, x2, x3 = x0 * k0, x1 * k1, x2 * k2, x3 * k3
         y0, y1, y2, y3 = (y0 * c + s) * k0, (y1 * c + s) * k1, (y2 * c + s) * k2, (y3 * c + s) * k3
