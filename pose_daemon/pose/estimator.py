@@ -730,50 +730,46 @@ def _rotate_batch(w: np.ndarray, R: np.ndarray) -> np.ndarray:
     return np.stack(out, -1).reshape(n, 3, 3)
 
 
-def _cost_comp(P, us, vs, obj, wx: float, wy: float) -> Tuple[np.ndarray, np.ndarray]:
-    """Vectorised _cost_f: P the 12 (n,) components (R row-major, then t), us/vs 4 (n,)
-    arrays. Returns cost (n,) and the smallest corner depth (n,)."""
+def _cost_comp(P, us: np.ndarray, vs: np.ndarray, obj, wx: float, wy: float) -> Tuple[np.ndarray, np.ndarray]:
+    """Vectorised _cost_f on components (as _normal_comp). Returns cost (n,) and the smallest
+    corner depth (n,)."""
     r00, r01, _, r10, r11, _, r20, r21, _, t0, t1, t2 = P
-    cost = zmin = None
-    for (X, Y), u_obs, v_obs in zip(obj, us, vs):
-        pz = r20 * X + r21 * Y + t2
-        iz = 1.0 / pz
-        ru = wx * ((r00 * X + r01 * Y + t0) * iz - u_obs)
-        rv = wy * ((r10 * X + r11 * Y + t1) * iz - v_obs)
-        if cost is None:
-            cost, zmin = ru * ru + rv * rv, pz
-        else:
-            cost += ru * ru + rv * rv
-            zmin = np.minimum(zmin, pz)
-    return cost, zmin
+    X = np.array([[p[0]] for p in obj])
+    Y = np.array([[p[1]] for p in obj])
+    pz = r20 * X + r21 * Y + t2
+    iz = 1.0 / pz
+    ru = wx * ((r00 * X + r01 * Y + t0) * iz - us)
+    rv = wy * ((r10 * X + r11 * Y + t1) * iz - vs)
+    return (ru * ru + rv * rv).sum(0), pz.min(0)
 
 
-def _normal_comp(P, us, vs, obj, wx: float, wy: float) -> List[np.ndarray]:
-    """Vectorised _normal_f on components (as _cost_comp): 26 (n,) arrays, the 20 upper
-    entries of J^T J row by row without the structural zero [3][4], then J^T r (6)."""
+def _normal_comp(P, us: np.ndarray, vs: np.ndarray, obj, wx: float, wy: float) -> np.ndarray:
+    """Vectorised _normal_f: P the 12 (n,) pose components (R row-major, then t), us/vs the
+    corners (4, n). Returns (26, n): the 20 upper entries of J^T J row by row without the
+    structural zero [3][4], then J^T r (6). The four corners go through each operation
+    together (arrays (4, n)), a quarter of the numpy calls."""
     r00, r01, _, r10, r11, _, r20, r21, _, t0, t1, t2 = P
-    out: List[np.ndarray] = []
-    for (X, Y), u_obs, v_obs in zip(obj, us, vs):
-        qx, qy, qz = r00 * X + r01 * Y, r10 * X + r11 * Y, r20 * X + r21 * Y
-        iz = 1.0 / (qz + t2)
-        u, v = (qx + t0) * iz, (qy + t1) * iz
-        ru, rv = wx * (u - u_obs), wy * (v - v_obs)
-        ax, by = wx * iz, wy * iz
-        az, bz = -u * ax, -v * by
-        j0, j1, j2 = qy * az, qz * ax - qx * az, -qy * ax
-        k0, k1, k2 = qy * bz - qz * by, -qx * bz, qx * by
-        terms = (j0 * j0 + k0 * k0, j0 * j1 + k0 * k1, j0 * j2 + k0 * k2, j0 * ax, k0 * by,
-                 j0 * az + k0 * bz,
-                 j1 * j1 + k1 * k1, j1 * j2 + k1 * k2, j1 * ax, k1 * by, j1 * az + k1 * bz,
-                 j2 * j2 + k2 * k2, j2 * ax, k2 * by, j2 * az + k2 * bz,
-                 ax * ax, ax * az, by * by, by * bz, az * az + bz * bz,
-                 j0 * ru + k0 * rv, j1 * ru + k1 * rv, j2 * ru + k2 * rv, ax * ru, by * rv,
-                 az * ru + bz * rv)
-        if not out:
-            out = list(terms)
-        else:
-            for acc, x in zip(out, terms):
-                acc += x
+    X = np.array([[p[0]] for p in obj])
+    Y = np.array([[p[1]] for p in obj])
+    qx, qy, qz = r00 * X + r01 * Y, r10 * X + r11 * Y, r20 * X + r21 * Y
+    iz = 1.0 / (qz + t2)
+    u, v = (qx + t0) * iz, (qy + t1) * iz
+    ru, rv = wx * (u - us), wy * (v - vs)
+    # The u row (j0, j1, j2, ax, 0, az) and the v row (k0, k1, k2, 0, by, bz).
+    ax, by = wx * iz, wy * iz
+    az, bz = -u * ax, -v * by
+    j0, j1, j2 = qy * az, qz * ax - qx * az, -qy * ax
+    k0, k1, k2 = qy * bz - qz * by, -qx * bz, qx * by
+    terms = (j0 * j0 + k0 * k0, j0 * j1 + k0 * k1, j0 * j2 + k0 * k2, j0 * ax, k0 * by,
+             j0 * az + k0 * bz,
+             j1 * j1 + k1 * k1, j1 * j2 + k1 * k2, j1 * ax, k1 * by, j1 * az + k1 * bz,
+             j2 * j2 + k2 * k2, j2 * ax, k2 * by, j2 * az + k2 * bz,
+             ax * ax, ax * az, by * by, by * bz, az * az + bz * bz,
+             j0 * ru + k0 * rv, j1 * ru + k1 * rv, j2 * ru + k2 * rv, ax * ru, by * rv,
+             az * ru + bz * rv)
+    out = np.empty((26, P.shape[1]))
+    for row, x in zip(out, terms):
+        x.sum(0, out=row)
     return out
 
 
@@ -869,10 +865,12 @@ def _polish_rows(P, U, V, obj, wx, wy, max_iter, idx, cost):
                 Pa[:9, k], Pa[9:, k] = R_i, t_i
             break
         if stale is None:
-            NE = np.array(_normal_comp(Pa, Ua, Va, obj, wx, wy))
+            NE = _normal_comp(Pa, Ua, Va, obj, wx, wy)
         else:
             sub = np.flatnonzero(stale)
-            if sub.size:
+            if sub.size == stale.size:
+                NE = _normal_comp(Pa, Ua, Va, obj, wx, wy)
+            elif sub.size:
                 NE[:, sub] = _normal_comp(Pa[:, sub], Ua[:, sub], Va[:, sub], obj, wx, wy)
         s0, s1, s2, s3, s4, s5 = _solve_batch(NE, la)
         Pn = np.empty_like(Pa)
