@@ -306,6 +306,14 @@ def test_float_rotation_helpers_match_geometry(rng):
         assert np.array_equal(np.array(t_m), t_ref)
 
 
+def test_column_signs_are_the_geometry_frame_conversions(rng):
+    from pose_daemon.pose.estimator import _UNROT_MARKER_COLUMNS
+
+    R = geometry.R_from_rvec(rng.normal(size=(100, 3)))
+    assert np.array_equal(R * _UNROT_MARKER_COLUMNS, geometry.R_cam_marker_from_R_cam_unrot(R))
+    assert np.array_equal(R * _UNROT_MARKER_COLUMNS, geometry.R_cam_unrot_from_R_cam_marker(R))
+
+
 def test_float_normal_equations_and_cholesky_solve(camera, marker, rng):
     from pose_daemon.pose.estimator import _cost_f, _normal_f, _solve6
 
