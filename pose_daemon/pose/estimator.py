@@ -465,7 +465,7 @@ def mirror_pose(R_cam_marker: np.ndarray, tvec: np.ndarray) -> Tuple[np.ndarray,
 def _mirror_f(R: Sequence[float], t: Sequence[float]):
     """mirror_pose on floats (9-tuple, 3-tuple)."""
     n = math.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
-    k = math.pi / n
+    k = math.pi / n if n > 0.0 else math.nan
     return _matmul_f(_matmul_f(_exp_f(k * t[0], k * t[1], k * t[2]), R), _FLIP_Z_F), tuple(t)
 
 
