@@ -497,14 +497,23 @@ def _pose_from(R: Sequence[float], t: Sequence[float], error_px: float, method: 
                 iterations=iterations, alternative=alternative, ambiguity_ratio=ratio)
 
 
-def _error_px(R: Sequence[float], t: Sequence[float], cost: float, camera: Camera,
-              marker: Marker, corners: List[float]) -> float:
-    """RMS reprojection error over the 4 corners in pixels, through the lens distortion."""
+def _errors_px(poses, camera: Camera, obj, corners: List[float]) -> List[float]:
+    """RMS reprojection error over the 4 corners in pixels, through the lens distortion, of
+    each (R 9-tuple, t, cost) in poses; one projection call for all of them."""
     if not camera.has_distortion:
-        return math.sqrt(cost / 4.0)
-    proj = camera.project(marker.object_points @ np.array(R).reshape(3, 3).T + np.array(t))
-    d = proj.ravel() - np.array(corners)
-    return math.sqrt(float(d @ d) / 4.0)
+        return [math.sqrt(cost / 4.0) for _, _, cost in poses]
+    pts = []
+    for (r00, r01, _, r10, r11, _, r20, r21, _), (t0, t1, t2), _ in poses:
+        for X, Y in obj:
+            pts.append((r00 * X + r01 * Y + t0, r10 * X + r11 * Y + t1, r20 * X + r21 * Y + t2))
+    proj = camera.project(np.array(pts)).ravel().tolist()
+    out = []
+    for k in range(0, len(proj), 8):
+        s = 0.0
+        for p, c in zip(proj[k:k + 8], corners):
+            s += (p - c) * (p - c)
+        out.append(math.sqrt(s / 4.0))
+    return out
 
 
 def _all_finite(values: Sequence[float]) -> bool:
@@ -609,9 +618,10 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
         # The input faced the camera (quad_problem), so the loop went astray.
         raise EstimationError(f"the {method} correction loop did not converge to a pose in "
                               "front of the camera")
-    err = _error_px(R, t, cost, camera, marker, flat)
     alt_valid = zmin_alt > 0.0 and math.isfinite(cost_alt)
-    err_alt = _error_px(R_alt, t_alt, cost_alt, camera, marker, flat) if alt_valid else math.inf
+    errs = _errors_px([(R, t, cost)] + ([(R_alt, t_alt, cost_alt)] if alt_valid else []),
+                      camera, obj, flat)
+    err, err_alt = errs[0], (errs[1] if alt_valid else math.inf)
     if not math.isfinite(err):
         raise EstimationError("no finite pose fits these corners")
     # Without the polish the mirror is only a first guess: report it, never prefer it.
