@@ -100,7 +100,8 @@ def _coverage_matrix(edges_m: np.ndarray, origin_m: float, ppm: float, n_texels:
     """(n_texels, n_cells): the length of texel t covered by cell c, in texels.
 
     ``edges_m`` are the cell boundaries along one axis (increasing, metres); texel t spans
-    [t, t+1) texels from ``origin_m`` (going towards decreasing coordinates when ``flip``).
+    [t, t+1) texels from ``origin_m`` (going towards decreasing coordinates when ``flip``,
+    and then column 0 is the cell at the largest coordinate).
     """
     e = (np.asarray(edges_m, dtype=np.float64) - origin_m) * ppm
     if flip:
@@ -108,8 +109,8 @@ def _coverage_matrix(edges_m: np.ndarray, origin_m: float, ppm: float, n_texels:
     t = np.arange(n_texels, dtype=np.float64)[:, None]
     lo = np.maximum(t, e[None, :-1])
     hi = np.minimum(t + 1.0, e[None, 1:])
-    cov = np.clip(hi - lo, 0.0, None)
-    return cov[:, ::-1] if flip else cov
+    # With ``flip`` the cells come out counted from the far end (the top row first).
+    return np.clip(hi - lo, 0.0, None)
 
 
 def marker_texture_grid(marker: Marker, quiet_zone: float = 0.25) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -167,6 +168,17 @@ def aruco_bits(dictionary: str, marker_id: int) -> np.ndarray:
     return _ARUCO_BITS[key]
 
 
+class _Channels:
+    """A (h, w, 2) image kept as two contiguous planes (``x[..., k]`` gives plane k)."""
+
+    def __init__(self, image: np.ndarray) -> None:
+        self.planes = [np.ascontiguousarray(image[..., k]) for k in range(image.shape[2])]
+        self.shape = image.shape
+
+    def __getitem__(self, index):
+        return self.planes[index[1]]
+
+
 class _TexturePyramid:
     """A plane texture at several resolutions; each level covers the same metric extent.
 
@@ -201,6 +213,7 @@ def _grid_pyramid(values: np.ndarray, x_edges: np.ndarray, y_edges: np.ndarray, 
         tex = np.empty((ny, nx, 2), np.float32)
         tex[..., 0] = cy @ grey @ cx.T
         tex[..., 1] = 1.0
+        tex = _Channels(tex)
         levels.append((tex, ppm_x, ppm_y))
         if ppm <= coarsest_ppm:
             break
@@ -222,6 +235,7 @@ def _image_pyramid(texture: np.ndarray, size_m: Tuple[float, float]) -> _Texture
         level = np.empty((ny, nx, 2), np.float32)
         level[..., 0] = grey
         level[..., 1] = 1.0
+        level = _Channels(level)
         levels.append((level, nx / w_m, ny / h_m))
         if min(nx, ny) < 16:
             break
@@ -339,8 +353,11 @@ def _render_plane_layer(camera: Camera, pyramid: _TexturePyramid, R: np.ndarray,
                       [0.0, 1.0 / (ss * camera.fy), ((0.5 / ss - 0.5) + v0 - camera.cy) / camera.fy],
                       [0.0, 0.0, 1.0]])
         M = G @ P
-        layer = cv2.warpPerspective(tex, M, (w_ss, h_ss), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                    borderMode=cv2.BORDER_CONSTANT, borderValue=(0.0, 0.0, 0.0, 0.0))
+        # One channel at a time: OpenCV warps single-channel float images several times faster.
+        layer = np.stack([cv2.warpPerspective(tex[..., k], M, (w_ss, h_ss),
+                                              flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                              borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+                          for k in (0, 1)], axis=-1)
         # Samples behind the camera would alias onto the plane through the homography.
         if _crosses_camera(R, t, pyramid):
             rays = _sample_rays(camera, ss)[v0 * ss:v1 * ss, u0 * ss:u1 * ss]
@@ -357,8 +374,9 @@ def _render_plane_layer(camera: Camera, pyramid: _TexturePyramid, R: np.ndarray,
         behind = _behind(Hinv, rays)
         map_x[behind] = -10.0
         map_y[behind] = -10.0
-        layer = cv2.remap(tex, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                          borderValue=(0.0, 0.0, 0.0, 0.0))
+        layer = np.stack([cv2.remap(tex[..., k], map_x, map_y, cv2.INTER_LINEAR,
+                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+                          for k in (0, 1)], axis=-1)
     if ss > 1:
         layer = cv2.resize(layer, (u1 - u0, v1 - v0), interpolation=cv2.INTER_AREA)
     return roi, layer[..., 0], layer[..., 1]
@@ -388,15 +406,17 @@ def make_background(rng: np.random.Generator, width: int, height: int, kind: str
         return np.full((height, width), plain_gray, np.float32)
     if kind != "texture":
         raise ValueError(f"background must be 'texture' or 'plain', got {kind!r}")
-    out = np.zeros((height, width), np.float32)
+    # Built at half resolution (it is smooth) and enlarged once: a few ms per frame.
+    hw, hh = max(2, (width + 1) // 2), max(2, (height + 1) // 2)
+    out = np.zeros((hh, hw), np.float32)
     total = 0.0
     for cells, weight in ((3, 1.0), (8, 0.7), (24, 0.45), (64, 0.25)):
         gw = max(2, int(round(cells * width / max(width, height))) + 1)
         gh = max(2, int(round(cells * height / max(width, height))) + 1)
-        grid = rng.random((gh, gw)).astype(np.float32)
-        out += weight * cv2.resize(grid, (width, height), interpolation=cv2.INTER_CUBIC)
+        grid = rng.random((gh, gw), dtype=np.float32)
+        out += weight * cv2.resize(grid, (hw, hh), interpolation=cv2.INTER_CUBIC)
         total += weight
-    out /= total
+    out = cv2.resize(out / total, (width, height), interpolation=cv2.INTER_LINEAR)
     lo, hi = float(out.min()), float(out.max())
     out = (out - lo) / max(hi - lo, 1e-6)
     base = 60.0 + 80.0 * rng.random()
@@ -431,7 +451,11 @@ def _apply_effects(img: np.ndarray, effects: Effects, rng: np.random.Generator) 
     if effects.blur_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), float(effects.blur_px), borderType=cv2.BORDER_REFLECT)
     if effects.noise_gray > 0:
-        img = img + rng.standard_normal((h, w), dtype=np.float32) * np.float32(effects.noise_gray)
+        # OpenCV's generator (thread-local) seeded from ``rng``: reproducible, 4x faster than numpy's.
+        noise = np.empty((h, w), np.float32)
+        cv2.setRNGSeed(int(rng.integers(1, 2**31 - 1)))
+        cv2.randn(noise, 0.0, float(effects.noise_gray))
+        img = img + noise
     out = np.clip(img + 0.5, 0, 255).astype(np.uint8)
     if effects.jpeg_quality:
         ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(effects.jpeg_quality)])
