@@ -32,6 +32,7 @@ __all__ = [
     "make_background",
     "marker_texture_grid",
     "trajectory",
+    "Trajectory",
     "random_pose",
     "TRAJECTORIES",
 ]
@@ -612,44 +613,50 @@ def trajectory(kind: str, n_frames: int, fps: float, seed: int = 0, camera: Opti
     in-plane rotation). Smooth (sums of sines with seeded phases) and the marker stays whole
     in the image of ``camera`` (default: 640x480, fx = fy = 600, 0.2 m marker).
     """
-    if kind not in TRAJECTORIES:
-        raise ValueError(f"trajectory must be one of {', '.join(TRAJECTORIES)}, got {kind!r}")
     if fps <= 0:
         raise ValueError(f"fps must be positive, got {fps}")
-    camera = camera or Camera(fx=600.0, fy=600.0, cx=319.5, cy=239.5, width=640, height=480)
-    marker = marker or Marker(0.2, 0.2)
-    rng = np.random.default_rng(seed)
-    f = min(camera.fx, camera.fy)
-    size_m = max(marker.width, marker.height)
-    # The marker spans between ~45 % of the short image side (near) and ~45 px (far).
-    near = max(f * size_m * 1.45 / (0.45 * min(camera.width, camera.height)), 0.05)
-    far = max(near * 1.5, min(f * size_m / 45.0, 6.0))
-    phases = rng.uniform(0, 2 * math.pi, 8)
-    periods = rng.uniform(0.8, 1.2, 8) * np.array([14.0, 9.0, 11.0, 7.0, 13.0, 17.0, 6.0, 23.0])
-    poses: List[TruePose] = []
-    for i in range(int(n_frames)):
-        t_s = i / fps
-        s = [math.sin(2 * math.pi * t_s / periods[k] + phases[k]) for k in range(8)]
-        dist = near + (far - near) * (0.5 + 0.5 * s[0])
-        if kind == "wall":
+    path = Trajectory(kind, seed, camera, marker)
+    return [path.at(i / fps) for i in range(int(n_frames))]
+
+
+class Trajectory:
+    """An endless smooth trajectory (see ``trajectory``): ``at(t_s)`` gives the true pose."""
+
+    def __init__(self, kind: str, seed: int = 0, camera: Optional[Camera] = None,
+                 marker: Optional[Marker] = None) -> None:
+        if kind not in TRAJECTORIES:
+            raise ValueError(f"trajectory must be one of {', '.join(TRAJECTORIES)}, got {kind!r}")
+        self.kind = kind
+        camera = camera or Camera(fx=600.0, fy=600.0, cx=319.5, cy=239.5, width=640, height=480)
+        marker = marker or Marker(0.2, 0.2)
+        rng = np.random.default_rng(seed)
+        f = min(camera.fx, camera.fy)
+        size_m = max(marker.width, marker.height)
+        # The marker spans between ~45 % of the short image side (near) and ~45 px (far).
+        self.near = max(f * size_m * 1.45 / (0.45 * min(camera.width, camera.height)), 0.05)
+        self.far = max(self.near * 1.5, min(f * size_m / 45.0, 6.0))
+        self.phases = rng.uniform(0, 2 * math.pi, 8)
+        self.periods = rng.uniform(0.8, 1.2, 8) * np.array([14.0, 9.0, 11.0, 7.0, 13.0, 17.0, 6.0, 23.0])
+
+    def at(self, t_s: float) -> TruePose:
+        s = np.sin(2 * math.pi * t_s / self.periods + self.phases)
+        dist = self.near + (self.far - self.near) * (0.5 + 0.5 * s[0])
+        if self.kind == "wall":
             # Camera position in the marker frame (x right, y up, z out of the wall).
             lateral = 0.45 * dist * s[1]
             height = 0.25 * dist * s[2]
             roll = math.radians(12.0) * s[3]
-            look_off = 0.08 * np.array([s[4], s[5]])
+            look_off = 0.08 * s[4:6]
         else:
             lateral = 0.3 * dist * s[1]
             height = 0.3 * dist * s[2]
-            roll = 2 * math.pi * t_s / periods[7] + phases[7]  # heading: keeps turning
-            look_off = 0.05 * np.array([s[4], s[5]])
+            roll = 2 * math.pi * t_s / self.periods[7] + self.phases[7]  # heading: keeps turning
+            look_off = 0.05 * s[4:6]
         p_marker = np.array([lateral, height, dist])
-        # Aim at a point near the marker centre: the ray to it in the unrotated camera frame.
-        R_pan = _aim(p_marker, look_off)
-        R_cam_unrot = R_pan @ rot_z(roll)
+        # Roll about the optical axis, after aiming it (camera frame on the left).
+        R_cam_unrot = rot_z(roll) @ _aim(p_marker, look_off)
         R = R_cam_unrot @ R_UNROT_MARKER
-        t = -R @ p_marker
-        poses.append(TruePose(t_s=t_s, rvec=rvec_from_R(R), tvec=t))
-    return poses
+        return TruePose(t_s=float(t_s), rvec=rvec_from_R(R), tvec=-R @ p_marker)
 
 
 def _aim(p_marker: np.ndarray, look_off: np.ndarray) -> np.ndarray:
