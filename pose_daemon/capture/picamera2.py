@@ -1,0 +1,97 @@
+"""The Raspberry Pi camera through picamera2 (from apt on Raspberry Pi OS; imported only here).
+
+The low-resolution stream is configured as YUV420 at the capture size and its Y plane is
+the grey frame: no colour conversion on the Pi's CPU. Exposure and gain are fixed when the
+config gives them (motion blur and brightness stay predictable), and each frame is stamped
+with the request's SensorTimestamp (nanoseconds, kernel monotonic clock = time.monotonic).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Callable, Dict, Optional
+
+import numpy as np
+
+from ..errors import SourceError
+from .base import Frame
+
+
+class Picamera2Source:
+    """``camera_index``: which camera (picamera2's numbering); ``exposure_us``/``analogue_gain``
+    0 = automatic."""
+
+    def __init__(self, width: int, height: int, *, fps: float = 30.0, exposure_us: int = 0,
+                 analogue_gain: float = 0.0, camera_index: int = 0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.width, self.height, self.fps = int(width), int(height), float(fps)
+        self.exposure_us, self.analogue_gain = int(exposure_us), float(analogue_gain)
+        self.camera_index = camera_index
+        self._clock = clock
+        self._cam: Any = None
+        self._seq = 0
+
+    def controls(self) -> Dict[str, Any]:
+        """The libcamera controls asked for: frame rate, and fixed exposure / gain if set."""
+        frame_us = int(round(1e6 / self.fps))
+        controls: Dict[str, Any] = {"FrameDurationLimits": (frame_us, frame_us)}
+        if self.exposure_us or self.analogue_gain:
+            controls["AeEnable"] = False
+            if self.exposure_us:
+                controls["ExposureTime"] = self.exposure_us
+            if self.analogue_gain:
+                controls["AnalogueGain"] = self.analogue_gain
+        return controls
+
+    def open(self) -> None:
+        try:
+            from picamera2 import Picamera2
+        except ImportError as exc:
+            raise SourceError("source picamera2: the picamera2 module is not installed "
+                              "(on Raspberry Pi OS: sudo apt install python3-picamera2)") from exc
+        try:
+            cam = Picamera2(self.camera_index)
+            # The main stream must exist; the lores stream (<= main) gives YUV420 cheaply.
+            config = cam.create_video_configuration(
+                main={"size": (self.width, self.height)},
+                lores={"size": (self.width, self.height), "format": "YUV420"},
+                buffer_count=4, controls=self.controls())
+            cam.configure(config)
+            cam.start()
+        except Exception as exc:  # picamera2 raises RuntimeError/IndexError/... for no camera
+            raise SourceError(f"source picamera2: cannot start camera {self.camera_index}: {exc}") from exc
+        self._cam = cam
+        self._seq = 0
+
+    def read(self) -> Frame:
+        if self._cam is None:
+            raise SourceError("source picamera2: read() before open()")
+        try:
+            request = self._cam.capture_request()
+        except Exception as exc:
+            raise SourceError(f"source picamera2: capture failed: {exc}") from exc
+        try:
+            yuv = request.make_array("lores")
+            metadata = dict(request.get_metadata())
+        finally:
+            request.release()
+        # YUV420 planar: the first `height` rows are Y (rows may be padded to a stride).
+        image = np.ascontiguousarray(yuv[:self.height, :self.width])
+        if image.shape != (self.height, self.width):
+            raise SourceError(f"source picamera2: frame is {image.shape[1]}x{image.shape[0]}, "
+                              f"expected {self.width}x{self.height}")
+        ts_ns: Optional[int] = metadata.get("SensorTimestamp")
+        t = ts_ns / 1e9 if ts_ns else self._clock()
+        frame = Frame(image=image, t_capture_s=float(t), seq=self._seq,
+                      metadata={k: metadata[k] for k in ("ExposureTime", "AnalogueGain", "SensorTimestamp")
+                                if k in metadata})
+        self._seq += 1
+        return frame
+
+    def close(self) -> None:
+        if self._cam is not None:
+            try:
+                self._cam.stop()
+                self._cam.close()
+            finally:
+                self._cam = None

@@ -1,0 +1,143 @@
+"""The recording format: a folder of lossless PNG frames with an index, the camera and marker.
+
+    DIR/recording.json   {"format": "pose-daemon-recording", "version": 1, "camera": {fx, fy,
+                          cx, cy, dist, width, height}, "marker": {type, width, height,
+                          dictionary, id}, "source": "...", "fps": 30.0, "created_utc": "..."}
+    DIR/index.jsonl      one line per frame: {"seq": 0, "file": "frames/000000.png",
+                          "t_capture_s": 12.345678} plus, from the synthetic source, the
+                          truth: "true_rvec", "true_tvec" (marker in camera frame, rad / m),
+                          "true_corners" ([[u, v] x 4], px, TL TR BR BL)
+    DIR/frames/NNNNNN.png  8-bit grey frames
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Union
+
+import cv2
+import numpy as np
+
+from ..camera import Camera, Marker
+from ..errors import SourceError
+from .base import Frame
+
+FORMAT = "pose-daemon-recording"
+VERSION = 1
+META_FILE = "recording.json"
+INDEX_FILE = "index.jsonl"
+TRUTH_KEYS = ("true_rvec", "true_tvec", "true_corners")
+
+
+def is_recording(path: Union[str, Path]) -> bool:
+    return (Path(path) / INDEX_FILE).is_file()
+
+
+def camera_to_dict(camera: Camera) -> Dict[str, Any]:
+    return {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
+            "dist": list(camera.dist), "width": camera.width, "height": camera.height}
+
+
+def marker_to_dict(marker: Marker) -> Dict[str, Any]:
+    return {"type": marker.type, "width": marker.width, "height": marker.height,
+            "dictionary": marker.dictionary, "id": marker.id}
+
+
+class RecordingWriter:
+    """Writes frames into a new recording folder (which must not hold a recording already)."""
+
+    def __init__(self, path: Union[str, Path], camera: Camera, marker: Optional[Marker] = None, *,
+                 source: str = "", fps: float = 0.0) -> None:
+        self.path = Path(path)
+        if is_recording(self.path):
+            raise SourceError(f"{self.path} already holds a recording; choose a new folder")
+        if self.path.exists() and not self.path.is_dir():
+            raise SourceError(f"{self.path} exists and is not a folder")
+        (self.path / "frames").mkdir(parents=True, exist_ok=True)
+        meta = {"format": FORMAT, "version": VERSION, "camera": camera_to_dict(camera),
+                "marker": marker_to_dict(marker) if marker is not None else None,
+                "source": source, "fps": fps,
+                "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        (self.path / META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
+        self._index = open(self.path / INDEX_FILE, "w")
+        self.count = 0
+
+    def write(self, frame: Frame) -> None:
+        name = f"frames/{frame.seq:06d}.png"
+        if not cv2.imwrite(str(self.path / name), frame.image):
+            raise SourceError(f"cannot write {self.path / name}")
+        entry: Dict[str, Any] = {"seq": int(frame.seq), "file": name,
+                                 "t_capture_s": float(frame.t_capture_s)}
+        for key in TRUTH_KEYS:
+            if key in frame.metadata:
+                entry[key] = np.asarray(frame.metadata[key], dtype=np.float64).tolist()
+        self._index.write(json.dumps(entry) + "\n")
+        self._index.flush()
+        self.count += 1
+
+    def close(self) -> None:
+        self._index.close()
+
+    def __enter__(self) -> RecordingWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def read_meta(path: Union[str, Path]) -> Dict[str, Any]:
+    """recording.json of a recording ({} when absent); SourceError if it is not valid."""
+    meta_path = Path(path) / META_FILE
+    if not meta_path.is_file():
+        return {}
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, ValueError) as exc:
+        raise SourceError(f"{meta_path}: not valid JSON ({exc})") from exc
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise SourceError(f"{meta_path}: not a {FORMAT} file")
+    return meta
+
+
+def camera_from_meta(meta: Dict[str, Any]) -> Optional[Camera]:
+    cam = meta.get("camera")
+    if not cam:
+        return None
+    try:
+        return Camera(**cam)
+    except (TypeError, ValueError) as exc:
+        raise SourceError(f"recording camera model is invalid: {exc}") from exc
+
+
+def marker_from_meta(meta: Dict[str, Any]) -> Optional[Marker]:
+    m = meta.get("marker")
+    if not m:
+        return None
+    try:
+        return Marker(**m)
+    except (TypeError, ValueError) as exc:
+        raise SourceError(f"recording marker is invalid: {exc}") from exc
+
+
+def read_index(path: Union[str, Path]) -> List[Dict[str, Any]]:
+    """The index entries; a line that cannot be parsed is a SourceError naming its number."""
+    index_path = Path(path) / INDEX_FILE
+    entries = []
+    try:
+        lines = index_path.read_text().splitlines()
+    except OSError as exc:
+        raise SourceError(f"cannot read {index_path}: {exc}") from exc
+    for n, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            entry = json.loads(line)
+            entry["file"] = str(entry["file"])
+            entry["t_capture_s"] = float(entry["t_capture_s"])
+            entry["seq"] = int(entry.get("seq", len(entries)))
+        except (ValueError, KeyError, TypeError) as exc:
+            raise SourceError(f"{index_path}:{n}: not a frame entry ({exc})") from exc
+        entries.append(entry)
+    return entries

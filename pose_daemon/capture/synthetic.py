@@ -1,0 +1,73 @@
+"""The synthetic source: the renderer along a configured trajectory, paced at the camera's
+frame rate; every frame's metadata carries its true pose and corners."""
+
+from __future__ import annotations
+
+import time
+from typing import Callable, Optional
+
+import numpy as np
+
+from ..camera import Camera, Marker
+from ..errors import EndOfStream, SourceError
+from ..render import Effects, Trajectory, make_background, render_marker
+from .base import Frame
+
+
+class SyntheticSource:
+    """Frames of ``marker`` seen by ``camera`` moving along ``trajectory`` ("wall"/"floor").
+
+    ``frames`` = 0: endless. ``realtime``: each frame is delivered at its time on the
+    monotonic clock (``t_capture_s``); otherwise as fast as rendered, with ``t_capture_s``
+    the start time plus the trajectory time. Metadata: ``true_rvec``, ``true_tvec`` (marker
+    in camera frame, rad / m), ``true_corners`` (4, 2) px, ``trajectory_t_s``.
+    """
+
+    def __init__(self, camera: Camera, marker: Marker, *, trajectory: str = "wall", seed: int = 0,
+                 fps: float = 30.0, frames: int = 0, effects: Optional[Effects] = None,
+                 realtime: bool = True, clock: Callable[[], float] = time.monotonic,
+                 sleep: Callable[[float], None] = time.sleep) -> None:
+        if fps <= 0:
+            raise SourceError(f"synthetic source: fps must be positive, got {fps}")
+        self.camera, self.marker = camera, marker
+        self.path = Trajectory(trajectory, seed, camera, marker)
+        self.seed, self.fps, self.frames = seed, float(fps), int(frames)
+        self.effects = effects if effects is not None else Effects()
+        self.realtime = realtime
+        self._clock, self._sleep = clock, sleep
+        self._rng: Optional[np.random.Generator] = None
+        self._background: Optional[np.ndarray] = None
+        self._seq = 0
+        self._t0: Optional[float] = None
+
+    def open(self) -> None:
+        self._rng = np.random.default_rng(self.seed)
+        # One background for the whole run: a camera on a robot sees the same room.
+        self._background = make_background(self._rng, self.camera.width, self.camera.height,
+                                           self.effects.background, self.effects.plain_gray)
+        self._seq = 0
+        self._t0 = self._clock()
+
+    def read(self) -> Frame:
+        if self._rng is None:
+            raise SourceError("synthetic source: read() before open()")
+        if self.frames and self._seq >= self.frames:
+            raise EndOfStream(f"synthetic source: {self.frames} frames done")
+        t_traj = self._seq / self.fps
+        t_capture = self._t0 + t_traj
+        if self.realtime:
+            wait = t_capture - self._clock()
+            if wait > 0:
+                self._sleep(wait)
+        truth = self.path.at(t_traj)
+        rendered = render_marker(self.camera, self.marker, truth.rvec, truth.tvec,
+                                 effects=self.effects, rng=self._rng, background=self._background)
+        frame = Frame(image=rendered.image, t_capture_s=t_capture, seq=self._seq,
+                      metadata={"true_rvec": truth.rvec, "true_tvec": truth.tvec,
+                                "true_corners": rendered.corners_px, "visible": rendered.visible,
+                                "trajectory_t_s": t_traj})
+        self._seq += 1
+        return frame
+
+    def close(self) -> None:
+        self._rng = None
