@@ -845,13 +845,10 @@ def _polish_batch(R: np.ndarray, t: np.ndarray, obj, us: np.ndarray, vs: np.ndar
     P[:9] = R.reshape(N, 9).T
     P[9:] = t.T
     U, V = np.ascontiguousarray(us.T), np.ascontiguousarray(vs.T)
-    if cost is None:
-        cost = _cost_comp(P, U, V, obj, wx, wy)[0]
-    else:
-        cost = cost.copy()
-    active = np.ones(N, bool) if active is None else active.copy()
+    idx = np.arange(N) if active is None else np.flatnonzero(active)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        P, cost = _polish_rows(P, U, V, obj, wx, wy, max_iter, np.flatnonzero(active), cost)
+        cost = _cost_comp(P, U, V, obj, wx, wy)[0] if cost is None else cost.copy()
+        P, cost = _polish_rows(P, U, V, obj, wx, wy, max_iter, idx, cost)
     return P[:9].T.reshape(N, 3, 3).copy(), P[9:].T.copy(), cost
 
 
