@@ -1,0 +1,96 @@
+"""Drawing helpers for annotated frames: detected corners, the marker's axes, the pose as text."""
+
+from __future__ import annotations
+
+from typing import Optional, Sequence, Tuple
+
+import cv2
+import numpy as np
+
+from .camera import Camera, Marker
+from .geometry import R_from_rvec
+
+_SHIFT = 4          # sub-pixel drawing: coordinates in 1/16 px
+_ONE = 1 << _SHIFT
+CORNER_COLOURS = ((0, 0, 255), (0, 255, 0), (255, 0, 0), (0, 255, 255))   # TL TR BR BL (BGR)
+
+
+def to_bgr(image: np.ndarray) -> np.ndarray:
+    """A colour copy of a grey (or already colour) frame to draw on."""
+    if image.ndim == 2:
+        return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    return image.copy()
+
+
+def _pt(p) -> Tuple[int, int]:
+    # Pixel centres at integers (interface.md): no half-pixel shift.
+    return int(round(float(p[0]) * _ONE)), int(round(float(p[1]) * _ONE))
+
+
+def draw_corners(image: np.ndarray, corners_px: np.ndarray, colour=(0, 255, 0), radius_px: float = 4.0,
+                 label: bool = True) -> np.ndarray:
+    """The quadrilateral through ``corners_px`` (4, 2), each corner ringed in its own colour
+    (TL red, TR green, BR blue, BL yellow) and labelled. Draws in place on a BGR image."""
+    c = np.asarray(corners_px, dtype=np.float64).reshape(4, 2)
+    pts = np.array([_pt(p) for p in c], np.int32).reshape(-1, 1, 2)
+    cv2.polylines(image, [pts], True, colour, 1, cv2.LINE_AA, shift=_SHIFT)
+    for i, (p, name) in enumerate(zip(c, ("TL", "TR", "BR", "BL"))):
+        cv2.circle(image, _pt(p), int(radius_px * _ONE), CORNER_COLOURS[i], 1, cv2.LINE_AA, shift=_SHIFT)
+        if label:
+            cv2.putText(image, name, (int(p[0]) + 5, int(p[1]) - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
+                        CORNER_COLOURS[i], 1, cv2.LINE_AA)
+    return image
+
+
+def draw_axes(image: np.ndarray, camera: Camera, rvec, tvec, length_m: float) -> np.ndarray:
+    """The marker frame's axes at pose (rvec, tvec): x red, y green, z blue (out of the marker),
+    each ``length_m`` long, projected through the lens. Draws in place on a BGR image."""
+    R = R_from_rvec(np.asarray(rvec, dtype=np.float64).reshape(3))
+    t = np.asarray(tvec, dtype=np.float64).reshape(3)
+    pts_marker = np.array([[0, 0, 0], [length_m, 0, 0], [0, length_m, 0], [0, 0, length_m]], np.float64)
+    pts_cam = pts_marker @ R.T + t
+    if np.any(pts_cam[:, 2] <= 1e-6):
+        return image  # an axis would reach behind the camera: nothing sensible to draw
+    px = camera.project(pts_cam)
+    for end, colour in zip(px[1:], ((0, 0, 255), (0, 255, 0), (255, 0, 0))):
+        cv2.line(image, _pt(px[0]), _pt(end), colour, 2, cv2.LINE_AA, shift=_SHIFT)
+    return image
+
+
+def draw_text(image: np.ndarray, lines: Sequence[str], origin_px: Tuple[int, int] = (8, 18),
+              colour=(255, 255, 255)) -> np.ndarray:
+    """Lines of text with a dark outline (readable on any background), top-left first."""
+    x, y = origin_px
+    for line in lines:
+        cv2.putText(image, line, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 3, cv2.LINE_AA)
+        cv2.putText(image, line, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1, cv2.LINE_AA)
+        y += 18
+    return image
+
+
+def pose_lines(result) -> Sequence[str]:
+    """Text for one FrameResult: frame, time, and the pose or the reason there is none."""
+    head = f"frame {result.seq}  t {result.t_capture_s:.3f} s"
+    pose = result.pose
+    if pose is None:
+        return [head, f"no pose: {result.error or 'no marker'}"]
+    x, y, z = (float(v) for v in pose.camera_position)
+    return [head,
+            f"camera in marker frame: x {x:+.3f}  y {y:+.3f}  z {z:+.3f} m",
+            f"alpha {pose.alpha_deg:+.1f}  beta {pose.beta_deg:+.1f}  gamma {pose.gamma_deg:+.1f} deg",
+            f"reprojection {pose.reprojection_error_px:.2f} px"]
+
+
+def annotate(image: np.ndarray, result, camera: Camera, marker: Marker,
+             true_corners_px: Optional[np.ndarray] = None) -> np.ndarray:
+    """A BGR copy of ``image`` with the detected corners, the marker's axes (half its width)
+    and the pose text of ``result`` (a FrameResult); true corners, when known, as grey rings."""
+    out = to_bgr(image)
+    if true_corners_px is not None:
+        for p in np.asarray(true_corners_px, dtype=np.float64).reshape(4, 2):
+            cv2.circle(out, _pt(p), 6 * _ONE, (160, 160, 160), 1, cv2.LINE_AA, shift=_SHIFT)
+    if result.corners is not None:
+        draw_corners(out, result.corners)
+    if result.pose is not None:
+        draw_axes(out, camera, result.pose.rvec, result.pose.tvec, 0.5 * min(marker.width, marker.height))
+    return draw_text(out, pose_lines(result))
