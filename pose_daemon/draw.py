@@ -59,12 +59,13 @@ def draw_axes(image: np.ndarray, camera: Camera, rvec, tvec, length_m: float) ->
 
 def draw_text(image: np.ndarray, lines: Sequence[str], origin_px: Tuple[int, int] = (8, 18),
               colour=(255, 255, 255)) -> np.ndarray:
-    """Lines of text with a dark outline (readable on any background), top-left first."""
+    """Lines of text on a dark box (readable on any background), top-left first."""
     x, y = origin_px
     for line in lines:
-        cv2.putText(image, line, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 3, cv2.LINE_AA)
+        (w, h), base = cv2.getTextSize(line, cv2.FONT_HERSHEY_SIMPLEX, 0.45, 1)
+        cv2.rectangle(image, (x - 3, y - h - 3), (x + w + 3, y + base + 1), (0, 0, 0), -1)
         cv2.putText(image, line, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1, cv2.LINE_AA)
-        y += 18
+        y += h + base + 6
     return image
 
 
