@@ -261,3 +261,69 @@ path = "{tmp_path / 'poses.jsonl'}"
     assert all(o.stats()["link"] == "closed" for o in service.outputs)
     status = [r.getMessage() for r in caplog.records if r.getMessage().startswith("status:")]
     assert status and "mavlink 30 sent (link closed)" in status[-1] and "jsonl 30 sent" in status[-1], status
+
+
+def test_pose_daemon_run_replays_a_recording_to_a_udp_ground_station(tmp_path):
+    """The command line as a user runs it: `pose-daemon record` makes a synthetic recording with
+    its truth, `pose-daemon run` on it streams MAVLink to a UDP port until the recording ends."""
+    import subprocess
+    import sys
+
+    camera_toml = """
+[camera]
+width = 320
+height = 240
+fx = 300.0
+fy = 300.0
+cx = 159.5
+cy = 119.5
+fps = 30.0
+[marker]
+width = 0.2
+placement = "wall"
+[mount]
+preset = "forward"
+offset_m = [0.1, 0.0, 0.0]
+"""
+    rec_cfg = tmp_path / "record.toml"
+    rec_cfg.write_text(camera_toml.replace("[camera]", '[camera]\nsource = "synthetic"')
+                       + "[synthetic]\nseed = 7\n")
+    rec = tmp_path / "rec"
+    cli = [sys.executable, "-m", "pose_daemon"]
+    done = subprocess.run(cli + ["record", "--config", str(rec_cfg), "--out", str(rec), "--frames", "45",
+                                 "--quiet"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    peer = UdpPeer()
+    run_cfg = tmp_path / "run.toml"
+    run_cfg.write_text(camera_toml.replace("[camera]", f'[camera]\nsource = "replay:{rec}"') + f"""
+[output.mavlink]
+connection = "udpout:127.0.0.1:{peer.port}"
+messages = ["ODOMETRY", "VISION_POSITION_ESTIMATE"]
+wait_heartbeat = false
+[output.jsonl]
+path = "{tmp_path / 'poses.jsonl'}"
+""")
+    proc = subprocess.Popen(cli + ["run", "--config", str(run_cfg)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    msgs = peer.collect(60.0, until=lambda ms: proc.poll() is not None)
+    msgs = peer.collect(0.3)
+    peer.close()
+    _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err[-2000:]
+    # Which frame each message is: the JSON lines give (frame, capture time).
+    by_time = {round(r["t"] * 1e6): r["frame"] for r in
+               (json.loads(s) for s in (tmp_path / "poses.jsonl").read_text().splitlines())}
+    truth = {e["seq"]: e for e in (json.loads(s) for s in (rec / "index.jsonl").read_text().splitlines())}
+    cfg = parse_config(run_cfg.read_text(), "run.toml")
+    frames = g.VehicleFrames.from_config(cfg.mount, cfg.marker.placement)
+    odo = of_type(msgs, "ODOMETRY")
+    assert of_type(msgs, "HEARTBEAT") and len(odo) >= 0.8 * 45, err[-2000:]
+    t_us = [m.time_usec for m in odo]
+    assert all(b > a for a, b in zip(t_us, t_us[1:]))
+    for m in odo:
+        seq = by_time[m.time_usec]
+        tv = np.array(truth[seq]["true_tvec"])
+        want = frames.vehicle_pose(g.R_from_rvec(np.array(truth[seq]["true_rvec"])), tv)
+        assert_close_to_truth((m.x, m.y, m.z), _R_from_q(m.q), want, float(np.linalg.norm(tv)))
+    report = check(msgs)
+    assert report.ok, str(report)
