@@ -429,8 +429,10 @@ def _apply_effects(img: np.ndarray, effects: Effects, rng: np.random.Generator) 
     h, w = img.shape
     if effects.lighting_gradient:
         angle = rng.uniform(0.0, 2.0 * math.pi)
-        gx = np.linspace(-0.5, 0.5, w, dtype=np.float32) * math.cos(angle)
-        gy = np.linspace(-0.5, 0.5, h, dtype=np.float32) * math.sin(angle)
+        # Scaled so that the darkest and brightest corners differ by exactly the set fraction.
+        norm = abs(math.cos(angle)) + abs(math.sin(angle))
+        gx = np.linspace(-0.5, 0.5, w, dtype=np.float32) * (math.cos(angle) / norm)
+        gy = np.linspace(-0.5, 0.5, h, dtype=np.float32) * (math.sin(angle) / norm)
         gain = 1.0 + effects.lighting_gradient * (gy[:, None] + gx[None, :])
         img = img * gain
     if effects.motion_blur_px > 0:
