@@ -12,5 +12,4 @@ if [ -z "$seconds" ]; then
   exec "$venv/bin/pose-daemon" run --config config/demo.toml "$@"
 fi
 # SIGTERM after N seconds: the daemon stops cleanly and exits 0.
-
 exec timeout --preserve-status --signal=TERM "$seconds" "$venv/bin/pose-daemon" run --config config/demo.toml "$@"
