@@ -401,3 +401,28 @@ def test_udp_output_writes_in_publish_when_its_thread_is_idle():
     assert [m.time_usec for m in of_type(msgs, "ODOMETRY")] == [time_usec_from_s(60.0 + k / 30) for k in range(5)]
     # Written by publish itself, except when the thread held the link at that moment (a tick).
     assert out.stats()["written_inline"] >= 3
+
+
+def test_acceptance_checker_command_line(tmp_path, capsys):
+    """`python tests/fc_acceptance.py CAPTURE` on raw bytes: exit 0 for the daemon's stream, 1 otherwise."""
+    from fc_acceptance import main
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    peer = UdpPeer()
+    out = output(f"udpout:127.0.0.1:{peer.port}")
+    for k in range(10):
+        out.publish(vehicle_result(WALL, k, 70.0 + k / 30, (-2.0, 0.0, 0.0)))
+    msgs = peer.collect(1.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 10)
+    out.close()
+    peer.close()
+    good = tmp_path / "good.bin"
+    good.write_bytes(b"".join(bytes(m.get_msgbuf()) for m in msgs))
+    assert main([str(good)]) == 0
+    assert "accepted: HEARTBEAT 1, ODOMETRY 10, STATUSTEXT 1" in capsys.readouterr().out
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
+    bad = tmp_path / "bad.bin"   # ODOMETRY in MAV_FRAME_LOCAL_NED: ArduPilot would drop it
+    bad.write_bytes(good.read_bytes() + mav.odometry_encode(
+        80_000_000, 1, 12, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], *([math.nan] * 6), [0.01] * 21,
+        [math.nan] * 21, 0, 2, 50).pack(mav))
+    assert main([str(bad)]) == 1
+    assert "frames (1, 12)" in capsys.readouterr().out
