@@ -1,0 +1,290 @@
+"""Frame sources: synthetic, fake picamera2, video written by cv2.VideoWriter, image folders."""
+
+from __future__ import annotations
+
+import sys
+import types
+from pathlib import Path
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+
+from pose_daemon import Camera, Marker
+from pose_daemon.capture import FrameSource, open_source, source_kind
+from pose_daemon.capture.opencv import OpenCVSource
+from pose_daemon.capture.picamera2 import Picamera2Source
+from pose_daemon.capture.replay import ReplaySource
+from pose_daemon.capture.synthetic import SyntheticSource
+from pose_daemon.config import Config
+from pose_daemon.errors import EndOfStream, SourceError
+from pose_daemon.render import Effects, render_marker, trajectory
+
+CAM = Camera(fx=600.0, fy=600.0, cx=319.5, cy=239.5, width=640, height=480)
+
+
+class FakeClock:
+    def __init__(self, t: float = 100.0) -> None:
+        self.t = t
+        self.sleeps = []
+
+    def __call__(self) -> float:
+        return self.t
+
+    def sleep(self, dt: float) -> None:
+        self.sleeps.append(dt)
+        self.t += dt
+
+
+def _camera_cfg(source: str, **kw) -> SimpleNamespace:
+    base = dict(source=source, width=640, height=480, fx=600.0, fy=600.0, cx=319.5, cy=239.5,
+                dist=(0.0,) * 5, fps=30.0, exposure_us=0, analogue_gain=0.0)
+    base.update(kw)
+    return SimpleNamespace(**base)
+
+
+def test_source_kinds_and_unknown_source() -> None:
+    assert source_kind("picamera2") == "picamera2"
+    assert source_kind("opencv:0") == "opencv"
+    assert source_kind("video:/tmp/a.mp4") == "video"
+    assert source_kind("replay:/tmp/rec") == "replay"
+    assert source_kind("v4l2src ! videoconvert ! appsink") == "gstreamer"
+    with pytest.raises(SourceError, match="unknown camera source 'webcam'"):
+        source_kind("webcam")
+
+
+def test_synthetic_source_follows_the_trajectory_with_truth() -> None:
+    cfg = Config.default()
+    source = open_source(cfg.camera, cfg, realtime=False)
+    assert isinstance(source, SyntheticSource) and isinstance(source, FrameSource)
+    source.open()
+    frames = [source.read() for _ in range(3)]
+    source.close()
+    truth = trajectory(cfg.synthetic.trajectory, 3, cfg.camera.fps, seed=cfg.synthetic.seed,
+                       camera=cfg.camera.model(), marker=cfg.marker.model())
+    for i, f in enumerate(frames):
+        assert f.seq == i and f.image.shape == (cfg.camera.height, cfg.camera.width)
+        assert f.t_capture_s - frames[0].t_capture_s == pytest.approx(i / cfg.camera.fps)
+        np.testing.assert_allclose(f.metadata["true_tvec"], truth[i].tvec)
+        assert f.metadata["visible"]
+    # The same config gives the same frames (seeded noise and background).
+    again = open_source(cfg.camera, cfg, realtime=False)
+    again.open()
+    assert np.array_equal(again.read().image, frames[0].image)
+
+
+def test_synthetic_source_paces_in_real_time_and_ends() -> None:
+    clock = FakeClock()
+    source = SyntheticSource(CAM, Marker(0.2), fps=20.0, frames=3, effects=Effects.clean(),
+                             clock=clock, sleep=clock.sleep)
+    with pytest.raises(SourceError):
+        source.read()
+    source.open()
+    times = [source.read().t_capture_s for _ in range(3)]
+    assert times == pytest.approx([100.0, 100.05, 100.1])
+    assert clock.sleeps == pytest.approx([0.05, 0.05])
+    with pytest.raises(EndOfStream):
+        source.read()
+
+
+# --------------------------------------------------------------------------- picamera2
+
+
+class _FakeRequest:
+    def __init__(self, cam: _FakePicamera2) -> None:
+        self.cam = cam
+        self.released = False
+
+    def make_array(self, name: str) -> np.ndarray:
+        assert name == "lores"
+        w, h = self.cam.config["lores"]["size"]
+        stride = (w + 63) // 64 * 64  # rows padded, as libcamera does
+        yuv = np.full((h * 3 // 2, stride), 128, np.uint8)
+        yuv[:h, :w] = self.cam.y_plane
+        yuv[:h, w:] = 255   # padding that must not leak into the frame
+        return yuv
+
+    def get_metadata(self) -> dict:
+        self.cam.frame += 1
+        return {"SensorTimestamp": 5_000_000_000 + self.cam.frame * 33_333_333,
+                "ExposureTime": 4000, "AnalogueGain": 2.0, "Lux": 100.0}
+
+    def release(self) -> None:
+        self.released = True
+        self.cam.released += 1
+
+
+class _FakePicamera2:
+    """The part of picamera2's interface the source uses (picamera2 0.3.x)."""
+
+    instances: list = []
+    fail_start = False
+
+    def __init__(self, camera_num: int = 0) -> None:
+        if camera_num != 0:
+            raise IndexError("list index out of range")
+        self.config = None
+        self.started = self.closed = False
+        self.frame = 0
+        self.released = 0
+        self.y_plane = None
+        _FakePicamera2.instances.append(self)
+
+    def create_video_configuration(self, main=None, lores=None, buffer_count=6, controls=None):
+        return {"main": main, "lores": lores, "buffer_count": buffer_count, "controls": controls}
+
+    def configure(self, config) -> None:
+        self.config = config
+        w, h = config["lores"]["size"]
+        self.y_plane = (np.arange(w * h) % 251).astype(np.uint8).reshape(h, w)
+
+    def start(self) -> None:
+        if _FakePicamera2.fail_start:
+            raise RuntimeError("Camera __init__ sequence did not complete.")
+        self.started = True
+
+    def capture_request(self) -> _FakeRequest:
+        return _FakeRequest(self)
+
+    def stop(self) -> None:
+        self.started = False
+
+    def close(self) -> None:
+        self.closed = True
+
+
+@pytest.fixture
+def fake_picamera2(monkeypatch):
+    module = types.ModuleType("picamera2")
+    module.Picamera2 = _FakePicamera2
+    _FakePicamera2.instances = []
+    _FakePicamera2.fail_start = False
+    monkeypatch.setitem(sys.modules, "picamera2", module)
+    return _FakePicamera2
+
+
+def test_picamera2_y_plane_fixed_exposure_and_sensor_time(fake_picamera2) -> None:
+    cfg = _camera_cfg("picamera2", width=600, height=400, fps=25.0, exposure_us=4000, analogue_gain=2.0)
+    source = open_source(cfg)
+    assert isinstance(source, Picamera2Source)
+    source.open()
+    cam = fake_picamera2.instances[0]
+    assert cam.started
+    assert cam.config["lores"] == {"size": (600, 400), "format": "YUV420"}
+    assert cam.config["controls"] == {"FrameDurationLimits": (40000, 40000), "AeEnable": False,
+                                      "ExposureTime": 4000, "AnalogueGain": 2.0}
+    f0, f1 = source.read(), source.read()
+    assert f0.image.shape == (400, 600) and f0.image.dtype == np.uint8
+    assert np.array_equal(f0.image, cam.y_plane)   # the Y plane only, no stride padding
+    assert f0.t_capture_s == pytest.approx(5.033333333)
+    assert f1.t_capture_s - f0.t_capture_s == pytest.approx(0.033333333)
+    assert (f0.seq, f1.seq) == (0, 1)
+    assert f0.metadata["ExposureTime"] == 4000 and "Lux" not in f0.metadata
+    assert cam.released == 2   # every request goes back to the camera
+    source.close()
+    assert cam.closed
+
+
+def test_picamera2_auto_exposure_and_failures(fake_picamera2, monkeypatch) -> None:
+    source = Picamera2Source(640, 480, fps=30.0)
+    assert source.controls() == {"FrameDurationLimits": (33333, 33333)}
+    fake_picamera2.fail_start = True
+    with pytest.raises(SourceError, match="cannot start camera 0: Camera __init__"):
+        source.open()
+    with pytest.raises(SourceError, match="cannot start camera 1"):
+        Picamera2Source(640, 480, camera_index=1).open()
+    monkeypatch.setitem(sys.modules, "picamera2", None)   # not installed
+    with pytest.raises(SourceError, match="picamera2 module is not installed"):
+        Picamera2Source(640, 480).open()
+
+
+# --------------------------------------------------------------------------- files
+
+
+def _frames(n: int, seed: int = 1):
+    marker = Marker(0.2)
+    poses = trajectory("wall", n, 30.0, seed=seed, camera=CAM, marker=marker)
+    return [render_marker(CAM, marker, p.rvec, p.tvec, rng=np.random.default_rng(i)).image
+            for i, p in enumerate(poses)]
+
+
+def test_video_file_written_by_videowriter(tmp_path: Path) -> None:
+    path = tmp_path / "clip.avi"
+    images = _frames(12)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 15.0, (640, 480), isColor=True)
+    assert writer.isOpened()
+    for img in images:
+        writer.write(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+    writer.release()
+    for source in (open_source(_camera_cfg(f"video:{path}")), ReplaySource(path, realtime=False)):
+        source.open()
+        got = []
+        while True:
+            try:
+                got.append(source.read())
+            except EndOfStream:
+                break
+        source.close()
+        assert len(got) == 12
+        assert [f.t_capture_s for f in got] == pytest.approx([i / 15.0 for i in range(12)])
+        for f, img in zip(got, images):
+            assert f.image.shape == (480, 640) and f.image.ndim == 2
+            assert np.abs(f.image.astype(int) - img).mean() < 3.0   # MJPG is lossy
+
+
+def test_missing_video_and_camera_are_source_errors(tmp_path: Path) -> None:
+    with pytest.raises(SourceError, match="cannot open video"):
+        OpenCVSource(str(tmp_path / "none.avi"), "video").open()
+    bogus = tmp_path / "bogus.mp4"
+    bogus.write_bytes(b"not a video at all")
+    with pytest.raises(SourceError):
+        ReplaySource(bogus).open()
+
+
+def test_folder_sorted_by_name_with_a_corrupt_frame_skipped(tmp_path: Path, caplog) -> None:
+    images = _frames(5)
+    for i, img in enumerate(images):
+        cv2.imwrite(str(tmp_path / f"img_{i:02d}.png"), img)
+    (tmp_path / "img_02.png").write_bytes(b"\x89PNG\r\n\x1a\n broken")   # corrupt, in the middle
+    (tmp_path / "notes.txt").write_text("not an image")
+    source = open_source(_camera_cfg(f"replay:{tmp_path}", fps=10.0), realtime=False)
+    source.open()
+    got = []
+    with caplog.at_level("WARNING"):
+        while True:
+            try:
+                got.append(source.read())
+            except EndOfStream:
+                break
+    assert [f.seq for f in got] == [0, 1, 3, 4]
+    assert [f.t_capture_s for f in got] == pytest.approx([0.0, 0.1, 0.3, 0.4])
+    for f in got:
+        assert np.array_equal(f.image, images[f.seq])   # PNG: lossless
+    assert [Path(p).name for p, _ in source.skipped] == ["img_02.png"]
+    assert "img_02.png" in caplog.text and "corrupt" in caplog.text
+
+
+def test_replay_paces_at_recorded_times(tmp_path: Path) -> None:
+    for i, img in enumerate(_frames(3)):
+        cv2.imwrite(str(tmp_path / f"{i}.png"), img)
+    clock = FakeClock(50.0)
+    source = ReplaySource(tmp_path, realtime=True, fps=4.0, clock=clock, sleep=clock.sleep)
+    source.open()
+    frames = [source.read() for _ in range(3)]
+    assert [f.t_capture_s for f in frames] == pytest.approx([50.0, 50.25, 50.5])
+    assert [f.metadata["t_recorded_s"] for f in frames] == pytest.approx([0.0, 0.25, 0.5])
+    assert clock.sleeps == pytest.approx([0.25, 0.25])
+
+
+def test_replay_bad_paths(tmp_path: Path) -> None:
+    with pytest.raises(SourceError, match="no such file or folder"):
+        ReplaySource(tmp_path / "missing").open()
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(SourceError, match="not a recording"):
+        ReplaySource(empty).open()
+    text = tmp_path / "poses.txt"
+    text.write_text("x")
+    with pytest.raises(SourceError, match="not a recording, a folder of images or a video"):
+        ReplaySource(text).open()
