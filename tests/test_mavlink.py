@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import math
 import socket
+import time
 
 import numpy as np
 import pytest
@@ -426,3 +427,24 @@ def test_acceptance_checker_command_line(tmp_path, capsys):
         [math.nan] * 21, 0, 2, 50).pack(mav))
     assert main([str(bad)]) == 1
     assert "frames (1, 12)" in capsys.readouterr().out
+
+
+def test_origin_sent_again_when_the_autopilot_returns_after_a_silence():
+    skew = [0.0]  # the output's clock jumps ahead to stand for seconds of silence
+    peer = UdpPeer()
+    out = output(f"udpout:127.0.0.1:{peer.port}", wait_heartbeat=True, origin=(-35.363261, 149.165230, 584.0),
+                 clock=lambda: time.monotonic() + skew[0])
+    try:
+        peer.collect(1.0, until=lambda ms: bool(of_type(ms, "HEARTBEAT")))
+        peer.send(autopilot_heartbeat())
+        peer.collect(1.0, until=lambda ms: bool(of_type(ms, "SET_GPS_GLOBAL_ORIGIN")))
+        peer.send(autopilot_heartbeat())          # heard again at once: nothing to resend
+        peer.collect(0.3)
+        skew[0] += 10.0                            # ten seconds without its HEARTBEAT
+        peer.send(autopilot_heartbeat())
+        msgs = peer.collect(1.0, until=lambda ms: len(of_type(ms, "SET_GPS_GLOBAL_ORIGIN")) >= 2)
+    finally:
+        out.close()
+        peer.close()
+    origins = of_type(msgs, "SET_GPS_GLOBAL_ORIGIN")
+    assert len(origins) == 2 and origins[1].latitude == -353632610 and origins[1].longitude == 1491652300

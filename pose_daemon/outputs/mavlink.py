@@ -48,6 +48,8 @@ MESSAGES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
 # pose starts a new track (reset_counter + 1).
 HEALTH_GAP_S = 0.3
 HEARTBEAT_S = 1.0
+# An autopilot silent this long and heard again gets the GPS origin again (it may have rebooted).
+AUTOPILOT_SILENCE_S = 3.0
 WRITE_TIMEOUT_S = 0.25
 NAN = float("nan")
 # MAVLink enum values (common.xml), named here so the module reads without the dialect.
@@ -320,6 +322,10 @@ class MavlinkOutput(QueuedOutput):
             return
         if self.autopilot_system is None:
             self.log.info("autopilot heard: system %d", msg.get_srcSystem())
+        elif self._autopilot_heard_t is not None and now - self._autopilot_heard_t > AUTOPILOT_SILENCE_S:
+            # Back after a silence: it may have rebooted and forgotten the origin.
+            self.log.info("autopilot heard again after %.1f s", now - self._autopilot_heard_t)
+            self._origin_sent = False
         self.autopilot_system = msg.get_srcSystem()
         self._autopilot_heard_t = now
         if self.origin is not None and not self._origin_sent:
