@@ -1,0 +1,124 @@
+"""pose-daemon replay end to end: per-frame JSON, accuracy summary, annotated frames, bad inputs."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from pose_daemon.capture.recording import read_index
+from pose_daemon.cli import main
+
+N_FRAMES = 24
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("replay") / "rec"
+    assert main(["record", "--out", str(out), "--frames", str(N_FRAMES), "--quiet"]) == 0
+    return out
+
+
+def _summary(err: str) -> dict:
+    rate = re.search(r"detection rate\s+([\d.]+) % \((\d+)/(\d+)\)", err)
+    rows = {}
+    for name in ("corner error px", "rotation error deg", "translation error mm"):
+        m = re.search(name + r"\s+([\d.]+)\s+([\d.]+)", err)
+        rows[name] = (float(m.group(1)), float(m.group(2)))
+    return {"rate": float(rate.group(1)), "detected": int(rate.group(2)), "frames": int(rate.group(3)), **rows}
+
+
+def test_replay_writes_one_object_per_frame_and_the_accuracy_summary(recording: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "poses.jsonl"
+    assert main(["replay", str(recording), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    index = read_index(recording)
+    assert [r["frame"] for r in rows] == list(range(N_FRAMES))
+    assert [r["t"] for r in rows] == [round(e["t_capture_s"], 6) for e in index]
+    assert all(r["ok"] for r in rows)
+    for r, e in zip(rows, index):
+        assert len(r["corners"]) == 4 and len(r["rvec"]) == 3 and len(r["tvec"]) == 3
+        np.testing.assert_allclose(r["tvec"], e["true_tvec"], atol=0.01)
+        np.testing.assert_allclose(r["corners"], e["true_corners"], atol=0.5)
+        assert r["latency_ms"] > 0
+    s = _summary(err)
+    assert (s["rate"], s["detected"], s["frames"]) == (100.0, N_FRAMES, N_FRAMES)
+    corner_med, corner_p95 = s["corner error px"]
+    assert 0.0 < corner_med <= corner_p95 < 0.3
+    # The printed figures are those of the JSON rows against the index.
+    errs = [np.sqrt(((np.array(r["corners"]) - e["true_corners"]) ** 2).sum(axis=1).mean())
+            for r, e in zip(rows, index)]
+    assert corner_med == pytest.approx(np.median(errs), abs=1.5e-3)
+    assert s["rotation error deg"][0] < 0.5 and s["translation error mm"][0] < 5.0
+
+
+@pytest.mark.pi
+def test_replay_to_stdout_with_annotated_frames(recording: Path, tmp_path: Path, capsys) -> None:
+    ann = tmp_path / "ann"
+    assert main(["replay", str(recording), "--annotate", str(ann)]) == 0
+    captured = capsys.readouterr()
+    lines = captured.out.splitlines()
+    assert len(lines) == N_FRAMES and json.loads(lines[3])["frame"] == 3
+    files = sorted(p.name for p in ann.iterdir())
+    assert files == [f"{i:06d}.png" for i in range(N_FRAMES)]
+    img = cv2.imread(str(ann / files[0]), cv2.IMREAD_COLOR)
+    gray = cv2.imread(str(recording / "frames" / "000000.png"), cv2.IMREAD_GRAYSCALE)
+    assert img.shape == gray.shape + (3,)
+    # Drawn in colour (corners, axes): the grey frame has none.
+    sat = img.max(axis=2).astype(int) - img.min(axis=2)
+    assert (sat > 100).sum() > 200
+
+
+def test_replay_skips_corrupt_and_missing_frames_and_goes_on(recording: Path, tmp_path: Path, capsys) -> None:
+    import shutil
+
+    rec = tmp_path / "rec"
+    shutil.copytree(recording, rec)
+    (rec / "frames" / "000005.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 40)   # corrupt
+    (rec / "frames" / "000009.png").write_bytes(
+        (recording / "frames" / "000009.png").read_bytes()[:100])                   # truncated
+    (rec / "frames" / "000011.png").unlink()                                          # missing
+    out = tmp_path / "poses.jsonl"
+    assert main(["replay", str(rec), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    frames = [json.loads(line)["frame"] for line in out.read_text().splitlines()]
+    assert frames == [i for i in range(N_FRAMES) if i not in (5, 9, 11)]
+    assert "skipped 3 unreadable frame(s): 000005.png, 000009.png, 000011.png" in err
+    assert _summary(err)["frames"] == N_FRAMES - 3
+
+
+def test_replay_of_a_plain_folder_uses_the_config(recording: Path, tmp_path: Path, capsys) -> None:
+    folder = tmp_path / "images"
+    folder.mkdir()
+    for i in range(3):
+        (folder / f"shot{i}.png").write_bytes((recording / "frames" / f"{i:06d}.png").read_bytes())
+    assert main(["replay", str(folder)]) == 0
+    captured = capsys.readouterr()
+    rows = [json.loads(line) for line in captured.out.splitlines()]
+    assert [r["frame"] for r in rows] == [0, 1, 2] and all(r["ok"] for r in rows)
+    assert "accuracy" not in captured.err   # no truth in a plain folder
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda d: d / "missing", "no such file or folder"),
+    (lambda d: (d / "notes.txt").write_text("x") and d / "notes.txt", "not a recording, a folder of images or a video"),
+    (lambda d: (d / "empty").mkdir() or d / "empty", "not a recording"),
+])
+def test_replay_bad_paths_exit_2_with_one_line(tmp_path: Path, capsys, make, message) -> None:
+    path = make(tmp_path)
+    assert main(["replay", str(path)]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0] and lines[0].startswith("pose-daemon: error:")
+    assert captured.out == ""
+
+
+def test_replay_folder_whose_images_are_all_unreadable(tmp_path: Path, capsys) -> None:
+    (tmp_path / "a.png").write_bytes(b"garbage")
+    assert main(["replay", str(tmp_path)]) == 2
+    assert "no frame could be read" in capsys.readouterr().err
