@@ -159,3 +159,18 @@ def test_a_pose_with_nan_is_never_sent(tmp_path):
     assert serial_text.count("$POSE") == 1 and serial_text.startswith("$POSE,5100000,")
     assert [json.loads(s)["frame"] for s in (tmp_path / "p.jsonl").read_text().splitlines()] == [1]
     assert all(o.stats()["dropped"] == {"not_finite": 1} for o in outs)
+
+
+def test_output_bench_prints_a_figure_per_output(capsys):
+    import pytest
+
+    from pose_daemon.outputs.bench import main
+
+    assert main(["--poses", "5"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("publish -> bytes written, 5 poses per output")
+    assert len(lines) == 5 and all(" median " in s and ", p99 " in s for s in lines[1:])
+    assert lines[1].endswith("(5 messages)") and lines[2].endswith("(15 messages)")
+    with pytest.raises(SystemExit) as exc:
+        main(["--poses", "0"])
+    assert exc.value.code == 2 and "--poses must be at least 1" in capsys.readouterr().err
