@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -184,42 +184,54 @@ class _TexturePyramid:
     """A plane texture at several resolutions; each level covers the same metric extent.
 
     Every level is a 2-channel float32 image: premultiplied grey level and coverage alpha.
+    ``levels`` holds (texture or None, ppm); a None level is made by ``make(ppm)`` on first
+    use, so a marker costs memory only for the resolutions it is seen at.
     """
 
-    def __init__(self, levels: List[Tuple[np.ndarray, float, float]], extent_m: Tuple[float, float, float, float]):
-        self.levels = levels          # (texture, ppm_x, ppm_y), finest first
+    def __init__(self, levels: List[list], extent_m: Tuple[float, float, float, float],
+                 make: Optional[Callable[[float], Tuple[_Channels, float, float]]] = None) -> None:
+        self.levels = levels          # [texture or None, ppm_x, ppm_y], finest first
         self.extent_m = extent_m      # x_left, x_right, y_bottom, y_top
+        self._make = make
 
-    def pick(self, ppm_wanted: float) -> Tuple[np.ndarray, float, float]:
+    def pick(self, ppm_wanted: float) -> Tuple[_Channels, float, float]:
         """The coarsest level with at least ``ppm_wanted`` texels per metre (else the finest)."""
         best = self.levels[0]
         for level in self.levels:
             if min(level[1], level[2]) >= ppm_wanted:
                 best = level
-        return best
+        if best[0] is None:
+            best[0], best[1], best[2] = self._make(best[1])
+        return best[0], best[1], best[2]
 
 
 def _grid_pyramid(values: np.ndarray, x_edges: np.ndarray, y_edges: np.ndarray, white: float,
                   black: float, finest_ppm: float, coarsest_ppm: float) -> _TexturePyramid:
     grey = black + (white - black) * values
     width_m, height_m = x_edges[-1] - x_edges[0], y_edges[-1] - y_edges[0]
-    levels = []
-    ppm = finest_ppm
-    while True:
-        nx = max(2, int(math.ceil(width_m * ppm)))
-        ny = max(2, int(math.ceil(height_m * ppm)))
+
+    def size(ppm: float) -> Tuple[int, int]:
+        return max(2, int(math.ceil(width_m * ppm))), max(2, int(math.ceil(height_m * ppm)))
+
+    def make(ppm: float) -> Tuple[_Channels, float, float]:
+        nx, ny = size(ppm)
         ppm_x, ppm_y = nx / width_m, ny / height_m
         cx = _coverage_matrix(x_edges, x_edges[0], ppm_x, nx, flip=False)
         cy = _coverage_matrix(y_edges, y_edges[-1], ppm_y, ny, flip=True)
         tex = np.empty((ny, nx, 2), np.float32)
         tex[..., 0] = cy @ grey @ cx.T
         tex[..., 1] = 1.0
-        tex = _Channels(tex)
-        levels.append((tex, ppm_x, ppm_y))
+        return _Channels(tex), ppm_x, ppm_y
+
+    levels = []
+    ppm = finest_ppm
+    while True:
+        nx, ny = size(ppm)
+        levels.append([None, nx / width_m, ny / height_m])
         if ppm <= coarsest_ppm:
             break
         ppm /= 2.0
-    return _TexturePyramid(levels, (x_edges[0], x_edges[-1], y_edges[0], y_edges[-1]))
+    return _TexturePyramid(levels, (x_edges[0], x_edges[-1], y_edges[0], y_edges[-1]), make)
 
 
 def _image_pyramid(texture: np.ndarray, size_m: Tuple[float, float]) -> _TexturePyramid:
@@ -237,7 +249,7 @@ def _image_pyramid(texture: np.ndarray, size_m: Tuple[float, float]) -> _Texture
         level[..., 0] = grey
         level[..., 1] = 1.0
         level = _Channels(level)
-        levels.append((level, nx / w_m, ny / h_m))
+        levels.append([level, nx / w_m, ny / h_m])
         if min(nx, ny) < 16:
             break
         # Area averaging keeps every level aligned with the same metric extent.
