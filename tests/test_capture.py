@@ -217,7 +217,8 @@ def test_video_file_written_by_videowriter(tmp_path: Path) -> None:
     for img in images:
         writer.write(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
     writer.release()
-    for source in (open_source(_camera_cfg(f"video:{path}")), ReplaySource(path, realtime=False)):
+    for source in (open_source(_camera_cfg(f"video:{path}"), realtime=False),
+                   OpenCVSource(str(path), "video"), ReplaySource(path, realtime=False)):
         source.open()
         got = []
         while True:

@@ -69,7 +69,10 @@ def open_source(camera_cfg: Any, cfg: Optional[Any] = None, *, realtime: bool = 
         target: Any = int(arg) if arg.isdigit() else arg
         return OpenCVSource(target, "camera", width=width, height=height, fps=fps)
     if kind == "video":
-        return OpenCVSource(arg, "video", fps=fps)
+        from .replay import ReplaySource
+
+        # Paced like a camera in the daemon (the newest-frame slot would drop most frames).
+        return ReplaySource(arg, realtime=realtime, fps=fps, video=True)
     return OpenCVSource(source, "gstreamer")
 
 

@@ -25,6 +25,13 @@ def to_gray(image: np.ndarray) -> np.ndarray:
     raise SourceError(f"unsupported frame shape {image.shape}")
 
 
+def _has_gstreamer() -> bool:
+    for line in cv2.getBuildInformation().splitlines():
+        if line.strip().startswith("GStreamer:"):
+            return "YES" in line
+    return False
+
+
 class OpenCVSource:
     """``kind`` "camera" (index or device path: live, stamped on the monotonic clock at grab),
     "video" (a file: ends with EndOfStream, stamped with the video's own time line) or
@@ -53,7 +60,10 @@ class OpenCVSource:
             cap = cv2.VideoCapture(self.target)
         if not cap.isOpened():
             cap.release()
-            raise SourceError(f"cannot open {self.name}")
+            hint = ""
+            if self.kind == "gstreamer" and not _has_gstreamer():
+                hint = " (this OpenCV build has no GStreamer support; the distribution's python3-opencv has)"
+            raise SourceError(f"cannot open {self.name}{hint}")
         if self.kind == "camera":
             # Requests only: a camera that cannot do them keeps its own mode (checked on read).
             if self.width and self.height:

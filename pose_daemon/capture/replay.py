@@ -49,11 +49,12 @@ class ReplaySource:
     """
 
     def __init__(self, path: Union[str, Path], *, realtime: bool = True, fps: float = 30.0,
-                 clock: Callable[[], float] = time.monotonic,
+                 video: bool = False, clock: Callable[[], float] = time.monotonic,
                  sleep: Callable[[float], None] = time.sleep) -> None:
         self.path = Path(path)
         self.realtime, self.fps = realtime, float(fps) if fps > 0 else 30.0
         self._clock, self._sleep = clock, sleep
+        self._force_video = video   # any file OpenCV can play, whatever its name
         self.kind = ""
         self.meta: Dict[str, Any] = {}
         self.skipped: List[Tuple[str, str]] = []
@@ -68,7 +69,12 @@ class ReplaySource:
         return any("true_rvec" in e for e in self._entries)
 
     def open(self) -> None:
-        self.kind = replay_kind(self.path)
+        if self._force_video:
+            if not self.path.is_file():
+                raise SourceError(f"{self.path}: no such video file")
+            self.kind = "video"
+        else:
+            self.kind = replay_kind(self.path)
         self.skipped = []
         self._pos = 0
         self._t_first = None
