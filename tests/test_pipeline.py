@@ -17,6 +17,7 @@ def _run(pipeline: Pipeline, timeout_s: float = 10.0) -> None:
     pipeline.stop()
 
 
+@pytest.mark.pi
 def test_newest_slot_replaces_and_counts():
     slot = NewestSlot()
     assert slot.put("a", 0, 1.0) is False
@@ -30,6 +31,7 @@ def test_newest_slot_replaces_and_counts():
     assert slot.closed and slot.get(0.01) is None
 
 
+@pytest.mark.pi
 def test_latency_window_percentiles_and_bounded_size():
     w = LatencyWindow(size=100)
     for i in range(1, 101):
@@ -141,6 +143,7 @@ def test_source_failure_mid_run_reopens_with_backoff_and_resets_the_track():
     assert "source ended" in p.status_line()
 
 
+@pytest.mark.pi
 def test_status_line_counts():
     gate = threading.Semaphore(0)
     source = FakeSource(frames=10, gate=gate)

@@ -56,6 +56,7 @@ def _cfg(interval_s: float = 0.3):
     return parse_config(f"[pipeline]\nlatency_budget_s = 1.0\nstatus_interval_s = {interval_s}\n", "t.toml")
 
 
+@pytest.mark.pi
 def test_sd_notify_sends_datagrams_and_is_silent_without_socket(listener):
     path, lst = listener
     n = SdNotifier(path)
@@ -74,6 +75,7 @@ def test_abstract_socket_address():
     assert SdNotifier("@pose-daemon/notify").address == "\0pose-daemon/notify"
 
 
+@pytest.mark.pi
 def test_watchdog_interval_from_environment():
     assert watchdog_interval_s({"WATCHDOG_USEC": "4000000"}) == 4.0
     assert watchdog_interval_s({"WATCHDOG_USEC": "4000000", "WATCHDOG_PID": str(os.getpid())}) == 4.0
