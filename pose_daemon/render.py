@@ -651,9 +651,9 @@ class Trajectory:
         self.far = max(self.near * 1.5, min(f * size_m / 45.0, 6.0))
         self.phases = rng.uniform(0, 2 * math.pi, 8)
         self.periods = rng.uniform(0.8, 1.2, 8) * np.array([14.0, 9.0, 11.0, 7.0, 13.0, 17.0, 6.0, 23.0])
-        # The floor heading starts within 30 deg of upright: a plain square's labels are only
+        # The floor heading starts within ~30 deg of upright: a plain square's labels are only
         # defined up to quarter turns, and a detector takes the first sighting as upright.
-        self.phases[7] = rng.uniform(-1.0, 1.0) * math.radians(30.0)
+        self.phases[7] = rng.uniform(-1.0, 1.0) * math.radians(25.0)
 
     def at(self, t_s: float) -> TruePose:
         s = np.sin(2 * math.pi * t_s / self.periods + self.phases)
