@@ -282,25 +282,37 @@ def _marker_pyramid(marker: Marker, effects: Effects) -> _TexturePyramid:
 _RAYS: OrderedDict[tuple, np.ndarray] = OrderedDict()
 
 
-def _sample_rays(camera: Camera, ss: int) -> np.ndarray:
-    """Undistorted normalized coordinates (H*ss, W*ss, 2) float32 of every sample point.
-
-    Sample j along an axis sits at pixel coordinate (j + 0.5)/ss - 0.5. Cached per camera.
-    """
-    key = (camera, ss)
-    rays = _RAYS.get(key)
+def _pixel_rays(camera: Camera) -> np.ndarray:
+    """Undistorted normalized coordinates (H+2, W+2, 2) float32 of every pixel centre, with a
+    one-pixel ring outside the image (index 0 = pixel -1). Cached per camera."""
+    rays = _RAYS.get(camera)
     if rays is None:
-        u = (np.arange(camera.width * ss) + 0.5) / ss - 0.5
-        v = (np.arange(camera.height * ss) + 0.5) / ss - 0.5
+        u = np.arange(-1, camera.width + 1, dtype=np.float64)
+        v = np.arange(-1, camera.height + 1, dtype=np.float64)
         uu, vv = np.meshgrid(u, v)
         pts = np.stack([uu.ravel(), vv.ravel()], axis=1)
         rays = camera.undistort_normalized(pts).reshape(len(v), len(u), 2).astype(np.float32)
-        _RAYS[key] = rays
+        _RAYS[camera] = rays
         while len(_RAYS) > 4:
             _RAYS.popitem(last=False)
     else:
-        _RAYS.move_to_end(key)
+        _RAYS.move_to_end(camera)
     return rays
+
+
+def _sample_rays(camera: Camera, roi: Tuple[int, int, int, int], ss: int) -> np.ndarray:
+    """Undistorted normalized coordinates ((v1-v0)*ss, (u1-u0)*ss, 2) of the samples in ``roi``.
+
+    Sample j along an axis sits at pixel coordinate (j + 0.5)/ss - 0.5 from the box's first
+    pixel: exactly where linear resizing puts it, so the rays are interpolated from the
+    per-pixel ones (the undistortion is smooth: at most 0.001 px off, float32 rounding).
+    """
+    u0, v0, u1, v1 = roi
+    padded = _pixel_rays(camera)[v0:v1 + 2, u0:u1 + 2]
+    if ss == 1:
+        return padded[1:-1, 1:-1]
+    big = cv2.resize(padded, ((u1 - u0 + 2) * ss, (v1 - v0 + 2) * ss), interpolation=cv2.INTER_LINEAR)
+    return big[ss:-ss, ss:-ss]
 
 
 def _plane_roi(camera: Camera, R: np.ndarray, t: np.ndarray,
@@ -373,10 +385,10 @@ def _render_plane_layer(camera: Camera, pyramid: _TexturePyramid, R: np.ndarray,
                           for k in (0, 1)], axis=-1)
         # Samples behind the camera would alias onto the plane through the homography.
         if _crosses_camera(R, t, pyramid):
-            rays = _sample_rays(camera, ss)[v0 * ss:v1 * ss, u0 * ss:u1 * ss]
+            rays = _sample_rays(camera, roi, ss)
             layer[_behind(Hinv, rays)] = 0.0
     else:
-        rays = _sample_rays(camera, ss)[v0 * ss:v1 * ss, u0 * ss:u1 * ss]
+        rays = _sample_rays(camera, roi, ss)
         xn, yn = rays[..., 0], rays[..., 1]
         G32 = G.astype(np.float32)
         w = G32[2, 0] * xn + G32[2, 1] * yn + G32[2, 2]
