@@ -289,3 +289,26 @@ def test_replay_bad_paths(tmp_path: Path) -> None:
     text.write_text("x")
     with pytest.raises(SourceError, match="not a recording, a folder of images or a video"):
         ReplaySource(text).open()
+
+
+def test_live_opencv_source_stamps_at_grab_and_reports_a_lost_camera(tmp_path: Path) -> None:
+    # A file opened as a "camera": the live path's time stamps and its failure at the end.
+    path = tmp_path / "cam.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (320, 240))
+    for i in range(3):
+        writer.write(np.full((240, 320, 3), 40 * i, np.uint8))
+    writer.release()
+    clock = FakeClock(7.0)
+    source = OpenCVSource(str(path), "camera", clock=clock)
+    source.open()
+    frames = []
+    for _ in range(3):
+        frames.append(source.read())
+        clock.t += 0.04
+    assert [f.t_capture_s for f in frames] == pytest.approx([7.0, 7.04, 7.08])
+    assert [int(f.image.mean()) for f in frames] == pytest.approx([0, 40, 80], abs=3)
+    with pytest.raises(SourceError, match="no frame"):
+        source.read()
+    source.close()
+    with pytest.raises(SourceError, match="before open"):
+        source.read()
