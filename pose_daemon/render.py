@@ -61,6 +61,18 @@ class Effects:
     quiet_zone: float = 0.25           # white margin around the dark region (see above)
     supersample: int = 3               # samples per pixel along each axis (>= 1)
 
+    def __post_init__(self) -> None:
+        for name in ("blur_px", "noise_gray", "motion_blur_px", "lighting_gradient", "quiet_zone"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"Effects.{name} must be a number >= 0, got {value!r}")
+        if not 0 <= int(self.jpeg_quality) <= 100:
+            raise ValueError(f"Effects.jpeg_quality must be 0 (none) or 1..100, got {self.jpeg_quality!r}")
+        if self.background not in ("texture", "plain"):
+            raise ValueError(f"Effects.background must be 'texture' or 'plain', got {self.background!r}")
+        if int(self.supersample) < 1:
+            raise ValueError(f"Effects.supersample must be >= 1, got {self.supersample!r}")
+
     @classmethod
     def clean(cls, **overrides) -> Effects:
         """No blur, noise, gradient or compression: the bare anti-aliased rendering."""

@@ -227,3 +227,28 @@ def test_render_is_cheap_and_right_on_the_pi_stack() -> None:
     corners, ids = _aruco_detect(frame.image, "DICT_4X4_50")
     assert ids is not None and 7 in ids.ravel()
     np.testing.assert_allclose(corners[0].reshape(4, 2), frame.corners_px, atol=0.6)
+
+
+@pytest.mark.parametrize("bad, message", [
+    ({"blur_px": -1.0}, "blur_px must be a number >= 0"),
+    ({"noise_gray": float("nan")}, "noise_gray must be a number >= 0"),
+    ({"jpeg_quality": 101}, "jpeg_quality must be 0"),
+    ({"background": "stars"}, "background must be 'texture' or 'plain'"),
+    ({"supersample": 0}, "supersample must be >= 1"),
+])
+def test_bad_effects_are_refused(bad, message) -> None:
+    with pytest.raises(ValueError, match=message):
+        Effects(**bad)
+
+
+def test_bad_render_inputs_are_refused() -> None:
+    with pytest.raises(ValueError, match="finite"):
+        render_marker(CAM, SQUARE, [np.nan, 0, 0], [0, 0, 1])
+    with pytest.raises(ValueError, match="background must be 480x640"):
+        render_marker(CAM, SQUARE, [math.pi, 0, 0], [0, 0, 1], background=np.zeros((10, 10)))
+    with pytest.raises(ValueError, match="size_m must be positive"):
+        render_plane(CAM, np.zeros((8, 8), np.uint8), (0.0, 1.0), [math.pi, 0, 0], [0, 0, 1])
+    with pytest.raises(ValueError, match="not in DICT_4X4_50"):
+        render_marker(CAM, Marker(0.2, type="aruco", dictionary="DICT_4X4_50", id=50), [math.pi, 0, 0], [0, 0, 1])
+    with pytest.raises(ValueError, match="trajectory must be one of wall, floor"):
+        trajectory("ceiling", 3, 30.0)
