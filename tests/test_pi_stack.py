@@ -16,6 +16,9 @@ import pytest
 from pose_daemon import Camera, Marker
 from pose_daemon import geometry as g
 from pose_daemon.capture.base import Frame
+from pose_daemon.capture.recording import RecordingWriter
+from pose_daemon.capture.replay import ReplaySource
+from pose_daemon.errors import EndOfStream
 from pose_daemon.outputs.mavlink import encode_pose_messages, time_usec_from_s
 from pose_daemon.outputs.plain_serial import parse_pose_line, pose_line
 from pose_daemon.processing import FrameProcessor
@@ -96,3 +99,32 @@ def test_lost_frame_past_32_bits_keeps_its_time() -> None:
     parsed = parse_pose_line(pose_line(lost, WALL))
     assert parsed["t_us"] == t_us and parsed["quality"] == -1
     assert all(math.isnan(parsed[k]) for k in ("x_m", "y_m", "z_m", "roll_deg", "pitch_deg", "yaw_deg"))
+
+
+@pytest.mark.pi
+def test_recording_replays_times_and_numbers_past_32_bits_exactly(tmp_path) -> None:
+    """A recording made ~35 days after boot, numbered past 2^32: replayed as fast as it reads,
+    every frame keeps its recorded number and capture time to the microsecond."""
+    first_seq, t0_s = 2 ** 32 + 5, 3_000_000.123456
+    with RecordingWriter(tmp_path / "rec", CAM, SQUARE, source="synthetic", fps=30.0) as writer:
+        base = _square_frame(t0_s, first_seq)
+        for k in range(3):
+            writer.write(Frame(base.image, t0_s + k / 30.0, first_seq + k))
+
+    source = ReplaySource(tmp_path / "rec", realtime=False)
+    source.open()
+    frames = []
+    try:
+        while True:
+            frames.append(source.read())
+    except EndOfStream:
+        pass
+    finally:
+        source.close()
+    assert [f.seq for f in frames] == [first_seq, first_seq + 1, first_seq + 2]
+    assert [time_usec_from_s(f.t_capture_s) for f in frames] == [3_000_000_123_456, 3_000_000_156_789,
+                                                                 3_000_000_190_123]
+    processor = FrameProcessor(CAM, SQUARE)
+    lines = [json.loads(json.dumps(processor.process(f).to_json_dict())) for f in frames]
+    assert [d["frame"] for d in lines] == [first_seq, first_seq + 1, first_seq + 2]
+    assert all(d["ok"] for d in lines)
