@@ -67,6 +67,10 @@ case "$arch" in
 esac
 
 # --- 1. packages from apt
+# Python before 3.11 (Bullseye) has no tomllib: Debian's python3-tomli reads the config.
+if ! python3 -c 'import sys; sys.exit(sys.version_info < (3, 11))' 2>/dev/null; then
+  apt_packages="$apt_packages python3-tomli"
+fi
 say "== apt packages: $apt_packages"
 run apt-get update
 # shellcheck disable=SC2086  # the list is meant to split
