@@ -89,13 +89,13 @@ path = "-"
     assert "HEARTBEAT" in names and names.count("ODOMETRY") >= 10
 
 
-def test_sigterm_under_load_exits_0_within_2_s(tmp_path):
+def test_sigusr1_status_then_sigterm_under_load_exits_0_within_2_s(tmp_path):
     cfg = _config(tmp_path, """
 [camera]
 source = "synthetic"
 fps = 30.0
 [pipeline]
-status_interval_s = 0.3
+status_interval_s = 1000.0
 [output.jsonl]
 path = "-"
 """)
@@ -103,6 +103,8 @@ path = "-"
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
     try:
         time.sleep(2.5)  # rendering, detecting and writing 30 frames a second
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(0.3)
         t0 = time.monotonic()
         proc.send_signal(signal.SIGTERM)
         out, err = proc.communicate(timeout=5)
@@ -114,6 +116,10 @@ path = "-"
     assert proc.returncode == 0, err
     assert elapsed < 2.0
     assert "stopping: SIGTERM" in err and "Traceback" not in err
+    # One status line on SIGUSR1 (the periodic one is 1000 s away), one at the stop.
+    status = [line for line in err.splitlines() if " status: " in line]
+    assert len(status) == 2 and err.index(status[0]) < err.index("stopping: SIGTERM")
+    assert "fps (camera" in status[0] and "source ok" in status[0] and "jsonl" in status[0]
     # Poses were flowing, and every line written is whole JSON (nothing cut off by the stop).
     lines = [json.loads(line) for line in out.splitlines()]
     assert len(lines) >= 5 and all(d["latency_ms"] <= 100.0 for d in lines)
