@@ -95,6 +95,7 @@ connection = "udpout:127.0.0.1:14550"
 messages = ["ODOMETRY"]
 source_system = 1
 source_component = 197
+wait_heartbeat = false   # a ground station listens here, not an autopilot: stream at once
 
 [output.jsonl]
 path = "-"               # stdout
