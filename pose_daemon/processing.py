@@ -13,6 +13,7 @@ import math
 import time
 from typing import Optional
 
+import cv2
 import numpy as np
 
 from .camera import Camera, Marker
@@ -63,7 +64,7 @@ class FrameProcessor:
         self.method = method
         self.iterations = iterations
         self.refine = refine
-        self.detector = detector if detector is not None else MarkerDetector(marker)
+        self.detector = detector if detector is not None else MarkerDetector(marker, camera=camera)
         self._estimate = estimate_pose
         # The track: smoothed marker normal in the camera frame (None = no track).
         self._normal_ref: Optional[np.ndarray] = None
@@ -90,7 +91,14 @@ class FrameProcessor:
     def process(self, frame: Frame) -> FrameResult:
         result = FrameResult(seq=frame.seq, t_capture_s=frame.t_capture_s)
         t0 = time.perf_counter()
-        corners: Optional[np.ndarray] = self.detector.detect(frame.image)
+        try:
+            corners: Optional[np.ndarray] = self.detector.detect(frame.image)
+        except (ValueError, cv2.error) as exc:
+            # A camera glitch (wrong size, empty or corrupt buffer) costs this frame only.
+            result.stage_s["detect"] = time.perf_counter() - t0
+            result.error = f"bad frame: {exc}"
+            self._normal_ref = None
+            return result
         t1 = time.perf_counter()
         result.stage_s["detect"] = t1 - t0
         if corners is None:
