@@ -28,10 +28,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 class Progress:
     """A one-line progress bar on stderr, redrawn at most ten times a second."""
 
-    def __init__(self, total_frames: Optional[int], total_s: Optional[float], stream: TextIO = sys.stderr,
-                 enabled: bool = True) -> None:
+    def __init__(self, total_frames: Optional[int], total_s: Optional[float],
+                 stream: Optional[TextIO] = None, enabled: bool = True) -> None:
         self.total_frames, self.total_s = total_frames, total_s
-        self.stream, self.enabled = stream, enabled
+        # sys.stderr looked up now, not at import: it may have been replaced since.
+        self.stream = sys.stderr if stream is None else stream
+        self.enabled = enabled
         self._last = 0.0
 
     def update(self, frames: int, seconds: float, final: bool = False) -> None:
