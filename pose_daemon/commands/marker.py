@@ -1,0 +1,39 @@
+"""``pose-daemon marker``: a printable marker sheet (PDF, SVG or PNG) at true physical size."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    parser = sub.add_parser(
+        "marker", help="print a marker: PDF/SVG/PNG at true size with scale bar and config lines",
+        description=__doc__.splitlines()[0])
+    parser.add_argument("--type", choices=("square", "aruco"), default="aruco",
+                        help="plain black square or ArUco marker (default aruco)")
+    parser.add_argument("--size", type=float, required=True, metavar="METRES",
+                        help="outer edge of the black border, metres (e.g. 0.15)")
+    parser.add_argument("--dictionary", default=None,
+                        help="ArUco dictionary, OpenCV's name (default DICT_4X4_50)")
+    parser.add_argument("--id", type=int, default=None, help="ArUco marker id (default 0)")
+    parser.add_argument("--paper", choices=("a4", "letter"), default="a4")
+    parser.add_argument("--out", type=Path, required=True, metavar="FILE",
+                        help="FILE.pdf, FILE.svg or FILE.png")
+    parser.add_argument("--dpi", type=float, default=300.0, help="resolution of a PNG (default 300)")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..tools.marker_sheet import config_lines, layout, write_sheet
+
+    sheet = layout(args.type, args.size, dictionary=args.dictionary, marker_id=args.id,
+                   paper=args.paper)
+    write_sheet(sheet, args.out, dpi=args.dpi)
+    dictionary = (args.dictionary or "DICT_4X4_50").upper() if args.type == "aruco" else None
+    marker_id = (0 if args.id is None else args.id) if args.type == "aruco" else None
+    print(f"wrote {args.out}: {args.type} marker, {args.size * 1000:g} mm, {args.paper}; "
+          "print at 100% and check the 10 cm bar", file=sys.stderr)
+    print("\n".join(config_lines(args.type, args.size, dictionary, marker_id)))
+    return 0
