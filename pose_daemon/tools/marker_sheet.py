@@ -1,7 +1,7 @@
 """Printable marker sheets at true physical size: PDF and SVG drawn as vector shapes, PNG rasterised.
 
-A sheet holds the marker (its outer black edge exactly ``size_m``), a white quiet zone with a
-grey cut line, a 10 cm scale bar to check the printer with a ruler, and a caption with the
+A sheet holds the marker (its outer black edge exactly ``size_m``), a white quiet zone with
+grey corner cut marks, a 10 cm scale bar to check the printer with a ruler, and a caption with the
 marker's type, size, dictionary, id and the matching ``[marker]`` config lines.
 """
 
@@ -31,6 +31,9 @@ BAR_GAP_MM = 6.0  # quiet zone to scale bar
 BAR_HEIGHT_MM = 3.0
 BAR_BLOCK_MM = 10.0  # scale bar with its labels
 DEFAULT_DICTIONARY = "DICT_4X4_50"
+CUT_GRAY = 0.6
+CUT_MARK_MM = 5.0
+CUT_LINE_MM = 0.25
 MM_PER_PT = 25.4 / 72.0
 # A4 at 1200 dpi is 140 MB of pixels; beyond that no printer resolves more.
 MIN_DPI, MAX_DPI = 50, 1200
@@ -150,7 +153,7 @@ def layout(marker_type: str, size_m: float, *, dictionary: Optional[str] = None,
         raise UserError(
             f"a {size_mm:g} mm marker does not fit on {paper} paper with its quiet zone, scale bar "
             f"and caption (needs {need_w:.0f} x {need_h:.0f} mm, the sheet is {paper_w:g} x "
-            f"{paper_h:g} mm); the largest that fits is {math.floor(largest):.0f} mm")
+            f"{paper_h:g} mm); the largest that fits is {math.floor(largest + 1e-6):.0f} mm")
     top_mm = max(PRINTER_MARGIN_MM, quiet_mm)
 
     x0 = (paper_w - size_mm) / 2.0
@@ -162,8 +165,12 @@ def layout(marker_type: str, size_m: float, *, dictionary: Optional[str] = None,
               for r, c, n in _runs(cells)]
     if whites:
         sheet.fills.append((1.0, whites))
-    sheet.strokes.append((0.65, 0.2, (x0 - quiet_mm, y0 - quiet_mm,
-                                      size_mm + 2 * quiet_mm, size_mm + 2 * quiet_mm)))
+    # Cut marks at the quiet zone's corners. Not a closed outline: a printed frame around the
+    # marker is itself a quadrilateral that OpenCV's ArUco detector takes for a candidate and
+    # then loses the marker inside it.
+    cut = _cut_marks(x0 - quiet_mm, y0 - quiet_mm, size_mm + 2 * quiet_mm, paper_w, paper_h)
+    if cut:
+        sheet.fills.append((CUT_GRAY, cut))
 
     # Scale bar: a 100 mm outlined bar with alternate centimetres filled.
     bar_x = (paper_w - SCALE_BAR_MM) / 2.0
@@ -182,6 +189,19 @@ def layout(marker_type: str, size_m: float, *, dictionary: Optional[str] = None,
     return sheet
 
 
+def _cut_marks(x: float, y: float, side: float, paper_w: float, paper_h: float) -> List[Rect]:
+    """Short L-shaped marks at the corners of the square (x, y, side), where they fall on the page."""
+    t, n = CUT_LINE_MM, CUT_MARK_MM
+    marks: List[Rect] = []
+    for cx, sx in ((x, 1.0), (x + side, -1.0)):
+        for cy, sy in ((y, 1.0), (y + side, -1.0)):
+            horiz = (min(cx, cx + sx * n), cy - t / 2, n, t)
+            vert = (cx - t / 2, min(cy, cy + sy * n), t, n)
+            marks += [r for r in (horiz, vert)
+                      if r[0] >= 0 and r[1] >= 0 and r[0] + r[2] <= paper_w and r[1] + r[3] <= paper_h]
+    return marks
+
+
 def _caption(marker_type: str, size_m: float, dictionary: Optional[str],
              marker_id: Optional[int], paper: str) -> List[str]:
     size_mm = size_m * 1000.0
@@ -192,7 +212,7 @@ def _caption(marker_type: str, size_m: float, dictionary: Optional[str],
     return [
         f"{what}: {size_mm:g} mm outer black edge ({size_m:g} m), {paper}.",
         "Print at 100% (actual size, no fit-to-page): the bar above must measure 100 mm.",
-        "Cut along the grey line, keeping the white border; mount flat. Config lines:",
+        "Keep the white border (cut at the grey corner marks at most); mount flat. Config lines:",
     ] + config_lines(marker_type, size_m, dictionary, marker_id)
 
 
@@ -203,7 +223,7 @@ def _largest_fitting_mm(marker_type: str, cells: int, paper: str, caption_lines:
     for _ in range(40):
         mid = (lo + hi) / 2.0
         w, h = _needed_mm(marker_type, mid, cells, caption_lines)
-        lo, hi = (mid, hi) if (w <= paper_w and h <= paper_h) else (lo, mid)
+        lo, hi = (mid, hi) if (w <= paper_w + 1e-9 and h <= paper_h + 1e-9) else (lo, mid)
     return lo
 
 
