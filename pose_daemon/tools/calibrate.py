@@ -1,0 +1,506 @@
+"""Camera calibration from views of a chessboard or ChArUco board: board detection, view
+selection, OpenCV's calibrateCamera, and the [camera] TOML section it produces.
+
+Works on OpenCV 4.6 (the Pi's: old cv2.aruco functions) and >= 4.7 (CharucoDetector).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Tuple, Union
+
+import cv2
+import numpy as np
+
+from ..camera import Camera
+from ..errors import UserError
+from ..geometry import R_from_rvec
+
+BOARD_KINDS = ("chessboard", "charuco")
+MIN_VIEWS = 10
+#: Coverage is counted on this grid of cells over the image (columns, rows).
+COVERAGE_GRID = (8, 6)
+DEFAULT_MIN_COVERAGE = 0.5
+#: A view is an outlier when its error is above both OUTLIER_FACTOR x the median and OUTLIER_FLOOR_PX.
+OUTLIER_FACTOR = 3.0
+OUTLIER_FLOOR_PX = 0.5
+CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "dist")
+
+_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
+_CALIB_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-12)
+
+
+# --------------------------------------------------------------------------- boards
+
+
+@dataclass(frozen=True)
+class BoardSpec:
+    """A calibration board. Chessboard: ``cols`` x ``rows`` inner corners; ChArUco: squares.
+
+    Lengths in metres: ``square_m`` the side of one square, ``marker_m`` the ArUco marker
+    inside a ChArUco square.
+    """
+
+    kind: str
+    cols: int
+    rows: int
+    square_m: float
+    marker_m: float = 0.0
+    dictionary: str = ""
+
+    @property
+    def squares(self) -> Tuple[int, int]:
+        """Number of squares along x and y."""
+        if self.kind == "chessboard":
+            return self.cols + 1, self.rows + 1
+        return self.cols, self.rows
+
+    @property
+    def size_m(self) -> Tuple[float, float]:
+        """Printed size of the squares area (width, height), metres."""
+        sx, sy = self.squares
+        return sx * self.square_m, sy * self.square_m
+
+    def describe(self) -> str:
+        if self.kind == "chessboard":
+            return f"chessboard {self.cols}x{self.rows} inner corners, {self.square_m * 1000:g} mm squares"
+        return (f"charuco {self.cols}x{self.rows} squares, {self.square_m * 1000:g} mm squares, "
+                f"{self.marker_m * 1000:g} mm markers, {self.dictionary}")
+
+
+BOARD_SYNTAX = ("chessboard:COLSxROWS:SQUARE_M (inner corners) or "
+                "charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT (squares)")
+
+
+def parse_board(text: str) -> BoardSpec:
+    """``chessboard:9x6:0.025`` or ``charuco:7x5:0.04:0.03:DICT_4X4_50``; UserError otherwise."""
+    parts = str(text).strip().split(":")
+    bad = UserError(f"--board {text!r}: expected {BOARD_SYNTAX}")
+    kind = parts[0].lower()
+    if kind not in BOARD_KINDS or len(parts) != (3 if kind == "chessboard" else 5):
+        raise bad
+    m = re.fullmatch(r"(\d+)[xX](\d+)", parts[1])
+    if not m:
+        raise bad
+    cols, rows = int(m.group(1)), int(m.group(2))
+    try:
+        square_m = float(parts[2])
+        marker_m = float(parts[3]) if kind == "charuco" else 0.0
+    except ValueError:
+        raise bad from None
+    if not (math.isfinite(square_m) and square_m > 0):
+        raise UserError(f"--board {text!r}: the square size must be a positive number of metres")
+    if kind == "chessboard":
+        if cols < 2 or rows < 2 or cols == rows:
+            # A square grid of corners has no defined orientation: views would disagree.
+            raise UserError(f"--board {text!r}: a chessboard needs at least 2x2 inner corners and "
+                            "COLS different from ROWS")
+        return BoardSpec("chessboard", cols, rows, square_m)
+    if cols < 3 or rows < 3:
+        raise UserError(f"--board {text!r}: a ChArUco board needs at least 3x3 squares")
+    if not (math.isfinite(marker_m) and 0 < marker_m < square_m):
+        raise UserError(f"--board {text!r}: the marker size must be positive and smaller than the square")
+    from ..detect.aruco_compat import dictionary_size, get_dictionary
+
+    try:
+        size = dictionary_size(get_dictionary(parts[4]))
+    except ValueError as exc:
+        raise UserError(f"--board {text!r}: {exc}") from None
+    if size < cols * rows // 2:
+        raise UserError(f"--board {text!r}: {parts[4]} has {size} markers, the board needs {cols * rows // 2}")
+    return BoardSpec("charuco", cols, rows, square_m, marker_m, parts[4])
+
+
+@dataclass
+class BoardView:
+    """One detected board: ``image_points`` (N, 2) px and matching ``object_points`` (N, 3) m."""
+
+    image_points: np.ndarray
+    object_points: np.ndarray
+    name: str = ""
+
+
+class BoardDetector:
+    """Finds the board's corners with sub-pixel accuracy in 8-bit grey images."""
+
+    def __init__(self, spec: BoardSpec, fast: bool = False) -> None:
+        self.spec = spec
+        self.fast = fast   # live views: cheap rejection of frames without a board
+        if spec.kind == "chessboard":
+            xs, ys = np.meshgrid(np.arange(spec.cols), np.arange(spec.rows))
+            self._object = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1) * spec.square_m
+            self._object = self._object.astype(np.float32)
+        else:
+            self._board, self._charuco = _charuco_board(spec)
+            corners = (self._board.getChessboardCorners() if hasattr(self._board, "getChessboardCorners")
+                       else self._board.chessboardCorners)
+            self._object = np.asarray(corners, dtype=np.float32).reshape(-1, 3)
+
+    def detect(self, gray: np.ndarray, name: str = "") -> Optional[BoardView]:
+        """The board's corners in ``gray``, or None when it is not found."""
+        if self.spec.kind == "chessboard":
+            return self._detect_chessboard(gray, name)
+        return self._detect_charuco(gray, name)
+
+    def _detect_chessboard(self, gray: np.ndarray, name: str) -> Optional[BoardView]:
+        flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+        if self.fast:
+            flags |= cv2.CALIB_CB_FAST_CHECK
+        found, corners = cv2.findChessboardCorners(gray, (self.spec.cols, self.spec.rows), flags=flags)
+        if not found or corners is None:
+            return None
+        corners = corners.reshape(-1, 2)
+        # Search window about a third of a square: as large as it can be without reaching a
+        # neighbouring corner, which would pull the estimate.
+        return BoardView(_refine(gray, corners, 0.35), self._object.copy(), name)
+
+    def _detect_charuco(self, gray: np.ndarray, name: str) -> Optional[BoardView]:
+        if self._charuco is not None:
+            ch_corners, ch_ids, _, _ = self._charuco.detectBoard(gray)
+        else:
+            aruco = cv2.aruco
+            params = aruco.DetectorParameters_create()
+            m_corners, m_ids, _ = aruco.detectMarkers(gray, self._board.dictionary, parameters=params)
+            if m_ids is None or len(m_ids) == 0:
+                return None
+            _, ch_corners, ch_ids = aruco.interpolateCornersCharuco(m_corners, m_ids, gray, self._board)
+        if ch_ids is None or ch_corners is None or len(ch_ids) < 6:
+            return None
+        ids = np.asarray(ch_ids).reshape(-1)
+        pts = np.asarray(ch_corners, dtype=np.float32).reshape(-1, 2)
+        # Refined again with a window that stays inside the white margin between a corner and
+        # the markers next to it: OpenCV's interpolation leaves errors up to ~0.3 px on
+        # blurred views, this brings them under ~0.1 px.
+        margin = (self.spec.square_m - self.spec.marker_m) / 2.0 / self.spec.square_m
+        pts = _refine(gray, pts, 0.8 * margin)
+        obj = self._object[ids]
+        # Corners on one line do not fix a homography: no use for calibration.
+        if np.linalg.matrix_rank(obj[:, :2] - obj[:, :2].mean(axis=0), tol=1e-9) < 2:
+            return None
+        return BoardView(pts.astype(np.float64), obj.copy(), name)
+
+
+def _refine(gray: np.ndarray, corners: np.ndarray, window_fraction: float) -> np.ndarray:
+    """Corners (N, 2) moved to their sub-pixel saddle points (cornerSubPix); the search window's
+    half-size is ``window_fraction`` of the smallest corner spacing in the view."""
+    pts = np.asarray(corners, dtype=np.float32).reshape(-1, 2)
+    # As large a window as can be without reaching other edges (a neighbouring corner, a
+    # marker), which would pull the estimate.
+    d = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=2)
+    np.fill_diagonal(d, np.inf)
+    spacing = float(d.min(axis=1).min())
+    win = int(np.clip(spacing * window_fraction, 2, 11))
+    refined = cv2.cornerSubPix(gray, pts.reshape(-1, 1, 2).copy(), (win, win), (-1, -1), _SUBPIX_CRITERIA)
+    return refined.reshape(-1, 2).astype(np.float64)
+
+
+def _charuco_board(spec: BoardSpec):
+    """(board, CharucoDetector or None on OpenCV 4.6)."""
+    from ..detect.aruco_compat import get_dictionary
+
+    aruco = cv2.aruco
+    dictionary = get_dictionary(spec.dictionary)
+    if hasattr(aruco, "CharucoDetector"):
+        board = aruco.CharucoBoard((spec.cols, spec.rows), spec.square_m, spec.marker_m, dictionary)
+        return board, aruco.CharucoDetector(board)
+    board = aruco.CharucoBoard_create(spec.cols, spec.rows, spec.square_m, spec.marker_m, dictionary)
+    return board, None
+
+
+def board_image(spec: BoardSpec, px_per_square: int = 40, margin_squares: float = 0.5) -> np.ndarray:
+    """The board as printed (uint8, 255 white), with a white margin of ``margin_squares``
+    squares around the squares area; its physical size is ``board_image_size_m``."""
+    sx, sy = spec.squares
+    w, h = sx * px_per_square, sy * px_per_square
+    if spec.kind == "chessboard":
+        yy, xx = np.mgrid[0:h, 0:w] // px_per_square
+        # Top-left square black, as OpenCV's and most printed boards.
+        inner = np.where((xx + yy) % 2 == 0, 0, 255).astype(np.uint8)
+    else:
+        board, _ = _charuco_board(spec)
+        inner = (board.generateImage((w, h)) if hasattr(board, "generateImage") else board.draw((w, h)))
+    m = int(round(margin_squares * px_per_square))
+    return cv2.copyMakeBorder(inner, m, m, m, m, cv2.BORDER_CONSTANT, value=255)
+
+
+def board_image_size_m(spec: BoardSpec, margin_squares: float = 0.5) -> Tuple[float, float]:
+    """Physical size (width, height) of ``board_image`` with the same margin, metres."""
+    w, h = spec.size_m
+    return w + 2 * margin_squares * spec.square_m, h + 2 * margin_squares * spec.square_m
+
+
+# --------------------------------------------------------------------------- view selection, coverage
+
+
+class Coverage:
+    """Which cells of a COVERAGE_GRID over the image the board's corners have reached."""
+
+    def __init__(self, width: int, height: int, grid: Tuple[int, int] = COVERAGE_GRID) -> None:
+        self.width, self.height, self.grid = width, height, grid
+        self.hits = np.zeros((grid[1], grid[0]), dtype=int)
+
+    def add(self, image_points: np.ndarray) -> None:
+        gx = np.clip((image_points[:, 0] / self.width * self.grid[0]).astype(int), 0, self.grid[0] - 1)
+        gy = np.clip((image_points[:, 1] / self.height * self.grid[1]).astype(int), 0, self.grid[1] - 1)
+        np.add.at(self.hits, (gy, gx), 1)
+
+    @property
+    def fraction(self) -> float:
+        """Share of the cells reached by at least one corner, 0..1."""
+        return float((self.hits > 0).mean())
+
+    def map(self) -> List[str]:
+        """The grid as text lines: '#' reached, '.' not."""
+        return ["|" + "".join("#" if h else "." for h in row) + "|" for row in self.hits]
+
+
+def view_signature(view: BoardView, width: int, height: int) -> np.ndarray:
+    """Where the board is: (centre x, centre y) as fractions of the image, log of its apparent
+    size, and its tilt about the camera's x and y axes in radians, from a rough pose."""
+    pts = view.image_points
+    f = 0.9 * max(width, height)   # a typical lens; the signature only compares views
+    K = np.array([[f, 0, width / 2.0], [0, f, height / 2.0], [0, 0, 1.0]])
+    ok, rvec, tvec = cv2.solvePnP(view.object_points.astype(np.float64), pts, K, None)
+    centre = pts.mean(axis=0)
+    hull = cv2.convexHull(pts.astype(np.float32))
+    size = math.sqrt(max(cv2.contourArea(hull), 1.0) / (width * height))
+    tilt_x = tilt_y = 0.0
+    if ok:
+        normal = R_from_rvec(rvec.reshape(3))[:, 2]
+        normal = normal if normal[2] < 0 else -normal   # the face turned towards the camera
+        tilt_x, tilt_y = math.asin(float(np.clip(normal[1], -1, 1))), math.asin(float(np.clip(normal[0], -1, 1)))
+    return np.array([centre[0] / width, centre[1] / height, math.log(size), tilt_x, tilt_y])
+
+
+#: How far apart (centre fraction, log size, radians) two views must be to count as different.
+_SIGNATURE_SCALE = np.array([0.12, 0.12, 0.25, 0.17, 0.17])
+
+
+class ViewSelector:
+    """Keeps a view only when the board is in a new place, at a new distance or tilt."""
+
+    def __init__(self, width: int, height: int) -> None:
+        self.width, self.height = width, height
+        self.signatures: List[np.ndarray] = []
+
+    def is_new(self, view: BoardView) -> bool:
+        sig = view_signature(view, self.width, self.height)
+        if self.signatures:
+            d = np.abs((np.array(self.signatures) - sig) / _SIGNATURE_SCALE)
+            if float(d.max(axis=1).min()) < 1.0:
+                return False
+        self.signatures.append(sig)
+        return True
+
+
+# --------------------------------------------------------------------------- calibration
+
+
+@dataclass
+class CalibrationResult:
+    """The fitted camera, the overall RMS and each view's RMS reprojection error (px)."""
+
+    camera: Camera
+    rms_px: float
+    view_errors_px: List[float]
+    views: List[BoardView]
+    outliers: List[int] = field(default_factory=list)
+    coverage: float = 0.0
+
+
+def calibrate_views(views: Sequence[BoardView], width: int, height: int, *,
+                    fit_k3: bool = False) -> CalibrationResult:
+    """calibrateCamera on ``views`` of a ``width`` x ``height`` image; k3 fixed at 0 unless ``fit_k3``."""
+    obj = [v.object_points.astype(np.float32).reshape(-1, 1, 3) for v in views]
+    img = [v.image_points.astype(np.float32).reshape(-1, 1, 2) for v in views]
+    flags = 0 if fit_k3 else cv2.CALIB_FIX_K3
+    try:
+        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, (width, height), None, None,
+                                                         flags=flags, criteria=_CALIB_CRITERIA)
+    except cv2.error as exc:
+        raise UserError(f"calibration failed in OpenCV: {' '.join(str(exc).split())[-160:]}") from None
+    dist = np.asarray(dist, dtype=np.float64).reshape(-1)[:5]
+    values = [K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist]
+    if not all(math.isfinite(float(v)) for v in values) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise UserError("calibration failed: the fit did not converge (views too similar or too few corners)")
+    errors = []
+    for o, i, r, t in zip(obj, img, rvecs, tvecs):
+        proj, _ = cv2.projectPoints(o, r, t, K, dist)
+        errors.append(float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - i.reshape(-1, 2)) ** 2, axis=1)))))
+    camera = Camera(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]),
+                    dist=tuple(float(d) for d in dist), width=width, height=height)
+    median = float(np.median(errors))
+    limit = max(OUTLIER_FACTOR * median, OUTLIER_FLOOR_PX)
+    outliers = [k for k, e in enumerate(errors) if e > limit]
+    cov = Coverage(width, height)
+    for v in views:
+        cov.add(v.image_points)
+    return CalibrationResult(camera, float(rms), errors, list(views), outliers, cov.fraction)
+
+
+def distortion_difference_px(a: Camera, b: Camera, step_px: float = 10.0) -> float:
+    """Largest difference over the image between the distortion corrections of two models, px.
+
+    For each pixel p on a grid covering the whole image: the shift p -> undistorted pixel
+    (each model's own K) under ``a`` and under ``b``; returns the largest |shift_a - shift_b|.
+    """
+    xs = np.arange(0.0, a.width - 1 + 1e-9, step_px)
+    ys = np.arange(0.0, a.height - 1 + 1e-9, step_px)
+    xs = np.append(xs, a.width - 1.0) if xs[-1] < a.width - 1 else xs
+    ys = np.append(ys, a.height - 1.0) if ys[-1] < a.height - 1 else ys
+    gx, gy = np.meshgrid(xs, ys)
+    px = np.stack([gx.ravel(), gy.ravel()], axis=1)
+
+    def shift(cam: Camera) -> np.ndarray:
+        n = cam.undistort_normalized(px)
+        return np.stack([n[:, 0] * cam.fx + cam.cx, n[:, 1] * cam.fy + cam.cy], axis=1) - px
+
+    return float(np.linalg.norm(shift(a) - shift(b), axis=1).max())
+
+
+# --------------------------------------------------------------------------- [camera] TOML
+
+
+def _fmt(value: float, digits: int) -> str:
+    text = f"{value:.{digits}f}"
+    return text if "." in text else text + ".0"
+
+
+def camera_values(camera: Camera) -> Dict[str, str]:
+    """The [camera] keys CAMERA_KEYS as TOML value text."""
+    dist = ", ".join(f"{d:.8g}" if "e" in f"{d:.8g}" or "." in f"{d:.8g}" else f"{d:.8g}.0"
+                     for d in camera.dist[:5])
+    return {"width": str(camera.width), "height": str(camera.height), "fx": _fmt(camera.fx, 4),
+            "fy": _fmt(camera.fy, 4), "cx": _fmt(camera.cx, 4), "cy": _fmt(camera.cy, 4),
+            "dist": f"[{dist}]"}
+
+
+def camera_toml(camera: Camera, comment: str = "") -> str:
+    """A [camera] section with the calibrated keys, ready for a pose-daemon config."""
+    values = camera_values(camera)
+    lines = [f"# {line}" for line in comment.splitlines()] if comment else []
+    lines.append("[camera]")
+    for key in CAMERA_KEYS:
+        note = "   # k1 k2 p1 p2 k3" if key == "dist" else ""
+        lines.append(f"{key} = {values[key]}{note}")
+    return "\n".join(lines) + "\n"
+
+
+_HEADER = re.compile(r"^\s*\[\s*(\[)?\s*([^\]]*?)\s*\]")
+
+
+def _value_end(text: str, start: int) -> int:
+    """End offset of the TOML value starting at ``start`` (a number or an array of numbers,
+    possibly over several lines with comments); the trailing comment is not included."""
+    i, depth, n = start, 0, len(text)
+    while i < n:
+        c = text[i]
+        if c == "#":
+            if depth == 0:
+                break
+            while i < n and text[i] != "\n":
+                i += 1
+            continue
+        if c in "\"'":
+            q = text.find(c, i + 1)
+            i = n if q < 0 else q + 1
+            continue
+        if c == "[":
+            depth += 1
+        elif c == "]":
+            depth -= 1
+            if depth == 0:
+                return i + 1
+        elif c == "\n" and depth == 0:
+            break
+        i += 1
+    return len(text[:i].rstrip(" \t")) if depth == 0 else n
+
+
+def update_camera_text(text: str, camera: Camera, name: str = "<config>") -> str:
+    """``text`` (a TOML config) with the [camera] table's width, height, fx, fy, cx, cy and
+    dist set to ``camera``'s; every other line, comment and table is kept as it was."""
+    values = camera_values(camera)
+    lines = text.splitlines(keepends=True)
+    start = end = None
+    for k, line in enumerate(lines):
+        m = _HEADER.match(line)
+        if not m:
+            continue
+        if start is not None:
+            end = k
+            break
+        if m.group(1) is None and m.group(2) == "camera":
+            start = k
+    if start is None:
+        if re.search(r"^\s*camera\s*[.=]", text, re.M):
+            raise UserError(f"{name}: camera is not written as a [camera] table; cannot update it in place")
+        sep = "" if not text or text.endswith("\n") else "\n"
+        return text + sep + "\n" + camera_toml(camera)
+    end = len(lines) if end is None else end
+    body = "".join(lines[start + 1:end])
+    head = "".join(lines[:start + 1])
+    tail = "".join(lines[end:])
+    missing = []
+    for key in CAMERA_KEYS:
+        m = re.search(rf"^([ \t]*{key}[ \t]*=[ \t]*)", body, re.M)
+        if m is None:
+            missing.append(key)
+            continue
+        v_end = _value_end(body, m.end())
+        body = body[:m.end()] + values[key] + body[v_end:]
+    if missing:
+        # New keys go after the table's last key line, before trailing blanks and comments.
+        body_lines = body.splitlines(keepends=True)
+        last = max((k for k, ln in enumerate(body_lines) if ln.strip() and not ln.lstrip().startswith("#")),
+                   default=-1)
+        if last >= 0 and not body_lines[last].endswith("\n"):
+            body_lines[last] += "\n"
+        new = "".join(f"{key} = {values[key]}\n" for key in missing)
+        body_lines.insert(last + 1, new)
+        body = "".join(body_lines)
+    return head + body + tail
+
+
+def update_config_file(path: Union[str, Path], camera: Camera) -> None:
+    """Set the [camera] calibration keys of the config file ``path`` in place, keeping its other
+    lines and comments; the new text must load as a valid config with exactly these values
+    before it atomically replaces the file."""
+    from ..config import load_config
+
+    p = Path(path)
+    try:
+        text = p.read_bytes().decode("utf-8")
+    except OSError as exc:
+        raise UserError(f"{p}: cannot read config: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise UserError(f"{p}: cannot update: not UTF-8 text") from None
+    load_config(p)   # a config that is already broken is reported as it is, not rewritten
+    new_text = update_camera_text(text, camera, str(p))
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=str(p.parent.resolve()))
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
+            fh.write(new_text)
+        cfg = load_config(tmp)
+        got = cfg.camera
+        want = camera_values(camera)
+        for key in ("fx", "fy", "cx", "cy"):
+            if abs(getattr(got, key) - float(want[key])) > 1e-9:
+                raise UserError(f"{p}: the updated [camera] {key} did not read back; file left unchanged")
+        if (got.width, got.height) != (camera.width, camera.height) or \
+                np.max(np.abs(np.asarray(got.dist[:5]) - np.asarray(camera.dist[:5]))) > 1e-6:
+            raise UserError(f"{p}: the updated [camera] did not read back; file left unchanged")
+        try:
+            os.chmod(tmp, p.stat().st_mode & 0o7777)
+        except OSError:
+            pass
+        os.replace(tmp, p)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
