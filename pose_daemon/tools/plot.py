@@ -108,7 +108,7 @@ def read_poses(path: Path) -> PoseSeries:
     rows = []
     skipped: List[Tuple[int, str]] = []
     blank = 0
-    for number, line in enumerate(text.splitlines(), start=1):
+    for number, line in enumerate(text.split("\n"), start=1):  # JSON lines end in LF only
         if not line.strip():
             blank += 1
             continue
