@@ -223,3 +223,6 @@ def test_bad_output_paths_exit_2(tmp_path: Path, capsys) -> None:
     assert code == 2 and "--out must end in .pdf, .png or .svg, got 'm.jpg'" in err
     code, _, err = _run_marker(["--size", "0.1", "--out", str(tmp_path / "no" / "m.pdf")], capsys)
     assert code == 2 and err.count("\n") == 1 and "cannot write" in err and "No such file" in err
+    (tmp_path / "dir.pdf").mkdir()
+    code, _, err = _run_marker(["--size", "0.1", "--out", str(tmp_path / "dir.pdf")], capsys)
+    assert code == 2 and err.count("\n") == 1 and "is a directory" in err

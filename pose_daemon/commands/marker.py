@@ -26,14 +26,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..tools.marker_sheet import config_lines, layout, write_sheet
+    from ..tools.marker_sheet import check_out_path, layout, write_sheet
 
+    check_out_path(args.out)
     sheet = layout(args.type, args.size, dictionary=args.dictionary, marker_id=args.id,
                    paper=args.paper)
     write_sheet(sheet, args.out, dpi=args.dpi)
-    dictionary = (args.dictionary or "DICT_4X4_50").upper() if args.type == "aruco" else None
-    marker_id = (0 if args.id is None else args.id) if args.type == "aruco" else None
     print(f"wrote {args.out}: {args.type} marker, {args.size * 1000:g} mm, {args.paper}; "
           "print at 100% and check the 10 cm bar", file=sys.stderr)
-    print("\n".join(config_lines(args.type, args.size, dictionary, marker_id)))
+    print("\n".join(sheet.config))
     return 0

@@ -61,6 +61,7 @@ class Sheet:
     fills: List[Tuple[float, List[Rect]]] = field(default_factory=list)  # (gray 0..1, rects)
     strokes: List[Tuple[float, float, Rect]] = field(default_factory=list)  # (gray, line mm, rect)
     texts: List[Text] = field(default_factory=list)
+    config: List[str] = field(default_factory=list)  # the matching [marker] section, one line each
 
 
 def aruco_cells(dictionary: str, marker_id: int) -> np.ndarray:
@@ -159,7 +160,8 @@ def layout(marker_type: str, size_m: float, *, dictionary: Optional[str] = None,
     x0 = (paper_w - size_mm) / 2.0
     y0 = top_mm
     sheet = Sheet(paper=paper, width_mm=paper_w, height_mm=paper_h,
-                  marker_rect=(x0, y0, size_mm, size_mm))
+                  marker_rect=(x0, y0, size_mm, size_mm),
+                  config=config_lines(marker_type, size_m, dictionary, marker_id))
     sheet.fills.append((0.0, [(x0, y0, size_mm, size_mm)]))
     whites = [(x0 + c * cell_mm, y0 + r * cell_mm, n * cell_mm, cell_mm)
               for r, c, n in _runs(cells)]
@@ -368,11 +370,19 @@ def png_bytes(img: np.ndarray, dpi: float) -> bytes:
             + chunk(b"IEND", b""))
 
 
-def write_sheet(sheet: Sheet, path: Path, *, dpi: float = 300.0) -> None:
-    """Write the sheet in the format named by the file's extension (.pdf, .png, .svg)."""
+def check_out_path(path: Path) -> str:
+    """The output format named by the file's extension (pdf, png, svg); UserError otherwise."""
     fmt = path.suffix.lower().lstrip(".")
     if fmt not in FORMATS:
         raise UserError(f"--out must end in .pdf, .png or .svg, got {path.name!r}")
+    if path.is_dir():
+        raise UserError(f"--out {path} is a directory")
+    return fmt
+
+
+def write_sheet(sheet: Sheet, path: Path, *, dpi: float = 300.0) -> None:
+    """Write the sheet in the format named by the file's extension (.pdf, .png, .svg)."""
+    fmt = check_out_path(path)
     if fmt == "pdf":
         data = to_pdf(sheet)
     elif fmt == "svg":
