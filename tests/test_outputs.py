@@ -174,3 +174,35 @@ def test_output_bench_prints_a_figure_per_output(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["--poses", "0"])
     assert exc.value.code == 2 and "--poses must be at least 1" in capsys.readouterr().err
+
+
+class _TickRecordingJsonl(JsonlOutput):
+    """JSON lines whose periodic work and writes are recorded in order."""
+
+    tick_s = 10.0  # no periodic tick during the test: only the ones a wake-up is due for
+
+    def __init__(self, *args, **kwargs) -> None:
+        self.events = []
+        super().__init__(*args, **kwargs)
+
+    def _tick(self, now: float) -> None:
+        self.events.append("tick")
+
+    def _write(self, result) -> int:
+        self.events.append(f"write {result.seq}")
+        return super()._write(result)
+
+
+def test_the_output_thread_writes_a_result_before_its_periodic_work():
+    stream = io.StringIO()
+    out = _TickRecordingJsonl("-", queue_size=4, stream=stream)
+    try:
+        out.publish(lost_result(0, time.monotonic()))
+        assert wait_for(lambda: len(out.events) >= 2, 2.0)
+        out.publish(lost_result(1, time.monotonic()))
+        assert wait_for(lambda: "write 1" in out.events, 2.0)
+    finally:
+        out.close()
+    # The first wake-up writes, then does the due periodic work; the next one (work not due) only writes.
+    assert out.events == ["write 0", "tick", "write 1"]
+    assert [json.loads(s)["frame"] for s in stream.getvalue().splitlines()] == [0, 1]

@@ -306,6 +306,10 @@ class MavlinkOutput(QueuedOutput):
             self._started_text_sent = True
             self._send_text(MAV_SEVERITY_INFO, text)
 
+    def _tick_before_write(self) -> bool:
+        # A pose waiting for the autopilot: read its HEARTBEAT first rather than drop the pose.
+        return self.wait_heartbeat and self.autopilot_system is None
+
     def _tick(self, now: float) -> None:
         assert self._link is not None
         for msg in self._link.read_messages():

@@ -12,7 +12,8 @@ Two ways to feed an output, both safe for the caller:
   link being opened: a link that is down or busy drops the result (counted); every write
   has a 0.25 s timeout.
 Either way the output's thread opens the link, reopens it after a failure with a doubling
-pause, and does the periodic work (MAVLink heartbeats, reading the autopilot).
+pause, and does the periodic work (MAVLink heartbeats, reading the autopilot) every ``tick_s``,
+after writing the result at hand so that work never delays it.
 
 After each write ``on_written(result, t_written_s)`` is called if set (``time.monotonic()``,
 the clock of ``Frame.t_capture_s``): the pipeline's hook for capture -> bytes-written
@@ -63,6 +64,7 @@ class QueuedOutput:
         self._retry_max_s = float(retry_max_s)
         self._pause_s = self._retry_s
         self._next_open_t = 0.0
+        self._last_tick_t = -1e18
         self._link_up = False
         self._link_state = "not opened"
         self.on_written: Optional[WrittenCallback] = None
@@ -189,6 +191,11 @@ class QueuedOutput:
     def _tick(self, now: float) -> None:
         """Periodic work while the link is up; LinkError on failure."""
 
+    def _tick_before_write(self) -> bool:
+        """True while a result's write depends on the periodic work (MAVLink: the autopilot
+        not yet heard); the output's thread then ticks before writing."""
+        return False
+
     def _on_link_up(self) -> None:
         """Called after each successful (re)open, with the link held."""
 
@@ -219,15 +226,25 @@ class QueuedOutput:
                 now = self._clock()
                 if not self._link_up and now >= self._next_open_t:
                     self._try_open(now)
-                if self._link_up:
-                    try:
-                        self._tick(now)
-                    except LinkError as exc:
-                        self._link_failed(str(exc))
-                    except Exception as exc:  # never let the thread die; the status line shows it
-                        self._error(f"{type(exc).__name__}: {exc}")
+                # The result is written before the periodic work, which would otherwise add
+                # its time (reads, a heartbeat) to this result's latency; unless the write
+                # needs what that work brings in (the autopilot's first HEARTBEAT).
+                tick_first = self._link_up and self._tick_before_write()
+                if tick_first:
+                    self._run_tick(now)
                 if item is not None:
                     self._handle(item)
+                if not tick_first and self._link_up and (item is None or now - self._last_tick_t >= self.tick_s):
+                    self._run_tick(self._clock())
+
+    def _run_tick(self, now: float) -> None:
+        self._last_tick_t = now
+        try:
+            self._tick(now)
+        except LinkError as exc:
+            self._link_failed(str(exc))
+        except Exception as exc:  # never let the thread die; the status line shows it
+            self._error(f"{type(exc).__name__}: {exc}")
 
     def _handle(self, item: FrameResult) -> None:
         """Write one result (link held)."""
