@@ -88,6 +88,29 @@ def test_synthetic_source_paces_in_real_time_and_ends() -> None:
         source.read()
 
 
+def test_synthetic_source_behind_by_more_than_a_frame_restarts_its_schedule() -> None:
+    clock = FakeClock()
+    source = SyntheticSource(CAM, Marker(0.2), fps=20.0, frames=6, effects=Effects.clean(),
+                             clock=clock, sleep=clock.sleep)
+    source.open()
+    frames = [source.read()]            # due at 100.0
+    clock.t += 1.0                      # a slow first render: 19 frame periods lost
+    frames.append(source.read())        # stamped now, not at its missed 100.05
+    frames.append(source.read())        # one period later, on the new schedule
+    clock.t += 0.08                     # 101.13: behind 101.1 by less than a period, kept
+    frames.append(source.read())
+    clock.t += 0.0701                   # 101.2001: behind 101.15 by just over a period
+    frames.append(source.read())
+    frames.append(source.read())
+    assert [f.t_capture_s for f in frames] == pytest.approx([100.0, 101.0, 101.05, 101.1, 101.2001, 101.2501],
+                                                            abs=1e-9)
+    assert clock.sleeps == pytest.approx([0.05, 0.05])
+    assert source.restarts == 2
+    # The trajectory goes on frame by frame: no frame's truth is skipped.
+    assert [f.seq for f in frames] == list(range(6))
+    assert [f.metadata["trajectory_t_s"] for f in frames] == pytest.approx([k / 20.0 for k in range(6)])
+
+
 # --------------------------------------------------------------------------- picamera2
 
 

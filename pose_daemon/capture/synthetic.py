@@ -20,7 +20,13 @@ class SyntheticSource:
     ``frames`` = 0: endless. ``realtime``: each frame is delivered at its time on the
     monotonic clock (``t_capture_s``); otherwise as fast as rendered, with ``t_capture_s``
     the start time plus the trajectory time. Metadata: ``true_rvec``, ``true_tvec`` (marker
-    in camera frame, rad / m), ``true_corners`` (4, 2) px, ``trajectory_t_s``.
+    in camera frame, rad / m), ``true_corners`` (4, 2) px, ``trajectory_t_s`` (= seq / fps).
+
+    In real time, a source that fell behind its schedule by more than a frame period (a
+    slow render: the renderer's first use takes about a second; or a rate faster than it
+    renders) restarts the schedule at the present frame, as a camera does: it never hands
+    out a backlog of frames stamped in the past, which would all be too old to use. Each
+    restart is counted in ``restarts``; the trajectory goes on from where it was.
     """
 
     def __init__(self, camera: Camera, marker: Marker, *, trajectory: str = "wall", seed: int = 0,
@@ -39,6 +45,7 @@ class SyntheticSource:
         self._background: Optional[np.ndarray] = None
         self._seq = 0
         self._t0: Optional[float] = None
+        self.restarts = 0
 
     def open(self) -> None:
         self._rng = np.random.default_rng(self.seed)
@@ -56,9 +63,14 @@ class SyntheticSource:
         t_traj = self._seq / self.fps
         t_capture = self._t0 + t_traj
         if self.realtime:
-            wait = t_capture - self._clock()
+            now = self._clock()
+            wait = t_capture - now
             if wait > 0:
                 self._sleep(wait)
+            elif -wait > 1.0 / self.fps:
+                self._t0 = now - t_traj
+                t_capture = now
+                self.restarts += 1
         truth = self.path.at(t_traj)
         rendered = render_marker(self.camera, self.marker, truth.rvec, truth.tvec,
                                  effects=self.effects, rng=self._rng, background=self._background)
