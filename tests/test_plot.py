@@ -221,3 +221,23 @@ def test_config_gives_placement_and_latency_budget(daemon_log: Path, tmp_path: P
     config.write_text("[marker]\nplacement = 3\n")
     assert main(["plot", str(daemon_log), "--out", str(tmp_path / "f.png"), "--config", str(config)]) == 2
     assert "placement" in capsys.readouterr().err
+
+
+def test_a_log_appended_after_restarts_plots_one_run(daemon_log: Path, tmp_path: Path, capsys) -> None:
+    first = [json.loads(line) for line in daemon_log.read_text().splitlines()]
+    # After a restart the daemon appends to the same file; its clock starts again lower.
+    second = [dict(r, t=round(r["t"] - 1000.0, 6)) for r in first[:30]]
+    log = tmp_path / "restarts.jsonl"
+    log.write_text("".join(json.dumps(r) + "\n" for r in first + second))
+    series = plot_tool.read_poses(log)
+    assert series.runs() == [(0, N), (N, N + 30)]
+    out = tmp_path / "r.png"
+    assert main(["plot", str(log), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "plotting run 2 of 2 (lines 61-90); --run N picks another" in err
+    assert "30 frames over 0.97 s, pose in 20 (66.7 %)" in err
+    assert main(["plot", str(log), "--out", str(out), "--run", "1"]) == 0
+    err = capsys.readouterr().err
+    assert "run 1 of 2 (lines 1-60)" in err and "60 frames over 1.97 s, pose in 46" in err
+    assert main(["plot", str(log), "--out", str(out), "--run", "3"]) == 2
+    assert capsys.readouterr().err == "pose-daemon: error: --run 3: the log holds 2 run(s)\n"

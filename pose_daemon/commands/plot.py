@@ -20,6 +20,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser.add_argument("--placement", choices=("wall", "floor"), default=None,
                         help="how the marker is mounted, for the view from above (default: from "
                              "--config, else wall)")
+    parser.add_argument("--run", type=int, default=None, metavar="N",
+                        help="a log the daemon appended to after restarts holds several runs (time "
+                             "goes back at each): plot run N, 1 = the oldest (default: the last)")
     parser.set_defaults(func=run)
 
 
@@ -34,10 +37,15 @@ def run(args: argparse.Namespace) -> int:
         placement, budget_ms = cfg.marker.placement, cfg.pipeline.latency_budget_s * 1e3
     if args.placement is not None:
         placement = args.placement
-    series, stats = plot_poses(args.poses, args.out, placement=placement, latency_budget_ms=budget_ms)
+    series, stats, note = plot_poses(args.poses, args.out, placement=placement, latency_budget_ms=budget_ms,
+                                     run=args.run)
     if series.skipped:
         line, why = series.skipped[0]
         print(f"pose-daemon: {args.poses}: skipped {len(series.skipped)} line(s) that are not per-frame "
               f"JSON objects (first: line {line}: {why})", file=sys.stderr)
+    if note:
+        note += "; --run N picks another"
+        print(f"pose-daemon: {args.poses}: several runs (time goes back where the daemon restarted); "
+              f"plotting {note}", file=sys.stderr)
     print(f"wrote {args.out}: {summary_line(series, stats)}", file=sys.stderr)
     return 0

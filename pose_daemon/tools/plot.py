@@ -39,9 +39,23 @@ class PoseSeries:
     latency_ms: np.ndarray
     has_time: bool = True
     skipped: List[Tuple[int, str]] = field(default_factory=list)  # (line number, why)
+    line: Optional[np.ndarray] = None  # line number of each frame in the file
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
+
+    def runs(self) -> List[Tuple[int, int]]:
+        """[start, end) frame index ranges of the runs in the log: the daemon appends to its
+        JSON lines file, so each restart begins a run whose time goes back."""
+        back = np.flatnonzero(np.diff(self.t_s) < 0) + 1 if self.has_time else np.zeros(0, int)
+        edges = [0] + [int(b) for b in back] + [len(self)]
+        return list(zip(edges[:-1], edges[1:]))
+
+    def select(self, start: int, end: int) -> PoseSeries:
+        """The frames [start, end) as a series of their own."""
+        return PoseSeries(self.t_s[start:end], self.ok[start:end], self.position_m[start:end],
+                          self.angles_deg[start:end], self.latency_ms[start:end], self.has_time,
+                          self.skipped, None if self.line is None else self.line[start:end])
 
 
 def _finite_vector(obj: Dict[str, Any], key: str, n: int) -> Optional[List[float]]:
@@ -107,13 +121,13 @@ def read_poses(path: Path) -> PoseSeries:
     text = raw.decode("utf-8", errors="replace")
     rows = []
     skipped: List[Tuple[int, str]] = []
-    blank = 0
+    numbers: List[int] = []
     for number, line in enumerate(text.split("\n"), start=1):  # JSON lines end in LF only
         if not line.strip():
-            blank += 1
             continue
         try:
             rows.append(_parse_line(json.loads(line)))
+            numbers.append(number)
         except json.JSONDecodeError:
             skipped.append((number, "not JSON"))
         except ValueError as exc:
@@ -133,6 +147,7 @@ def read_poses(path: Path) -> PoseSeries:
         latency_ms=np.array([r[4] for r in rows], dtype=np.float64),
         has_time=has_time,
         skipped=skipped,
+        line=np.array(numbers, dtype=np.int64),
     )
 
 
@@ -277,16 +292,33 @@ def _typical_step(t: np.ndarray) -> float:
     return float(np.median(d)) if d.size else 1.0
 
 
-def plot_poses(path: Path, out: Path, *, placement: str = "wall",
-               latency_budget_ms: Optional[float] = 100.0) -> Tuple[PoseSeries, Dict[str, Optional[float]]]:
-    """Read ``path``, draw the figure into ``out``; the series and its summary figures."""
+def pick_run(series: PoseSeries, run: Optional[int]) -> Tuple[PoseSeries, str]:
+    """Run ``run`` (1-based; None = the last) of a log, and a note naming it when there are several."""
+    runs = series.runs()
+    if run is None:
+        run = len(runs)
+    if not 1 <= run <= len(runs):
+        raise UserError(f"--run {run}: the log holds {len(runs)} run(s)")
+    if len(runs) == 1:
+        return series, ""
+    start, end = runs[run - 1]
+    note = f"run {run} of {len(runs)}"
+    if series.line is not None:
+        note += f" (lines {series.line[start]}-{series.line[end - 1]})"
+    return series.select(start, end), note
+
+
+def plot_poses(path: Path, out: Path, *, placement: str = "wall", latency_budget_ms: Optional[float] = 100.0,
+               run: Optional[int] = None) -> Tuple[PoseSeries, Dict[str, Optional[float]], str]:
+    """Read ``path``, draw the figure of one run into ``out``: the series, its summary figures and
+    a note naming the run when the log holds several (the daemon appends after each restart)."""
     from ..plotting import check_plot_path, require_matplotlib, save_figure
 
     require_matplotlib()
     check_plot_path(out)
     top_view_axes(placement)
-    series = read_poses(path)
-    fig = make_figure(series, placement=placement, title=os.path.basename(str(path)),
-                      latency_budget_ms=latency_budget_ms)
+    series, note = pick_run(read_poses(path), run)
+    title = os.path.basename(str(path)) + (f", {note}" if note else "")
+    fig = make_figure(series, placement=placement, title=title, latency_budget_ms=latency_budget_ms)
     save_figure(fig, out)
-    return series, summarise(series)
+    return series, summarise(series), note
