@@ -10,7 +10,7 @@ from pathlib import Path
 def register(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser(
         "marker", help="print a marker: PDF/SVG/PNG at true size with scale bar and config lines",
-        description=__doc__.splitlines()[0])
+        description=__doc__.splitlines()[0].replace("``", ""))
     parser.add_argument("--type", choices=("square", "aruco"), default="aruco",
                         help="plain black square or ArUco marker (default aruco)")
     parser.add_argument("--size", type=float, required=True, metavar="METRES",
@@ -18,7 +18,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser.add_argument("--dictionary", default=None,
                         help="ArUco dictionary, OpenCV's name (default DICT_4X4_50)")
     parser.add_argument("--id", type=int, default=None, help="ArUco marker id (default 0)")
-    parser.add_argument("--paper", choices=("a4", "letter"), default="a4")
+    parser.add_argument("--paper", choices=("a4", "letter"), default="a4",
+                        help="paper size (default a4); a marker that does not fit is refused")
     parser.add_argument("--out", type=Path, required=True, metavar="FILE",
                         help="FILE.pdf, FILE.svg or FILE.png")
     parser.add_argument("--dpi", type=float, default=300.0, help="resolution of a PNG (default 300)")
