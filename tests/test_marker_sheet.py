@@ -226,3 +226,37 @@ def test_bad_output_paths_exit_2(tmp_path: Path, capsys) -> None:
     (tmp_path / "dir.pdf").mkdir()
     code, _, err = _run_marker(["--size", "0.1", "--out", str(tmp_path / "dir.pdf")], capsys)
     assert code == 2 and err.count("\n") == 1 and "is a directory" in err
+
+
+@pytest.mark.parametrize("kind_args", [["--id", "7"], ["--type", "square"]])
+def test_sheet_seen_by_a_camera_gives_the_pose_with_the_printed_config_lines(tmp_path: Path, capsys,
+                                                                            kind_args: List[str]) -> None:
+    """The sheet as printed (the PNG), rendered at a known pose; the daemon's detector and
+    estimator, configured with the lines the command printed, find the marker's pose."""
+    from pose_daemon import Camera, MarkerDetector, estimate_pose
+    from pose_daemon.render import Effects, render_plane
+
+    png = tmp_path / "sheet.png"
+    code, out, _ = _run_marker(["--size", "0.15", "--out", str(png), "--dpi", "100"] + kind_args, capsys)
+    assert code == 0
+    marker = parse_config(out).marker.model()
+    sheet = marker_sheet.layout(marker.type, 0.15, dictionary=marker.dictionary, marker_id=marker.id)
+    texture = cv2.imread(str(png), cv2.IMREAD_GRAYSCALE)
+    camera = Camera(fx=600.0, fy=600.0, cx=319.5, cy=239.5, dist=(-0.05, 0.01, 0.0, 0.0, 0.0),
+                    width=640, height=480)
+    # Page facing the camera 0.7 m away, turned 20 deg about its vertical axis.
+    R = cv2.Rodrigues(np.array([0.0, np.radians(20.0), 0.0]))[0] @ np.diag([1.0, -1.0, -1.0])
+    x, y, w, h = sheet.marker_rect
+    centre_on_page_m = np.array([x + w / 2 - sheet.width_mm / 2, sheet.height_mm / 2 - (y + h / 2), 0.0]) / 1e3
+    t_page = np.array([0.0, 0.09, 0.7])
+    image = render_plane(camera, texture, (sheet.width_mm / 1e3, sheet.height_mm / 1e3),
+                         cv2.Rodrigues(R)[0].ravel(), t_page, effects=Effects(blur_px=0.8, noise_gray=2.0),
+                         rng=np.random.default_rng(5))
+    t_marker = t_page + R @ centre_on_page_m
+    corners = MarkerDetector(marker, camera=camera).detect(image)
+    assert corners is not None
+    truth = camera.project(marker.object_points @ R.T + t_marker)
+    assert np.abs(corners - truth).max() < 0.5
+    pose = estimate_pose(corners, camera, marker)
+    assert np.linalg.norm(pose.tvec - t_marker) < 0.005
+    assert np.degrees(np.arccos(np.clip((np.trace(pose.R.T @ R) - 1) / 2, -1, 1))) < 1.0
