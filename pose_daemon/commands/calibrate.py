@@ -53,8 +53,10 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--seconds {args.seconds}: expected a positive number of seconds")
     if not 0.0 <= args.min_coverage <= 1.0:
         raise UserError(f"--min-coverage {args.min_coverage}: expected a share between 0 and 1")
-    if args.config and not Path(args.config).is_file():
-        raise UserError(f"{args.config}: no such config file")
+    if args.config:
+        from ..config import load_config
+
+        load_config(args.config)   # a broken config is reported before the work, not after
     # The TOML goes to stdout when nothing else is asked for: the report then goes to stderr.
     to_stdout = args.out == "-" or (args.out is None and not args.config)
     report = sys.stderr if to_stdout else sys.stdout

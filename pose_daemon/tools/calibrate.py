@@ -314,11 +314,14 @@ class CalibrationResult:
 
 
 def calibrate_views(views: Sequence[BoardView], width: int, height: int, *,
-                    fit_k3: bool = False) -> CalibrationResult:
-    """calibrateCamera on ``views`` of a ``width`` x ``height`` image; k3 fixed at 0 unless ``fit_k3``."""
+                    fit_k3: bool = False, fit_tangential: bool = True) -> CalibrationResult:
+    """calibrateCamera on ``views`` of a ``width`` x ``height`` image; k3 fixed at 0 unless
+    ``fit_k3``, the tangential terms p1, p2 at 0 unless ``fit_tangential``."""
     obj = [v.object_points.astype(np.float32).reshape(-1, 1, 3) for v in views]
     img = [v.image_points.astype(np.float32).reshape(-1, 1, 2) for v in views]
     flags = 0 if fit_k3 else cv2.CALIB_FIX_K3
+    if not fit_tangential:
+        flags |= cv2.CALIB_ZERO_TANGENT_DIST
     try:
         rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, (width, height), None, None,
                                                          flags=flags, criteria=_CALIB_CRITERIA)
