@@ -128,7 +128,8 @@ class Service:
 
             outputs = open_outputs(cfg)
         self.outputs: List[Output] = list(outputs)
-        self.pipeline = Pipeline.from_config(cfg, source, processor, self.outputs, clock=clock)
+        self.pipeline = Pipeline.from_config(cfg, source, processor, self.outputs, clock=clock,
+                                             collect_when_idle=True)
         self.notifier = notifier if notifier is not None else SdNotifier()
         self.watchdog_s = watchdog_interval_s(env)
         self._stop = threading.Event()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import threading
 import time
 
@@ -196,3 +197,57 @@ def test_outputs_that_write_in_their_own_thread_report_bytes_written_latency():
         assert seq == seq2 and t_written - t_capture >= 0.02
     p50, _, _ = p.stats.window.summary_ms("output")
     assert p50 >= 20.0
+
+
+class _GarbageProcessor(FakeProcessor):
+    """Makes 60 reference cycles per frame and records collections that run inside ``process``."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.inside = False
+        self.collections_inside = 0
+
+    def process(self, frame):
+        self.inside = True
+        try:
+            for _ in range(60):
+                cycle: list = []
+                cycle.append(cycle)
+            return super().process(frame)
+        finally:
+            self.inside = False
+
+
+def _garbage_run(collect_when_idle: bool):
+    proc = _GarbageProcessor()
+
+    def note(phase, info):
+        if phase == "start" and proc.inside:
+            proc.collections_inside += 1
+
+    threshold = gc.get_threshold()
+    frozen_before = gc.get_freeze_count()
+    gc.set_threshold(400, 10, 10)
+    gc.callbacks.append(note)
+    try:
+        p = Pipeline(FakeSource(frames=30, period_s=0.01), proc, [FakeOutput()], latency_budget_s=5.0,
+                     collect_when_idle=collect_when_idle)
+        _run(p)
+        frozen = gc.get_freeze_count() - frozen_before
+    finally:
+        gc.callbacks.remove(note)
+        gc.set_threshold(*threshold)
+        gc.unfreeze()
+    assert p.stats.snapshot()["processed"] == 30 and len(p.workers[0].output.got) == 30
+    return p, proc, frozen
+
+
+def test_garbage_is_collected_between_frames_not_inside_them():
+    p, proc, frozen = _garbage_run(collect_when_idle=True)
+    assert p.idle_collector.frozen and frozen > 1000   # start-up objects frozen after frame 0
+    assert sum(p.idle_collector.collections) >= 3      # 60+ new objects a frame, collected from 200
+    assert proc.collections_inside == 0
+    # Without it, the automatic collector runs at 400 objects, often in the middle of a frame.
+    p, proc, frozen = _garbage_run(collect_when_idle=False)
+    assert p.idle_collector is None and frozen == 0
+    assert proc.collections_inside > 0

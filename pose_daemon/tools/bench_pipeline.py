@@ -168,7 +168,9 @@ def _run(args: argparse.Namespace, Pipeline, FrameProcessor, open_outputs) -> in
         if rss_warm[0] is None and result.seq >= warm_at:
             rss_warm[0] = rss_bytes()
 
-    pipeline = Pipeline.from_config(cfg, source, processor, outputs, on_written=on_written)
+    # Garbage collection between frames, as `pose-daemon run` does.
+    pipeline = Pipeline.from_config(cfg, source, processor, outputs, on_written=on_written,
+                                    collect_when_idle=True)
     rss_start = rss_bytes()
     t0 = time.monotonic()
     print(f"running {args.frames} frames at {args.fps:g} fps through detect -> estimate -> "
