@@ -22,8 +22,8 @@ from pose_daemon.tools import calibrate as cal
 
 TRUE = Camera(fx=520.0, fy=515.0, cx=322.0, cy=236.0, dist=(-0.25, 0.08, 0.0, 0.0, 0.0),
               width=640, height=480)
-CHESSBOARD = "chessboard:9x6:0.03"
-CHARUCO = "charuco:9x7:0.03:0.022:DICT_4X4_50"
+CHESSBOARD = "chessboard:11x8:0.03"
+CHARUCO = "charuco:7x5:0.05:0.03:DICT_4X4_50"
 # A real camera's defocus and sensor noise.
 EFFECTS = Effects(blur_px=1.0, noise_gray=2.0, background="plain")
 
@@ -36,7 +36,7 @@ def board_pose(u_px: float, v_px: float, z_m: float, tilt_x_rad: float, tilt_y_r
     return rvec_from_R(R_cam_board), np.array([n[0] * z_m, n[1] * z_m, z_m])
 
 
-def render_views(board: str, camera: Camera = TRUE, anchors=(0.0, 0.5, 1.0), z_m=(0.5, 0.6),
+def render_views(board: str, camera: Camera = TRUE, anchors=(0.0, 0.5, 1.0), z_m=(0.65, 0.75),
                  tilt_deg: float = 25.0, margin_px: float = 12.0,
                  effects: Effects = EFFECTS) -> List[np.ndarray]:
     """18 views on a 3x3 grid of the image, twice, tilted about both axes: a board at anchor
@@ -88,10 +88,9 @@ def chessboard_dir(tmp_path_factory, chessboard_views) -> Path:
 
 @pytest.fixture(scope="module")
 def charuco_dir(tmp_path_factory) -> Path:
-    # Sharper views than the chessboard's: with 1 px of blur the corners between the small
-    # markers are found less well (see CHARUCO_DISTORTION_PX).
-    images = render_views(CHARUCO, anchors=(0.25, 0.5, 0.75), z_m=(0.55, 0.65),
-                          effects=Effects(blur_px=0.6, noise_gray=2.0, background="plain"))
+    # A ChArUco board is found with only part of it in view, but its markers must stay large
+    # enough to decode: the board does not need to hug the image edges.
+    images = render_views(CHARUCO, anchors=(0.25, 0.5, 0.75), z_m=(0.55, 0.65))
     return write_folder(tmp_path_factory.mktemp("charuco"), images)
 
 
@@ -99,18 +98,12 @@ def read_camera(path: Path) -> Camera:
     return parse_config(path.read_text(), str(path)).camera.model()
 
 
-#: The ChArUco corners are found less precisely than the chessboard's (RMS ~0.07 px against
-#: ~0.03 px on these views), which the lens corners feel most: a looser bound there
-#: (measured 0.35 px on OpenCV 4.6, 0.73 px on 5.0).
-CHARUCO_DISTORTION_PX = 1.0
-
-
-def assert_close_to_truth(cam: Camera, distortion_px: float = 0.2) -> None:
+def assert_close_to_truth(cam: Camera) -> None:
     for key in ("fx", "fy", "cx", "cy"):
         got, want = getattr(cam, key), getattr(TRUE, key)
         assert abs(got / want - 1) < 0.005, f"{key} {got:.3f} vs {want} ({(got / want - 1) * 100:+.2f}%)"
     assert (cam.width, cam.height) == (640, 480)
-    assert cal.distortion_difference_px(TRUE, cam) < distortion_px
+    assert cal.distortion_difference_px(TRUE, cam) < 0.2
 
 
 def run_cli(args, capsys):
@@ -129,7 +122,7 @@ def test_recovers_intrinsics_and_distortion(board, chessboard_dir, charuco_dir, 
     code, stdout, stderr = run_cli([folder, "--board", spec, "--out", out], capsys)
     assert code == 0, stderr
     cam = read_camera(out)
-    assert_close_to_truth(cam, 0.2 if board == "chessboard" else CHARUCO_DISTORTION_PX)
+    assert_close_to_truth(cam)
     # Without distortion correction the image corners would be off by tens of pixels.
     assert cal.distortion_difference_px(TRUE, Camera(TRUE.fx, TRUE.fy, TRUE.cx, TRUE.cy)) > 20
     rms = float(re.search(r"RMS reprojection error: ([0-9.]+) px over 18 views", stdout).group(1))
