@@ -226,6 +226,7 @@ def _garbage_run(collect_when_idle: bool):
             proc.collections_inside += 1
 
     threshold = gc.get_threshold()
+    gc.unfreeze()  # what an earlier daemon in this process froze
     frozen_before = gc.get_freeze_count()
     gc.set_threshold(400, 10, 10)
     gc.callbacks.append(note)
