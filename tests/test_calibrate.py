@@ -38,7 +38,7 @@ def board_pose(u_px: float, v_px: float, z_m: float, tilt_x_rad: float, tilt_y_r
 
 def render_views(board: str, camera: Camera = TRUE, anchors=(0.0, 0.5, 1.0), z_m=(0.65, 0.75),
                  tilt_deg: float = 25.0, margin_px: float = 12.0,
-                 effects: Effects = EFFECTS) -> List[np.ndarray]:
+                 effects: Effects = EFFECTS, seed: int = 0) -> List[np.ndarray]:
     """18 views on a 3x3 grid of the image, twice, tilted about both axes: a board at anchor
     0 / 1 has its squares ``margin_px`` from the image's left / right (top / bottom) edge, so
     the board's corners reach the image's corners where distortion is; between them the
@@ -65,7 +65,7 @@ def render_views(board: str, camera: Camera = TRUE, anchors=(0.0, 0.5, 1.0), z_m
                                                                   anchor * size - 0.5 * (hi - lo)))
             centre = centre + (want_lo - lo)
         images.append(render_plane(camera, texture, size_m, rvec, tvec, effects=effects,
-                                   rng=np.random.default_rng(i)))
+                                   rng=np.random.default_rng(seed + i)))
     return images
 
 
@@ -367,3 +367,52 @@ def test_broken_config_is_not_rewritten(chessboard_dir, tmp_path, capsys):
     one_line_error(err, "broken.toml", "fx")
     assert config.read_text() == "[camera]\nfx = -3\n"
 
+
+
+class ListSource:
+    """Frames from a list, as a FrameSource; ``interrupt_after``: Ctrl-C after so many frames."""
+
+    def __init__(self, images: List[np.ndarray], interrupt_after: int = -1) -> None:
+        self.images, self.interrupt_after = images, interrupt_after
+        self.pos, self.closed = 0, False
+
+    def open(self) -> None:
+        self.pos = 0
+
+    def read(self) -> Frame:
+        if self.pos == self.interrupt_after:
+            raise KeyboardInterrupt
+        if self.pos >= len(self.images):
+            from pose_daemon.errors import EndOfStream
+            raise EndOfStream("end")
+        self.pos += 1
+        return Frame(image=self.images[self.pos - 1], t_capture_s=self.pos / 30.0, seq=self.pos - 1)
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def live_args(views: int = 20, seconds=None):
+    import argparse
+    return argparse.Namespace(views=views, seconds=seconds)
+
+
+def test_ctrl_c_ends_live_collection_with_the_views_so_far(chessboard_views):
+    from pose_daemon.commands.calibrate import _views_from_source
+
+    lines: List[str] = []
+    source = ListSource(list(chessboard_views), interrupt_after=13)
+    views, size, _ = _views_from_source(source, cal.parse_board(CHESSBOARD), live_args(), lines.append, "camera")
+    assert len(views) == 13 and size == (640, 480) and source.closed
+    assert "stopped after 13 frame(s)" in lines
+
+
+def test_seconds_limit_ends_live_collection(chessboard_views):
+    from pose_daemon.commands.calibrate import _views_from_source
+
+    ticks = iter(np.arange(0.0, 100.0, 1.0))   # one second per look at the clock
+    views, _, _ = _views_from_source(ListSource(list(chessboard_views)), cal.parse_board(CHESSBOARD),
+                                     live_args(seconds=5.0), lambda line: None, "camera",
+                                     clock=lambda: float(next(ticks)))
+    # Started at 0 s; frames read at 1, 2, 3, 4 s; at 5 s the time is up.
+    assert len(views) == 4

@@ -245,6 +245,9 @@ def _views_from_source(source, spec: cal.BoardSpec, args: argparse.Namespace, sa
             say(f"  kept view {len(views):3d}/{args.views} (frame {frame.seq}): centre "
                 f"({sig[0]:.2f}, {sig[1]:.2f}) size {np.exp(sig[2]):.2f} tilt "
                 f"({np.degrees(sig[3]):+.0f}, {np.degrees(sig[4]):+.0f}) deg; coverage {coverage.fraction:.0%}")
+    except KeyboardInterrupt:
+        # Ctrl-C ends the collection; the views kept so far are calibrated.
+        say(f"stopped after {frames} frame(s)")
     finally:
         source.close()
     if size is None:

@@ -29,6 +29,7 @@ DEFAULT_MIN_COVERAGE = 0.5
 #: A view is an outlier when its error is above both OUTLIER_FACTOR x the median and OUTLIER_FLOOR_PX.
 OUTLIER_FACTOR = 3.0
 OUTLIER_FLOOR_PX = 0.5
+CHARUCO_WINDOW = 0.9
 CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "dist")
 
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
@@ -157,7 +158,7 @@ class BoardDetector:
         corners = corners.reshape(-1, 2)
         # Search window about a third of a square: as large as it can be without reaching a
         # neighbouring corner, which would pull the estimate.
-        return BoardView(_refine(gray, corners, 0.35), self._object.copy(), name)
+        return BoardView(_refine(gray, corners, 0.5), self._object.copy(), name)
 
     def _detect_charuco(self, gray: np.ndarray, name: str) -> Optional[BoardView]:
         if self._charuco is not None:
@@ -177,7 +178,7 @@ class BoardDetector:
         # the markers next to it: OpenCV's interpolation leaves errors up to ~0.3 px on
         # blurred views, this brings them under ~0.1 px.
         margin = (self.spec.square_m - self.spec.marker_m) / 2.0 / self.spec.square_m
-        pts = _refine(gray, pts, 0.8 * margin)
+        pts = _refine(gray, pts, CHARUCO_WINDOW * margin)
         obj = self._object[ids]
         # Corners on one line do not fix a homography: no use for calibration.
         if np.linalg.matrix_rank(obj[:, :2] - obj[:, :2].mean(axis=0), tol=1e-9) < 2:
