@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import time
 
 from pose_daemon.cli import main
 
@@ -24,3 +25,28 @@ def test_bench_pipeline_prints_latency_and_memory(capsys):
 def test_bench_pipeline_rejects_bad_arguments(capsys):
     assert main(["bench", "pipeline", "--frames", "0"]) == 2
     assert "--frames and --distinct must be >= 1" in capsys.readouterr().err
+
+
+def test_bench_source_plays_its_frames_forth_and_back_at_its_rate():
+    import numpy as np
+
+    from pose_daemon.errors import EndOfStream
+    from pose_daemon.tools.bench_pipeline import PacedSource
+
+    images = [np.full((2, 2), k, np.uint8) for k in range(4)]
+    source = PacedSource(images, frames=9, fps=1000.0)
+    t_open = time.monotonic()
+    source.open()
+    frames = [source.read() for _ in range(9)]
+    assert [int(f.image[0, 0]) for f in frames] == [0, 1, 2, 3, 2, 1, 0, 1, 2]
+    assert [f.seq for f in frames] == list(range(9))
+    # Paced at 1 ms and stamped when handed out: the ninth frame not before 8 ms after open.
+    times = [f.t_capture_s for f in frames]
+    assert times == sorted(times) and times[-1] - t_open >= 0.008
+    try:
+        source.read()
+    except EndOfStream:
+        pass
+    else:
+        raise AssertionError("a tenth frame was read")
+    assert PacedSource(images[:1], frames=3, fps=1000.0).index(2) == 0
