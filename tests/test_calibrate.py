@@ -189,7 +189,9 @@ def test_live_source_stops_at_view_target(chessboard_views, tmp_path, capsys):
     rec = write_recording(tmp_path / "rec", chessboard_views, repeat=2, fps=500.0)
     config = tmp_path / "live.toml"
     config.write_text(f'[camera]\nsource = "replay:{rec}"\nfps = 500.0\n')
-    code, stdout, stderr = run_cli(["--config", config, "--board", CHESSBOARD, "--views", 12], capsys)
+    saved = tmp_path / "saved"
+    code, stdout, stderr = run_cli(["--config", config, "--board", CHESSBOARD, "--views", 12,
+                                    "--save-views", saved], capsys)
     assert code == 0, stderr
     kept = re.findall(r"kept view\s+(\d+)/12 .*coverage (\d+)%", stdout)
     assert [int(k) for k, _ in kept] == list(range(1, 13))
@@ -199,6 +201,11 @@ def test_live_source_stops_at_view_target(chessboard_views, tmp_path, capsys):
     cfg = load_config(config)
     assert cfg.camera.source == f"replay:{rec}"
     assert abs(cfg.camera.fx / TRUE.fx - 1) < 0.01
+    # The kept frames, saved, calibrate again to the same camera.
+    assert sorted(p.name for p in saved.iterdir()) == [f"view{k:03d}.png" for k in range(1, 13)]
+    code, stdout, _ = run_cli([saved, "--board", CHESSBOARD, "--out", tmp_path / "again.toml"], capsys)
+    assert code == 0 and "board found in 12 of 12 image(s)" in stdout
+    assert abs(read_camera(tmp_path / "again.toml").fx - cfg.camera.fx) < 1e-3
 
 
 # --------------------------------------------------------------------------- refusals

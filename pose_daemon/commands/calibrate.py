@@ -22,7 +22,8 @@ IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".
 def register(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser(
         "calibrate", help="calibrate the camera from views of a chessboard or ChArUco board",
-        description=__doc__.splitlines()[0].strip("`") + " " + __doc__.splitlines()[1],
+        description="pose-daemon calibrate: the camera's intrinsics and lens distortion from views "
+                    "of a chessboard or ChArUco board, written as a [camera] config section.",
         epilog="Without IMAGES_OR_RECORDING the frames come live from the configured camera source.")
     parser.add_argument("input", nargs="?", metavar="IMAGES_OR_RECORDING",
                         help="a folder of images, or a recording made by `pose-daemon record`")
@@ -35,6 +36,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser.add_argument("--views", type=int, default=20, metavar="N",
                         help="live/recording: stop after N distinct views (default 20)")
     parser.add_argument("--seconds", type=float, metavar="S", help="live/recording: stop after S seconds")
+    parser.add_argument("--save-views", metavar="DIR",
+                        help="live/recording: also save the kept frames as PNG files in DIR, to "
+                             "calibrate from again later")
     parser.add_argument("--drop-outliers", action="store_true",
                         help="drop the views flagged as outliers and calibrate again")
     parser.add_argument("--min-coverage", type=float, default=cal.DEFAULT_MIN_COVERAGE, metavar="F",
@@ -214,6 +218,12 @@ def _views_from_source(source, spec: cal.BoardSpec, args: argparse.Namespace, sa
     coverage: Optional[cal.Coverage] = None
     size: Optional[Tuple[int, int]] = None
     frames = seen = 0
+    save_dir = Path(args.save_views) if getattr(args, "save_views", None) else None
+    if save_dir is not None:
+        try:
+            save_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise UserError(f"{save_dir}: cannot create: {exc.strerror or exc}") from None
     try:
         source.open()
     except SourceError as exc:
@@ -241,6 +251,10 @@ def _views_from_source(source, spec: cal.BoardSpec, args: argparse.Namespace, sa
                 continue
             views.append(view)
             coverage.add(view.image_points)
+            if save_dir is not None:
+                view.name = f"view{len(views):03d}.png"
+                if not cv2.imwrite(str(save_dir / view.name), gray):
+                    raise UserError(f"{save_dir}: cannot write {view.name}")
             sig = selector.signatures[-1]
             say(f"  kept view {len(views):3d}/{args.views} (frame {frame.seq}): centre "
                 f"({sig[0]:.2f}, {sig[1]:.2f}) size {np.exp(sig[2]):.2f} tilt "
