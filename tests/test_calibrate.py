@@ -417,9 +417,12 @@ def test_ctrl_c_ends_live_collection_with_the_views_so_far(chessboard_views):
 def test_seconds_limit_ends_live_collection(chessboard_views):
     from pose_daemon.commands.calibrate import _views_from_source
 
-    ticks = iter(np.arange(0.0, 100.0, 1.0))   # one second per look at the clock
-    views, _, _ = _views_from_source(ListSource(list(chessboard_views)), cal.parse_board(CHESSBOARD),
-                                     live_args(seconds=5.0), lambda line: None, "camera",
-                                     clock=lambda: float(next(ticks)))
-    # Started at 0 s; frames read at 1, 2, 3, 4 s; at 5 s the time is up.
-    assert len(views) == 4
+    source = ListSource(list(chessboard_views))
+    lines: List[str] = []
+    # A camera at 1 frame per second: the clock is the number of frames read so far.
+    views, _, _ = _views_from_source(source, cal.parse_board(CHESSBOARD), live_args(seconds=5.0),
+                                     lines.append, "camera", clock=lambda: float(source.pos))
+    assert len(views) == 5 and source.pos == 5
+    # A status line every 5 s, whether or not the board is in view (here at the 5th frame).
+    status = [x for x in lines if "frame(s), board seen in" in x]
+    assert status == ["  5 frame(s), board seen in 4, 4 view(s) kept"]

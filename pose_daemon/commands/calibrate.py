@@ -16,6 +16,8 @@ import numpy as np
 from ..errors import EndOfStream, SourceError, UserError
 from ..tools import calibrate as cal
 
+#: Live collection: a status line at least this often, seconds.
+STATUS_INTERVAL_S = 5.0
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
 
 
@@ -228,7 +230,7 @@ def _views_from_source(source, spec: cal.BoardSpec, args: argparse.Namespace, sa
         source.open()
     except SourceError as exc:
         raise UserError(f"{name}: {exc}") from None
-    t0 = clock()
+    t0 = last_status = clock()
     try:
         while len(views) < args.views and (args.seconds is None or clock() - t0 < args.seconds):
             try:
@@ -242,6 +244,14 @@ def _views_from_source(source, spec: cal.BoardSpec, args: argparse.Namespace, sa
             if size is None:
                 size = (gray.shape[1], gray.shape[0])
                 selector, coverage = cal.ViewSelector(*size), cal.Coverage(*size)
+            elif (gray.shape[1], gray.shape[0]) != size:
+                raise UserError(f"{name}: frame {frame.seq} is {gray.shape[1]}x{gray.shape[0]}, the first was "
+                                f"{size[0]}x{size[1]}; calibrate one resolution at a time")
+            now = clock()
+            if now - last_status >= STATUS_INTERVAL_S:
+                # Something on screen while nobody holds the board up.
+                last_status = now
+                say(f"  {frames} frame(s), board seen in {seen}, {len(views)} view(s) kept")
             view = detector.detect(gray, f"frame {frame.seq}")
             if view is None:
                 continue

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from ..camera import Camera
-from ..errors import UserError
+from ..errors import ConfigError, UserError
 from ..geometry import R_from_rvec
 
 BOARD_KINDS = ("chessboard", "charuco")
@@ -490,7 +490,11 @@ def update_config_file(path: Union[str, Path], camera: Camera) -> None:
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
             fh.write(new_text)
-        cfg = load_config(tmp)
+        try:
+            cfg = load_config(tmp)
+        except ConfigError as exc:
+            detail = str(exc).replace(tmp, "").lstrip(": ")
+            raise UserError(f"{p}: the updated file would not load ({detail}); file left unchanged") from None
         got = cfg.camera
         want = camera_values(camera)
         for key in ("fx", "fy", "cx", "cy"):
