@@ -347,8 +347,13 @@ def test_update_camera_text_adds_missing_keys_and_table():
     assert new.endswith("\n\n# the marker\n[marker]\nwidth = 0.2\n")
     assert parse_config(new).camera.fy == 501.5
     new = cal.update_camera_text("# nothing yet\n[marker]\nwidth = 0.2\n", cam)
-    assert new.startswith("# nothing yet\n[marker]\nwidth = 0.2\n")
+    assert new.startswith("# nothing yet\n[marker]\nwidth = 0.2\n\n[camera]\n")
     assert parse_config(new).camera.fx == 500.5
+    # A file written on Windows keeps its line ends, new lines included.
+    new = cal.update_camera_text("[camera]\r\nfx = 1.0  # f\r\n\r\n[marker]\r\nwidth = 0.2\r\n", cam)
+    assert new.startswith("[camera]\r\nfx = 500.5000  # f\r\nwidth = 640\r\nheight = 480\r\n")
+    assert new.endswith("\r\n\r\n[marker]\r\nwidth = 0.2\r\n") and "\n" not in new.replace("\r\n", "")
+    assert parse_config(new).camera.cy == 240.0
 
 
 def test_config_updated_in_place(chessboard_dir, tmp_path, capsys):

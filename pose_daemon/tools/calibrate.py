@@ -430,6 +430,7 @@ def update_camera_text(text: str, camera: Camera, name: str = "<config>") -> str
     """``text`` (a TOML config) with the [camera] table's width, height, fx, fy, cx, cy and
     dist set to ``camera``'s; every other line, comment and table is kept as it was."""
     values = camera_values(camera)
+    nl = "\r\n" if "\r\n" in text else "\n"   # new lines written as the file writes them
     lines = text.splitlines(keepends=True)
     start = end = None
     for k, line in enumerate(lines):
@@ -444,8 +445,8 @@ def update_camera_text(text: str, camera: Camera, name: str = "<config>") -> str
     if start is None:
         if re.search(r"^\s*camera\s*[.=]", text, re.M):
             raise UserError(f"{name}: camera is not written as a [camera] table; cannot update it in place")
-        sep = "" if not text or text.endswith("\n") else "\n"
-        return text + sep + "\n" + camera_toml(camera)
+        sep = "" if not text.strip() else (nl if text.endswith("\n") else nl + nl)
+        return text + sep + camera_toml(camera).replace("\n", nl)
     end = len(lines) if end is None else end
     body = "".join(lines[start + 1:end])
     head = "".join(lines[:start + 1])
@@ -464,8 +465,8 @@ def update_camera_text(text: str, camera: Camera, name: str = "<config>") -> str
         last = max((k for k, ln in enumerate(body_lines) if ln.strip() and not ln.lstrip().startswith("#")),
                    default=-1)
         if last >= 0 and not body_lines[last].endswith("\n"):
-            body_lines[last] += "\n"
-        new = "".join(f"{key} = {values[key]}\n" for key in missing)
+            body_lines[last] += nl
+        new = "".join(f"{key} = {values[key]}{nl}" for key in missing)
         body_lines.insert(last + 1, new)
         body = "".join(body_lines)
     return head + body + tail
