@@ -431,3 +431,30 @@ def test_seconds_limit_ends_live_collection(chessboard_views):
     # A status line every 5 s, whether or not the board is in view (here at the 5th frame).
     status = [x for x in lines if "frame(s), board seen in" in x]
     assert status == ["  5 frame(s), board seen in 4, 4 view(s) kept"]
+
+
+def _accuracy_report(seeds: int = 6) -> None:
+    """Prints, per board and noise seed, what the accuracy test measures (run this file)."""
+    import time
+
+    charuco_kw = dict(anchors=(0.25, 0.5, 0.75), z_m=(0.55, 0.65))
+    for board, kw in ((CHESSBOARD, {}), (CHARUCO, charuco_kw)):
+        for seed in range(0, 100 * seeds, 100):
+            images = render_views(board, seed=seed, **kw)
+            t0 = time.perf_counter()
+            detector = cal.BoardDetector(cal.parse_board(board))
+            views = [v for v in (detector.detect(im) for im in images) if v is not None]
+            t1 = time.perf_counter()
+            result = cal.calibrate_views(views, TRUE.width, TRUE.height)
+            t2 = time.perf_counter()
+            cam = result.camera
+            errors = " ".join(f"{k} {(getattr(cam, k) / getattr(TRUE, k) - 1) * 100:+.3f}%"
+                              for k in ("fx", "fy", "cx", "cy"))
+            print(f"{board} seed {seed:3d}: {len(views)}/{len(images)} views, RMS {result.rms_px:.3f} px, "
+                  f"{errors}, distortion {cal.distortion_difference_px(TRUE, cam):.3f} px, "
+                  f"detect {(t1 - t0) / len(images) * 1000:.0f} ms/view, calibrate {(t2 - t1) * 1000:.0f} ms",
+                  flush=True)
+
+
+if __name__ == "__main__":
+    _accuracy_report()
