@@ -219,12 +219,14 @@ def one_line_error(stderr: str, *fragments: str) -> None:
         assert fragment in lines[-1], lines[-1]
 
 
-def test_no_board_in_any_image(tmp_path, capsys):
+@pytest.mark.parametrize("board, noun", [(CHESSBOARD, "chessboard"), (CHARUCO, "ChArUco board")])
+def test_no_board_in_any_image(board, noun, tmp_path, capsys):
     rng = np.random.default_rng(3)
     folder = write_folder(tmp_path / "empty", [render_empty(TRUE, rng=rng) for _ in range(3)])
-    code, _, err = run_cli([folder, "--board", CHESSBOARD], capsys)
+    code, stdout, err = run_cli([folder, "--board", board], capsys)
     assert code == 2
-    one_line_error(err, "no chessboard board found in any of its 3 image(s)")
+    one_line_error(err, f"no {noun} found in any of its 3 image(s)")
+    assert err.count(": no board found") == 3
 
 
 def test_unreadable_files(tmp_path, capsys):

@@ -187,7 +187,7 @@ def _views_from_path(path: Path, spec: cal.BoardSpec, args: argparse.Namespace,
     if size is None:
         raise UserError(f"{path}: none of its {len(files)} image file(s) could be read")
     if not views:
-        raise UserError(f"{path}: no {spec.kind} board found in any of its {len(files) - unreadable} "
+        raise UserError(f"{path}: no {spec.noun} found in any of its {len(files) - unreadable} "
                         f"image(s) (check --board: {spec.describe()})")
     say(f"board found in {len(views)} of {len(files)} image(s)")
     return views, size, str(path)
@@ -277,7 +277,7 @@ def _views_from_source(source, spec: cal.BoardSpec, args: argparse.Namespace, sa
     if size is None:
         raise UserError(f"{name}: no frames")
     if not views:
-        raise UserError(f"{name}: no {spec.kind} board found in any of {frames} frame(s) "
+        raise UserError(f"{name}: no {spec.noun} found in any of {frames} frame(s) "
                         f"(check --board: {spec.describe()})")
     say(f"board seen in {seen} of {frames} frame(s); {len(views)} distinct view(s) kept")
     return views, size, name

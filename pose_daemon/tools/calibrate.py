@@ -67,6 +67,10 @@ class BoardSpec:
         sx, sy = self.squares
         return sx * self.square_m, sy * self.square_m
 
+    @property
+    def noun(self) -> str:
+        return "chessboard" if self.kind == "chessboard" else "ChArUco board"
+
     def describe(self) -> str:
         if self.kind == "chessboard":
             return f"chessboard {self.cols}x{self.rows} inner corners, {self.square_m * 1000:g} mm squares"
