@@ -43,12 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"pose-daemon {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name in COMMANDS:
-        try:
-            module = importlib.import_module(f"pose_daemon.commands.{name}")
-        except ModuleNotFoundError as exc:  # during development only: removed once all exist
-            if exc.name == f"pose_daemon.commands.{name}":
-                continue
-            raise
+        module = importlib.import_module(f"pose_daemon.commands.{name}")
         module.register(sub)
     return parser
 

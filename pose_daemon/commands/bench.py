@@ -18,12 +18,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     benches = parser.add_subparsers(dest="bench", metavar="BENCH", required=True,
                                     parser_class=type(parser))
     for name, help_text in BENCHES.items():
-        try:
-            module = importlib.import_module(f"pose_daemon.tools.bench_{name}")
-        except ModuleNotFoundError as exc:  # during development only: removed once all exist
-            if exc.name == f"pose_daemon.tools.bench_{name}":
-                continue
-            raise
+        module = importlib.import_module(f"pose_daemon.tools.bench_{name}")
         p = benches.add_parser(name, help=help_text, description=help_text)
         module.add_arguments(p)
         p.set_defaults(func=module.run)
