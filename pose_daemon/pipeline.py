@@ -94,15 +94,23 @@ class LatencyWindow:
 
     def summary_ms(self, stage: str) -> Optional[Tuple[float, float, float]]:
         """(p50, p95, max) in milliseconds, or None without samples."""
-        n = min(self._count[stage], self._size)
-        if n == 0:
-            return None
-        values = self._data[stage][:n] * 1e3
-        p50, p95 = np.percentile(values, (50, 95))
-        return float(p50), float(p95), float(values.max())
+        return summarize_ms(self.values_s(stage))
+
+    def values_s(self, stage: str) -> np.ndarray:
+        """A copy of the stage's samples in the window, seconds."""
+        return self._data[stage][:min(self._count[stage], self._size)].copy()
 
     def clear(self) -> None:
         self._count = dict.fromkeys(STAGES, 0)
+
+
+def summarize_ms(values_s: np.ndarray) -> Optional[Tuple[float, float, float]]:
+    """(p50, p95, max) of samples in seconds, in milliseconds; None without samples."""
+    if values_s.size == 0:
+        return None
+    values = values_s * 1e3
+    p50, p95 = np.percentile(values, (50, 95))
+    return float(p50), float(p95), float(values.max())
 
 
 class PipelineStats:
@@ -159,7 +167,11 @@ class PipelineStats:
                     "drops": dict(self.drops), "source_failures": self.source_failures}
 
     def status_line(self, source_state: str, output_states: Sequence[str], reset: bool = True) -> str:
-        """One line: rates and latency over the window since the last line, drops since start."""
+        """One line: rates and latency over the window since the last line, drops since start.
+
+        The lock is held only to copy the figures: the percentiles (about 2 ms on an x86-64
+        core, x20 on a Pi 2) are worked out after, so no frame waits for them.
+        """
         with self._lock:
             now = self._clock()
             dt = max(now - self._t_window, 1e-9)
@@ -168,21 +180,23 @@ class PipelineStats:
             rate = 100.0 * self._detected_w / self._processed_w if self._processed_w else 0.0
             parts = [f"{fps:.1f} fps (camera {cam_fps:.1f})",
                      f"detected {rate:.0f}% ({self._detected_w}/{self._processed_w})"]
-            lat = []
-            for stage in STAGES:
-                s = self.window.summary_ms(stage)
-                if s is not None:
-                    lat.append(f"{stage} {s[0]:.1f}/{s[1]:.1f}/{s[2]:.1f}")
-            parts.append("latency ms p50/p95/max: " + (", ".join(lat) if lat else "no frames"))
+            samples = [(stage, self.window.values_s(stage)) for stage in STAGES]
             drops = ", ".join(f"{k} {v}" for k, v in sorted(self.drops.items()) if v) or "none"
-            parts.append(f"frames {self.processed}, drops {drops}")
-            parts.append(f"source {source_state}")
-            parts.extend(output_states)
+            processed = self.processed
             if reset:
                 self._t_window = now
                 self._captured_w = self._processed_w = self._detected_w = 0
                 self.window.clear()
-            return "; ".join(parts)
+        lat = []
+        for stage, values_s in samples:
+            s = summarize_ms(values_s)
+            if s is not None:
+                lat.append(f"{stage} {s[0]:.1f}/{s[1]:.1f}/{s[2]:.1f}")
+        parts.append("latency ms p50/p95/max: " + (", ".join(lat) if lat else "no frames"))
+        parts.append(f"frames {processed}, drops {drops}")
+        parts.append(f"source {source_state}")
+        parts.extend(output_states)
+        return "; ".join(parts)
 
 
 class IdleCollector:

@@ -252,3 +252,26 @@ def test_garbage_is_collected_between_frames_not_inside_them():
     p, proc, frozen = _garbage_run(collect_when_idle=False)
     assert p.idle_collector is None and frozen == 0
     assert proc.collections_inside > 0
+
+
+def test_status_line_works_out_percentiles_without_holding_the_counters(monkeypatch):
+    import pose_daemon.pipeline as pipeline_module
+    from pose_daemon.pipeline import PipelineStats
+
+    stats = PipelineStats(time.monotonic)
+    for k in range(1, 101):
+        stats.window.add("detect", k / 1000.0)
+    held = []
+    real = pipeline_module.summarize_ms
+
+    def summarize(values_s):
+        held.append(stats._lock.locked())  # a frame's processed_frame() would wait on it
+        return real(values_s)
+
+    monkeypatch.setattr(pipeline_module, "summarize_ms", summarize)
+    line = stats.status_line("ok", ["out 0 sent"])
+    assert held and not any(held)
+    assert "latency ms p50/p95/max: detect 50.5/95.0/100.0;" in line
+    assert line.endswith("frames 0, drops none; source ok; out 0 sent")
+    # Reset: the next line starts a new window.
+    assert "latency ms p50/p95/max: no frames" in stats.status_line("ok", [])
