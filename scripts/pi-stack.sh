@@ -6,8 +6,9 @@
 # With no pytest arguments it runs the tests marked `pi` (`-m pi` over the test files that
 # use the marker). The stack is built once and cached in
 # ${PI_STACK_CACHE:-$HOME/.cache/pose-daemon-pi-stack}; a re-run with nothing to build takes
-# seconds. Needs: root or qemu-user-static already installed, apt-get, dpkg-deb, python3 on
-# the host, and the Debian package archive and PyPI reachable for the first build.
+# seconds. The first build runs as root. Needs on the host: qemu-user-static (installed with apt-get as root or with sudo
+# when missing), apt-get, dpkg-deb, python3 with pip, and the Debian package archive and PyPI
+# reachable for the first build.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 repo=$(pwd)
@@ -36,16 +37,19 @@ log() { echo "pi-stack: $*"; }
 
 # --- host emulator -----------------------------------------------------------------------
 if ! command -v qemu-arm-static >/dev/null 2>&1; then
-  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
-    log "installing qemu-user-static on the host"
-    export DEBIAN_FRONTEND=noninteractive
-    if ! apt-get install -y -q qemu-user-static >"$cache.qemu-install.log" 2>&1; then
-      apt-get update -q >>"$cache.qemu-install.log" 2>&1 || true
-      apt-get install -y -q qemu-user-static >>"$cache.qemu-install.log" 2>&1 ||
-        die "apt-get install qemu-user-static failed (log: $cache.qemu-install.log)"
-    fi
-  else
-    die "qemu-arm-static not found; install the qemu-user-static package (as root)"
+  sudo=""
+  [ "$(id -u)" = 0 ] || sudo="sudo -n"
+  command -v apt-get >/dev/null 2>&1 ||
+    die "qemu-arm-static not found and no apt-get to install qemu-user-static with"
+  log "installing qemu-user-static on the host"
+  mkdir -p "$cache"
+  # Without recommends: binfmt-support would make the host run ARM programs by itself.
+  if ! $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends \
+    qemu-user-static >"$cache/qemu-install.log" 2>&1; then
+    $sudo apt-get update -q >>"$cache/qemu-install.log" 2>&1 || true
+    $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends \
+      qemu-user-static >>"$cache/qemu-install.log" 2>&1 ||
+      die "apt-get install qemu-user-static failed (as root or with sudo; log: $cache/qemu-install.log)"
   fi
 fi
 for tool in apt-get dpkg-deb tar python3; do
@@ -68,6 +72,8 @@ emu() { QEMU_LD_PREFIX="$root" QEMU_CPU=cortex-a7 "$qemu" "$@"; }
 root_stamp="$cache/.root-$(echo "$layout_version $packages" | cksum | cut -d' ' -f1)"
 if [ ! -e "$root_stamp" ]; then
   t0=$(date +%s)
+  # ldconfig -r chroots into the root; the rest would work as any user.
+  [ "$(id -u)" = 0 ] || die "building the armhf root needs root (ldconfig -r chroots into it); run once as root"
   log "building the Debian bookworm armhf root in $root"
   rm -rf "$root" "$venv" "$aptdir" "$cache"/.root-* "$cache"/.venv-*
   mkdir -p "$aptdir"/etc/apt.conf.d "$aptdir"/etc/preferences.d "$aptdir"/etc/sources.list.d \
