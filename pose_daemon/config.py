@@ -352,6 +352,9 @@ class MarkerConfig:
                 raise _Invalid("id", 'an integer >= 0 (needed when type = "aruco")')
             if not self.dictionary.startswith("DICT_") or not _aruco_dictionary_exists(self.dictionary):
                 raise _Invalid("dictionary", 'an OpenCV ArUco dictionary name such as "DICT_4X4_50"', self.dictionary)
+            n_ids = _aruco_dictionary_size(self.dictionary)
+            if n_ids is not None and self.id >= n_ids:
+                raise _Invalid("id", f"an integer in [0, {n_ids - 1}] (the ids of {self.dictionary})", self.id)
         else:
             if self.dictionary is not None:
                 raise _Invalid("dictionary", 'no dictionary unless type = "aruco"', self.dictionary)
@@ -374,11 +377,27 @@ def _aruco_dictionary_exists(name: str) -> bool:
     return isinstance(getattr(aruco, name, None), int)
 
 
+def _aruco_dictionary_size(name: str) -> Optional[int]:
+    """How many ids the dictionary has, or None when this OpenCV cannot tell."""
+    try:
+        from pose_daemon.detect import aruco_compat
+        return aruco_compat.dictionary_size(aruco_compat.get_dictionary(name))
+    except Exception:  # an OpenCV build without aruco: the detector reports it
+        return None
+
+
 @dataclass(frozen=True)
 class EstimatorConfig:
     method: str = _key("iterative", Rule("str", nonempty=True), "pose method: iterative, paper, ...")
     iterations: int = _key(5, Rule("int", lo=1, hi=100), "iterations of the correction loop")
     refine: bool = _key(True, Rule("bool"), "final least-squares refinement")
+
+    def check(self) -> None:
+        # Checked here, not at the first frame: an unknown method would otherwise fail every
+        # frame of a running daemon with no pose and no hint in the config check.
+        from pose_daemon.pose.loop import METHODS
+        if self.method not in METHODS:
+            raise _Invalid("method", "one of " + ", ".join(_show(m) for m in METHODS), self.method)
 
 
 @dataclass(frozen=True)

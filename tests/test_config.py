@@ -212,3 +212,18 @@ def test_check_config_checks_the_mavlink_connection_string(tmp_path):
     assert res.returncode == 2
     assert res.stderr == (f"pose-daemon: error: {bad}: [output.mavlink] connection: expected "
                           "udpout:HOST:PORT with a port in 1..65535, got 'udpout:localhost'\n")
+
+
+def test_aruco_id_outside_its_dictionary_is_a_config_error():
+    # DICT_4X4_50 has ids 0..49; the detector would otherwise fail at start-up with a traceback.
+    base = '[marker]\ntype = "aruco"\ndictionary = "DICT_4X4_50"\n'
+    assert parse_config(base + "id = 49\n", "config.toml").marker.id == 49
+    assert _error(base + "id = 50\n") == (
+        'config.toml: [marker] id: expected an integer in [0, 49] (the ids of DICT_4X4_50), got 50')
+
+
+def test_unknown_estimator_method_is_a_config_error():
+    # Otherwise every frame of a running daemon fails with no pose.
+    assert parse_config('[estimator]\nmethod = "paper"\n', "config.toml").estimator.method == "paper"
+    assert _error('[estimator]\nmethod = "foo"\n') == (
+        'config.toml: [estimator] method: expected one of "iterative", "paper", got "foo"')
