@@ -335,3 +335,32 @@ def test_live_opencv_source_stamps_at_grab_and_reports_a_lost_camera(tmp_path: P
     source.close()
     with pytest.raises(SourceError, match="before open"):
         source.read()
+
+
+def test_recording_cut_off_mid_line_replays_the_frames_before_it(tmp_path: Path, caplog) -> None:
+    from pose_daemon.capture.base import Frame
+    from pose_daemon.capture.recording import INDEX_FILE, RecordingWriter, read_index
+
+    rec = tmp_path / "rec"
+    with RecordingWriter(rec, Camera(fx=500.0, fy=500.0, cx=159.5, cy=119.5, width=320, height=240)) as w:
+        for i, img in enumerate(_frames(3)):
+            w.write(Frame(image=cv2.resize(img, (320, 240)), t_capture_s=10.0 + i / 30, seq=i))
+    index = rec / INDEX_FILE
+    full = index.read_text()
+    # A power loss while the third line was being written: no line end after it.
+    index.write_text(full[:-25])
+    assert [e["seq"] for e in read_index(rec)] == [0, 1]
+    assert "unfinished last line" in caplog.text
+    source = ReplaySource(rec)
+    source.open()
+    assert [source.read().seq for _ in range(2)] == [0, 1]
+    with pytest.raises(EndOfStream):
+        source.read()
+    # A damaged line anywhere else is still an error naming it.
+    lines = full.splitlines(keepends=True)
+    index.write_text(lines[0] + "garbage\n" + lines[2])
+    with pytest.raises(SourceError, match=r"index.jsonl:2: not a frame entry"):
+        read_index(rec)
+    index.write_text(full + "garbage\n")
+    with pytest.raises(SourceError, match=r"index.jsonl:4: not a frame entry"):
+        read_index(rec)

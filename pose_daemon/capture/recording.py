@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import time
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Union
@@ -28,6 +29,8 @@ FORMAT = "pose-daemon-recording"
 VERSION = 1
 META_FILE = "recording.json"
 INDEX_FILE = "index.jsonl"
+
+_log = logging.getLogger(__name__)
 TRUTH_KEYS = ("true_rvec", "true_tvec", "true_corners")
 
 
@@ -122,13 +125,17 @@ def marker_from_meta(meta: Dict[str, Any]) -> Optional[Marker]:
 
 
 def read_index(path: Union[str, Path]) -> List[Dict[str, Any]]:
-    """The index entries; a line that cannot be parsed is a SourceError naming its number."""
+    """The index entries; a line that cannot be parsed is a SourceError naming its number.
+
+    The exception is an unfinished last line (no line end): a recording cut off by a power
+    loss ends that way, and the frames before it are still good, so that line is skipped."""
     index_path = Path(path) / INDEX_FILE
     entries = []
     try:
-        lines = index_path.read_text().splitlines()
-    except OSError as exc:
+        text = index_path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
         raise SourceError(f"cannot read {index_path}: {exc}") from exc
+    lines = text.splitlines()
     for n, line in enumerate(lines, 1):
         if not line.strip():
             continue
@@ -138,6 +145,9 @@ def read_index(path: Union[str, Path]) -> List[Dict[str, Any]]:
             entry["t_capture_s"] = float(entry["t_capture_s"])
             entry["seq"] = int(entry.get("seq", len(entries)))
         except (ValueError, KeyError, TypeError) as exc:
+            if n == len(lines) and not text.endswith("\n"):
+                _log.warning("%s:%d: skipping the unfinished last line (recording cut off)", index_path, n)
+                break
             raise SourceError(f"{index_path}:{n}: not a frame entry ({exc})") from exc
         entries.append(entry)
     return entries
