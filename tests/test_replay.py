@@ -122,3 +122,16 @@ def test_replay_folder_whose_images_are_all_unreadable(tmp_path: Path, capsys) -
     (tmp_path / "a.png").write_bytes(b"garbage")
     assert main(["replay", str(tmp_path)]) == 2
     assert "no frame could be read" in capsys.readouterr().err
+
+
+def test_replay_says_when_the_recording_overrides_the_config(recording: Path, tmp_path: Path, capsys) -> None:
+    other = tmp_path / "other.toml"
+    other.write_text('[camera]\nfx = 650.0\nfy = 650.0\n[marker]\ntype = "aruco"\ndictionary = "DICT_4X4_50"\nid = 7\n')
+    assert main(["replay", str(recording), "--config", str(other), "--out", str(tmp_path / "a.jsonl")]) == 0
+    err = capsys.readouterr().err
+    assert f"note: {recording} has its own [camera] and [marker], used instead of those of {other}" in err
+    assert _summary(err)["rate"] == 100.0   # the recording's square and camera were used
+    same = tmp_path / "same.toml"
+    same.write_text("[camera]\nfx = 500.0\n")   # what the recording holds: nothing to say
+    assert main(["replay", str(recording), "--config", str(same), "--out", str(tmp_path / "b.jsonl")]) == 0
+    assert "note:" not in capsys.readouterr().err

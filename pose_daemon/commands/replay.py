@@ -96,11 +96,23 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from None
     cfg = load_config_or_default(args.config)
     try:
-        camera = recording.camera_from_meta(source.meta) or cfg.camera.model()
-        marker = recording.marker_from_meta(source.meta) or cfg.marker.model()
+        rec_camera = recording.camera_from_meta(source.meta)
+        rec_marker = recording.marker_from_meta(source.meta)
     except SourceError as exc:
         source.close()
         raise UserError(f"{args.path}: {exc}") from None
+    camera = rec_camera or cfg.camera.model()
+    marker = rec_marker or cfg.marker.model()
+    if args.config:
+        # The recording's own camera and marker are what its frames were taken with; say so
+        # when --config names others, so that new intrinsics are not thought to be in use.
+        ignored = [name for name, rec, conf, to_dict in (
+            ("[camera]", rec_camera, cfg.camera.model(), recording.camera_to_dict),
+            ("[marker]", rec_marker, cfg.marker.model(), recording.marker_to_dict))
+            if rec is not None and to_dict(rec) != to_dict(conf)]
+        if ignored:
+            print(f"pose-daemon: note: {args.path} has its own {' and '.join(ignored)}, used instead of "
+                  f"those of {args.config}", file=sys.stderr)
     detector = MarkerDetector(marker, max_misses=cfg.detector.max_misses,
                               min_side_px=cfg.detector.min_side_px, camera=camera)
     processor = FrameProcessor(camera, marker, method=cfg.estimator.method,
