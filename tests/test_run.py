@@ -130,3 +130,18 @@ def test_run_default_config_is_the_demo():
     from pose_daemon.config import Config, load_config_or_default
 
     assert load_config_or_default(None) == Config.default()
+
+
+@pytest.mark.parametrize("source, expected", [
+    ("video:{tmp}/nope.mp4", "a video file that exists"),
+    ("replay:{tmp}/no-recording", "a recording, image folder or video that exists"),
+])
+def test_run_with_a_missing_video_or_recording_exits_2_at_once(tmp_path, source, expected):
+    # Reopening it every few seconds, as for an unplugged camera, would never end.
+    source = source.format(tmp=tmp_path)
+    cfg = _config(tmp_path, f'[camera]\nsource = "{source}"\n')
+    res = subprocess.run([sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
+                         capture_output=True, text=True, timeout=20, env=ENV)
+    assert res.returncode == 2
+    assert res.stderr == (f'pose-daemon: error: {cfg}: [camera] source: expected {expected}, '
+                          f'got "{source}" (no such file or folder)\n')
