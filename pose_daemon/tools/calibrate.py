@@ -30,6 +30,14 @@ DEFAULT_MIN_COVERAGE = 0.5
 OUTLIER_FACTOR = 3.0
 OUTLIER_FLOOR_PX = 0.5
 CHARUCO_WINDOW = 0.9
+#: Robust re-fit: a corner is left out of the fit when its residual is above both
+#: CORNER_FACTOR x the median corner residual and CORNER_FLOOR_PX; a view that loses more than
+#: VIEW_REJECT_SHARE of its corners that way is left out whole (a view of another lens, a
+#: moved board).
+CORNER_FACTOR = 8.0
+CORNER_FLOOR_PX = 0.5
+VIEW_REJECT_SHARE = 0.25
+ROBUST_ROUNDS = 4
 CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "dist")
 
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
@@ -153,10 +161,19 @@ class BoardDetector:
         return self._detect_charuco(gray, name)
 
     def _detect_chessboard(self, gray: np.ndarray, name: str) -> Optional[BoardView]:
+        pattern = (self.spec.cols, self.spec.rows)
         flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
         if self.fast:
-            flags |= cv2.CALIB_CB_FAST_CHECK
-        found, corners = cv2.findChessboardCorners(gray, (self.spec.cols, self.spec.rows), flags=flags)
+            # Cheap rejection of the many live frames without a board, before the slower search.
+            found, _ = cv2.findChessboardCorners(gray, pattern, flags=flags | cv2.CALIB_CB_FAST_CHECK)
+            if not found:
+                return None
+        # The sector-based detector: the classic one now and then puts a corner several pixels
+        # off (on a neighbouring edge), which cornerSubPix then keeps; the classic one stays as
+        # the fallback for views the sector-based one misses.
+        found, corners = cv2.findChessboardCornersSB(gray, pattern, flags=cv2.CALIB_CB_NORMALIZE_IMAGE)
+        if not found or corners is None:
+            found, corners = cv2.findChessboardCorners(gray, pattern, flags=flags)
         if not found or corners is None:
             return None
         corners = corners.reshape(-1, 2)
@@ -308,7 +325,9 @@ class ViewSelector:
 
 @dataclass
 class CalibrationResult:
-    """The fitted camera, the overall RMS and each view's RMS reprojection error (px)."""
+    """The fitted camera, the RMS reprojection error of the corners kept in the fit, and each
+    view's RMS error over all its corners (px); ``rejected`` counts each view's corners left
+    out of the fit by their residual."""
 
     camera: Camera
     rms_px: float
@@ -316,30 +335,85 @@ class CalibrationResult:
     views: List[BoardView]
     outliers: List[int] = field(default_factory=list)
     coverage: float = 0.0
+    rejected: List[int] = field(default_factory=list)
+
+    @property
+    def rejected_corners(self) -> int:
+        return int(sum(self.rejected))
 
 
-def calibrate_views(views: Sequence[BoardView], width: int, height: int, *,
-                    fit_k3: bool = False, fit_tangential: bool = True) -> CalibrationResult:
-    """calibrateCamera on ``views`` of a ``width`` x ``height`` image; k3 fixed at 0 unless
-    ``fit_k3``, the tangential terms p1, p2 at 0 unless ``fit_tangential``."""
-    obj = [v.object_points.astype(np.float32).reshape(-1, 1, 3) for v in views]
-    img = [v.image_points.astype(np.float32).reshape(-1, 1, 2) for v in views]
-    flags = 0 if fit_k3 else cv2.CALIB_FIX_K3
-    if not fit_tangential:
-        flags |= cv2.CALIB_ZERO_TANGENT_DIST
+def _fit(obj: List[np.ndarray], img: List[np.ndarray], width: int, height: int, flags: int):
     try:
-        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, (width, height), None, None,
-                                                         flags=flags, criteria=_CALIB_CRITERIA)
+        rms, K, dist, _, _ = cv2.calibrateCamera(obj, img, (width, height), None, None,
+                                                 flags=flags, criteria=_CALIB_CRITERIA)
     except cv2.error as exc:
         raise UserError(f"calibration failed in OpenCV: {' '.join(str(exc).split())[-160:]}") from None
     dist = np.asarray(dist, dtype=np.float64).reshape(-1)[:5]
     values = [K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist]
     if not all(math.isfinite(float(v)) for v in values) or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise UserError("calibration failed: the fit did not converge (views too similar or too few corners)")
+    return float(rms), K, dist
+
+
+def _residuals_px(obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndarray) -> Optional[np.ndarray]:
+    """Each corner's reprojection residual (px) with the view's pose fitted to its corners
+    under (K, dist) by a robust PnP, so that one bad corner does not move the pose; None when
+    no pose is found."""
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(obj, img, K, dist, reprojectionError=2.0,
+                                                 iterationsCount=100, flags=cv2.SOLVEPNP_ITERATIVE)
+    if ok and inliers is not None and len(inliers) >= 6:
+        idx = np.asarray(inliers).reshape(-1)
+        rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], K, dist, rvec, tvec)
+    else:
+        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist)
+        if not ok:
+            return None
+    proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
+    return np.linalg.norm(proj.reshape(-1, 2) - img.reshape(-1, 2), axis=1)
+
+
+def calibrate_views(views: Sequence[BoardView], width: int, height: int, *,
+                    fit_k3: bool = False, fit_tangential: bool = True,
+                    robust: bool = True) -> CalibrationResult:
+    """calibrateCamera on ``views`` of a ``width`` x ``height`` image; k3 fixed at 0 unless
+    ``fit_k3``, the tangential terms p1, p2 at 0 unless ``fit_tangential``.
+
+    With ``robust``, the fit is repeated leaving out the corners whose residual under the
+    previous fit is far above the rest (a mislocated corner pulls fx, cx by a pixel), and the
+    views that lose a large share of their corners that way, until the kept set settles.
+    """
+    obj = [v.object_points.astype(np.float32).reshape(-1, 1, 3) for v in views]
+    img = [v.image_points.astype(np.float32).reshape(-1, 1, 2) for v in views]
+    flags = 0 if fit_k3 else cv2.CALIB_FIX_K3
+    if not fit_tangential:
+        flags |= cv2.CALIB_ZERO_TANGENT_DIST
+    keep = [np.ones(len(o), dtype=bool) for o in obj]
+    rms, K, dist = _fit(obj, img, width, height, flags)
+    for _ in range(ROBUST_ROUNDS if robust else 0):
+        res = [_residuals_px(o, i, K, dist) for o, i in zip(obj, img)]
+        finite = [r for r in res if r is not None]
+        if not finite:
+            break
+        limit = max(CORNER_FACTOR * float(np.median(np.concatenate(finite))), CORNER_FLOOR_PX)
+        new_keep = []
+        for o, r in zip(obj, res):
+            k = np.ones(len(o), dtype=bool) if r is None else r <= limit
+            if k.mean() < 1.0 - VIEW_REJECT_SHARE or k.sum() < 6:
+                k = np.zeros(len(o), dtype=bool)
+            new_keep.append(k)
+        if all(np.array_equal(a, b) for a, b in zip(keep, new_keep)):
+            break
+        used = [n for n, k in enumerate(new_keep) if k.any()]
+        if len(used) < 3:
+            break
+        keep = new_keep
+        rms, K, dist = _fit([obj[n][keep[n]] for n in used], [img[n][keep[n]] for n in used],
+                            width, height, flags)
     errors = []
-    for o, i, r, t in zip(obj, img, rvecs, tvecs):
-        proj, _ = cv2.projectPoints(o, r, t, K, dist)
-        errors.append(float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - i.reshape(-1, 2)) ** 2, axis=1)))))
+    for o, i in zip(obj, img):
+        # Each view's error over all its corners, its pose fitted to the consistent ones.
+        r = _residuals_px(o, i, K, dist)
+        errors.append(float("inf") if r is None else float(np.sqrt(np.mean(r ** 2))))
     camera = Camera(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]),
                     dist=tuple(float(d) for d in dist), width=width, height=height)
     median = float(np.median(errors))
@@ -348,7 +422,8 @@ def calibrate_views(views: Sequence[BoardView], width: int, height: int, *,
     cov = Coverage(width, height)
     for v in views:
         cov.add(v.image_points)
-    return CalibrationResult(camera, float(rms), errors, list(views), outliers, cov.fraction)
+    rejected = [int((~k).sum()) for k in keep]
+    return CalibrationResult(camera, rms, errors, list(views), outliers, cov.fraction, rejected)
 
 
 def distortion_difference_px(a: Camera, b: Camera, step_px: float = 10.0) -> float:
