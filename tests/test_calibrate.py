@@ -163,6 +163,55 @@ def test_outlier_flagged_then_dropped(chessboard_views, tmp_path, capsys):
     assert_close_to_truth(read_camera(tmp_path / "b.toml"))
 
 
+# One corner a detector put on a neighbouring edge, 9 px off, in four views (seen with the
+# classic chessboard detector on rendered views); (view, corner index) of each.
+MISLOCATED = ((2, 0), (7, 40), (11, 87), (15, 10))
+SHIFT_PX = np.array([9.0, -9.0]) / np.sqrt(2.0)
+
+
+@pytest.fixture(scope="module")
+def chessboard_detected(chessboard_views) -> List[cal.BoardView]:
+    detector = cal.BoardDetector(cal.parse_board(CHESSBOARD))
+    return [detector.detect(image, f"view{k:02d}.png") for k, image in enumerate(chessboard_views)]
+
+
+def with_mislocated_corners(views: List[cal.BoardView]) -> List[cal.BoardView]:
+    out = [cal.BoardView(v.image_points.copy(), v.object_points.copy(), v.name) for v in views]
+    for k, corner in MISLOCATED:
+        out[k].image_points[corner] += SHIFT_PX
+    return out
+
+
+def test_mislocated_corners_left_out_of_the_fit(chessboard_detected):
+    views = with_mislocated_corners(chessboard_detected)
+    plain = cal.calibrate_views(views, TRUE.width, TRUE.height, robust=False)
+    # Without the re-fit the four corners pull the lens far off: this test would see it.
+    assert abs(plain.camera.cy / TRUE.cy - 1) > 0.005 or cal.distortion_difference_px(TRUE, plain.camera) > 0.2
+    result = cal.calibrate_views(views, TRUE.width, TRUE.height)
+    assert_close_to_truth(result.camera)
+    assert result.rejected == [1 if any(k == m for m, _ in MISLOCATED) else 0 for k in range(18)]
+    assert result.rms_px < 0.05
+    # The same lens as from the clean corners, to a hundredth of a percent.
+    clean = cal.calibrate_views(chessboard_detected, TRUE.width, TRUE.height)
+    assert clean.rejected_corners == 0
+    for key in ("fx", "fy", "cx", "cy"):
+        assert abs(getattr(result.camera, key) / getattr(clean.camera, key) - 1) < 1e-4
+    # The views stay flagged over all their corners, so the user can look at them.
+    assert result.outliers == [m for m, _ in MISLOCATED]
+
+
+def test_cli_recovers_lens_despite_mislocated_corners(chessboard_dir, chessboard_detected, tmp_path, capsys,
+                                                      monkeypatch):
+    by_name = {v.name: v for v in with_mislocated_corners(chessboard_detected)}
+    monkeypatch.setattr(cal.BoardDetector, "detect", lambda self, gray, name="": by_name[name])
+    out = tmp_path / "camera.toml"
+    code, stdout, stderr = run_cli([chessboard_dir, "--board", CHESSBOARD, "--out", out], capsys)
+    assert code == 0, stderr
+    assert "4 corner(s) in 4 view(s) left out of the fit" in stdout
+    assert "dropping" not in stdout
+    assert_close_to_truth(read_camera(out))
+
+
 # --------------------------------------------------------------------------- recordings and live
 
 

@@ -127,6 +127,10 @@ def _report(result: cal.CalibrationResult, say: Callable[[str], None]) -> None:
         flag = f"  OUTLIER (> {max(cal.OUTLIER_FACTOR * median, cal.OUTLIER_FLOOR_PX):.2f} px)" \
             if k in result.outliers else ""
         say(f"  view {k + 1:3d} {view.name:<28s} {len(view.image_points):4d} corners  {err:6.3f} px{flag}")
+    if result.rejected_corners:
+        whole = sum(1 for v, n in zip(result.views, result.rejected) if n == len(v.image_points))
+        say(f"{result.rejected_corners} corner(s) in {sum(1 for n in result.rejected if n)} view(s) left out of "
+            f"the fit, their residual far above the rest ({whole} view(s) left out whole)")
     cov = cal.Coverage(cam.width, cam.height)
     for v in result.views:
         cov.add(v.image_points)
