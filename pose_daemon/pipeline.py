@@ -247,7 +247,8 @@ class OutputWorker:
     """
 
     def __init__(self, output: Output, *, buffer: int, budget_s: float, stats: PipelineStats,
-                 clock: Callable[[], float], on_written: Optional[WrittenHook]) -> None:
+                 clock: Callable[[], float], on_written: Optional[WrittenHook],
+                 on_closed: Optional[Callable[[str], None]] = None) -> None:
         self.output = output
         self.name = str(getattr(output, "name", type(output).__name__))
         self._buffer: collections.deque = collections.deque()
@@ -272,6 +273,8 @@ class OutputWorker:
             output.on_written = self._written  # type: ignore[attr-defined]
             if hasattr(output, "max_age_s"):
                 output.max_age_s = budget_s  # type: ignore[attr-defined]
+            if on_closed is not None and hasattr(output, "on_closed"):
+                output.on_closed = lambda why: on_closed(f"{self.name} output closed: {why}")  # type: ignore[attr-defined]
             self._thread = None
         else:
             self._thread = threading.Thread(target=self._run, name=f"output-{self.name}", daemon=True)
@@ -394,7 +397,8 @@ class Pipeline:
         self.clock = clock
         self.stats = PipelineStats(clock)
         self.workers = [OutputWorker(o, buffer=output_buffer, budget_s=self.latency_budget_s,
-                                     stats=self.stats, clock=clock, on_written=on_written)
+                                     stats=self.stats, clock=clock, on_written=on_written,
+                                     on_closed=self.end)
                         for o in outputs]
         self._slot = NewestSlot()
         self.idle_collector: Optional[IdleCollector] = IdleCollector() if collect_when_idle else None
@@ -441,6 +445,16 @@ class Pipeline:
             ok = w.join(max(0.0, deadline - self.clock())) and ok
         self.finished.set()
         return ok
+
+    def end(self, reason: str) -> None:
+        """End the run now, the way the end of the stream does, with ``reason`` as end_reason:
+        an output whose reader went away for good (stdout piped into `head`) calls this, as
+        SIGPIPE would end a filter. Whoever waits on ``finished`` then calls ``stop``."""
+        if self.end_reason is None:
+            self.end_reason = reason
+        self._stop.set()
+        self._slot.close()
+        self.finished.set()
 
     def wait(self, timeout_s: Optional[float] = None) -> bool:
         """Wait for the end of the run; True if it ended."""

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from typing import Callable, Optional, TextIO
 
 from ..result import FrameResult
-from .worker import LinkError, QueuedOutput
+from .worker import LinkClosed, LinkError, QueuedOutput
 
 
 class JsonlOutput(QueuedOutput):
@@ -55,6 +56,27 @@ class JsonlOutput(QueuedOutput):
         try:
             self._stream.write(line + "\n")
             self._stream.flush()
+        except BrokenPipeError as exc:
+            if self.path == "-":
+                # The reader of stdout went away (`| head -2`): it will not come back.
+                self._detach_stdout()
+                raise LinkClosed("stdout closed by its reader (broken pipe)") from exc
+            raise LinkError(f"cannot write {self.path}: {exc}") from exc
         except (OSError, ValueError) as exc:  # ValueError: write to a closed file
             raise LinkError(f"cannot write {self.path}: {exc}") from exc
         return 1
+
+    def _detach_stdout(self) -> None:
+        """Point fd 1 at /dev/null, so that flushing what stdout still buffers (at exit) does not
+        fail again and turn a clean stop into Python's "Exception ignored ... BrokenPipeError"."""
+        if self._stream is not sys.stdout:
+            return
+        try:
+            fd = sys.stdout.fileno()
+            devnull = os.open(os.devnull, os.O_WRONLY)
+        except (OSError, ValueError):  # stdout replaced by an object without a descriptor
+            return
+        try:
+            os.dup2(devnull, fd)
+        finally:
+            os.close(devnull)

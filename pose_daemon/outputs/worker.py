@@ -13,7 +13,10 @@ Two ways to feed an output, both safe for the caller:
   has a 0.25 s timeout.
 Either way the output's thread opens the link, reopens it after a failure with a doubling
 pause, and does the periodic work (MAVLink heartbeats, reading the autopilot) every ``tick_s``,
-after writing the result at hand so that work never delays it.
+after writing the result at hand so that work never delays it. The pause doubles at each
+failure, also for a link that opens but fails at once (stdout, a file on a full disk), and
+starts again from ``retry_s`` once a link stayed up ``retry_max_s``. A link that cannot come
+back (LinkClosed) is not reopened: ``on_closed(why)`` is called once.
 
 After each write ``on_written(result, t_written_s)`` is called if set (``time.monotonic()``,
 the clock of ``Frame.t_capture_s``): the pipeline's hook for capture -> bytes-written
@@ -36,6 +39,12 @@ WrittenCallback = Callable[[FrameResult, float], None]
 
 class LinkError(Exception):
     """The link failed (device gone, connection reset): close it and reopen after a pause."""
+
+
+class LinkClosed(LinkError):
+    """The link's reader went away for good (the pipe behind stdout closed, as `head` does):
+    reopening cannot help. The output stops and calls ``on_closed(why)``, with which the
+    pipeline ends the run, as SIGPIPE ends `yes | head`."""
 
 
 class LinkBusy(Exception):
@@ -67,7 +76,11 @@ class QueuedOutput:
         self._last_tick_t = -1e18
         self._link_up = False
         self._link_state = "not opened"
+        self._t_up = 0.0
+        self._gone = False
         self.on_written: Optional[WrittenCallback] = None
+        # Called once (from the output's thread) when the link closed for good (LinkClosed).
+        self.on_closed: Optional[Callable[[str], None]] = None
         # Results older than this (seconds after capture) when written are dropped as "late".
         self.max_age_s: Optional[float] = None
         self.log = logging.getLogger(f"pose_daemon.outputs.{self.name}")
@@ -224,7 +237,7 @@ class QueuedOutput:
                 return
             with self._io_lock:
                 now = self._clock()
-                if not self._link_up and now >= self._next_open_t:
+                if not self._link_up and not self._gone and now >= self._next_open_t:
                     self._try_open(now)
                 # The result is written before the periodic work, which would otherwise add
                 # its time (reads, a heartbeat) to this result's latency; unless the write
@@ -249,7 +262,7 @@ class QueuedOutput:
     def _handle(self, item: FrameResult) -> None:
         """Write one result (link held)."""
         if not self._link_up:
-            self._drop("link_down")
+            self._drop("link_closed" if self._gone else "link_down")
             return
         max_age = self.max_age_s
         if max_age is not None and self._clock() - float(item.t_capture_s) > max_age:
@@ -260,6 +273,10 @@ class QueuedOutput:
         except LinkBusy as exc:
             self._drop("link_busy")
             self._error(str(exc))
+            return
+        except LinkClosed as exc:
+            self._drop("link_closed")
+            self._link_closed(str(exc))
             return
         except LinkError as exc:
             self._drop("link_down")
@@ -294,8 +311,10 @@ class QueuedOutput:
                 self._last_error = str(exc)
                 self._link_state = msg
             return
-        self._pause_s = self._retry_s
+        # The pause is not reset here: a link that opens but fails at once would otherwise
+        # be reopened every ``retry_s`` for ever (see _link_failed).
         self._link_up = True
+        self._t_up = now
         with self._cond:
             self._counts["opens"] += 1
             self._link_state = "up"
@@ -307,13 +326,32 @@ class QueuedOutput:
             self._link_failed(str(exc))
 
     def _link_failed(self, why: str) -> None:
-        self.log.warning("%s output link failed: %s", self.name, why)
+        now = self._clock()
+        if now - self._t_up >= self._retry_max_s:
+            self._pause_s = self._retry_s  # it had been working: a new failure, a short pause
+        self.log.warning("%s output link failed: %s (reopening in %.1f s)", self.name, why, self._pause_s)
         self._shut_link()
-        self._next_open_t = self._clock() + self._pause_s
+        self._next_open_t = now + self._pause_s
+        self._pause_s = min(self._pause_s * 2.0, self._retry_max_s)
         with self._cond:
             self._counts["link_failures"] += 1
             self._last_error = why
             self._link_state = f"down: {' '.join(why.split())}"
+
+    def _link_closed(self, why: str) -> None:
+        self._gone = True
+        self._shut_link()
+        with self._cond:
+            self._last_error = why
+            self._link_state = f"closed: {' '.join(why.split())}"
+        cb = self.on_closed
+        if cb is None:
+            self.log.warning("%s output stopped: %s", self.name, why)
+            return
+        try:
+            cb(why)
+        except Exception as exc:
+            self._error(f"on_closed: {type(exc).__name__}: {exc}")
 
     def _shut_link(self) -> None:
         was_up = self._link_up

@@ -1,0 +1,84 @@
+"""``pose-daemon run`` with its JSON lines on stdout piped into a reader that stops (`| head -2`)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+
+from pose_daemon.outputs.jsonl import JsonlOutput
+from pose_daemon.result import FrameResult
+
+ENV = dict(os.environ, PYTHONUNBUFFERED="1")
+ENV.pop("NOTIFY_SOCKET", None)
+ENV.pop("WATCHDOG_USEC", None)
+
+
+def test_run_stops_cleanly_when_the_reader_of_stdout_goes_away(tmp_path):
+    """As `yes | head -2`: the daemon writing JSON lines to stdout ends with status 0 and one
+    line saying why once its reader closed the pipe, instead of logging a broken pipe for ever."""
+    cfg = tmp_path / "daemon.toml"
+    cfg.write_text('[camera]\nsource = "synthetic"\nfps = 30.0\n[output.jsonl]\npath = "-"\n')
+    proc = subprocess.Popen([sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV)
+    try:
+        lines = [proc.stdout.readline() for _ in range(2)]
+        proc.stdout.close()
+        t_closed = time.monotonic()
+        rc = proc.wait(timeout=10)
+        waited_s = time.monotonic() - t_closed
+        err = proc.stderr.read().decode()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stderr.close()
+    assert [json.loads(line)["frame"] >= 0 for line in lines] == [True, True]
+    assert rc == 0, err
+    assert waited_s < 5.0
+    stops = [line for line in err.splitlines() if "stopping:" in line]
+    assert len(stops) == 1 and stops[0].endswith(
+        "stopping: jsonl output closed: stdout closed by its reader (broken pipe)"), err
+    assert "link failed" not in err and "Traceback" not in err and "Exception ignored" not in err, err
+
+
+class FailingFile:
+    """A stream whose every write fails as a full disk does; counts the writes."""
+
+    def __init__(self) -> None:
+        self.writes = 0
+
+    def write(self, text: str) -> int:
+        self.writes += 1
+        raise OSError(28, "No space left on device")
+
+    def flush(self) -> None:
+        pass
+
+
+def test_a_link_that_opens_but_fails_at_once_is_reopened_after_a_doubling_pause():
+    """Opening succeeds each time, the first write fails: the pause must double (0.5, 1, 2, 4,
+    5, 5 s with retry_s 0.5, retry_max_s 5), not stay at retry_s because the open worked."""
+    clock = [100.0]
+    stream = FailingFile()
+    out = JsonlOutput("disk.jsonl", queue_size=0, retry_s=0.5, retry_max_s=5.0,
+                      clock=lambda: clock[0], start=False, stream=stream)
+    out._try_open(clock[0])
+    reopen_at = []
+    for i in range(7):
+        out._handle(FrameResult(seq=i, t_capture_s=clock[0], corners=None, pose=None, error="no marker",
+                                stage_s={}, latency_s=0.0))
+        assert not out.link_up
+        reopen_at.append(round(out._next_open_t - clock[0], 3))
+        clock[0] = out._next_open_t
+        out._try_open(clock[0])
+        assert out.link_up
+    assert reopen_at == [0.5, 1.0, 2.0, 4.0, 5.0, 5.0, 5.0]
+    assert stream.writes == 7
+    # After a link stayed up retry_max_s, a new failure starts again from retry_s.
+    clock[0] += 5.0
+    out._handle(FrameResult(seq=9, t_capture_s=clock[0], corners=None, pose=None, error="no marker",
+                            stage_s={}, latency_s=0.0))
+    assert round(out._next_open_t - clock[0], 3) == 0.5
