@@ -86,12 +86,20 @@ def chessboard_dir(tmp_path_factory, chessboard_views) -> Path:
     return write_folder(tmp_path_factory.mktemp("chessboard"), chessboard_views)
 
 
+CHARUCO_SEEDS = (0, 100, 200)
+
+
 @pytest.fixture(scope="module")
-def charuco_dir(tmp_path_factory) -> Path:
+def charuco_seed_views():
     # A ChArUco board is found with only part of it in view, but its markers must stay large
     # enough to decode: the board does not need to hug the image edges.
-    images = render_views(CHARUCO, anchors=(0.25, 0.5, 0.75), z_m=(0.55, 0.65))
-    return write_folder(tmp_path_factory.mktemp("charuco"), images)
+    return {seed: render_views(CHARUCO, anchors=(0.25, 0.5, 0.75), z_m=(0.55, 0.65), seed=seed)
+            for seed in CHARUCO_SEEDS}
+
+
+@pytest.fixture(scope="module")
+def charuco_dir(tmp_path_factory, charuco_seed_views) -> Path:
+    return write_folder(tmp_path_factory.mktemp("charuco"), charuco_seed_views[0])
 
 
 def read_camera(path: Path) -> Camera:
@@ -131,6 +139,21 @@ def test_recovers_intrinsics_and_distortion(board, chessboard_dir, charuco_dir, 
     cover = int(re.search(r"coverage of the image: (\d+)%", stdout).group(1))
     assert cover >= 90
     assert "[camera]" in out.read_text() and "OUTLIER" not in stdout
+
+
+@pytest.mark.parametrize("seed", CHARUCO_SEEDS)
+def test_charuco_over_noise_seeds(seed, charuco_seed_views):
+    detector = cal.BoardDetector(cal.parse_board(CHARUCO))
+    views = [v for v in (detector.detect(image) for image in charuco_seed_views[seed]) if v is not None]
+    assert len(views) == 18
+    cam = cal.calibrate_views(views, TRUE.width, TRUE.height).camera
+    for key in ("fx", "fy", "cx", "cy"):
+        assert abs(getattr(cam, key) / getattr(TRUE, key) - 1) < 0.005, key
+    # Over the part of the image the corners reached; beyond it (the outer ~40 px, where these
+    # views put no corner) the fit extrapolates.
+    pts = np.concatenate([v.image_points for v in views])
+    box = (*pts.min(axis=0), *pts.max(axis=0))
+    assert cal.distortion_difference_px(TRUE, cam, box_px=box) < 0.2
 
 
 def test_stdout_section_is_valid_config(chessboard_dir, capsys):

@@ -426,16 +426,19 @@ def calibrate_views(views: Sequence[BoardView], width: int, height: int, *,
     return CalibrationResult(camera, rms, errors, list(views), outliers, cov.fraction, rejected)
 
 
-def distortion_difference_px(a: Camera, b: Camera, step_px: float = 10.0) -> float:
+def distortion_difference_px(a: Camera, b: Camera, step_px: float = 10.0,
+                             box_px: Optional[Tuple[float, float, float, float]] = None) -> float:
     """Largest difference over the image between the distortion corrections of two models, px.
 
-    For each pixel p on a grid covering the whole image: the shift p -> undistorted pixel
-    (each model's own K) under ``a`` and under ``b``; returns the largest |shift_a - shift_b|.
+    For each pixel p on a grid covering the whole image (or ``box_px`` = x0, y0, x1, y1 of it):
+    the shift p -> undistorted pixel (each model's own K) under ``a`` and under ``b``; returns
+    the largest |shift_a - shift_b|.
     """
-    xs = np.arange(0.0, a.width - 1 + 1e-9, step_px)
-    ys = np.arange(0.0, a.height - 1 + 1e-9, step_px)
-    xs = np.append(xs, a.width - 1.0) if xs[-1] < a.width - 1 else xs
-    ys = np.append(ys, a.height - 1.0) if ys[-1] < a.height - 1 else ys
+    x0, y0, x1, y1 = box_px if box_px is not None else (0.0, 0.0, a.width - 1.0, a.height - 1.0)
+    xs = np.arange(x0, x1 + 1e-9, step_px)
+    ys = np.arange(y0, y1 + 1e-9, step_px)
+    xs = np.append(xs, x1) if xs[-1] < x1 else xs
+    ys = np.append(ys, y1) if ys[-1] < y1 else ys
     gx, gy = np.meshgrid(xs, ys)
     px = np.stack([gx.ravel(), gy.ravel()], axis=1)
 
