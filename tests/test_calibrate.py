@@ -522,10 +522,14 @@ def _accuracy_report(seeds: int = 6) -> None:
             result = cal.calibrate_views(views, TRUE.width, TRUE.height)
             t2 = time.perf_counter()
             cam = result.camera
+            pts = np.concatenate([v.image_points for v in views])
+            box = (*pts.min(axis=0), *pts.max(axis=0))
             errors = " ".join(f"{k} {(getattr(cam, k) / getattr(TRUE, k) - 1) * 100:+.3f}%"
                               for k in ("fx", "fy", "cx", "cy"))
             print(f"{board} seed {seed:3d}: {len(views)}/{len(images)} views, RMS {result.rms_px:.3f} px, "
-                  f"{errors}, distortion {cal.distortion_difference_px(TRUE, cam):.3f} px, "
+                  f"{errors}, distortion {cal.distortion_difference_px(TRUE, cam):.3f} px "
+                  f"({cal.distortion_difference_px(TRUE, cam, box_px=box):.3f} px where corners were seen), "
+                  f"{result.rejected_corners} corner(s) left out, "
                   f"detect {(t1 - t0) / len(images) * 1000:.0f} ms/view, calibrate {(t2 - t1) * 1000:.0f} ms",
                   flush=True)
 
