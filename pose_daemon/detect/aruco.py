@@ -13,9 +13,10 @@ import numpy as np
 from ..camera import Marker
 from . import aruco_compat
 from .quads import Roi, find_quads, inside_any, odd
-from .refine import SEARCH_CONVERGED_PX, EdgeFit, fit_edges, signed_area
+from .refine import SEARCH_CONVERGED_PX, EdgeFit, signed_area
 from .square import (
     Candidate,
+    OutlineFinder,
     SquareOptions,
     clamp,
     darker_inside,
@@ -27,15 +28,13 @@ from .square import (
 _UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
 
 
-class ArucoFinder:
+class ArucoFinder(OutlineFinder):
     """Finds the configured dictionary + id; corners come out as TL, TR, BR, BL."""
 
     oriented = True
 
     def __init__(self, marker: Marker, options: SquareOptions, camera=None) -> None:
-        self.marker = marker
-        self.options = options
-        self.camera = camera
+        super().__init__(marker, options, camera)
         self.dictionary = aruco_compat.get_dictionary(marker.dictionary)
         n_ids = aruco_compat.dictionary_size(self.dictionary)
         if not 0 <= int(marker.id) < n_ids:
@@ -80,13 +79,6 @@ class ArucoFinder:
         # Inside, stay within the one-cell black border; outside, within the quiet zone.
         return clamp(0.6 * cell, 1.0, 3.0), clamp(0.15 * side, 1.5, 3.0)
 
-    def refine(self, gray: np.ndarray, corners: np.ndarray, iterations: int,
-               max_move_px: Optional[float] = None, converged_px: float = 0.5) -> Optional[EdgeFit]:
-        inner, outer = self.reach_px(corners)
-        return fit_edges(gray, corners, inner_px=inner, outer_px=outer, iterations=iterations,
-                         camera=self.camera, min_contrast=0.5 * self.options.min_contrast,
-                         max_move_px=max_move_px, converged_px=converged_px)
-
     def orientation(self, gray: np.ndarray, fit: EdgeFit) -> Optional[int]:
         """k such that the corners rolled by k start at the marker's top-left, or None if
         this is not the marker: straight sides, dark border, light quiet zone, its bits."""
@@ -116,14 +108,6 @@ class ArucoFinder:
     def verify(self, gray: np.ndarray, fit: EdgeFit) -> bool:
         """Is this the marker, with the corners already labelled TL, TR, BR, BL?"""
         return self.orientation(gray, fit) == 0
-
-    def follow(self, gray: np.ndarray, predicted: np.ndarray) -> Optional[Candidate]:
-        """The marker near ``predicted`` corners (TL, TR, BR, BL): edge fits, then its bits."""
-        inner, outer = self.reach_px(predicted)
-        fit = self.refine(gray, predicted, iterations=2, max_move_px=0.8 * min(inner, outer) + 0.5)
-        if fit is None or not self.verify(gray, fit):
-            return None
-        return Candidate(fit.corners, True, fit)
 
     def search(self, gray: np.ndarray, roi: Optional[Roi] = None,
                expected_side_px: Optional[float] = None) -> List[Candidate]:

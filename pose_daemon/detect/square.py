@@ -121,8 +121,12 @@ def aspect_error(corners: np.ndarray, marker: Marker) -> float:
     return float(min(abs(np.log(a / want)), abs(np.log(a * want))))
 
 
-class SquareFinder:
-    """Finds and checks the dark rectangle of a ``square`` marker."""
+class OutlineFinder:
+    """What the square and ArUco finders share: edge fits of a dark outline, and following it.
+
+    Subclasses say how far the edge profiles reach (``reach_px``), whether a fit is the
+    marker (``verify``) and whether their corners come out labelled (``oriented``).
+    """
 
     oriented = False
 
@@ -132,9 +136,10 @@ class SquareFinder:
         self.camera = camera
 
     def reach_px(self, corners: np.ndarray):
-        """(inside, outside) reach of the edge profiles for an outline of this size."""
-        side = min(side_lengths(corners).tolist())
-        return clamp(0.2 * side, 1.5, 3.0), clamp(0.15 * side, 1.5, 3.0)
+        raise NotImplementedError
+
+    def verify(self, gray: np.ndarray, fit: EdgeFit) -> bool:
+        raise NotImplementedError
 
     def refine(self, gray: np.ndarray, corners: np.ndarray, iterations: int,
                max_move_px: Optional[float] = None, converged_px: float = 0.5) -> Optional[EdgeFit]:
@@ -142,6 +147,25 @@ class SquareFinder:
         return fit_edges(gray, corners, inner_px=inner, outer_px=outer, iterations=iterations,
                          camera=self.camera, min_contrast=0.5 * self.options.min_contrast,
                          max_move_px=max_move_px, converged_px=converged_px)
+
+    def follow(self, gray: np.ndarray, predicted: np.ndarray) -> Optional[Candidate]:
+        """The marker near ``predicted`` corners (tracked frames): edge fits from there, checked."""
+        inner, outer = self.reach_px(predicted)
+        fit = self.refine(gray, predicted, iterations=2, max_move_px=0.8 * min(inner, outer) + 0.5)
+        if fit is None or not self.verify(gray, fit):
+            return None
+        return Candidate(fit.corners, self.oriented, fit)
+
+
+class SquareFinder(OutlineFinder):
+    """Finds and checks the dark rectangle of a ``square`` marker."""
+
+    oriented = False
+
+    def reach_px(self, corners: np.ndarray):
+        """(inside, outside) reach of the edge profiles for an outline of this size."""
+        side = min(side_lengths(corners).tolist())
+        return clamp(0.2 * side, 1.5, 3.0), clamp(0.15 * side, 1.5, 3.0)
 
     def shape_ok(self, corners: np.ndarray) -> bool:
         if side_lengths(corners).min() < self.options.min_side_px:
@@ -179,14 +203,6 @@ class SquareFinder:
         if abs(float(inside[_GRID_RIM].mean() - inside[~_GRID_RIM].mean())) > 0.2 * (light - dark):
             return False
         return np.count_nonzero(ring <= mid) <= 0.1 * len(ring)
-
-    def follow(self, gray: np.ndarray, predicted: np.ndarray) -> Optional[Candidate]:
-        """The marker near ``predicted`` corners (tracked frames): edge fits from there, checked."""
-        inner, outer = self.reach_px(predicted)
-        fit = self.refine(gray, predicted, iterations=2, max_move_px=0.8 * min(inner, outer) + 0.5)
-        if fit is None or not self.verify(gray, fit):
-            return None
-        return Candidate(fit.corners, False, fit)
 
     def search(self, gray: np.ndarray, roi: Optional[Roi] = None,
                expected_side_px: Optional[float] = None) -> List[Candidate]:
