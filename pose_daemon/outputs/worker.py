@@ -109,22 +109,14 @@ class QueuedOutput:
             self._counts["published"] += 1
             inline = self._direct or (not self._queue and self._writes_never_block())
             if not inline:
-                if len(self._queue) >= self._queue_size:
-                    self._queue.popleft()
-                    self._dropped["queue_full"] += 1
-                self._queue.append(result)
-                self._cond.notify()
+                self._enqueue(result)
                 return
         if not self._direct:
             # A link whose writes cannot block (a non-blocking UDP socket): write now, in the
             # caller's thread, unless the output's thread holds the link; then queue after all.
             if not self._io_lock.acquire(blocking=False):
                 with self._cond:
-                    if len(self._queue) >= self._queue_size:
-                        self._queue.popleft()
-                        self._dropped["queue_full"] += 1
-                    self._queue.append(result)
-                    self._cond.notify()
+                    self._enqueue(result)
                 return
             self._count("written_inline")
         elif not self._io_lock.acquire(timeout=self.lock_timeout_s):
@@ -134,6 +126,14 @@ class QueuedOutput:
             self._handle(result)
         finally:
             self._io_lock.release()
+
+    def _enqueue(self, result: FrameResult) -> None:
+        """Append to the bounded queue, dropping the oldest when full (caller holds _cond)."""
+        if len(self._queue) >= self._queue_size:
+            self._queue.popleft()
+            self._dropped["queue_full"] += 1
+        self._queue.append(result)
+        self._cond.notify()
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Write what is queued (within ``timeout_s``), stop the thread, close the link."""
