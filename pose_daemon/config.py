@@ -20,6 +20,7 @@ else:  # pragma: no cover - Python 3.9/3.10 (Raspberry Pi OS Bullseye)
     import tomli as tomllib
 
 from .camera import Camera, Marker
+from .capture.sources import SOURCE_FORMS, parse_source
 from .errors import ConfigError
 
 __all__ = [
@@ -271,17 +272,11 @@ def _key(default: Any, rule: Rule, doc: str = "") -> Any:
 
 # --------------------------------------------------------------------------- sections
 
-SOURCE_WORDS = ("picamera2", "synthetic")
-SOURCE_PREFIXES = ("opencv:", "video:", "replay:")
-SOURCE_EXPECTED = ('"picamera2", "synthetic", "opencv:N", "video:PATH", "replay:PATH" '
-                   'or a GStreamer pipeline ("... ! appsink")')
-
-
 @dataclass(frozen=True)
 class CameraConfig:
     """The frame source and its intrinsics (pixels at the capture resolution)."""
 
-    source: str = _key("synthetic", Rule("str", nonempty=True), "frame source: " + SOURCE_EXPECTED)
+    source: str = _key("synthetic", Rule("str", nonempty=True), "frame source: " + SOURCE_FORMS)
     width: int = _key(640, Rule("int", lo=16, hi=8192), "capture width, pixels")
     height: int = _key(480, Rule("int", lo=16, hi=8192), "capture height, pixels")
     fx: float = _key(500.0, Rule("float", lo=0, lo_open=True), "focal length x, pixels")
@@ -295,14 +290,10 @@ class CameraConfig:
     analogue_gain: float = _key(0.0, Rule("float", lo=0, hi=64), "sensor analogue gain (0 = auto)")
 
     def check(self) -> None:
-        s = self.source.strip()
-        if not (s in SOURCE_WORDS or "!" in s
-                or any(s.startswith(p) and len(s) > len(p) for p in SOURCE_PREFIXES)):
-            raise _Invalid("source", SOURCE_EXPECTED, self.source)
-        if s.startswith("opencv:"):
-            dev = s[len("opencv:"):]
-            if not (dev.isdigit() or dev.startswith("/")):
-                raise _Invalid("source", '"opencv:N" with a camera index N or a device path', self.source)
+        try:
+            parse_source(self.source)
+        except ValueError as exc:
+            raise _Invalid("source", str(exc), self.source) from None
         if not 0.0 <= self.cx < self.width:
             raise _Invalid("cx", f"a number in [0, {self.width}) (inside the image width)", self.cx)
         if not 0.0 <= self.cy < self.height:
@@ -310,23 +301,13 @@ class CameraConfig:
 
     @property
     def source_kind(self) -> str:
-        """"picamera2", "synthetic", "opencv", "video", "replay" or "gstreamer"."""
-        s = self.source.strip()
-        if s in SOURCE_WORDS:
-            return s
-        for p in SOURCE_PREFIXES:
-            if s.startswith(p):
-                return p[:-1]
-        return "gstreamer"
+        """One of capture.SOURCE_KINDS (from ``capture.parse_source``)."""
+        return parse_source(self.source)[0]
 
     @property
     def source_arg(self) -> str:
-        """What follows "kind:" (index, device or path), or the whole pipeline string."""
-        s = self.source.strip()
-        for p in SOURCE_PREFIXES:
-            if s.startswith(p):
-                return s[len(p):]
-        return s
+        """The source's argument (from ``capture.parse_source``): index, device, path or pipeline."""
+        return parse_source(self.source)[1]
 
     def model(self) -> Camera:
         return Camera(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, dist=tuple(self.dist),

@@ -4,20 +4,20 @@ from __future__ import annotations
 
 import sys
 import types
+from dataclasses import replace
 from pathlib import Path
-from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
 
 from pose_daemon import Camera, Marker
-from pose_daemon.capture import FrameSource, open_source, source_kind
+from pose_daemon.capture import SOURCE_FORMS, FrameSource, open_source, parse_source
 from pose_daemon.capture.opencv import OpenCVSource
 from pose_daemon.capture.picamera2 import Picamera2Source
 from pose_daemon.capture.replay import ReplaySource
 from pose_daemon.capture.synthetic import SyntheticSource
-from pose_daemon.config import Config
+from pose_daemon.config import CameraConfig, Config
 from pose_daemon.errors import EndOfStream, SourceError
 from pose_daemon.render import Effects, render_marker, trajectory
 
@@ -37,21 +37,26 @@ class FakeClock:
         self.t += dt
 
 
-def _camera_cfg(source: str, **kw) -> SimpleNamespace:
-    base = dict(source=source, width=640, height=480, fx=600.0, fy=600.0, cx=319.5, cy=239.5,
-                dist=(0.0,) * 5, fps=30.0, exposure_us=0, analogue_gain=0.0)
-    base.update(kw)
-    return SimpleNamespace(**base)
+def _camera_cfg(source: str, **kw) -> CameraConfig:
+    return replace(CameraConfig(), source=source, fx=600.0, fy=600.0, **kw)
 
 
 def test_source_kinds_and_unknown_source() -> None:
-    assert source_kind("picamera2") == "picamera2"
-    assert source_kind("opencv:0") == "opencv"
-    assert source_kind("video:/tmp/a.mp4") == "video"
-    assert source_kind("replay:/tmp/rec") == "replay"
-    assert source_kind("v4l2src ! videoconvert ! appsink") == "gstreamer"
-    with pytest.raises(SourceError, match="unknown camera source 'webcam'"):
-        source_kind("webcam")
+    assert parse_source("picamera2") == ("picamera2", "")
+    assert parse_source(" synthetic ") == ("synthetic", "")
+    assert parse_source("opencv:0") == ("opencv", "0")
+    assert parse_source("opencv:/dev/video2") == ("opencv", "/dev/video2")
+    assert parse_source("video:/tmp/a.mp4") == ("video", "/tmp/a.mp4")
+    assert parse_source("replay:/tmp/rec") == ("replay", "/tmp/rec")
+    pipeline = "v4l2src ! videoconvert ! appsink"
+    assert parse_source(pipeline) == ("gstreamer", pipeline)
+    for bad, expected in (("webcam", SOURCE_FORMS), ("video:", SOURCE_FORMS),
+                          ("opencv:front", '"opencv:N" with a camera index N or a device path')):
+        with pytest.raises(ValueError) as info:
+            parse_source(bad)
+        assert str(info.value) == expected
+    with pytest.raises(SourceError, match="unknown camera source 'webcam': expected \"picamera2\""):
+        open_source(_camera_cfg("webcam"))
 
 
 def test_synthetic_source_follows_the_trajectory_with_truth() -> None:
