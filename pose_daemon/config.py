@@ -19,9 +19,12 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.9/3.10 (Raspberry Pi OS Bullseye)
     import tomli as tomllib
 
-from .camera import Camera, Marker
+from .camera import MARKER_TYPES, Camera, Marker
 from .capture.sources import SOURCE_FORMS, parse_source
 from .errors import ConfigError
+from .geometry import MARKER_PLACEMENTS, MOUNT_PRESETS
+from .outputs.mavlink import MESSAGES as MAVLINK_MESSAGES
+from .pose.loop import METHODS
 
 __all__ = [
     "Config",
@@ -318,12 +321,12 @@ class CameraConfig:
 class MarkerConfig:
     """The rectangle looked for (metres) and where it is placed."""
 
-    type: str = _key("square", Rule("str", choices=("square", "aruco")), "square or aruco")
+    type: str = _key("square", Rule("str", choices=MARKER_TYPES), "square or aruco")
     width: float = _key(0.20, Rule("float", lo=0, hi=100, lo_open=True), "outer edge of the dark region, metres")
     height: float = _key(0.20, Rule("float", lo=0, hi=100, lo_open=True), "metres (default: width)")
     dictionary: Optional[str] = _key(None, Rule("str", nonempty=True), "aruco only: OpenCV dictionary, e.g. DICT_4X4_50")
     id: Optional[int] = _key(None, Rule("int", lo=0, hi=100_000), "aruco only: marker id")
-    placement: str = _key("wall", Rule("str", choices=("wall", "floor")), "wall (vertical) or floor (face up)")
+    placement: str = _key("wall", Rule("str", choices=MARKER_PLACEMENTS), "wall (vertical) or floor (face up)")
 
     def check(self) -> None:
         if self.type == "aruco":
@@ -369,16 +372,9 @@ def _aruco_dictionary_size(name: str) -> Optional[int]:
 
 @dataclass(frozen=True)
 class EstimatorConfig:
-    method: str = _key("iterative", Rule("str", nonempty=True), "pose method: iterative, paper, ...")
+    method: str = _key("iterative", Rule("str", choices=METHODS), "pose method (see Pose estimation)")
     iterations: int = _key(5, Rule("int", lo=1, hi=100), "iterations of the correction loop")
     refine: bool = _key(True, Rule("bool"), "final least-squares refinement")
-
-    def check(self) -> None:
-        # Checked here, not at the first frame: an unknown method would otherwise fail every
-        # frame of a running daemon with no pose and no hint in the config check.
-        from pose_daemon.pose.loop import METHODS
-        if self.method not in METHODS:
-            raise _Invalid("method", "one of " + ", ".join(_show(m) for m in METHODS), self.method)
 
 
 @dataclass(frozen=True)
@@ -389,7 +385,7 @@ class DetectorConfig:
 
 @dataclass(frozen=True)
 class SyntheticConfig:
-    trajectory: str = _key("wall", Rule("str", choices=("wall", "floor")),
+    trajectory: str = _key("wall", Rule("str", choices=MARKER_PLACEMENTS),
                            "wall: camera in front of a wall marker; floor: over a floor marker")
     seed: int = _key(0, Rule("int", lo=0, hi=2**32 - 1), "random seed of noise and trajectory")
     blur_px: float = _key(0.8, Rule("float", lo=0, hi=20), "Gaussian blur sigma, pixels")
@@ -416,15 +412,12 @@ class PipelineConfig:
 
 @dataclass(frozen=True)
 class MountConfig:
-    preset: str = _key("forward", Rule("str", choices=("forward", "down", "custom")),
+    preset: str = _key("forward", Rule("str", choices=MOUNT_PRESETS),
                        "forward: camera looks ahead; down: looks down; custom: rotation_deg + offset_m")
     rotation_deg: Tuple[float, ...] = _key([0.0, 0.0, 0.0], Rule("floats", lengths=(3,), lo=-360, hi=360),
                                            "custom mount: roll, pitch, yaw of the camera on the body, degrees")
     offset_m: Tuple[float, ...] = _key([0.0, 0.0, 0.0], Rule("floats", lengths=(3,), lo=-100, hi=100),
                                        "camera position in the body frame (FRD), metres")
-
-
-MAVLINK_MESSAGES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 
 import pytest
@@ -13,6 +13,11 @@ from pose_daemon.config import (
     DEFAULT_CONFIG_TOML,
     Config,
     ConfigError,
+    EstimatorConfig,
+    MarkerConfig,
+    MavlinkOutputConfig,
+    MountConfig,
+    SyntheticConfig,
     load_config,
     parse_config,
     reference,
@@ -227,3 +232,32 @@ def test_unknown_estimator_method_is_a_config_error():
     assert parse_config('[estimator]\nmethod = "paper"\n', "config.toml").estimator.method == "paper"
     assert _error('[estimator]\nmethod = "foo"\n') == (
         'config.toml: [estimator] method: expected one of "iterative", "paper", got "foo"')
+
+
+def _rule(cls: type, key: str):
+    return next(f for f in fields(cls) if f.name == key).metadata["rule"]
+
+
+def test_every_list_of_choices_is_its_owners():
+    # A copied list drifts: a new MAVLink message or pose method must need one edit, not two.
+    from pose_daemon.camera import MARKER_TYPES
+    from pose_daemon.geometry import MARKER_PLACEMENTS, MOUNT_PRESETS
+    from pose_daemon.outputs.mavlink import MESSAGES
+    from pose_daemon.pose.loop import METHODS
+
+    assert _rule(MarkerConfig, "type").choices is MARKER_TYPES
+    assert _rule(MarkerConfig, "placement").choices is MARKER_PLACEMENTS
+    assert _rule(SyntheticConfig, "trajectory").choices is MARKER_PLACEMENTS
+    assert _rule(MountConfig, "preset").choices is MOUNT_PRESETS
+    assert _rule(MavlinkOutputConfig, "messages").choices is MESSAGES
+    assert _rule(EstimatorConfig, "method").choices is METHODS
+
+
+@pytest.mark.parametrize("first", ["pose_daemon.outputs.mavlink", "pose_daemon.pose.loop",
+                                   "pose_daemon.capture", "pose_daemon.config"])
+def test_config_and_the_owners_of_its_choices_import_in_any_order(first):
+    # config imports from these modules; one importing config back would be a cycle that
+    # breaks whichever is imported first.
+    res = subprocess.run([sys.executable, "-c", f"import {first}; import pose_daemon.config"],
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
