@@ -24,6 +24,7 @@ from .capture.sources import SOURCE_FORMS, parse_source
 from .errors import ConfigError
 from .geometry import MARKER_PLACEMENTS, MOUNT_PRESETS
 from .outputs.mavlink import MESSAGES as MAVLINK_MESSAGES
+from .outputs.mavlink import parse_connection
 from .pose.loop import METHODS
 
 __all__ = [
@@ -42,6 +43,7 @@ __all__ = [
     "LoggingConfig",
     "ConfigError",
     "DEFAULT_CONFIG_TOML",
+    "check_whole",
     "load_config",
     "parse_config",
 ]
@@ -334,11 +336,7 @@ class MarkerConfig:
                 raise _Invalid("dictionary", 'a dictionary name such as "DICT_4X4_50" (needed when type = "aruco")')
             if self.id is None:
                 raise _Invalid("id", 'an integer >= 0 (needed when type = "aruco")')
-            if not self.dictionary.startswith("DICT_") or not _aruco_dictionary_exists(self.dictionary):
-                raise _Invalid("dictionary", 'an OpenCV ArUco dictionary name such as "DICT_4X4_50"', self.dictionary)
-            n_ids = _aruco_dictionary_size(self.dictionary)
-            if n_ids is not None and self.id >= n_ids:
-                raise _Invalid("id", f"an integer in [0, {n_ids - 1}] (the ids of {self.dictionary})", self.id)
+            # Whether OpenCV has the dictionary and the id: check_whole.
         else:
             if self.dictionary is not None:
                 raise _Invalid("dictionary", 'no dictionary unless type = "aruco"', self.dictionary)
@@ -348,26 +346,6 @@ class MarkerConfig:
     def model(self) -> Marker:
         return Marker(width=self.width, height=self.height, type=self.type,
                       dictionary=self.dictionary, id=self.id)
-
-
-def _aruco_dictionary_exists(name: str) -> bool:
-    try:
-        import cv2
-    except ImportError:  # pragma: no cover - OpenCV is a dependency
-        return True
-    aruco = getattr(cv2, "aruco", None)
-    if aruco is None:  # an OpenCV build without aruco: the detector reports it
-        return True
-    return isinstance(getattr(aruco, name, None), int)
-
-
-def _aruco_dictionary_size(name: str) -> Optional[int]:
-    """How many ids the dictionary has, or None when this OpenCV cannot tell."""
-    try:
-        from pose_daemon.detect import aruco_compat
-        return aruco_compat.dictionary_size(aruco_compat.get_dictionary(name))
-    except Exception:  # an OpenCV build without aruco: the detector reports it
-        return None
 
 
 @dataclass(frozen=True)
@@ -641,15 +619,60 @@ def config_from_dict(data: Dict[str, Any], name: str = "<config>") -> Config:
         sections["synthetic"] = replace(sections.get("synthetic", SyntheticConfig()),
                                         trajectory=marker.placement)
     cfg = Config(output=OutputConfig(**outputs), name=name, **sections)
-    _check_whole(cfg)
+    check_whole(cfg, files=False)
     return cfg
 
 
-def _check_whole(cfg: Config) -> None:
-    """Rules that join two sections."""
+def check_whole(cfg: Config, *, files: bool = True) -> None:
+    """Every rule that joins sections or concerns links and paths; ConfigError (one line) otherwise.
+
+    - the synthetic source's [synthetic] trajectory is the [marker] placement;
+    - an ArUco [marker] dictionary is one of OpenCV's, and its id one of the dictionary's;
+    - the [output.mavlink] connection is a link ``outputs.mavlink.parse_connection`` accepts;
+    - with ``files``: a ``video:``/``replay:`` source exists. A missing file will not appear
+      later, so it is refused at start rather than reopened for ever like an unplugged camera.
+
+    ``parse_config`` runs it with files=False, so every Config is whole wherever it is read
+    (``replay PATH --config`` ignores the config's source). ``pose-daemon run`` and
+    ``pose-daemon check-config`` run all of it, so check-config refuses what run refuses.
+    """
     if cfg.camera.source_kind == "synthetic" and cfg.marker.placement != cfg.synthetic.trajectory:
         raise ConfigError(f"{cfg.name}: [synthetic] trajectory: expected {_show(cfg.marker.placement)} "
                           f"(the [marker] placement), got {_show(cfg.synthetic.trajectory)}")
+    try:
+        _check_aruco(cfg.marker)
+    except _Invalid as err:
+        raise ConfigError(_message(cfg.name, "[marker]", err)) from None
+    m = cfg.output.mavlink
+    if m is not None:
+        try:
+            parse_connection(m.connection, m.baud)
+        except ValueError as exc:
+            raise ConfigError(f"{cfg.name}: [output.mavlink] connection: expected {exc}, "
+                              f"got {m.connection!r}") from None
+    kind, arg = parse_source(cfg.camera.source)
+    if files and kind in ("video", "replay") and not Path(arg).exists():
+        what = "a video file" if kind == "video" else "a recording, image folder or video"
+        raise ConfigError(f"{cfg.name}: [camera] source: expected {what} that exists, "
+                          f"got {_show(cfg.camera.source)} (no such file or folder)")
+
+
+def _check_aruco(marker: MarkerConfig) -> None:
+    """The dictionary is one this OpenCV has and the id is one of its ids (_Invalid otherwise)."""
+    if marker.type != "aruco" or marker.dictionary is None or marker.id is None:
+        return
+    try:
+        from .detect import aruco_compat
+    except ImportError:  # an OpenCV build without aruco: the detector reports it
+        return
+    try:
+        dictionary = aruco_compat.get_dictionary(marker.dictionary)
+    except ValueError:
+        raise _Invalid("dictionary", 'an OpenCV ArUco dictionary name such as "DICT_4X4_50"',
+                       marker.dictionary) from None
+    n_ids = aruco_compat.dictionary_size(dictionary)
+    if marker.id >= n_ids:
+        raise _Invalid("id", f"an integer in [0, {n_ids - 1}] (the ids of {marker.dictionary})", marker.id)
 
 
 def load_config(path: Union[str, Path]) -> Config:

@@ -219,6 +219,24 @@ def test_check_config_checks_the_mavlink_connection_string(tmp_path):
                           "udpout:HOST:PORT with a port in 1..65535, got 'udpout:localhost'\n")
 
 
+@pytest.mark.parametrize("kind, what", [("video", "a video file"),
+                                        ("replay", "a recording, image folder or video")])
+def test_check_config_refuses_a_missing_video_or_recording_as_run_does(tmp_path, kind, what):
+    source = f"{kind}:{tmp_path / 'clip'}"
+    path = tmp_path / "c.toml"
+    path.write_text(f'[camera]\nsource = "{source}"\n')
+    # The text alone is valid (`replay PATH --config c.toml` ignores the source) ...
+    assert load_config(path).camera.source == source
+    # ... but check-config refuses it with run's line: the daemon could never start.
+    expected = (f"pose-daemon: error: {path}: [camera] source: expected {what} that exists, "
+                f'got "{source}" (no such file or folder)\n')
+    for args in (["check-config", str(path)], ["run", "--config", str(path)]):
+        res = _cli(*args)
+        assert (res.returncode, res.stdout, res.stderr) == (2, "", expected)
+    (tmp_path / "clip").write_bytes(b"")
+    assert _cli("check-config", str(path)).returncode == 0
+
+
 def test_aruco_id_outside_its_dictionary_is_a_config_error():
     # DICT_4X4_50 has ids 0..49; the detector would otherwise fail at start-up with a traceback.
     base = '[marker]\ntype = "aruco"\ndictionary = "DICT_4X4_50"\n'
