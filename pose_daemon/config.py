@@ -11,6 +11,7 @@ import json
 import math
 import sys
 from dataclasses import MISSING, asdict, dataclass, field, fields, replace
+from importlib import resources
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
@@ -42,73 +43,23 @@ __all__ = [
     "OutputConfig",
     "LoggingConfig",
     "ConfigError",
-    "DEFAULT_CONFIG_TOML",
+    "DEFAULT_CONFIG_FILE",
     "check_whole",
+    "default_config_text",
     "load_config",
     "parse_config",
 ]
 
-# The embedded default: the same text as config/demo.toml (a test keeps the two equal), so
-# `pose-daemon run` without --config works from an installed wheel.
-DEFAULT_CONFIG_TOML = """\
-# pose-daemon demo configuration: the synthetic source (a rendered camera moving in front of a
-# wall marker), poses to a ground station on UDP 14550 over MAVLink and as JSON lines on stdout.
-#   pose-daemon run --config config/demo.toml
-# This is also the embedded default of `pose-daemon run` without --config.
+#: The embedded default, shipped as package data (pose_daemon/data/demo.toml, in the wheel
+#: too) so that `pose-daemon run` without --config works anywhere. config/demo.toml in the
+#: repository is a symbolic link to it: one file, nothing to keep equal.
+DEFAULT_CONFIG_FILE = "demo.toml"
 
-[camera]                 # intrinsics in pixels at the capture resolution
-source = "synthetic"
-width = 640
-height = 480
-fx = 500.0
-fy = 500.0
-cx = 319.5
-cy = 239.5
-dist = [0.0, 0.0, 0.0, 0.0, 0.0]   # k1 k2 p1 p2 k3
-fps = 30.0
 
-[marker]
-type = "square"          # plain dark square on a light surround
-width = 0.20             # metres, outer edge of the dark region
-height = 0.20
-placement = "wall"
-
-[estimator]
-method = "iterative"
-iterations = 5
-refine = true
-
-[detector]
-max_misses = 5
-min_side_px = 10.0
-
-[synthetic]
-trajectory = "wall"
-seed = 0
-blur_px = 0.8
-noise_gray = 2.0
-frames = 0               # 0 = endless
-
-[pipeline]
-latency_budget_s = 0.1
-status_interval_s = 10.0
-
-[mount]
-preset = "forward"
-
-[output.mavlink]
-connection = "udpout:127.0.0.1:14550"
-messages = ["ODOMETRY"]
-source_system = 1
-source_component = 197
-wait_heartbeat = false   # a ground station listens here, not an autopilot: stream at once
-
-[output.jsonl]
-path = "-"               # stdout
-
-[logging]
-level = "INFO"
-"""
+def default_config_text() -> str:
+    """The TOML text of the embedded default configuration (the demo: synthetic source)."""
+    data = resources.files("pose_daemon").joinpath("data")
+    return data.joinpath(DEFAULT_CONFIG_FILE).read_text(encoding="utf-8")
 
 
 # --------------------------------------------------------------------------- rules
@@ -506,8 +457,8 @@ class Config:
 
     @classmethod
     def default(cls) -> Config:
-        """The embedded demo configuration (= config/demo.toml)."""
-        return parse_config(DEFAULT_CONFIG_TOML, "<default config>")
+        """The embedded demo configuration (pose_daemon/data/demo.toml = config/demo.toml)."""
+        return parse_config(default_config_text(), "<default config>")
 
     def to_dict(self) -> Dict[str, Any]:
         """Plain data in the TOML layout (absent outputs and unset optional keys left out)."""

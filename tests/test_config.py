@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from pose_daemon.config import (
-    DEFAULT_CONFIG_TOML,
+    DEFAULT_CONFIG_FILE,
     Config,
     ConfigError,
     EstimatorConfig,
@@ -18,6 +18,7 @@ from pose_daemon.config import (
     MavlinkOutputConfig,
     MountConfig,
     SyntheticConfig,
+    default_config_text,
     load_config,
     parse_config,
     reference,
@@ -38,7 +39,10 @@ def _error(text: str) -> str:
 
 @pytest.mark.pi
 def test_demo_file_is_the_embedded_default():
-    assert (ROOT / "config" / "demo.toml").read_text() == DEFAULT_CONFIG_TOML
+    # One file: the package data, with config/demo.toml a link to it (nothing can drift).
+    shipped = ROOT / "pose_daemon" / "data" / DEFAULT_CONFIG_FILE
+    assert (ROOT / "config" / "demo.toml").resolve() == shipped.resolve()
+    assert default_config_text() == shipped.read_text()
     cfg = Config.default()
     assert replace(load_config(ROOT / "config" / "demo.toml"), name=cfg.name) == cfg
     assert cfg.camera.source == "synthetic"
