@@ -95,7 +95,6 @@ class Rule:
     nonempty: bool = False
     unique: bool = False
     upper: bool = False
-    doc: str = ""
 
     def expectation(self) -> str:
         noun = {"int": "an integer", "float": "a number", "str": "a string", "bool": "true or false",
@@ -219,11 +218,18 @@ def _show(value: Any) -> str:
         return str(value)
 
 
-def _key(default: Any, rule: Rule, doc: str = "") -> Any:
-    """A dataclass field with its rule; mutable defaults (lists) are stored as tuples."""
+def _key(default: Any, rule: Rule, doc: str, *, default_from: Optional[str] = None) -> Any:
+    """A dataclass field with its rule and its meaning (the config reference's text).
+
+    ``default_from``: when the key is absent but that key of the same table is given, take
+    its value (a marker's height is its width unless told otherwise). Mutable defaults
+    (lists) are stored as tuples.
+    """
     if isinstance(default, list):
         default = tuple(default)
-    return field(default=default, metadata={"rule": rule, "doc": doc})
+    if default_from is not None:
+        doc = f"{doc} (default: {default_from})"
+    return field(default=default, metadata={"rule": rule, "doc": doc, "default_from": default_from})
 
 
 # --------------------------------------------------------------------------- sections
@@ -276,7 +282,7 @@ class MarkerConfig:
 
     type: str = _key("square", Rule("str", choices=MARKER_TYPES), "square or aruco")
     width: float = _key(0.20, Rule("float", lo=0, hi=100, lo_open=True), "outer edge of the dark region, metres")
-    height: float = _key(0.20, Rule("float", lo=0, hi=100, lo_open=True), "metres (default: width)")
+    height: float = _key(0.20, Rule("float", lo=0, hi=100, lo_open=True), "metres", default_from="width")
     dictionary: Optional[str] = _key(None, Rule("str", nonempty=True), "aruco only: OpenCV dictionary, e.g. DICT_4X4_50")
     id: Optional[int] = _key(None, Rule("int", lo=0, hi=100_000), "aruco only: marker id")
     placement: str = _key("wall", Rule("str", choices=MARKER_PLACEMENTS), "wall (vertical) or floor (face up)")
@@ -506,8 +512,10 @@ def _build(cls: type, table: Dict[str, Any], where: str) -> Any:
         if f is None:
             raise _Invalid(key, "one of " + ", ".join(known), _Unknown)
         kwargs[key] = f.metadata["rule"].convert(key, value)
-    if cls is MarkerConfig and "height" not in table and "width" in kwargs:
-        kwargs["height"] = kwargs["width"]  # a square unless told otherwise
+    for f in known.values():
+        source = f.metadata["default_from"]
+        if source is not None and f.name not in kwargs and source in kwargs:
+            kwargs[f.name] = kwargs[source]
     obj = cls(**kwargs)
     check = getattr(obj, "check", None)
     if check is not None:
