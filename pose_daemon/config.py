@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import stat
 import sys
 from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from importlib import resources
@@ -198,16 +199,21 @@ class Rule:
         return tuple(out)
 
 
+_SHOW_DEPTH = 4
+
+
 def _num(v: float) -> str:
     return str(int(v)) if float(v).is_integer() and abs(v) < 1e15 else repr(float(v))
 
 
-def _show(value: Any) -> str:
-    """A value as it would be written in TOML (for error messages)."""
+def _show(value: Any, _depth: int = 0) -> str:
+    """A value as it would be written in TOML (for error messages); deep lists end in "[...]"."""
     if value is MISSING:
         return "nothing"
     if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_show(v) for v in value) + "]"
+        if _depth >= _SHOW_DEPTH:  # hundreds of levels would exhaust the stack, and say nothing
+            return "[...]"
+        return "[" + ", ".join(_show(v, _depth + 1) for v in value) + "]"
     if isinstance(value, dict):
         return "a table"
     if isinstance(value, float) and not math.isfinite(value):
@@ -539,6 +545,8 @@ def parse_config(text: str, name: str = "<config>") -> Config:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{name}: invalid TOML: {' '.join(str(exc).split())}") from None
+    except RecursionError:  # the reader recurses once per level of nested arrays/inline tables
+        raise ConfigError(f"{name}: invalid TOML: arrays or inline tables nested too deeply") from None
     return config_from_dict(data, name)
 
 
@@ -634,9 +642,21 @@ def _check_aruco(marker: MarkerConfig) -> None:
         raise _Invalid("id", f"an integer in [0, {n_ids - 1}] (the ids of {marker.dictionary})", marker.id)
 
 
+_NOT_REGULAR = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+                (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
 def load_config(path: Union[str, Path]) -> Config:
     """Read and validate a TOML file; ConfigError (one line: file, key, expectation) otherwise."""
     p = Path(path)
+    try:
+        mode = p.stat().st_mode  # follows links; never opens the file
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read config: {exc.strerror or exc}") from None
+    if not stat.S_ISREG(mode):
+        # A FIFO would block the read for ever, a device could be endless: refuse, unread.
+        what = next((name for test, name in _NOT_REGULAR if test(mode)), "not a file")
+        raise ConfigError(f"{p}: cannot read config: not a regular file ({what})")
     try:
         raw = p.read_bytes()
     except OSError as exc:
