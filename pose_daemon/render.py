@@ -29,6 +29,8 @@ __all__ = [
     "render_marker",
     "render_plane",
     "render_empty",
+    "render_frame",
+    "aruco_texture",
     "make_background",
     "marker_texture_grid",
     "trajectory",
@@ -594,6 +596,35 @@ def render_empty(camera: Camera, *, effects: Effects = _DEFAULT_EFFECTS,
     """A frame without any marker (false-positive tests)."""
     rng = _rng(rng)
     return _apply_effects(_background(camera, effects, rng, background).copy(), effects, rng)
+
+
+def aruco_texture(marker: Marker, white: float = 220.0, black: float = 25.0) -> Tuple[np.ndarray, Tuple[float, float]]:
+    """OpenCV's own image of an ArUco marker on white paper with a quiet zone of a quarter of
+    its side: (grey texture float32, (width, height) metres) for ``render_plane``."""
+    from .detect import aruco_compat
+
+    cells = aruco_compat.marker_image(aruco_compat.get_dictionary(marker.dictionary), marker.id, 600)
+    tex = cv2.copyMakeBorder(cells, 150, 150, 150, 150, cv2.BORDER_CONSTANT, value=255)
+    tex = black + (white - black) * (tex.astype(np.float32) / 255.0)
+    return tex, (marker.width * 1.5, marker.height * 1.5)
+
+
+def render_frame(camera: Camera, marker: Marker, rvec, tvec, *, effects: Effects,
+                 rng: np.random.Generator,
+                 background: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray]:
+    """(image uint8, true corners (4, 2) TL, TR, BR, BL pixels) of the marker at (rvec, tvec).
+
+    ArUco markers are drawn from OpenCV's own marker image, so that a detector is judged on
+    OpenCV's pattern itself; other markers as ``render_marker`` draws them.
+    """
+    if marker.type == "aruco":
+        tex, size = aruco_texture(marker, effects.white, effects.black)
+        image = render_plane(camera, tex, size, rvec, tvec, effects=effects, rng=rng, background=background)
+        pts = marker.object_points @ R_from_rvec(np.asarray(rvec, float).reshape(3)).T + \
+            np.asarray(tvec, float).reshape(3)
+        return image, camera.project(pts)
+    frame = render_marker(camera, marker, rvec, tvec, effects=effects, rng=rng, background=background)
+    return frame.image, frame.corners_px
 
 
 # --------------------------------------------------------------------------- poses

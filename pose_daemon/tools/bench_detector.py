@@ -108,36 +108,6 @@ def _effects(rng: np.random.Generator):
                    lighting_gradient=float(rng.uniform(0.0, 0.6)))
 
 
-def aruco_texture(marker: Marker, white: float = 220.0, black: float = 25.0):
-    """OpenCV's own image of an ArUco marker on white paper with a quiet zone of a quarter of
-    its side: (grey texture float32, (width, height) metres) for ``render.render_plane``."""
-    from ..detect import aruco_compat
-
-    cells = aruco_compat.marker_image(aruco_compat.get_dictionary(marker.dictionary), marker.id, 600)
-    tex = cv2.copyMakeBorder(cells, 150, 150, 150, 150, cv2.BORDER_CONSTANT, value=255)
-    tex = black + (white - black) * (tex.astype(np.float32) / 255.0)
-    return tex, (marker.width * 1.5, marker.height * 1.5)
-
-
-def render_frame(camera: Camera, marker: Marker, rvec, tvec, *, effects, rng: np.random.Generator,
-                 background: Optional[np.ndarray] = None):
-    """(image uint8, true corners (4, 2) TL, TR, BR, BL pixels) of the marker at (rvec, tvec).
-
-    ArUco markers are drawn from OpenCV's own marker image, so that the anchor and the
-    detector are judged on OpenCV's pattern itself.
-    """
-    from ..render import render_marker, render_plane
-
-    if marker.type == "aruco":
-        tex, size = aruco_texture(marker, effects.white, effects.black)
-        image = render_plane(camera, tex, size, rvec, tvec, effects=effects, rng=rng, background=background)
-        pts = marker.object_points @ R_from_rvec(np.asarray(rvec, float).reshape(3)).T + \
-            np.asarray(tvec, float).reshape(3)
-        return image, camera.project(pts)
-    frame = render_marker(camera, marker, rvec, tvec, effects=effects, rng=rng, background=background)
-    return frame.image, frame.corners_px
-
-
 def _align_labels(found: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """A plain square's labels are only continuous, not absolute: align them to the truth."""
     shifts = [np.roll(found, -k, axis=0) for k in range(4)]
@@ -214,7 +184,7 @@ def _run_marker_type(kind: str, n_frames: int, seed: int, camera: Camera,
                      repeat: int) -> Dict[str, Tally]:
     from ..detect import MarkerDetector, aruco_compat
     from ..pose.estimator import EstimationError, estimate_pose
-    from ..render import random_pose
+    from ..render import random_pose, render_frame
 
     if kind == "aruco":
         marker = Marker(MARKER_SIZE_M, MARKER_SIZE_M, type="aruco", dictionary=DICTIONARY, id=MARKER_ID)
