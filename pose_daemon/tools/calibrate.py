@@ -9,16 +9,20 @@ from __future__ import annotations
 import math
 import os
 import re
+import sys
 import tempfile
+import time
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Tuple, Union
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import cv2
 import numpy as np
 
 from ..camera import Camera
-from ..errors import ConfigError, UserError
+from ..capture.replay import IMAGE_EXTENSIONS
+from ..errors import ConfigError, EndOfStream, SourceError, UserError
 from ..geometry import R_from_rvec
 
 BOARD_KINDS = ("chessboard", "charuco")
@@ -447,6 +451,263 @@ def distortion_difference_px(a: Camera, b: Camera, step_px: float = 10.0,
         return np.stack([n[:, 0] * cam.fx + cam.cx, n[:, 1] * cam.fy + cam.cy], axis=1) - px
 
     return float(np.linalg.norm(shift(a) - shift(b), axis=1).max())
+
+
+# --------------------------------------------------------------------------- collecting views
+
+#: Live collection: a status line at least this often, seconds.
+STATUS_INTERVAL_S = 5.0
+
+
+def refuse_too_few(views: List[BoardView], name: str) -> None:
+    """UserError when ``views`` are fewer than MIN_VIEWS."""
+    if len(views) < MIN_VIEWS:
+        raise UserError(f"{name}: only {len(views)} usable view(s) of the board; calibration needs at "
+                        f"least {MIN_VIEWS} (show the board at more places, tilts and distances)")
+
+
+def report(result: CalibrationResult, say: Callable[[str], None]) -> None:
+    """The result as lines through ``say``: errors per view, coverage map, the fitted model."""
+    cam = result.camera
+    say(f"RMS reprojection error: {result.rms_px:.3f} px over {len(result.views)} views")
+    median = float(np.median(result.view_errors_px))
+    for k, (view, err) in enumerate(zip(result.views, result.view_errors_px)):
+        flag = f"  OUTLIER (> {max(OUTLIER_FACTOR * median, OUTLIER_FLOOR_PX):.2f} px)" \
+            if k in result.outliers else ""
+        say(f"  view {k + 1:3d} {view.name:<28s} {len(view.image_points):4d} corners  {err:6.3f} px{flag}")
+    if result.rejected_corners:
+        whole = sum(1 for v, n in zip(result.views, result.rejected) if n == len(v.image_points))
+        say(f"{result.rejected_corners} corner(s) in {sum(1 for n in result.rejected if n)} view(s) left out of "
+            f"the fit, their residual far above the rest ({whole} view(s) left out whole)")
+    cov = Coverage(cam.width, cam.height)
+    for v in result.views:
+        cov.add(v.image_points)
+    say(f"coverage of the image: {result.coverage:.0%} of {COVERAGE_GRID[0]}x{COVERAGE_GRID[1]} cells")
+    for line in cov.map():
+        say("  " + line)
+    d = ", ".join(f"{x:.5f}" for x in cam.dist[:5])
+    say(f"fx {cam.fx:.2f} fy {cam.fy:.2f} cx {cam.cx:.2f} cy {cam.cy:.2f} px; dist [{d}] "
+        f"({cam.width}x{cam.height})")
+
+
+def _gray(image: np.ndarray) -> np.ndarray:
+    if image.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        image = cv2.cvtColor(image, code)
+    if image.dtype != np.uint8:
+        image = (image >> 8).astype(np.uint8) if image.dtype == np.uint16 else image.astype(np.uint8)
+    return image
+
+
+def views_from_path(path: Path, spec: BoardSpec, *, max_views: int = 20, seconds: Optional[float] = None,
+                    save_views: Optional[Path] = None,
+                    say: Callable[[str], None] = print) -> Tuple[List[BoardView], Tuple[int, int], str]:
+    """Views of the board in a folder of images (every image a view) or in a recording
+    (``views_from_source``): (views, (width, height), name for messages)."""
+    from ..capture import recording
+
+    if not path.exists():
+        raise UserError(f"{path}: no such folder or recording")
+    if path.is_dir() and recording.is_recording(path):
+        from ..capture.replay import ReplaySource
+
+        return views_from_source(ReplaySource(path, realtime=False), spec, max_views=max_views,
+                                 seconds=seconds, save_views=save_views, say=say, name=str(path))
+    if not path.is_dir():
+        raise UserError(f"{path}: expected a folder of images or a recording folder")
+    files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+    if not files:
+        raise UserError(f"{path}: holds no images ({', '.join(IMAGE_EXTENSIONS)})")
+    detector = BoardDetector(spec)
+    views: List[BoardView] = []
+    size: Optional[Tuple[int, int]] = None
+    unreadable = 0
+    for f in files:
+        image = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        if image is None or image.size == 0:
+            unreadable += 1
+            say(f"  {f.name}: unreadable image, skipped")
+            continue
+        gray = _gray(image)
+        this = (gray.shape[1], gray.shape[0])
+        if size is None:
+            size = this
+        elif this != size:
+            raise UserError(f"{f}: image is {this[0]}x{this[1]}, the others {size[0]}x{size[1]}; "
+                            "calibrate one resolution at a time")
+        view = detector.detect(gray, f.name)
+        if view is None:
+            say(f"  {f.name}: no board found")
+            continue
+        views.append(view)
+    if size is None:
+        raise UserError(f"{path}: none of its {len(files)} image file(s) could be read")
+    if not views:
+        raise UserError(f"{path}: no {spec.noun} found in any of its {len(files) - unreadable} "
+                        f"image(s) (check --board: {spec.describe()})")
+    say(f"board found in {len(views)} of {len(files)} image(s)")
+    return views, size, str(path)
+
+
+def views_live(spec: BoardSpec, config: Optional[str] = None, *, max_views: int = 20,
+               seconds: Optional[float] = None, save_views: Optional[Path] = None,
+               say: Callable[[str], None] = print) -> Tuple[List[BoardView], Tuple[int, int], str]:
+    """Views from the camera source of ``config`` (the default config without one)."""
+    from ..capture import open_source
+    from ..config import load_config_or_default
+
+    cfg = load_config_or_default(config)
+    try:
+        source = open_source(cfg.camera, cfg)
+    except SourceError as exc:
+        raise UserError(str(exc)) from None
+    if seconds is None:
+        say(f"live from {cfg.camera.source}: move the board around until {max_views} views are "
+            "kept (Ctrl-C stops)")
+    else:
+        say(f"live from {cfg.camera.source}: up to {max_views} views or {seconds:g} s")
+    return views_from_source(source, spec, max_views=max_views, seconds=seconds, save_views=save_views,
+                             say=say, name=f"camera {cfg.camera.source}")
+
+
+def views_from_source(source, spec: BoardSpec, *, max_views: int = 20, seconds: Optional[float] = None,
+                      save_views: Optional[Path] = None, say: Callable[[str], None] = print,
+                      name: str = "source",
+                      clock: Callable[[], float] = time.monotonic) -> Tuple[List[BoardView], Tuple[int, int], str]:
+    """Views from a frame source, kept only when the board is somewhere new; stops after
+    ``max_views`` views, ``seconds`` s on ``clock``, the end of the stream or Ctrl-C. With
+    ``save_views`` the kept frames are also written there as PNG files."""
+    detector = BoardDetector(spec, fast=True)
+    views: List[BoardView] = []
+    selector: Optional[ViewSelector] = None
+    coverage: Optional[Coverage] = None
+    size: Optional[Tuple[int, int]] = None
+    frames = seen = 0
+    save_dir = Path(save_views) if save_views else None
+    if save_dir is not None:
+        try:
+            save_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise UserError(f"{save_dir}: cannot create: {exc.strerror or exc}") from None
+    try:
+        source.open()
+    except SourceError as exc:
+        raise UserError(f"{name}: {exc}") from None
+    t0 = last_status = clock()
+    try:
+        while len(views) < max_views and (seconds is None or clock() - t0 < seconds):
+            try:
+                frame = source.read()
+            except EndOfStream:
+                break
+            except SourceError as exc:
+                raise UserError(f"{name}: {exc}") from None
+            frames += 1
+            gray = _gray(frame.image)
+            if size is None:
+                size = (gray.shape[1], gray.shape[0])
+                selector, coverage = ViewSelector(*size), Coverage(*size)
+            elif (gray.shape[1], gray.shape[0]) != size:
+                raise UserError(f"{name}: frame {frame.seq} is {gray.shape[1]}x{gray.shape[0]}, the first was "
+                                f"{size[0]}x{size[1]}; calibrate one resolution at a time")
+            now = clock()
+            if now - last_status >= STATUS_INTERVAL_S:
+                # Something on screen while nobody holds the board up.
+                last_status = now
+                say(f"  {frames} frame(s), board seen in {seen}, {len(views)} view(s) kept")
+            view = detector.detect(gray, f"frame {frame.seq}")
+            if view is None:
+                continue
+            seen += 1
+            assert selector is not None and coverage is not None
+            if not selector.is_new(view):
+                continue
+            views.append(view)
+            coverage.add(view.image_points)
+            if save_dir is not None:
+                view.name = f"view{len(views):03d}.png"
+                if not cv2.imwrite(str(save_dir / view.name), gray):
+                    raise UserError(f"{save_dir}: cannot write {view.name}")
+            sig = selector.signatures[-1]
+            say(f"  kept view {len(views):3d}/{max_views} (frame {frame.seq}): centre "
+                f"({sig[0]:.2f}, {sig[1]:.2f}) size {np.exp(sig[2]):.2f} tilt "
+                f"({np.degrees(sig[3]):+.0f}, {np.degrees(sig[4]):+.0f}) deg; coverage {coverage.fraction:.0%}")
+    except KeyboardInterrupt:
+        # Ctrl-C ends the collection; the views kept so far are calibrated.
+        say(f"stopped after {frames} frame(s)")
+    finally:
+        source.close()
+    if size is None:
+        raise UserError(f"{name}: no frames")
+    if not views:
+        raise UserError(f"{name}: no {spec.noun} found in any of {frames} frame(s) "
+                        f"(check --board: {spec.describe()})")
+    say(f"board seen in {seen} of {frames} frame(s); {len(views)} distinct view(s) kept")
+    return views, size, name
+
+
+def run_calibration(spec: BoardSpec, input_path: Optional[str] = None, *, config: Optional[str] = None,
+                    out: Optional[str] = None, max_views: int = 20, seconds: Optional[float] = None,
+                    save_views: Optional[str] = None, drop_outliers: bool = False,
+                    min_coverage: float = DEFAULT_MIN_COVERAGE, fit_k3: bool = False) -> int:
+    """``pose-daemon calibrate``: views from ``input_path`` (a folder of images or a recording)
+    or live from ``config``'s camera, the fit, its report, and the [camera] section written to
+    ``out`` ('-' = stdout, the default without ``config``) and/or into ``config`` in place.
+    Returns the exit status; UserError for every user mistake or a poor calibration."""
+    if config:
+        from ..config import load_config
+
+        load_config(config)   # a broken config is reported before the work, not after
+    # The TOML goes to stdout when nothing else is asked for: the report then goes to stderr.
+    to_stdout = out == "-" or (out is None and not config)
+    stream = sys.stderr if to_stdout else sys.stdout
+
+    def say(line: str) -> None:
+        print(line, file=stream, flush=True)
+
+    say(f"board: {spec.describe()}")
+    if input_path:
+        views, size, name = views_from_path(Path(input_path), spec, max_views=max_views, seconds=seconds,
+                                            save_views=save_views, say=say)
+    else:
+        views, size, name = views_live(spec, config, max_views=max_views, seconds=seconds,
+                                       save_views=save_views, say=say)
+    width, height = size
+    refuse_too_few(views, name)
+
+    result = calibrate_views(views, width, height, fit_k3=fit_k3)
+    report(result, say)
+    if result.outliers and drop_outliers:
+        keep = [v for k, v in enumerate(result.views) if k not in set(result.outliers)]
+        say(f"dropping {len(result.outliers)} outlier view(s) and calibrating again")
+        refuse_too_few(keep, name)
+        result = calibrate_views(keep, width, height, fit_k3=fit_k3)
+        report(result, say)
+    elif result.outliers:
+        say(f"{len(result.outliers)} view(s) flagged as outliers: check them, or run again with "
+            "--drop-outliers to leave them out")
+    if result.coverage < min_coverage:
+        raise UserError(f"poor coverage: the board's corners reached {result.coverage:.0%} of the image "
+                        f"(need {min_coverage:.0%}); add views with the board near the edges and corners")
+
+    cam = result.camera
+    stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    comment = (f"pose-daemon calibrate, {stamp}: {len(result.views)} views of {spec.describe()}\n"
+               f"RMS reprojection error {result.rms_px:.3f} px, image coverage {result.coverage:.0%}")
+    section = camera_toml(cam, comment)
+    if out and out != "-":
+        try:
+            Path(out).write_text(section, encoding="utf-8")
+        except OSError as exc:
+            raise UserError(f"{out}: cannot write: {exc.strerror or exc}") from None
+        say(f"wrote [camera] to {out}")
+    elif to_stdout:
+        sys.stdout.write(section)
+        sys.stdout.flush()
+    if config:
+        update_config_file(config, cam)
+        say(f"updated [camera] in {config}")
+    return 0
 
 
 # --------------------------------------------------------------------------- [camera] TOML
