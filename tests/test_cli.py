@@ -38,3 +38,20 @@ def test_missing_config_file_is_one_line_and_exit_2(tmp_path):
     assert res.returncode == 2
     assert "Traceback" not in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and "nope.toml" in res.stderr
+
+
+def test_argparse_only_in_the_command_line():
+    """cli.py's rule: argparse lives in cli.py and commands/ alone; tools/ and the library
+    are plain functions."""
+    import pathlib
+    import re
+
+    package = pathlib.Path(__file__).resolve().parent.parent / "pose_daemon"
+    offenders = []
+    for path in sorted(package.rglob("*.py")):
+        rel = path.relative_to(package).as_posix()
+        if rel == "cli.py" or rel.startswith("commands/"):
+            continue
+        if re.search(r"^\s*(import argparse|from argparse import)", path.read_text(encoding="utf-8"), re.M):
+            offenders.append(rel)
+    assert offenders == []

@@ -7,8 +7,6 @@ tracked marker and for a whole-frame search, with the Pi 2 equivalent (x20).
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -18,7 +16,6 @@ import cv2
 import numpy as np
 
 from ..camera import Camera, Marker
-from ..errors import UserError
 from ..geometry import R_from_rvec, rotation_angle_deg, rvec_from_R
 
 #: How much slower a Pi 2 (900 MHz Cortex-A7) runs this code than the machine measured here.
@@ -85,17 +82,6 @@ class Tally:
             "false_detections": self.false_detections,
             "empty_frames": self.empty_frames,
         }
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--frames", type=int, default=300, metavar="N",
-                        help="marker frames per marker type (default 300)")
-    parser.add_argument("--empty", type=int, default=200, metavar="N",
-                        help="marker-free frames for false detections (default 200)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed of poses and images")
-    parser.add_argument("--repeat", type=int, default=3, metavar="K",
-                        help="time each frame K times and keep the fastest (default 3)")
-    parser.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
 
 
 def _effects(rng: np.random.Generator):
@@ -311,7 +297,8 @@ def _fmt(value: Optional[float], spec: str, suffix: str = "") -> str:
     return "-" if value is None else format(value, spec) + suffix
 
 
-def _print_tables(result: dict) -> None:
+def print_report(result: dict) -> None:
+    """The report of ``run_bench`` as the two tables."""
     cfg = result["setup"]
     print(f"pose-daemon bench detector: {cfg['frames']} frames per marker type, "
           f"{cfg['width']}x{cfg['height']} fx={cfg['fx']:.0f}, {cfg['marker_m']} m marker at 0.5-3 m, "
@@ -361,17 +348,16 @@ def _print_tables(result: dict) -> None:
           " CPU = processor time of all threads (OpenCV's detector also uses idle cores)")
 
 
-def run(args: argparse.Namespace) -> int:
-    if args.frames < 1:
-        raise UserError(f"--frames must be at least 1, got {args.frames}")
-    if args.repeat < 1:
-        raise UserError(f"--repeat must be at least 1, got {args.repeat}")
-    if args.empty < 0:
-        raise UserError(f"--empty must be 0 or more, got {args.empty}")
+def run_bench(frames: int = 300, empty: int = 200, seed: int = 0, repeat: int = 3) -> dict:
+    """The benchmark on ``frames`` marker frames per marker type and ``empty`` marker-free
+    frames, each timed ``repeat`` times: the report (setup, rows, timing_rows, ...) as a dict
+    of plain values, JSON-ready."""
+    if frames < 1 or repeat < 1 or empty < 0:
+        raise ValueError(f"frames and repeat must be >= 1, empty >= 0 (got {frames}, {repeat}, {empty})")
     camera = CAMERA
-    tallies = {kind: _run_marker_type(kind, args.frames, args.seed, camera, args.repeat)
+    tallies = {kind: _run_marker_type(kind, frames, seed, camera, repeat)
                for kind in ("square", "aruco")}
-    _run_empty(tallies, args.empty, args.seed, camera)
+    _run_empty(tallies, empty, seed, camera)
     rows = []
     for kind in ("square", "aruco"):
         for key in ("ours", "anchor"):
@@ -388,17 +374,13 @@ def run(args: argparse.Namespace) -> int:
         ("anchor: ArUco subpix + IPPE_SQUARE", an["time_full_median_ms"], an["cpu_full_median_ms"]),
     ]
     result = {
-        "setup": {"frames": args.frames, "empty_frames": args.empty, "seed": args.seed,
+        "setup": {"frames": frames, "empty_frames": empty, "seed": seed,
                   "width": camera.width, "height": camera.height, "fx": camera.fx,
                   "marker_m": MARKER_SIZE_M, "dictionary": DICTIONARY, "id": MARKER_ID,
-                  "opencv": cv2.__version__, "pi2_factor": PI2_FACTOR, "repeat": args.repeat},
+                  "opencv": cv2.__version__, "pi2_factor": PI2_FACTOR, "repeat": repeat},
         "rows": rows,
         "timing_rows": timing_rows,
         "anchor_full_ms": an["time_full_median_ms"],
         "anchor_full_cpu_ms": an["cpu_full_median_ms"],
     }
-    if args.json:
-        print(json.dumps(result))
-    else:
-        _print_tables(result)
-    return 0
+    return result
