@@ -158,26 +158,19 @@ _ARUCO_BITS: Dict[Tuple[str, int], np.ndarray] = {}
 
 
 def aruco_bits(dictionary: str, marker_id: int) -> np.ndarray:
-    """The cells of an OpenCV ArUco marker including its black border: (n+2, n+2), 1 = white.
-
-    Works with OpenCV 4.6 (drawMarker) and 4.7+ (generateImageMarker).
-    """
+    """The cells of an OpenCV ArUco marker including its black border: (n+2, n+2), 1 = white,
+    read from detect/aruco_compat's image of the marker (OpenCV's own pattern)."""
     key = (dictionary, marker_id)
     if key not in _ARUCO_BITS:
-        aruco = cv2.aruco
-        if not hasattr(aruco, dictionary):
-            raise ValueError(f"unknown ArUco dictionary {dictionary!r}")
-        d = aruco.getPredefinedDictionary(getattr(aruco, dictionary))
+        from .detect import aruco_compat
+
+        d = aruco_compat.get_dictionary(dictionary)
         size = int(d.markerSize) + 2
-        n_markers = int(d.bytesList.shape[0])
+        n_markers = aruco_compat.dictionary_size(d)
         if not 0 <= marker_id < n_markers:
             raise ValueError(f"ArUco id {marker_id} is not in {dictionary} (ids 0..{n_markers - 1})")
         # 10 px per cell, then read each cell's centre: exact whatever the scaling rule.
-        px = 10 * size
-        if hasattr(aruco, "generateImageMarker"):
-            img = aruco.generateImageMarker(d, marker_id, px, borderBits=1)
-        else:
-            img = aruco.drawMarker(d, marker_id, px, borderBits=1)
+        img = aruco_compat.marker_image(d, marker_id, 10 * size, border_bits=1)
         centres = np.arange(size) * 10 + 5
         _ARUCO_BITS[key] = (img[np.ix_(centres, centres)] > 127).astype(np.float64)
     return _ARUCO_BITS[key]

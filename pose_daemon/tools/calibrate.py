@@ -1,7 +1,8 @@
 """Camera calibration from views of a chessboard or ChArUco board: board detection, view
 selection, OpenCV's calibrateCamera, and the [camera] TOML section it produces.
 
-Works on OpenCV 4.6 (the Pi's: old cv2.aruco functions) and >= 4.7 (CharucoDetector).
+ChArUco boards go through detect/aruco_compat.py, which works on OpenCV 4.6 (the Pi's) and
+newer alike.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..capture.replay import IMAGE_EXTENSIONS
+from ..detect import aruco_compat
 from ..errors import ConfigError, EndOfStream, SourceError, UserError
 from ..geometry import R_from_rvec
 
@@ -122,10 +124,8 @@ def parse_board(text: str) -> BoardSpec:
         raise UserError(f"--board {text!r}: a ChArUco board needs at least 3x3 squares")
     if not (math.isfinite(marker_m) and 0 < marker_m < square_m):
         raise UserError(f"--board {text!r}: the marker size must be positive and smaller than the square")
-    from ..detect.aruco_compat import dictionary_size, get_dictionary
-
     try:
-        size = dictionary_size(get_dictionary(parts[4]))
+        size = aruco_compat.dictionary_size(aruco_compat.get_dictionary(parts[4]))
     except ValueError as exc:
         raise UserError(f"--board {text!r}: {exc}") from None
     if size < cols * rows // 2:
@@ -153,10 +153,9 @@ class BoardDetector:
             self._object = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1) * spec.square_m
             self._object = self._object.astype(np.float32)
         else:
-            self._board, self._charuco = _charuco_board(spec)
-            corners = (self._board.getChessboardCorners() if hasattr(self._board, "getChessboardCorners")
-                       else self._board.chessboardCorners)
-            self._object = np.asarray(corners, dtype=np.float32).reshape(-1, 3)
+            board = aruco_compat.charuco_board(spec)
+            self._charuco = aruco_compat.CharucoFinder(board)
+            self._object = aruco_compat.charuco_corners_3d(board)
 
     def detect(self, gray: np.ndarray, name: str = "") -> Optional[BoardView]:
         """The board's corners in ``gray``, or None when it is not found."""
@@ -186,19 +185,9 @@ class BoardDetector:
         return BoardView(_refine(gray, corners, 0.5), self._object.copy(), name)
 
     def _detect_charuco(self, gray: np.ndarray, name: str) -> Optional[BoardView]:
-        if self._charuco is not None:
-            ch_corners, ch_ids, _, _ = self._charuco.detectBoard(gray)
-        else:
-            aruco = cv2.aruco
-            params = aruco.DetectorParameters_create()
-            m_corners, m_ids, _ = aruco.detectMarkers(gray, self._board.dictionary, parameters=params)
-            if m_ids is None or len(m_ids) == 0:
-                return None
-            _, ch_corners, ch_ids = aruco.interpolateCornersCharuco(m_corners, m_ids, gray, self._board)
-        if ch_ids is None or ch_corners is None or len(ch_ids) < 6:
+        pts, ids = self._charuco.detect(gray)
+        if len(ids) < 6:
             return None
-        ids = np.asarray(ch_ids).reshape(-1)
-        pts = np.asarray(ch_corners, dtype=np.float32).reshape(-1, 2)
         # Refined again with a window that stays inside the white margin between a corner and
         # the markers next to it: OpenCV's interpolation leaves errors up to ~0.3 px on
         # blurred views, this brings them under ~0.1 px.
@@ -225,19 +214,6 @@ def _refine(gray: np.ndarray, corners: np.ndarray, window_fraction: float) -> np
     return refined.reshape(-1, 2).astype(np.float64)
 
 
-def _charuco_board(spec: BoardSpec):
-    """(board, CharucoDetector or None on OpenCV 4.6)."""
-    from ..detect.aruco_compat import get_dictionary
-
-    aruco = cv2.aruco
-    dictionary = get_dictionary(spec.dictionary)
-    if hasattr(aruco, "CharucoDetector"):
-        board = aruco.CharucoBoard((spec.cols, spec.rows), spec.square_m, spec.marker_m, dictionary)
-        return board, aruco.CharucoDetector(board)
-    board = aruco.CharucoBoard_create(spec.cols, spec.rows, spec.square_m, spec.marker_m, dictionary)
-    return board, None
-
-
 def board_image(spec: BoardSpec, px_per_square: int = 40, margin_squares: float = 0.5) -> np.ndarray:
     """The board as printed (uint8, 255 white), with a white margin of ``margin_squares``
     squares around the squares area; its physical size is ``board_image_size_m``."""
@@ -248,8 +224,7 @@ def board_image(spec: BoardSpec, px_per_square: int = 40, margin_squares: float 
         # Top-left square black, as OpenCV's and most printed boards.
         inner = np.where((xx + yy) % 2 == 0, 0, 255).astype(np.uint8)
     else:
-        board, _ = _charuco_board(spec)
-        inner = (board.generateImage((w, h)) if hasattr(board, "generateImage") else board.draw((w, h)))
+        inner = aruco_compat.charuco_board_image(aruco_compat.charuco_board(spec), (w, h))
     m = int(round(margin_squares * px_per_square))
     return cv2.copyMakeBorder(inner, m, m, m, m, cv2.BORDER_CONSTANT, value=255)
 
