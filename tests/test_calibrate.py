@@ -531,3 +531,12 @@ def _accuracy_report(seeds: int = 6) -> None:
 
 if __name__ == "__main__":
     _accuracy_report()
+
+
+def test_an_image_of_another_dtype_is_a_clear_error_not_a_silent_cast(tmp_path: Path, capsys) -> None:
+    image = np.full((48, 64), 0.5, np.float32)
+    assert cv2.imwrite(str(tmp_path / "a.tiff"), image)
+    code, _, err = run_cli([tmp_path, "--board", CHESSBOARD], capsys)
+    assert code == 2
+    assert err.strip().splitlines()[-1] == (f"pose-daemon: error: {tmp_path / 'a.tiff'}: image must be uint8 "
+                                            "(or uint16) grey levels, got dtype float32")

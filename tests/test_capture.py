@@ -364,3 +364,52 @@ def test_recording_cut_off_mid_line_replays_the_frames_before_it(tmp_path: Path,
     index.write_text(full + "garbage\n")
     with pytest.raises(SourceError, match=r"index.jsonl:4: not a frame entry"):
         read_index(rec)
+
+
+# --------------------------------------------------------------------------- grey conversion
+
+
+def test_as_gray_is_the_one_conversion_of_sources_detector_and_calibration() -> None:
+    from pose_daemon.capture import opencv, replay
+    from pose_daemon.capture.base import as_gray
+    from pose_daemon.detect import detector
+    from pose_daemon.tools import calibrate
+
+    assert detector.as_gray is as_gray and opencv.as_gray is as_gray
+    assert replay.as_gray is as_gray and calibrate.as_gray is as_gray
+    grey = (np.arange(12 * 16) % 256).astype(np.uint8).reshape(12, 16)
+    assert np.array_equal(as_gray(grey), grey)
+    assert np.array_equal(as_gray(grey[:, :, None]), grey)
+    assert np.array_equal(as_gray(grey.astype(np.uint16) << 8 | 0xFF), grey)   # the top byte
+    bgr = np.dstack([grey, grey, grey])
+    assert np.array_equal(as_gray(bgr), grey)
+    assert np.array_equal(as_gray(np.dstack([bgr, np.full_like(grey, 7)])), grey)
+
+
+@pytest.mark.parametrize("image, message", [
+    (np.zeros((4, 4), np.float32), "uint8 (or uint16) grey levels, got dtype float32"),
+    (np.zeros((4, 4), np.int32), "got dtype int32"),
+    (np.zeros((4, 4, 2), np.uint8), "got shape (4, 4, 2)"),
+    (np.zeros((2, 4, 4, 3), np.uint8), "got shape (2, 4, 4, 3)"),
+    (np.zeros((0, 4), np.uint8), "image is empty"),
+    ([[0, 1]], "must be a numpy array, got list"),
+])
+def test_as_gray_refuses_what_it_cannot_convert(image, message: str) -> None:
+    from pose_daemon.capture.base import as_gray
+
+    with pytest.raises(ValueError) as info:
+        as_gray(image)
+    assert message in str(info.value)
+
+
+def test_a_float_image_in_a_replay_folder_is_skipped_by_name(tmp_path: Path) -> None:
+    frames = _frames(2)
+    cv2.imwrite(str(tmp_path / "000.png"), frames[0])
+    assert cv2.imwrite(str(tmp_path / "001.tiff"), frames[1].astype(np.float32))
+    source = ReplaySource(tmp_path, realtime=False)
+    source.open()
+    assert source.read().seq == 0
+    with pytest.raises(EndOfStream):
+        source.read()
+    assert [(Path(f).name, why) for f, why in source.skipped] == [
+        ("001.tiff", "image must be uint8 (or uint16) grey levels, got dtype float32")]

@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from ..camera import Camera
+from ..capture.base import as_gray
 from ..capture.replay import IMAGE_EXTENSIONS
 from ..detect import aruco_compat
 from ..errors import ConfigError, EndOfStream, SourceError, UserError
@@ -465,15 +466,6 @@ def report(result: CalibrationResult, say: Callable[[str], None]) -> None:
         f"({cam.width}x{cam.height})")
 
 
-def _gray(image: np.ndarray) -> np.ndarray:
-    if image.ndim == 3:
-        code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-        image = cv2.cvtColor(image, code)
-    if image.dtype != np.uint8:
-        image = (image >> 8).astype(np.uint8) if image.dtype == np.uint16 else image.astype(np.uint8)
-    return image
-
-
 def views_from_path(path: Path, spec: BoardSpec, *, max_views: int = 20, seconds: Optional[float] = None,
                     save_views: Optional[Path] = None,
                     say: Callable[[str], None] = print) -> Tuple[List[BoardView], Tuple[int, int], str]:
@@ -503,7 +495,10 @@ def views_from_path(path: Path, spec: BoardSpec, *, max_views: int = 20, seconds
             unreadable += 1
             say(f"  {f.name}: unreadable image, skipped")
             continue
-        gray = _gray(image)
+        try:
+            gray = as_gray(image)
+        except ValueError as exc:
+            raise UserError(f"{f}: {exc}") from None
         this = (gray.shape[1], gray.shape[0])
         if size is None:
             size = this
@@ -578,7 +573,10 @@ def views_from_source(source, spec: BoardSpec, *, max_views: int = 20, seconds: 
             except SourceError as exc:
                 raise UserError(f"{name}: {exc}") from None
             frames += 1
-            gray = _gray(frame.image)
+            try:
+                gray = as_gray(frame.image)
+            except ValueError as exc:
+                raise UserError(f"{name}: frame {frame.seq}: {exc}") from None
             if size is None:
                 size = (gray.shape[1], gray.shape[0])
                 selector, coverage = ViewSelector(*size), Coverage(*size)
