@@ -467,7 +467,7 @@ def report(result: CalibrationResult, say: Callable[[str], None]) -> None:
 
 
 def views_from_path(path: Path, spec: BoardSpec, *, max_views: int = 20, seconds: Optional[float] = None,
-                    save_views: Optional[Path] = None,
+                    save_views: Optional[Union[str, Path]] = None,
                     say: Callable[[str], None] = print) -> Tuple[List[BoardView], Tuple[int, int], str]:
     """Views of the board in a folder of images (every image a view) or in a recording
     (``views_from_source``): (views, (width, height), name for messages)."""
@@ -520,7 +520,7 @@ def views_from_path(path: Path, spec: BoardSpec, *, max_views: int = 20, seconds
 
 
 def views_live(spec: BoardSpec, config: Optional[str] = None, *, max_views: int = 20,
-               seconds: Optional[float] = None, save_views: Optional[Path] = None,
+               seconds: Optional[float] = None, save_views: Optional[Union[str, Path]] = None,
                say: Callable[[str], None] = print) -> Tuple[List[BoardView], Tuple[int, int], str]:
     """Views from the camera source of ``config`` (the default config without one)."""
     from ..capture import open_source
@@ -541,7 +541,7 @@ def views_live(spec: BoardSpec, config: Optional[str] = None, *, max_views: int 
 
 
 def views_from_source(source, spec: BoardSpec, *, max_views: int = 20, seconds: Optional[float] = None,
-                      save_views: Optional[Path] = None, say: Callable[[str], None] = print,
+                      save_views: Optional[Union[str, Path]] = None, say: Callable[[str], None] = print,
                       name: str = "source",
                       clock: Callable[[], float] = time.monotonic) -> Tuple[List[BoardView], Tuple[int, int], str]:
     """Views from a frame source, kept only when the board is somewhere new; stops after
@@ -621,7 +621,7 @@ def views_from_source(source, spec: BoardSpec, *, max_views: int = 20, seconds: 
 
 def run_calibration(spec: BoardSpec, input_path: Optional[str] = None, *, config: Optional[str] = None,
                     out: Optional[str] = None, max_views: int = 20, seconds: Optional[float] = None,
-                    save_views: Optional[str] = None, drop_outliers: bool = False,
+                    save_views: Optional[Union[str, Path]] = None, drop_outliers: bool = False,
                     min_coverage: float = DEFAULT_MIN_COVERAGE, fit_k3: bool = False) -> int:
     """``pose-daemon calibrate``: views from ``input_path`` (a folder of images or a recording)
     or live from ``config``'s camera, the fit, its report, and the [camera] section written to
