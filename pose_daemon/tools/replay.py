@@ -60,6 +60,8 @@ def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = No
         if ignored:
             print(f"pose-daemon: note: {path} has its own {' and '.join(ignored)}, used instead of "
                   f"those of {config}", file=sys.stderr)
+    # FrameProcessor.from_config takes the config's camera and marker, not the recording's:
+    # built here until processing.py has a constructor from models (from_models).
     detector = MarkerDetector(marker, max_misses=cfg.detector.max_misses,
                               min_side_px=cfg.detector.min_side_px, camera=camera)
     processor = FrameProcessor(camera, marker, method=cfg.estimator.method,
