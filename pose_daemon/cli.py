@@ -2,6 +2,13 @@
 
 Each subcommand lives in ``pose_daemon/commands/<name>.py`` and exposes
 ``register(subparsers)``, which adds its parser and sets ``func(args) -> int``.
+
+The rule that splits the command line from the library (kept by tests/test_cli.py):
+
+- ``commands/X.py`` = argparse + one call into the library + the exit status, under about 80
+  lines. No loops over frames, no evaluators, no hand-built processors.
+- ``tools/`` and the rest of the library have no argparse: plain functions, parameters in and
+  results out (a benchmark returns its report, and has a formatter for it).
 """
 
 from __future__ import annotations

@@ -29,6 +29,8 @@ __all__ = [
     "render_marker",
     "render_plane",
     "render_empty",
+    "render_frame",
+    "aruco_texture",
     "make_background",
     "marker_texture_grid",
     "trajectory",
@@ -156,26 +158,19 @@ _ARUCO_BITS: Dict[Tuple[str, int], np.ndarray] = {}
 
 
 def aruco_bits(dictionary: str, marker_id: int) -> np.ndarray:
-    """The cells of an OpenCV ArUco marker including its black border: (n+2, n+2), 1 = white.
-
-    Works with OpenCV 4.6 (drawMarker) and 4.7+ (generateImageMarker).
-    """
+    """The cells of an OpenCV ArUco marker including its black border: (n+2, n+2), 1 = white,
+    read from detect/aruco_compat's image of the marker (OpenCV's own pattern)."""
     key = (dictionary, marker_id)
     if key not in _ARUCO_BITS:
-        aruco = cv2.aruco
-        if not hasattr(aruco, dictionary):
-            raise ValueError(f"unknown ArUco dictionary {dictionary!r}")
-        d = aruco.getPredefinedDictionary(getattr(aruco, dictionary))
+        from .detect import aruco_compat
+
+        d = aruco_compat.get_dictionary(dictionary)
         size = int(d.markerSize) + 2
-        n_markers = int(d.bytesList.shape[0])
+        n_markers = aruco_compat.dictionary_size(d)
         if not 0 <= marker_id < n_markers:
             raise ValueError(f"ArUco id {marker_id} is not in {dictionary} (ids 0..{n_markers - 1})")
         # 10 px per cell, then read each cell's centre: exact whatever the scaling rule.
-        px = 10 * size
-        if hasattr(aruco, "generateImageMarker"):
-            img = aruco.generateImageMarker(d, marker_id, px, borderBits=1)
-        else:
-            img = aruco.drawMarker(d, marker_id, px, borderBits=1)
+        img = aruco_compat.marker_image(d, marker_id, 10 * size, border_bits=1)
         centres = np.arange(size) * 10 + 5
         _ARUCO_BITS[key] = (img[np.ix_(centres, centres)] > 127).astype(np.float64)
     return _ARUCO_BITS[key]
@@ -594,6 +589,35 @@ def render_empty(camera: Camera, *, effects: Effects = _DEFAULT_EFFECTS,
     """A frame without any marker (false-positive tests)."""
     rng = _rng(rng)
     return _apply_effects(_background(camera, effects, rng, background).copy(), effects, rng)
+
+
+def aruco_texture(marker: Marker, white: float = 220.0, black: float = 25.0) -> Tuple[np.ndarray, Tuple[float, float]]:
+    """OpenCV's own image of an ArUco marker on white paper with a quiet zone of a quarter of
+    its side: (grey texture float32, (width, height) metres) for ``render_plane``."""
+    from .detect import aruco_compat
+
+    cells = aruco_compat.marker_image(aruco_compat.get_dictionary(marker.dictionary), marker.id, 600)
+    tex = cv2.copyMakeBorder(cells, 150, 150, 150, 150, cv2.BORDER_CONSTANT, value=255)
+    tex = black + (white - black) * (tex.astype(np.float32) / 255.0)
+    return tex, (marker.width * 1.5, marker.height * 1.5)
+
+
+def render_frame(camera: Camera, marker: Marker, rvec, tvec, *, effects: Effects,
+                 rng: np.random.Generator,
+                 background: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray]:
+    """(image uint8, true corners (4, 2) TL, TR, BR, BL pixels) of the marker at (rvec, tvec).
+
+    ArUco markers are drawn from OpenCV's own marker image, so that a detector is judged on
+    OpenCV's pattern itself; other markers as ``render_marker`` draws them.
+    """
+    if marker.type == "aruco":
+        tex, size = aruco_texture(marker, effects.white, effects.black)
+        image = render_plane(camera, tex, size, rvec, tvec, effects=effects, rng=rng, background=background)
+        pts = marker.object_points @ R_from_rvec(np.asarray(rvec, float).reshape(3)).T + \
+            np.asarray(tvec, float).reshape(3)
+        return image, camera.project(pts)
+    frame = render_marker(camera, marker, rvec, tvec, effects=effects, rng=rng, background=background)
+    return frame.image, frame.corners_px
 
 
 # --------------------------------------------------------------------------- poses

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import sys
+import time
 import types
+from concurrent.futures import CancelledError, Future
 from dataclasses import replace
 from pathlib import Path
 
@@ -143,11 +145,27 @@ class _FakeRequest:
         self.cam.released += 1
 
 
+class _FakeJob:
+    """picamera2.job.Job: a concurrent.futures.Future the camera's event loop completes."""
+
+    def __init__(self) -> None:
+        self.future: Future = Future()
+
+    def get_result(self, timeout=None):
+        return self.future.result(timeout=timeout)
+
+    def cancel(self) -> None:
+        self.future.set_exception(CancelledError())
+
+
 class _FakePicamera2:
-    """The part of picamera2's interface the source uses (picamera2 0.3.x)."""
+    """The part of picamera2's interface the source uses (picamera2 >= 0.3.20: capture_request
+    (wait=...), wait(job, timeout=...), cancel_all_and_flush())."""
 
     instances: list = []
     fail_start = False
+    #: instance index -> frames it delivers before it stalls (stops completing requests).
+    stall_after: dict = {}
 
     def __init__(self, camera_num: int = 0) -> None:
         if camera_num != 0:
@@ -157,6 +175,9 @@ class _FakePicamera2:
         self.frame = 0
         self.released = 0
         self.y_plane = None
+        self.jobs: list = []
+        self.waits: list = []
+        self.flushes = 0
         _FakePicamera2.instances.append(self)
 
     def create_video_configuration(self, main=None, lores=None, buffer_count=6, controls=None):
@@ -172,10 +193,34 @@ class _FakePicamera2:
             raise RuntimeError("Camera __init__ sequence did not complete.")
         self.started = True
 
-    def capture_request(self) -> _FakeRequest:
-        return _FakeRequest(self)
+    def capture_request(self, wait=None, signal_function=None, flush=None):
+        """As picamera2's: a job run by the camera's event loop; ``wait`` True/None blocks, a
+        number blocks at most that many seconds (TimeoutError), False gives the job."""
+        time.sleep(0.002)   # a camera delivers frames at its own pace
+        job = _FakeJob()
+        stall_after = _FakePicamera2.stall_after.get(_FakePicamera2.instances.index(self))
+        if stall_after is not None and self.frame >= stall_after:
+            self.jobs.append(job)   # a stalled camera: the job never completes
+        else:
+            job.future.set_result(_FakeRequest(self))
+        if wait is None:
+            wait = signal_function is None
+        timeout = None if wait is True else wait
+        return job.get_result(timeout=timeout) if wait else job
+
+    def wait(self, job, timeout=None):
+        self.waits.append(timeout)
+        return job.get_result(timeout=timeout)
+
+    def cancel_all_and_flush(self) -> None:
+        for job in self.jobs:
+            job.cancel()
+        self.jobs = []
+        self.flushes += 1
 
     def stop(self) -> None:
+        # picamera2's stop() is itself a job queued behind the pending ones: it would hang.
+        assert not self.jobs, "stop() behind a pending capture job would never return"
         self.started = False
 
     def close(self) -> None:
@@ -188,6 +233,7 @@ def fake_picamera2(monkeypatch):
     module.Picamera2 = _FakePicamera2
     _FakePicamera2.instances = []
     _FakePicamera2.fail_start = False
+    _FakePicamera2.stall_after = {}
     monkeypatch.setitem(sys.modules, "picamera2", module)
     return _FakePicamera2
 
@@ -225,6 +271,55 @@ def test_picamera2_auto_exposure_and_failures(fake_picamera2, monkeypatch) -> No
     monkeypatch.setitem(sys.modules, "picamera2", None)   # not installed
     with pytest.raises(SourceError, match="picamera2 module is not installed"):
         Picamera2Source(640, 480).open()
+
+
+def test_picamera2_stalled_camera_is_a_source_error_not_a_hang(fake_picamera2) -> None:
+    fake_picamera2.stall_after = {0: 2}
+    source = Picamera2Source(64, 48, fps=30.0, read_timeout_s=0.05)
+    source.open()
+    cam = fake_picamera2.instances[0]
+    assert [source.read().seq for _ in range(2)] == [0, 1]
+    with pytest.raises(SourceError, match=r"no frame from camera 0 within 0.05 s \(camera stalled\)"):
+        source.read()
+    # picamera2's own timeout, longer for the first frame after start.
+    assert cam.waits == [3.0, 0.05, 0.05]
+    assert cam.flushes == 1 and cam.jobs == []   # the hung job cancelled: stop() can run
+    source.close()
+    assert cam.closed and not cam.started
+    # The default: four frame periods, at least a second.
+    assert Picamera2Source(64, 48, fps=30.0).read_timeout_s == 1.0
+    assert Picamera2Source(64, 48, fps=2.0).read_timeout_s == 2.0
+
+
+def test_picamera2_stall_in_the_pipeline_becomes_a_reopen(fake_picamera2, caplog) -> None:
+    from pipeline_fakes import FakeOutput, FakeProcessor
+
+    from pose_daemon.pipeline import Pipeline
+
+    fake_picamera2.stall_after = {0: 3}   # the first camera stalls; the reopened one works
+    source = Picamera2Source(64, 48, fps=30.0, read_timeout_s=0.05)
+    out = FakeOutput()
+    # The fake's sensor time stamps start at 5 s: no latency budget applies here.
+    pipeline = Pipeline(source, FakeProcessor(), [out], latency_budget_s=1e9, source_retry_s=0.01,
+                        source_retry_max_s=0.01)
+    caplog.set_level("WARNING", logger="pose_daemon.pipeline")
+    pipeline.start()
+    try:
+        deadline = time.monotonic() + 30.0   # a bound a loaded machine cannot reach, not a measure
+        while time.monotonic() < deadline:
+            # More results than the first camera gave frames: the reopened one delivers.
+            if len(out.got) > 3:
+                break
+            time.sleep(0.005)
+    finally:
+        pipeline.stop()
+    first, second = fake_picamera2.instances[:2]
+    assert first.closed and first.flushes == 1 and second.frame >= 1
+    assert pipeline.stats.snapshot()["source_failures"] == 1
+    assert [r.getMessage() for r in caplog.records if r.name == "pose_daemon.pipeline"] == [
+        "source failed: source picamera2: no frame from camera 0 within 0.05 s (camera stalled); "
+        "reopening in 0.0 s"]
+    assert len(out.got) > 3 and len(fake_picamera2.instances) == 2
 
 
 # --------------------------------------------------------------------------- files
@@ -369,3 +464,52 @@ def test_recording_cut_off_mid_line_replays_the_frames_before_it(tmp_path: Path,
     index.write_text(full + "garbage\n")
     with pytest.raises(SourceError, match=r"index.jsonl:4: not a frame entry"):
         read_index(rec)
+
+
+# --------------------------------------------------------------------------- grey conversion
+
+
+def test_as_gray_is_the_one_conversion_of_sources_detector_and_calibration() -> None:
+    from pose_daemon.capture import opencv, replay
+    from pose_daemon.capture.base import as_gray
+    from pose_daemon.detect import detector
+    from pose_daemon.tools import calibrate
+
+    assert detector.as_gray is as_gray and opencv.as_gray is as_gray
+    assert replay.as_gray is as_gray and calibrate.as_gray is as_gray
+    grey = (np.arange(12 * 16) % 256).astype(np.uint8).reshape(12, 16)
+    assert np.array_equal(as_gray(grey), grey)
+    assert np.array_equal(as_gray(grey[:, :, None]), grey)
+    assert np.array_equal(as_gray(grey.astype(np.uint16) << 8 | 0xFF), grey)   # the top byte
+    bgr = np.dstack([grey, grey, grey])
+    assert np.array_equal(as_gray(bgr), grey)
+    assert np.array_equal(as_gray(np.dstack([bgr, np.full_like(grey, 7)])), grey)
+
+
+@pytest.mark.parametrize("image, message", [
+    (np.zeros((4, 4), np.float32), "uint8 (or uint16) grey levels, got dtype float32"),
+    (np.zeros((4, 4), np.int32), "got dtype int32"),
+    (np.zeros((4, 4, 2), np.uint8), "got shape (4, 4, 2)"),
+    (np.zeros((2, 4, 4, 3), np.uint8), "got shape (2, 4, 4, 3)"),
+    (np.zeros((0, 4), np.uint8), "image is empty"),
+    ([[0, 1]], "must be a numpy array, got list"),
+])
+def test_as_gray_refuses_what_it_cannot_convert(image, message: str) -> None:
+    from pose_daemon.capture.base import as_gray
+
+    with pytest.raises(ValueError) as info:
+        as_gray(image)
+    assert message in str(info.value)
+
+
+def test_a_float_image_in_a_replay_folder_is_skipped_by_name(tmp_path: Path) -> None:
+    frames = _frames(2)
+    cv2.imwrite(str(tmp_path / "000.png"), frames[0])
+    assert cv2.imwrite(str(tmp_path / "001.tiff"), frames[1].astype(np.float32))
+    source = ReplaySource(tmp_path, realtime=False)
+    source.open()
+    assert source.read().seq == 0
+    with pytest.raises(EndOfStream):
+        source.read()
+    assert [(Path(f).name, why) for f, why in source.skipped] == [
+        ("001.tiff", "image must be uint8 (or uint16) grey levels, got dtype float32")]

@@ -77,3 +77,20 @@ def test_a_fifo_or_folder_as_config_is_refused_without_reading_it(tmp_path, comm
     res = _cli(*command, str(tmp_path))
     assert (res.returncode, res.stdout, res.stderr) == (
         2, "", f"pose-daemon: error: {tmp_path}: cannot read config: not a regular file (a directory)\n")
+
+
+def test_argparse_only_in_the_command_line():
+    """cli.py's rule: argparse lives in cli.py and commands/ alone; tools/ and the library
+    are plain functions."""
+    import pathlib
+    import re
+
+    package = pathlib.Path(__file__).resolve().parent.parent / "pose_daemon"
+    offenders = []
+    for path in sorted(package.rglob("*.py")):
+        rel = path.relative_to(package).as_posix()
+        if rel == "cli.py" or rel.startswith("commands/"):
+            continue
+        if re.search(r"^\s*(import argparse|from argparse import)", path.read_text(encoding="utf-8"), re.M):
+            offenders.append(rel)
+    assert offenders == []

@@ -161,21 +161,6 @@ def test_a_pose_with_nan_is_never_sent(tmp_path):
     assert all(o.stats()["dropped"] == {"not_finite": 1} for o in outs)
 
 
-def test_output_bench_prints_a_figure_per_output(capsys):
-    import pytest
-
-    from pose_daemon.outputs.bench import main
-
-    assert main(["--poses", "5"]) == 0
-    lines = capsys.readouterr().out.splitlines()
-    assert lines[0].startswith("publish -> bytes written, 5 poses per output")
-    assert len(lines) == 5 and all(" median " in s and ", p99 " in s for s in lines[1:])
-    assert lines[1].endswith("(5 messages)") and lines[2].endswith("(15 messages)")
-    with pytest.raises(SystemExit) as exc:
-        main(["--poses", "0"])
-    assert exc.value.code == 2 and "--poses must be at least 1" in capsys.readouterr().err
-
-
 class _TickRecordingJsonl(JsonlOutput):
     """JSON lines whose periodic work and writes are recorded in order."""
 

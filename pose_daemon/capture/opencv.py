@@ -6,23 +6,9 @@ import time
 from typing import Callable, Optional, Union
 
 import cv2
-import numpy as np
 
 from ..errors import EndOfStream, SourceError
-from .base import Frame
-
-
-def to_gray(image: np.ndarray) -> np.ndarray:
-    """Any 8-bit image OpenCV delivers (grey, BGR, BGRA) -> grey (H, W) uint8."""
-    if image.ndim == 2:
-        return image
-    if image.ndim == 3 and image.shape[2] == 1:
-        return image[..., 0]
-    if image.ndim == 3 and image.shape[2] == 3:
-        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    if image.ndim == 3 and image.shape[2] == 4:
-        return cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
-    raise SourceError(f"unsupported frame shape {image.shape}")
+from .base import Frame, as_gray
 
 
 def _has_gstreamer() -> bool:
@@ -92,7 +78,11 @@ class OpenCVSource:
             t = self._seq / fps
         else:
             t = t_grab
-        frame = Frame(image=to_gray(image), t_capture_s=float(t), seq=self._seq,
+        try:
+            gray = as_gray(image)
+        except ValueError as exc:
+            raise SourceError(f"{self.name}: frame {self._seq}: {exc}") from None
+        frame = Frame(image=gray, t_capture_s=float(t), seq=self._seq,
                       metadata={"source": self.name})
         self._seq += 1
         return frame

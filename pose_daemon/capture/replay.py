@@ -12,8 +12,8 @@ import numpy as np
 
 from ..errors import EndOfStream, SourceError
 from . import recording
-from .base import Frame
-from .opencv import OpenCVSource, to_gray
+from .base import Frame, as_gray
+from .opencv import OpenCVSource
 
 log = logging.getLogger(__name__)
 
@@ -107,14 +107,18 @@ class ReplaySource:
                 log.warning("skipping frame %d (%s): %s", entry["seq"], file, reason)
                 self.skipped.append((str(file), reason))
                 continue
-            if image.dtype != np.uint8:
-                # 16-bit frames: keep the top 8 bits, as a camera's 8-bit output would.
-                image = (image >> 8).astype(np.uint8) if image.dtype == np.uint16 else image.astype(np.uint8)
+            try:
+                # 16-bit frames keep their top 8 bits, as a camera's 8-bit output would.
+                gray = as_gray(image)
+            except ValueError as exc:
+                log.warning("skipping frame %d (%s): %s", entry["seq"], file, exc)
+                self.skipped.append((str(file), str(exc)))
+                continue
             metadata: Dict[str, Any] = {"file": str(file)}
             for key in recording.TRUTH_KEYS:
                 if key in entry:
                     metadata[key] = np.asarray(entry[key], dtype=np.float64)
-            return Frame(image=to_gray(image), t_capture_s=entry["t_capture_s"], seq=entry["seq"],
+            return Frame(image=gray, t_capture_s=entry["t_capture_s"], seq=entry["seq"],
                          metadata=metadata)
         raise EndOfStream(f"end of {self.path}")
 

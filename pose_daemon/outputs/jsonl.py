@@ -12,6 +12,12 @@ from ..result import FrameResult
 from .worker import LinkClosed, LinkError, QueuedOutput
 
 
+def json_line(result: FrameResult) -> str:
+    """The per-frame JSON object as one line (no newline); ValueError for a NaN or infinity,
+    which is never written."""
+    return json.dumps(result.to_json_dict(), allow_nan=False, separators=(", ", ": "))
+
+
 class JsonlOutput(QueuedOutput):
     """Appends ``FrameResult.to_json_dict()`` per line to ``path`` ("-" = stdout), flushed each line."""
 
@@ -49,7 +55,7 @@ class JsonlOutput(QueuedOutput):
 
     def _write(self, result: FrameResult) -> int:
         try:
-            line = json.dumps(result.to_json_dict(), allow_nan=False, separators=(", ", ": "))
+            line = json_line(result)
         except ValueError:  # a NaN or infinity: never written
             self._drop("not_finite")
             return 0

@@ -7,8 +7,6 @@ tracked marker and for a whole-frame search, with the Pi 2 equivalent (x20).
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -18,7 +16,6 @@ import cv2
 import numpy as np
 
 from ..camera import Camera, Marker
-from ..errors import UserError
 from ..geometry import R_from_rvec, rotation_angle_deg, rvec_from_R
 
 #: How much slower a Pi 2 (900 MHz Cortex-A7) runs this code than the machine measured here.
@@ -87,17 +84,6 @@ class Tally:
         }
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--frames", type=int, default=300, metavar="N",
-                        help="marker frames per marker type (default 300)")
-    parser.add_argument("--empty", type=int, default=200, metavar="N",
-                        help="marker-free frames for false detections (default 200)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed of poses and images")
-    parser.add_argument("--repeat", type=int, default=3, metavar="K",
-                        help="time each frame K times and keep the fastest (default 3)")
-    parser.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
-
-
 def _effects(rng: np.random.Generator):
     from ..render import Effects
 
@@ -106,36 +92,6 @@ def _effects(rng: np.random.Generator):
     return Effects(blur_px=0.8, noise_gray=2.0, background="plain" if plain else "texture",
                    plain_gray=float(rng.uniform(60.0, 200.0)),
                    lighting_gradient=float(rng.uniform(0.0, 0.6)))
-
-
-def aruco_texture(marker: Marker, white: float = 220.0, black: float = 25.0):
-    """OpenCV's own image of an ArUco marker on white paper with a quiet zone of a quarter of
-    its side: (grey texture float32, (width, height) metres) for ``render.render_plane``."""
-    from ..detect import aruco_compat
-
-    cells = aruco_compat.marker_image(aruco_compat.get_dictionary(marker.dictionary), marker.id, 600)
-    tex = cv2.copyMakeBorder(cells, 150, 150, 150, 150, cv2.BORDER_CONSTANT, value=255)
-    tex = black + (white - black) * (tex.astype(np.float32) / 255.0)
-    return tex, (marker.width * 1.5, marker.height * 1.5)
-
-
-def render_frame(camera: Camera, marker: Marker, rvec, tvec, *, effects, rng: np.random.Generator,
-                 background: Optional[np.ndarray] = None):
-    """(image uint8, true corners (4, 2) TL, TR, BR, BL pixels) of the marker at (rvec, tvec).
-
-    ArUco markers are drawn from OpenCV's own marker image, so that the anchor and the
-    detector are judged on OpenCV's pattern itself.
-    """
-    from ..render import render_marker, render_plane
-
-    if marker.type == "aruco":
-        tex, size = aruco_texture(marker, effects.white, effects.black)
-        image = render_plane(camera, tex, size, rvec, tvec, effects=effects, rng=rng, background=background)
-        pts = marker.object_points @ R_from_rvec(np.asarray(rvec, float).reshape(3)).T + \
-            np.asarray(tvec, float).reshape(3)
-        return image, camera.project(pts)
-    frame = render_marker(camera, marker, rvec, tvec, effects=effects, rng=rng, background=background)
-    return frame.image, frame.corners_px
 
 
 def _align_labels(found: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -214,7 +170,7 @@ def _run_marker_type(kind: str, n_frames: int, seed: int, camera: Camera,
                      repeat: int) -> Dict[str, Tally]:
     from ..detect import MarkerDetector, aruco_compat
     from ..pose.estimator import EstimationError, estimate_pose
-    from ..render import random_pose
+    from ..render import random_pose, render_frame
 
     if kind == "aruco":
         marker = Marker(MARKER_SIZE_M, MARKER_SIZE_M, type="aruco", dictionary=DICTIONARY, id=MARKER_ID)
@@ -341,7 +297,8 @@ def _fmt(value: Optional[float], spec: str, suffix: str = "") -> str:
     return "-" if value is None else format(value, spec) + suffix
 
 
-def _print_tables(result: dict) -> None:
+def print_report(result: dict) -> None:
+    """The report of ``run_bench`` as the two tables."""
     cfg = result["setup"]
     print(f"pose-daemon bench detector: {cfg['frames']} frames per marker type, "
           f"{cfg['width']}x{cfg['height']} fx={cfg['fx']:.0f}, {cfg['marker_m']} m marker at 0.5-3 m, "
@@ -391,17 +348,16 @@ def _print_tables(result: dict) -> None:
           " CPU = processor time of all threads (OpenCV's detector also uses idle cores)")
 
 
-def run(args: argparse.Namespace) -> int:
-    if args.frames < 1:
-        raise UserError(f"--frames must be at least 1, got {args.frames}")
-    if args.repeat < 1:
-        raise UserError(f"--repeat must be at least 1, got {args.repeat}")
-    if args.empty < 0:
-        raise UserError(f"--empty must be 0 or more, got {args.empty}")
+def run_bench(frames: int = 300, empty: int = 200, seed: int = 0, repeat: int = 3) -> dict:
+    """The benchmark on ``frames`` marker frames per marker type and ``empty`` marker-free
+    frames, each timed ``repeat`` times: the report (setup, rows, timing_rows, ...) as a dict
+    of plain values, JSON-ready."""
+    if frames < 1 or repeat < 1 or empty < 0:
+        raise ValueError(f"frames and repeat must be >= 1, empty >= 0 (got {frames}, {repeat}, {empty})")
     camera = CAMERA
-    tallies = {kind: _run_marker_type(kind, args.frames, args.seed, camera, args.repeat)
+    tallies = {kind: _run_marker_type(kind, frames, seed, camera, repeat)
                for kind in ("square", "aruco")}
-    _run_empty(tallies, args.empty, args.seed, camera)
+    _run_empty(tallies, empty, seed, camera)
     rows = []
     for kind in ("square", "aruco"):
         for key in ("ours", "anchor"):
@@ -418,17 +374,13 @@ def run(args: argparse.Namespace) -> int:
         ("anchor: ArUco subpix + IPPE_SQUARE", an["time_full_median_ms"], an["cpu_full_median_ms"]),
     ]
     result = {
-        "setup": {"frames": args.frames, "empty_frames": args.empty, "seed": args.seed,
+        "setup": {"frames": frames, "empty_frames": empty, "seed": seed,
                   "width": camera.width, "height": camera.height, "fx": camera.fx,
                   "marker_m": MARKER_SIZE_M, "dictionary": DICTIONARY, "id": MARKER_ID,
-                  "opencv": cv2.__version__, "pi2_factor": PI2_FACTOR, "repeat": args.repeat},
+                  "opencv": cv2.__version__, "pi2_factor": PI2_FACTOR, "repeat": repeat},
         "rows": rows,
         "timing_rows": timing_rows,
         "anchor_full_ms": an["time_full_median_ms"],
         "anchor_full_cpu_ms": an["cpu_full_median_ms"],
     }
-    if args.json:
-        print(json.dumps(result))
-    else:
-        _print_tables(result)
-    return 0
+    return result

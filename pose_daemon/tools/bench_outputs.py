@@ -1,4 +1,4 @@
-"""Time each output takes to put one pose on its link: ``python -m pose_daemon.outputs.bench``.
+"""``pose-daemon bench outputs``: the time each output takes to put one pose on its link.
 
 Writes direct (``publish`` returns once the bytes are written) to local links: MAVLink over
 UDP to 127.0.0.1, ``$POSE`` lines to a pseudo-terminal, JSON lines to a file, and prints
@@ -8,13 +8,12 @@ median / p99 / max per output. The daemon's whole capture -> bytes-written laten
 
 from __future__ import annotations
 
-import argparse
 import os
 import socket
 import sys
 import tempfile
 import time
-from typing import List, Optional, Sequence
+from typing import Any, Dict, List
 
 import numpy as np
 
@@ -25,11 +24,11 @@ from ..geometry import (
     paper_angles_deg_from_R_cam_marker,
     rvec_from_R,
 )
+from ..outputs.jsonl import JsonlOutput
+from ..outputs.mavlink import MavlinkOutput
+from ..outputs.plain_serial import PlainSerialOutput
 from ..pose.types import Pose
 from ..result import FrameResult
-from .jsonl import JsonlOutput
-from .mavlink import MavlinkOutput
-from .plain_serial import PlainSerialOutput
 
 
 def _results(frames: VehicleFrames, n: int) -> List[FrameResult]:
@@ -45,14 +44,13 @@ def _results(frames: VehicleFrames, n: int) -> List[FrameResult]:
     return out
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pose_daemon.outputs.bench", description=__doc__.splitlines()[0])
-    parser.add_argument("--poses", type=int, default=3000, help="poses per output (default 3000)")
-    args = parser.parse_args(argv)
-    if args.poses < 1:
-        parser.error("--poses must be at least 1")
+def run_bench(poses: int = 3000) -> Dict[str, Any]:
+    """``poses`` poses published through each output in turn: the report for ``print_report``
+    (per output its name, the publish times in seconds and the messages sent)."""
+    if poses < 1:
+        raise ValueError(f"poses must be at least 1, got {poses}")
     frames = VehicleFrames.from_settings("forward", placement="wall")
-    results = _results(frames, args.poses)
+    results = _results(frames, poses)
     sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sink.bind(("127.0.0.1", 0))
     master, slave = os.openpty()
@@ -60,16 +58,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     tmp = tempfile.TemporaryDirectory(prefix="pose-daemon-bench-")
     udp = f"udpout:127.0.0.1:{sink.getsockname()[1]}"
     common = dict(fx_px=500.0, marker_width_m=0.2, wait_heartbeat=False, queue_size=0)
-    outputs = [
-        ("mavlink ODOMETRY, UDP", MavlinkOutput(udp, frames, **common)),
-        ("mavlink ODOMETRY+VPE+LANDING_TARGET, UDP",
-         MavlinkOutput(udp, frames, messages=("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET"), **common)),
-        ("plain $POSE, pty", PlainSerialOutput(os.ttyname(slave), frames, queue_size=0)),
-        ("jsonl, file", JsonlOutput(os.path.join(tmp.name, "poses.jsonl"), queue_size=0)),
-    ]
-    print(f"publish -> bytes written, {args.poses} poses per output (this machine, {sys.platform}):")
+    rows = []
     try:
-        for name, out in outputs:
+        outputs = [
+            ("mavlink ODOMETRY, UDP", lambda: MavlinkOutput(udp, frames, **common)),
+            ("mavlink ODOMETRY+VPE+LANDING_TARGET, UDP",
+             lambda: MavlinkOutput(udp, frames, messages=("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET"),
+                                   **common)),
+            ("plain $POSE, pty", lambda: PlainSerialOutput(os.ttyname(slave), frames, queue_size=0)),
+            ("jsonl, file", lambda: JsonlOutput(os.path.join(tmp.name, "poses.jsonl"), queue_size=0)),
+        ]
+        for name, make in outputs:
+            out = make()
             times = np.empty(len(results))
             for i, r in enumerate(results):
                 t0 = time.perf_counter()
@@ -77,15 +77,22 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 times[i] = time.perf_counter() - t0
                 _drain(sink, master)
             out.close()
-            ms = times * 1e3
-            print(f"  {name:42s} median {np.median(ms):.3f} ms, p99 {np.percentile(ms, 99):.3f} ms, "
-                  f"max {ms.max():.3f} ms ({out.stats()['sent']} messages)")
+            rows.append({"name": name, "publish_s": times, "sent": out.stats()["sent"]})
     finally:
         sink.close()
         os.close(master)
         os.close(slave)
         tmp.cleanup()
-    return 0
+    return {"poses": poses, "platform": sys.platform, "rows": rows}
+
+
+def print_report(report: Dict[str, Any]) -> None:
+    """One line per output: median, p99 and max publish time."""
+    print(f"publish -> bytes written, {report['poses']} poses per output (this machine, {report['platform']}):")
+    for row in report["rows"]:
+        ms = row["publish_s"] * 1e3
+        print(f"  {row['name']:42s} median {np.median(ms):.3f} ms, p99 {np.percentile(ms, 99):.3f} ms, "
+              f"max {ms.max():.3f} ms ({row['sent']} messages)")
 
 
 def _drain(sink: socket.socket, master: int) -> None:
@@ -98,7 +105,3 @@ def _drain(sink: socket.socket, master: int) -> None:
         os.read(master, 65536)
     except BlockingIOError:
         pass
-
-
-if __name__ == "__main__":
-    sys.exit(main())
