@@ -38,3 +38,9 @@ class FrameResult:
         if self.latency_s is not None:
             out["latency_ms"] = round(self.latency_s * 1e3, 3)
         return out
+
+
+def time_usec_from_s(t_s: float) -> int:
+    """Seconds -> integer microseconds as a Python int (no 32-bit intermediate): every wire's
+    time stamp (MAVLink ``time_usec``, the ``$POSE`` line's ``t_us``) goes through this."""
+    return int(round(float(t_s) * 1e6))

@@ -27,7 +27,8 @@ from pose_daemon import geometry as g
 from pose_daemon.config import parse_config
 from pose_daemon.errors import ConfigError
 from pose_daemon.outputs import MavlinkOutput, open_outputs
-from pose_daemon.outputs.mavlink import encode_pose_messages, parse_connection, time_usec_from_s
+from pose_daemon.outputs.mavlink import encode_pose_messages, parse_connection
+from pose_daemon.result import time_usec_from_s
 
 ALL = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
 WALL = g.VehicleFrames.from_settings("forward", placement="wall")

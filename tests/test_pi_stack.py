@@ -19,11 +19,11 @@ from pose_daemon.capture.base import Frame
 from pose_daemon.capture.recording import RecordingWriter
 from pose_daemon.capture.replay import ReplaySource
 from pose_daemon.errors import EndOfStream
-from pose_daemon.outputs.mavlink import encode_pose_messages, time_usec_from_s
+from pose_daemon.outputs.mavlink import encode_pose_messages
 from pose_daemon.outputs.plain_serial import parse_pose_line, pose_line
 from pose_daemon.processing import FrameProcessor
 from pose_daemon.render import Effects, render_marker
-from pose_daemon.result import FrameResult
+from pose_daemon.result import FrameResult, time_usec_from_s
 
 WALL = g.VehicleFrames.from_settings("forward", placement="wall")
 # Small frames keep the test cheap under emulation.

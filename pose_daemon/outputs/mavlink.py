@@ -39,7 +39,7 @@ from ..geometry import (
     rotation_angle_deg_3x3,
 )
 from ..pose.types import Pose
-from ..result import FrameResult
+from ..result import FrameResult, time_usec_from_s
 from .quality import pose_covariance_local, pose_quality
 from .worker import LinkBusy, LinkError, QueuedOutput
 
@@ -64,11 +64,6 @@ MAV_SEVERITY_WARNING = 4
 MAV_SEVERITY_INFO = 6
 LANDING_TARGET_TYPE_VISION_FIDUCIAL = 2
 _SIGNING_EPOCH_S = 1420070400  # MAVLink 2 signing time stamps count from 2015-01-01
-
-
-def time_usec_from_s(t_s: float) -> int:
-    """Seconds -> integer microseconds as a Python int (no 32-bit intermediate)."""
-    return int(round(float(t_s) * 1e6))
 
 
 def signing_key_bytes(key: str) -> bytes:

@@ -22,8 +22,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..geometry import VehicleFrames
-from ..result import FrameResult
-from .mavlink import time_usec_from_s
+from ..result import FrameResult, time_usec_from_s
 from .quality import LOST_QUALITY, pose_quality
 from .worker import LinkBusy, LinkError, QueuedOutput
 
