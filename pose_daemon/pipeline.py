@@ -3,15 +3,14 @@
 Every frame keeps its capture time (monotonic seconds) to the output; a pose that would
 leave later than the latency budget is dropped and counted, never sent late. Each stage
 times itself; the status line reports fps, detection rate, latency percentiles per stage
-and drops per cause. The daemon's pipeline also moves the garbage collector's pauses into
-the gaps between frames (IdleCollector).
+and drops per cause. ``on_idle`` runs in the gaps between frames (the daemon's garbage
+collection, service.IdleCollector).
 """
 
 from __future__ import annotations
 
 import collections
 import dataclasses
-import gc
 import logging
 import threading
 import time
@@ -29,8 +28,8 @@ log = logging.getLogger("pose_daemon.pipeline")
 # Stages in the order a frame goes through them (status line order).
 STAGES = ("capture", "queue", "detect", "estimate", "output", "total")
 
-# Wait this long without a frame before garbage collection in the gap (IdleCollector): by then
-# the output threads have written the last result (they take ~0.3 ms).
+# Wait this long without a frame before running ``on_idle`` in the gap: by then the output
+# threads have written the last result (they take ~0.3 ms).
 IDLE_AFTER_S = 0.002
 
 # Called after an output wrote a result: (output name, result, t_written_s monotonic).
@@ -199,44 +198,6 @@ class PipelineStats:
         return "; ".join(parts)
 
 
-class IdleCollector:
-    """Runs Python's cyclic garbage collector while the pipeline waits for a frame, so that its
-    pauses do not land inside a frame's capture -> output time.
-
-    On its first call (after the first frame: modules imported, tables built) it collects
-    everything once and freezes the survivors (``gc.freeze``), so later full collections
-    only look at what the run itself made: measured 6-30 ms for a full collection of the
-    daemon's ~35,000 start-up objects on an x86-64 core (x20 on a Pi 2: several frames'
-    budget), 0 ms once frozen. Later calls collect the generation the automatic collector
-    would take next once the youngest is half full (a gen-1 pass took 0.8-1.9 ms mid-frame).
-    Automatic collection stays on: a pipeline with no idle time is collected as before.
-    """
-
-    def __init__(self) -> None:
-        self.frozen = False
-        self.collections = [0, 0, 0]  # idle collections per generation
-
-    def run(self) -> None:
-        if not gc.isenabled():
-            return
-        if not self.frozen:
-            gc.collect()
-            gc.freeze()
-            self.frozen = True
-            return
-        t0, t1, t2 = gc.get_threshold()
-        c0, c1, c2 = gc.get_count()
-        if t0 <= 0 or c0 < t0 // 2:
-            return
-        # A collection of generation g counts one towards generation g + 1: take the older
-        # generation when that count would pass its threshold, as the automatic collector does.
-        generation = 0
-        if c1 + 1 > t1:
-            generation = 2 if c2 + 1 > t2 else 1
-        gc.collect(generation)
-        self.collections[generation] += 1
-
-
 class OutputWorker:
     """One output behind a bounded buffer: a slow output drops its oldest waiting results
     (counted) and never holds up processing.
@@ -379,16 +340,17 @@ class Pipeline:
     ``processor`` has ``process(frame) -> FrameResult`` and ``reset()`` (FrameProcessor).
     The source is opened by the capture thread and reopened with a doubling pause when it
     raises SourceError; EndOfStream ends the run once everything buffered is written.
-    ``collect_when_idle``: garbage collection in the gaps between frames (IdleCollector; it
-    freezes the objects alive after the first frame, process-wide: for the daemon, not for
-    a pipeline among others in one process).
+    ``on_idle``: called once in each gap between frames (``IDLE_AFTER_S`` without a new frame
+    after a processed one), in the processing thread: the daemon collects garbage there
+    (service.IdleCollector), out of the frames' capture -> output time.
     """
 
     def __init__(self, source: FrameSource, processor, outputs: Sequence[Output], *,
                  latency_budget_s: float = 0.1, output_buffer: int = 4,
                  source_retry_s: float = 0.5, source_retry_max_s: float = 5.0,
                  clock: Callable[[], float] = time.monotonic,
-                 on_written: Optional[WrittenHook] = None, collect_when_idle: bool = False) -> None:
+                 on_written: Optional[WrittenHook] = None,
+                 on_idle: Optional[Callable[[], None]] = None) -> None:
         self.source = source
         self.processor = processor
         self.latency_budget_s = float(latency_budget_s)
@@ -401,7 +363,7 @@ class Pipeline:
                                      on_closed=self.end)
                         for o in outputs]
         self._slot = NewestSlot()
-        self.idle_collector: Optional[IdleCollector] = IdleCollector() if collect_when_idle else None
+        self.on_idle = on_idle
         self._stop = threading.Event()
         self.first_frame = threading.Event()  # set when the first frame was processed
         self.finished = threading.Event()  # set when the run ended (end of stream or stop)
@@ -536,18 +498,19 @@ class Pipeline:
 
     def _process(self) -> None:
         generation = 0
-        idle_done = True  # nothing to collect before the first frame
+        on_idle = self.on_idle
+        idle_done = True  # no gap before the first frame
         try:
             while not self._stop.is_set():
-                idle_due = self.idle_collector is not None and not idle_done
+                idle_due = on_idle is not None and not idle_done
                 item = self._slot.get(timeout=IDLE_AFTER_S if idle_due else 0.2)
                 if item is None:
                     if self._slot.closed:
                         break
-                    if idle_due:
+                    if idle_due and on_idle is not None:
                         # No frame for a while: the outputs are done with the last one.
                         idle_done = True
-                        self.idle_collector.run()  # type: ignore[union-attr]
+                        on_idle()
                     continue
                 idle_done = False
                 frame, gen, t_got = item

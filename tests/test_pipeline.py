@@ -10,6 +10,7 @@ import pytest
 from pipeline_fakes import FakeOutput, FakeProcessor, FakeQueuedOutput, FakeSource
 
 from pose_daemon.pipeline import LatencyWindow, NewestSlot, Pipeline
+from pose_daemon.service import IdleCollector
 
 
 def _run(pipeline: Pipeline, timeout_s: float = 10.0) -> None:
@@ -202,8 +203,8 @@ def test_outputs_that_write_in_their_own_thread_report_bytes_written_latency():
 class _GarbageProcessor(FakeProcessor):
     """Makes 60 reference cycles per frame and records collections that run inside ``process``."""
 
-    def __init__(self) -> None:
-        super().__init__()
+    def __init__(self, gate: threading.Semaphore) -> None:
+        super().__init__(gate=gate)
         self.inside = False
         self.collections_inside = 0
 
@@ -219,7 +220,11 @@ class _GarbageProcessor(FakeProcessor):
 
 
 def _garbage_run(collect_when_idle: bool):
-    proc = _GarbageProcessor()
+    # The gate: the source makes frame k + 1 only once frame k was processed, so that a slow
+    # first collection on a loaded machine cannot get a frame replaced (newest wins).
+    gate = threading.Semaphore(0)
+    proc = _GarbageProcessor(gate)
+    collector = IdleCollector() if collect_when_idle else None
 
     def note(phase, info):
         if phase == "start" and proc.inside:
@@ -231,26 +236,27 @@ def _garbage_run(collect_when_idle: bool):
     gc.set_threshold(400, 10, 10)
     gc.callbacks.append(note)
     try:
-        p = Pipeline(FakeSource(frames=30, period_s=0.01), proc, [FakeOutput()], latency_budget_s=5.0,
-                     collect_when_idle=collect_when_idle)
+        out = FakeOutput()
+        p = Pipeline(FakeSource(frames=30, period_s=0.01, gate=gate), proc, [out], latency_budget_s=5.0,
+                     on_idle=collector.run if collector is not None else None)
         _run(p)
         frozen = gc.get_freeze_count() - frozen_before
     finally:
         gc.callbacks.remove(note)
         gc.set_threshold(*threshold)
         gc.unfreeze()
-    assert p.stats.snapshot()["processed"] == 30 and len(p.workers[0].output.got) == 30
-    return p, proc, frozen
+    assert p.stats.snapshot()["processed"] == 30 and len(out.got) == 30
+    return collector, proc, frozen
 
 
 def test_garbage_is_collected_between_frames_not_inside_them():
-    p, proc, frozen = _garbage_run(collect_when_idle=True)
-    assert p.idle_collector.frozen and frozen > 1000   # start-up objects frozen after frame 0
-    assert sum(p.idle_collector.collections) >= 3      # 60+ new objects a frame, collected from 200
+    collector, proc, frozen = _garbage_run(collect_when_idle=True)
+    assert collector.frozen and frozen > 1000   # start-up objects frozen after frame 0
+    assert sum(collector.collections) >= 3      # 60+ new objects a frame, collected from 200
     assert proc.collections_inside == 0
     # Without it, the automatic collector runs at 400 objects, often in the middle of a frame.
-    p, proc, frozen = _garbage_run(collect_when_idle=False)
-    assert p.idle_collector is None and frozen == 0
+    collector, proc, frozen = _garbage_run(collect_when_idle=False)
+    assert collector is None and frozen == 0
     assert proc.collections_inside > 0
 
 

@@ -185,8 +185,10 @@ def _run(args: argparse.Namespace, Pipeline, FrameProcessor, open_outputs) -> in
             rss_warm[0] = rss_bytes()
 
     # Garbage collection between frames, as `pose-daemon run` does.
+    from ..service import IdleCollector
+
     pipeline = Pipeline.from_config(cfg, source, processor, outputs, on_written=on_written,
-                                    collect_when_idle=True)
+                                    on_idle=IdleCollector().run)
     rss_start = rss_bytes()
     t0 = time.monotonic()
     print(f"running {args.frames} frames at {args.fps:g} fps through detect -> estimate -> "
