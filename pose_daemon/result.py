@@ -21,7 +21,11 @@ class FrameResult:
     error: Optional[str] = None
     # Per-stage times in seconds (capture, detect, estimate, ...), filled by the pipeline.
     stage_s: Dict[str, float] = field(default_factory=dict)
+    # Capture -> handed to the outputs (the daemon) or the processing time (replay): the JSON's
+    # latency_ms.
     latency_s: Optional[float] = None
+    # Monotonic time the pipeline handed the result to the outputs (None outside a pipeline).
+    t_dispatch_s: Optional[float] = None
 
     @property
     def ok(self) -> bool:

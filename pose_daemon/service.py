@@ -8,6 +8,7 @@ process-wide garbage-collection policy (IdleCollector) lives here too.
 
 from __future__ import annotations
 
+import functools
 import gc
 import logging
 import os
@@ -16,12 +17,12 @@ import socket
 import sys
 import threading
 import time
-from typing import Callable, Dict, List, Mapping, Optional, Sequence
+from typing import Callable, Dict, List, Mapping, Optional
 
 from .capture.base import FrameSource
 from .config import Config
 from .errors import PoseDaemonError, UserError
-from .outputs.base import Output
+from .outputs.base import Output, OutputFactory
 from .pipeline import Pipeline
 
 log = logging.getLogger("pose_daemon.service")
@@ -148,10 +149,14 @@ def build_processor(cfg: Config):
 
 
 class Service:
-    """Runs the pipeline until a signal or the end of the stream, talking to systemd on the way."""
+    """Runs the pipeline until a signal or the end of the stream, talking to systemd on the way.
+
+    ``outputs``: builds the outputs with the pipeline's budget and hooks (base.OutputFactory;
+    default ``open_outputs`` for ``cfg``); the service closes them when it stops.
+    """
 
     def __init__(self, cfg: Config, *, source: Optional[FrameSource] = None,
-                 outputs: Optional[Sequence[Output]] = None, processor=None,
+                 outputs: Optional[OutputFactory] = None, processor=None,
                  notifier: Optional[SdNotifier] = None,
                  env: Optional[Mapping[str, str]] = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
@@ -166,11 +171,11 @@ class Service:
         if outputs is None:
             from .outputs import open_outputs
 
-            outputs = open_outputs(cfg)
-        self.outputs: List[Output] = list(outputs)
+            outputs = functools.partial(open_outputs, cfg)
         self.idle_collector = IdleCollector()
-        self.pipeline = Pipeline.from_config(cfg, source, processor, self.outputs, clock=clock,
+        self.pipeline = Pipeline.from_config(cfg, source, processor, outputs, clock=clock,
                                              on_idle=self.idle_collector.run)
+        self.outputs: List[Output] = self.pipeline.outputs
         self.notifier = notifier if notifier is not None else SdNotifier()
         self.watchdog_s = watchdog_interval_s(env)
         self._stop = threading.Event()
@@ -209,7 +214,7 @@ class Service:
         ping_every_s = wd_s / 2.0 if wd_s else None
         self.pipeline.start()
         log.info("started: source %s, outputs %s, latency budget %.0f ms", self.cfg.camera.source,
-                 ", ".join(w.name for w in self.pipeline.workers) or "none",
+                 ", ".join(o.name for o in self.outputs) or "none",
                  self.cfg.pipeline.latency_budget_s * 1e3)
         self.notifier.notify("STATUS=waiting for the first frame")
         ready = False
@@ -267,7 +272,7 @@ class Service:
                 try:
                     out.close()
                 except Exception as exc:
-                    log.warning("closing output %s failed: %s", getattr(out, "name", out), exc)
+                    log.warning("closing output %s failed: %s", out.name, exc)
 
         t = threading.Thread(target=close_all, name="close-outputs", daemon=True)
         t.start()

@@ -125,7 +125,7 @@ def test_stream_over_udp_keeps_every_autopilot_rule():
     t += 1 / 30
     pose_at(t + 0.4, -0.7)                    # a 0.4 s gap (frames dropped upstream)
     for r in script:
-        out.publish(r)
+        out.submit(r)
     msgs = peer.collect(3.0, until=lambda ms: len(of_type(ms, "LANDING_TARGET")) >= 20)
     out.close()
     peer.close()
@@ -189,7 +189,7 @@ def test_waits_for_the_autopilot_then_sends_origin_and_home():
                  set_home=True)
     frames_t = iter(10.0 + k / 30 for k in range(1000))
     for _ in range(5):
-        out.publish(vehicle_result(WALL, 0, next(frames_t), (-2.0, 0.0, 0.0)))
+        out.submit(vehicle_result(WALL, 0, next(frames_t), (-2.0, 0.0, 0.0)))
     msgs = peer.collect(0.3, until=lambda ms: bool(of_type(ms, "HEARTBEAT")))
     assert of_type(msgs, "HEARTBEAT") and not of_type(msgs, "ODOMETRY")
     assert "waiting for the autopilot" in out.status()
@@ -199,7 +199,7 @@ def test_waits_for_the_autopilot_then_sends_origin_and_home():
     peer.send(autopilot_heartbeat(system=3))
     assert wait_for(lambda: out.autopilot_system == 3, 2.0)
     for _ in range(5):
-        out.publish(vehicle_result(WALL, 0, next(frames_t), (-2.0, 0.0, 0.0)))
+        out.submit(vehicle_result(WALL, 0, next(frames_t), (-2.0, 0.0, 0.0)))
     msgs = peer.collect(2.5)  # also long enough for the 1 Hz heartbeat
     out.close()
     peer.close()
@@ -223,7 +223,7 @@ def test_signed_stream_verifies_only_with_the_key():
     peer = UdpPeer(signing_key=key)
     out = output(f"udpout:127.0.0.1:{peer.port}", signing_key="correct horse battery staple")
     for k in range(3):
-        out.publish(vehicle_result(WALL, k, 20.0 + k / 30, (-2.0, 0.0, 0.0)))
+        out.submit(vehicle_result(WALL, k, 20.0 + k / 30, (-2.0, 0.0, 0.0)))
     msgs = peer.collect(1.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 3)
     out.close()
     assert len(of_type(msgs, "ODOMETRY")) == 3 and all(m._signed for m in msgs)
@@ -239,7 +239,7 @@ def test_signed_stream_verifies_only_with_the_key():
     assert [m.get_type() for m in parser(signing_key=key).parse_buffer(data)] == ["HEARTBEAT"]
     # A 64-hex-digit key is taken as the key itself.
     out = output(f"udpout:127.0.0.1:{peer.port}", signing_key=key.hex())
-    out.publish(vehicle_result(WALL, 0, 30.0, (-2.0, 0.0, 0.0)))
+    out.submit(vehicle_result(WALL, 0, 30.0, (-2.0, 0.0, 0.0)))
     msgs = peer.collect(1.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 4)
     out.close()
     peer.close()
@@ -254,7 +254,7 @@ def test_serial_link_over_a_pty_vanishes_and_comes_back(tmp_path):
     def send(n):
         for _ in range(n):
             t[0] += 1 / 30
-            out.publish(vehicle_result(WALL, 0, t[0], (-2.0, 0.1, 0.0)))
+            out.submit(vehicle_result(WALL, 0, t[0], (-2.0, 0.1, 0.0)))
 
     try:
         send(5)
@@ -299,7 +299,7 @@ def test_tcp_link_reconnects_after_the_peer_closes():
             chunk = conn2.recv(4096)
             assert chunk, "connection closed again"
             data += chunk
-        out.publish(vehicle_result(WALL, 0, 50.0, (-2.0, 0.0, 0.0)))
+        out.submit(vehicle_result(WALL, 0, 50.0, (-2.0, 0.0, 0.0)))
         while True:
             msgs = parser().parse_buffer(data) or []
             if of_type(msgs, "ODOMETRY"):
@@ -354,7 +354,7 @@ def test_mavproxy_ground_station_receives_the_stream(tmp_path):
         # Stream at 30 Hz until MAVProxy has detected us (it answers with its own HEARTBEAT).
         end = time.monotonic() + 20.0
         while time.monotonic() < end and not (out.stats().get("opens") and _gcs_heard(out)):
-            out.publish(vehicle_result(WALL, 0, time.monotonic(), (-2.0, 0.0, 0.0)))
+            out.submit(vehicle_result(WALL, 0, time.monotonic(), (-2.0, 0.0, 0.0)))
             time.sleep(1 / 30)
         if proc.poll() is not None:
             pytest.skip(f"MAVProxy could not start here: {proc.stdout.read().decode(errors='replace')[-300:]}")
@@ -362,7 +362,7 @@ def test_mavproxy_ground_station_receives_the_stream(tmp_path):
         for k in range(70):  # 1.5 s tracked, 0.5 s without the marker, then found again
             t = time.monotonic()
             lost = 45 <= k < 60
-            out.publish(lost_result(k, t) if lost else vehicle_result(WALL, k, t, (-2.0, 0.0, 0.0)))
+            out.submit(lost_result(k, t) if lost else vehicle_result(WALL, k, t, (-2.0, 0.0, 0.0)))
             time.sleep(1 / 30)
         time.sleep(0.5)
     finally:
@@ -389,19 +389,19 @@ def _gcs_heard(out: MavlinkOutput) -> bool:
     return out.stats().get("gcs_heard", 0) > 0
 
 
-def test_udp_output_writes_in_publish_when_its_thread_is_idle():
+def test_udp_output_writes_in_submit_when_its_thread_is_idle():
     """Datagrams cannot block: a queued UDP output sends at once instead of waking its thread."""
     peer = UdpPeer()
     out = output(f"udpout:127.0.0.1:{peer.port}", queue_size=4)
     try:
         for k in range(5):
-            out.publish(vehicle_result(WALL, k, 60.0 + k / 30, (-2.0, 0.0, 0.0)))
+            out.submit(vehicle_result(WALL, k, 60.0 + k / 30, (-2.0, 0.0, 0.0)))
         msgs = peer.collect(1.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 5)
     finally:
         out.close()
         peer.close()
     assert [m.time_usec for m in of_type(msgs, "ODOMETRY")] == [time_usec_from_s(60.0 + k / 30) for k in range(5)]
-    # Written by publish itself, except when the thread held the link at that moment (a tick).
+    # Written by submit itself, except when the thread held the link at that moment (a tick).
     assert out.stats()["written_inline"] >= 3
 
 
@@ -413,7 +413,7 @@ def test_acceptance_checker_command_line(tmp_path, capsys):
     peer = UdpPeer()
     out = output(f"udpout:127.0.0.1:{peer.port}")
     for k in range(10):
-        out.publish(vehicle_result(WALL, k, 70.0 + k / 30, (-2.0, 0.0, 0.0)))
+        out.submit(vehicle_result(WALL, k, 70.0 + k / 30, (-2.0, 0.0, 0.0)))
     msgs = peer.collect(1.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 10)
     out.close()
     peer.close()

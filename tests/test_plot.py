@@ -53,7 +53,7 @@ def daemon_log(tmp_path_factory) -> Path:
             corners = camera.project(marker.object_points @ R.T - R @ c)
             result = FrameResult(seq=i, t_capture_s=t, corners=corners,
                                  pose=estimate_pose(corners, camera, marker), latency_s=lat / 1e3)
-        out.publish(result)
+        out.submit(result)
     out.close()
     return path
 

@@ -61,7 +61,7 @@ def test_lines_over_a_pty_port_that_vanishes_and_comes_back(tmp_path):
     def send(n, lost=False):
         for k in range(n):
             t[0] += 1 / 30
-            out.publish(lost_result(k, t[0]) if lost else vehicle_result(WALL, k, t[0], (-2.0, 0.1 * k, 0.0)))
+            out.submit(lost_result(k, t[0]) if lost else vehicle_result(WALL, k, t[0], (-2.0, 0.1 * k, 0.0)))
 
     try:
         send(4)
@@ -92,7 +92,7 @@ def test_rate_limit_and_lost_lines_option(tmp_path):
     try:
         for k in range(30):  # 1 s at 30 Hz, the marker missing in frames 10..14
             t = 200.0 + k / 30
-            out.publish(lost_result(k, t) if 10 <= k < 15 else vehicle_result(WALL, k, t, (-2.0, 0.0, 0.0)))
+            out.submit(lost_result(k, t) if 10 <= k < 15 else vehicle_result(WALL, k, t, (-2.0, 0.0, 0.0)))
         lines = _lines(port.read(1.0, until=lambda b: b.count(b"\r\n") >= 9))
     finally:
         out.close()

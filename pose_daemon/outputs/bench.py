@@ -73,7 +73,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             times = np.empty(len(results))
             for i, r in enumerate(results):
                 t0 = time.perf_counter()
-                out.publish(r)
+                out.submit(r)
                 times[i] = time.perf_counter() - t0
                 _drain(sink, master)
             out.close()

@@ -9,6 +9,7 @@ import time
 from typing import Callable, Optional, TextIO
 
 from ..result import FrameResult
+from .base import ClosedHook, WrittenHook
 from .worker import LinkClosed, LinkError, QueuedOutput
 
 
@@ -17,13 +18,16 @@ class JsonlOutput(QueuedOutput):
 
     name = "jsonl"
 
-    def __init__(self, path: str, *, queue_size: int = 4, retry_s: float = 0.5, retry_max_s: float = 5.0,
+    def __init__(self, path: str, *, queue_size: int = 4, max_age_s: Optional[float] = None,
+                 on_written: Optional[WrittenHook] = None, on_closed: Optional[ClosedHook] = None,
+                 retry_s: float = 0.5, retry_max_s: float = 5.0,
                  clock: Callable[[], float] = time.monotonic, start: bool = True,
                  stream: Optional[TextIO] = None) -> None:
         self.path = path
         self._given_stream = stream
         self._stream: Optional[TextIO] = None
-        super().__init__(queue_size=queue_size, retry_s=retry_s, retry_max_s=retry_max_s, clock=clock,
+        super().__init__(queue_size=queue_size, max_age_s=max_age_s, on_written=on_written,
+                         on_closed=on_closed, retry_s=retry_s, retry_max_s=retry_max_s, clock=clock,
                          start=start)
 
     @classmethod

@@ -40,6 +40,7 @@ from ..geometry import (
 )
 from ..pose.types import Pose
 from ..result import FrameResult, time_usec_from_s
+from .base import ClosedHook, WrittenHook
 from .quality import pose_covariance_local, pose_quality
 from .worker import LinkBusy, LinkError, QueuedOutput
 
@@ -211,7 +212,9 @@ class MavlinkOutput(QueuedOutput):
                  messages: Sequence[str] = ("ODOMETRY",), source_system: int = 1, source_component: int = 197, wait_heartbeat: bool = True, min_interval_s: float = 0.02,
                  lost_timeout_s: float = 0.3, jump_m: float = 0.5, jump_deg: float = 30.0,
                  statustext: bool = True, origin: Optional[Sequence[float]] = None, set_home: bool = False,
-                 signing_key: Optional[str] = None, queue_size: int = 4, retry_s: float = 0.5,
+                 signing_key: Optional[str] = None, queue_size: int = 4, max_age_s: Optional[float] = None,
+                 on_written: Optional[WrittenHook] = None, on_closed: Optional[ClosedHook] = None,
+                 retry_s: float = 0.5,
                  retry_max_s: float = 5.0, clock: Callable[[], float] = time.monotonic,
                  start: bool = True) -> None:
         self.kind, self.device, self.baud = parse_connection(connection, baud)
@@ -249,7 +252,8 @@ class MavlinkOutput(QueuedOutput):
         self._tracked = False
         self._lost = False
         self._new_track = False
-        super().__init__(queue_size=queue_size, retry_s=retry_s, retry_max_s=retry_max_s, clock=clock,
+        super().__init__(queue_size=queue_size, max_age_s=max_age_s, on_written=on_written,
+                         on_closed=on_closed, retry_s=retry_s, retry_max_s=retry_max_s, clock=clock,
                          start=start)
 
     @classmethod

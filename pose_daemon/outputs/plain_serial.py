@@ -23,6 +23,7 @@ import numpy as np
 
 from ..geometry import VehicleFrames
 from ..result import FrameResult, time_usec_from_s
+from .base import ClosedHook, WrittenHook
 from .quality import LOST_QUALITY, pose_quality
 from .worker import LinkBusy, LinkError, QueuedOutput
 
@@ -83,7 +84,9 @@ class PlainSerialOutput(QueuedOutput):
     name = "serial"
 
     def __init__(self, port: str, frames: VehicleFrames, *, baud: int = 115200, min_interval_s: float = 0.0,
-                 send_lost: bool = True, queue_size: int = 4, retry_s: float = 0.5, retry_max_s: float = 5.0,
+                 send_lost: bool = True, queue_size: int = 4, max_age_s: Optional[float] = None,
+                 on_written: Optional[WrittenHook] = None, on_closed: Optional[ClosedHook] = None,
+                 retry_s: float = 0.5, retry_max_s: float = 5.0,
                  clock: Callable[[], float] = time.monotonic, start: bool = True) -> None:
         self.port = port
         self.baud = int(baud)
@@ -92,7 +95,8 @@ class PlainSerialOutput(QueuedOutput):
         self.send_lost = bool(send_lost)
         self._serial = None
         self._last_sent_t: Optional[float] = None
-        super().__init__(queue_size=queue_size, retry_s=retry_s, retry_max_s=retry_max_s, clock=clock,
+        super().__init__(queue_size=queue_size, max_age_s=max_age_s, on_written=on_written,
+                         on_closed=on_closed, retry_s=retry_s, retry_max_s=retry_max_s, clock=clock,
                          start=start)
 
     @classmethod

@@ -9,6 +9,7 @@ are played forth and back, so the camera moves continuously (and turns round) as
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import socket
 import sys
@@ -169,10 +170,6 @@ def _run(args: argparse.Namespace, Pipeline, FrameProcessor, open_outputs) -> in
     images = render_frames(cfg, args.distinct, args.seed)
     source = PacedSource(images, args.frames, args.fps)
     processor = FrameProcessor.from_config(cfg)
-    outputs = open_outputs(cfg)
-
-    totals = {o.name: np.zeros(args.frames) for o in outputs}
-    counts = dict.fromkeys(totals, 0)
     rss_warm: List[Optional[int]] = [None]
     warm_at = min(1000, max(1, args.frames // 10))
 
@@ -187,8 +184,11 @@ def _run(args: argparse.Namespace, Pipeline, FrameProcessor, open_outputs) -> in
     # Garbage collection between frames, as `pose-daemon run` does.
     from ..service import IdleCollector
 
-    pipeline = Pipeline.from_config(cfg, source, processor, outputs, on_written=on_written,
-                                    on_idle=IdleCollector().run)
+    pipeline = Pipeline.from_config(cfg, source, processor, functools.partial(open_outputs, cfg),
+                                    on_written=on_written, on_idle=IdleCollector().run)
+    outputs = pipeline.outputs
+    totals = {o.name: np.zeros(args.frames) for o in outputs}  # filled by on_written once started
+    counts = dict.fromkeys(totals, 0)
     rss_start = rss_bytes()
     t0 = time.monotonic()
     print(f"running {args.frames} frames at {args.fps:g} fps through detect -> estimate -> "
