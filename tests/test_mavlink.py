@@ -17,6 +17,7 @@ from mavlink_helpers import (
     autopilot_heartbeat,
     camera_pose,
     lost_result,
+    mavlink_output,
     of_type,
     parser,
     vehicle_result,
@@ -37,7 +38,7 @@ WALL = g.VehicleFrames.from_settings("forward", placement="wall")
 def output(connection: str, **kw) -> MavlinkOutput:
     kw.setdefault("wait_heartbeat", False)
     kw.setdefault("queue_size", 0)
-    return MavlinkOutput(connection, kw.pop("frames", WALL), fx_px=500.0, marker_width_m=0.2, **kw)
+    return mavlink_output(connection, kw.pop("frames", WALL), **kw)
 
 
 @pytest.mark.pi

@@ -18,6 +18,8 @@ from typing import List, Optional, Sequence
 
 import numpy as np
 
+from ..camera import Camera, Marker
+from ..config import JsonlOutputConfig, MavlinkOutputConfig, SerialOutputConfig
 from ..geometry import (
     R_from_euler_rpy,
     VehicleFrames,
@@ -59,13 +61,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     os.set_blocking(master, False)
     tmp = tempfile.TemporaryDirectory(prefix="pose-daemon-bench-")
     udp = f"udpout:127.0.0.1:{sink.getsockname()[1]}"
-    common = dict(fx_px=500.0, marker_width_m=0.2, wait_heartbeat=False, queue_size=0)
+    common = dict(camera=Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5), marker=Marker(width=0.2), queue_size=0)
+    all_three = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
     outputs = [
-        ("mavlink ODOMETRY, UDP", MavlinkOutput(udp, frames, **common)),
+        ("mavlink ODOMETRY, UDP",
+         MavlinkOutput(MavlinkOutputConfig(connection=udp, wait_heartbeat=False), frames, **common)),
         ("mavlink ODOMETRY+VPE+LANDING_TARGET, UDP",
-         MavlinkOutput(udp, frames, messages=("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET"), **common)),
-        ("plain $POSE, pty", PlainSerialOutput(os.ttyname(slave), frames, queue_size=0)),
-        ("jsonl, file", JsonlOutput(os.path.join(tmp.name, "poses.jsonl"), queue_size=0)),
+         MavlinkOutput(MavlinkOutputConfig(connection=udp, wait_heartbeat=False, messages=all_three), frames,
+                       **common)),
+        ("plain $POSE, pty", PlainSerialOutput(SerialOutputConfig(port=os.ttyname(slave)), frames, queue_size=0)),
+        ("jsonl, file", JsonlOutput(JsonlOutputConfig(path=os.path.join(tmp.name, "poses.jsonl")), queue_size=0)),
     ]
     print(f"publish -> bytes written, {args.poses} poses per output (this machine, {sys.platform}):")
     try:

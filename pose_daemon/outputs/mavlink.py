@@ -28,10 +28,11 @@ import hashlib
 import math
 import select
 import time
-from typing import Any, Callable, List, Optional, Sequence, Tuple
+from typing import TYPE_CHECKING, Any, Callable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from ..camera import Camera, Marker
 from ..geometry import (
     VehicleFrames,
     euler_rpy_from_R,
@@ -43,6 +44,9 @@ from ..result import FrameResult, time_usec_from_s
 from .base import ClosedHook, WrittenHook
 from .quality import pose_covariance_local, pose_quality
 from .worker import LinkBusy, LinkError, QueuedOutput
+
+if TYPE_CHECKING:  # config.py may import this module's choices: no import back at run time
+    from ..config import MavlinkOutputConfig
 
 MESSAGES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
 # ArduPilot's AP_VISUALODOM_TIMEOUT_MS: a longer silence makes the feed unhealthy, so the next
@@ -207,37 +211,26 @@ class MavlinkOutput(QueuedOutput):
     name = "mavlink"
     tick_s = 0.05  # how often incoming bytes are read and the heartbeat is checked
 
-    def __init__(self, connection: str, frames: VehicleFrames, *, fx_px: float, marker_width_m: float,
-                 marker_height_m: Optional[float] = None, baud: int = 921600,
-                 messages: Sequence[str] = ("ODOMETRY",), source_system: int = 1, source_component: int = 197, wait_heartbeat: bool = True, min_interval_s: float = 0.02,
-                 lost_timeout_s: float = 0.3, jump_m: float = 0.5, jump_deg: float = 30.0,
-                 statustext: bool = True, origin: Optional[Sequence[float]] = None, set_home: bool = False,
-                 signing_key: Optional[str] = None, queue_size: int = 4, max_age_s: Optional[float] = None,
+    def __init__(self, cfg: MavlinkOutputConfig, frames: VehicleFrames, *, camera: Camera, marker: Marker,
+                 queue_size: int = 4, max_age_s: Optional[float] = None,
                  on_written: Optional[WrittenHook] = None, on_closed: Optional[ClosedHook] = None,
-                 retry_s: float = 0.5,
-                 retry_max_s: float = 5.0, clock: Callable[[], float] = time.monotonic,
-                 start: bool = True) -> None:
-        self.kind, self.device, self.baud = parse_connection(connection, baud)
-        bad = [m for m in messages if m not in MESSAGES]
-        if bad or not messages:
-            raise ValueError(f"messages must be some of {', '.join(MESSAGES)}, got {list(messages)}")
-        self.connection = connection
+                 clock: Callable[[], float] = time.monotonic, start: bool = True) -> None:
+        """``cfg``: the ``[output.mavlink]`` table (its keys are read where they apply, as
+        ``self.cfg.KEY``); ``frames``: mount and marker placement; ``camera``/``marker``: the
+        focal length and marker size behind the covariance and LANDING_TARGET. The rest as
+        QueuedOutput. ValueError for a connection string or message list that cannot work."""
+        self.kind, self.device, self.baud = parse_connection(cfg.connection, cfg.baud)
+        bad = [m for m in cfg.messages if m not in MESSAGES]
+        if bad or not cfg.messages:
+            raise ValueError(f"messages must be some of {', '.join(MESSAGES)}, got {list(cfg.messages)}")
+        self.cfg = cfg
         self.frames = frames
-        self.fx_px = float(fx_px)
-        self.marker_width_m = float(marker_width_m)
-        self.marker_height_m = float(marker_height_m) if marker_height_m is not None else self.marker_width_m
-        self.messages = tuple(messages)
-        self.source_system = int(source_system)
-        self.source_component = int(source_component)
-        self.wait_heartbeat = bool(wait_heartbeat)
-        self.min_interval_s = float(min_interval_s)
-        self.lost_timeout_s = float(lost_timeout_s)
-        self.jump_m = float(jump_m)
-        self.jump_deg = float(jump_deg)
-        self.statustext = bool(statustext)
-        self.origin = tuple(float(v) for v in origin) if origin is not None else None
-        self.set_home = bool(set_home)
-        self._signing_key = signing_key_bytes(signing_key) if signing_key else None
+        self.fx_px = float(camera.fx)
+        self.marker_width_m = float(marker.width)
+        self.marker_height_m = float(marker.height) if marker.height is not None else self.marker_width_m
+        self.messages = tuple(cfg.messages)
+        self.origin = tuple(float(v) for v in cfg.origin) if cfg.origin is not None else None
+        self._signing_key = signing_key_bytes(cfg.signing_key) if cfg.signing_key else None
         self._link: Optional[_MavlinkLink] = None
         self._last_heartbeat_t = -1e18
         self.autopilot_system: Optional[int] = None
@@ -253,27 +246,20 @@ class MavlinkOutput(QueuedOutput):
         self._lost = False
         self._new_track = False
         super().__init__(queue_size=queue_size, max_age_s=max_age_s, on_written=on_written,
-                         on_closed=on_closed, retry_s=retry_s, retry_max_s=retry_max_s, clock=clock,
-                         start=start)
+                         on_closed=on_closed, retry_s=cfg.retry_s, retry_max_s=cfg.retry_max_s,
+                         clock=clock, start=start)
 
     @classmethod
     def from_config(cls, cfg, **kwargs) -> MavlinkOutput:
-        m = cfg.output.mavlink
-        return cls(m.connection, VehicleFrames.from_config(cfg.mount, cfg.marker.placement),
-                   fx_px=cfg.camera.fx, marker_width_m=cfg.marker.width,
-                   marker_height_m=cfg.marker.height, baud=m.baud, messages=m.messages,
-                   source_system=m.source_system, source_component=m.source_component,
-                   wait_heartbeat=m.wait_heartbeat, min_interval_s=m.min_interval_s,
-                   lost_timeout_s=m.lost_timeout_s, jump_m=m.jump_m, jump_deg=m.jump_deg,
-                   statustext=m.statustext, origin=m.origin, set_home=m.set_home, signing_key=m.signing_key,
-                   retry_s=m.retry_s, retry_max_s=m.retry_max_s,
-                   **kwargs)
+        """The output of a whole Config's ``[output.mavlink]``; ``kwargs`` as ``__init__``."""
+        return cls(cfg.output.mavlink, VehicleFrames.from_config(cfg.mount, cfg.marker.placement),
+                   camera=cfg.camera.model(), marker=cfg.marker.model(), **kwargs)
 
     def stats(self) -> dict:
         s = super().stats()
         s["reset_counter"] = self.reset_counter
         s["autopilot"] = self.autopilot_system
-        if s["link_up"] and self.wait_heartbeat and self.autopilot_system is None:
+        if s["link_up"] and self.cfg.wait_heartbeat and self.autopilot_system is None:
             s["link"] = "up, waiting for the autopilot's HEARTBEAT"
         return s
 
@@ -286,8 +272,8 @@ class MavlinkOutput(QueuedOutput):
         return self.kind in ("udpout", "udpin") and self._link_up
 
     def _open(self) -> None:
-        self._link = _MavlinkLink(self.kind, self.device, self.baud, self.source_system,
-                                  self.source_component, self._signing_key)
+        self._link = _MavlinkLink(self.kind, self.device, self.baud, self.cfg.source_system,
+                                  self.cfg.source_component, self._signing_key)
 
     def _close_link(self) -> None:
         link, self._link = self._link, None
@@ -300,14 +286,14 @@ class MavlinkOutput(QueuedOutput):
         self._last_heartbeat_t = -1e18
         self._origin_sent = False
         self._send_heartbeat(self._clock())
-        if self.statustext:
+        if self.cfg.statustext:
             text = "pose-daemon started" if not self._started_text_sent else "pose-daemon link reopened"
             self._started_text_sent = True
             self._send_text(MAV_SEVERITY_INFO, text)
 
     def _tick_before_write(self) -> bool:
         # A pose waiting for the autopilot: read its HEARTBEAT first rather than drop the pose.
-        return self.wait_heartbeat and self.autopilot_system is None
+        return self.cfg.wait_heartbeat and self.autopilot_system is None
 
     def _tick(self, now: float) -> None:
         assert self._link is not None
@@ -352,7 +338,7 @@ class MavlinkOutput(QueuedOutput):
         target = self.autopilot_system or 0
         t_us = time_usec_from_s(now)
         self._link.mav.set_gps_global_origin_send(target, lat_e7, lon_e7, alt_mm, t_us)
-        if self.set_home:
+        if self.cfg.set_home:
             self._link.mav.set_home_position_send(target, lat_e7, lon_e7, alt_mm, 0.0, 0.0, 0.0,
                                                   [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, t_us)
         self._origin_sent = True
@@ -365,22 +351,22 @@ class MavlinkOutput(QueuedOutput):
         t = float(result.t_capture_s)
         pose = result.pose
         if pose is None:
-            if self._tracked and self._last_pose_t is not None and t - self._last_pose_t >= self.lost_timeout_s:
+            if self._tracked and self._last_pose_t is not None and t - self._last_pose_t >= self.cfg.lost_timeout_s:
                 self._tracked = False
                 self._lost = True
-                if self.statustext:
+                if self.cfg.statustext:
                     self._send_text(MAV_SEVERITY_WARNING, "pose-daemon: marker lost")
             self._drop("no_pose")
             return 0
         self._last_pose_t = t
-        if self.wait_heartbeat and self.autopilot_system is None:
+        if self.cfg.wait_heartbeat and self.autopilot_system is None:
             self._drop("no_autopilot")
             return 0
         if self._last_sent_t is not None:
             if t <= self._last_sent_t:
                 self._drop("out_of_order")
                 return 0
-            if t - self._last_sent_t < self.min_interval_s - 1e-9:
+            if t - self._last_sent_t < self.cfg.min_interval_s - 1e-9:
                 self._drop("rate")
                 return 0
         vehicle = self.frames.vehicle_pose(pose.R, pose.tvec)
@@ -393,7 +379,7 @@ class MavlinkOutput(QueuedOutput):
                                               or self._jumped(p, R)):
             self.reset_counter = (self.reset_counter + 1) % 256
         self._new_track = False
-        if found_again and self.statustext:
+        if found_again and self.cfg.statustext:
             self._send_text(MAV_SEVERITY_INFO, "pose-daemon: marker found")
         self._lost = False
         self._tracked = True
@@ -406,8 +392,8 @@ class MavlinkOutput(QueuedOutput):
         if self._last_sent_pose is None:
             return False
         p0, R0 = self._last_sent_pose
-        return (float(np.linalg.norm(p - p0)) > self.jump_m
-                or rotation_angle_deg_3x3(R0, R) > self.jump_deg)
+        return (float(np.linalg.norm(p - p0)) > self.cfg.jump_m
+                or rotation_angle_deg_3x3(R0, R) > self.cfg.jump_deg)
 
     def _send_pose(self, t_us: int, pose: Pose) -> int:
         assert self._link is not None
