@@ -28,7 +28,7 @@ from pose_daemon import geometry as g
 from pose_daemon.config import parse_config
 from pose_daemon.errors import ConfigError
 from pose_daemon.outputs import MavlinkOutput, open_outputs
-from pose_daemon.outputs.mavlink import encode_pose_messages, parse_connection
+from pose_daemon.outputs.mavlink import PoseMessageInputs, encode_pose_messages, parse_connection
 from pose_daemon.result import time_usec_from_s
 
 ALL = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
@@ -52,8 +52,8 @@ def test_encoding_round_trip_with_time_usec_beyond_32_bits():
     for t_s in (np.float64(2 ** 31 / 1e6 + 0.000001), 2 ** 32 / 1e6 + 0.123457, 1.0e9 + 0.25):
         t_us = time_usec_from_s(t_s)
         assert type(t_us) is int and t_us == int(round(float(t_s) * 1e6))
-        wire = b"".join(m.pack(mav) for m in encode_pose_messages(
-            mav, ALL, t_us, pose, WALL, fx_px=500.0, marker_width_m=0.2, reset_counter=7))
+        inputs = PoseMessageInputs.from_pose(t_us, pose, WALL, fx_px=500.0, marker_width_m=0.2, reset_counter=7)
+        wire = b"".join(m.pack(mav) for m in encode_pose_messages(mav, ALL, inputs))
         assert wire[0] == 0xFD  # MAVLink 2
         odo, vpe, lt = parser().parse_buffer(wire)
         assert (odo.time_usec, vpe.usec, lt.time_usec) == (t_us, t_us, t_us)
@@ -81,8 +81,8 @@ def test_quality_and_covariance_follow_residual_and_ambiguity():
     R = np.diag([1.0, -1.0, -1.0])
 
     def odo(t, err, amb):
-        (m,) = encode_pose_messages(mav, ["ODOMETRY"], 1, camera_pose(R, t, err, amb), WALL,
-                                    fx_px=500.0, marker_width_m=0.2)
+        inputs = PoseMessageInputs.from_pose(1, camera_pose(R, t, err, amb), WALL, fx_px=500.0, marker_width_m=0.2)
+        (m,) = encode_pose_messages(mav, ["ODOMETRY"], inputs)
         return m
 
     clear, noisy, ambiguous = odo([0, 0, 2.0], 0.1, 0.0), odo([0, 0, 2.0], 2.0, 0.0), odo([0, 0, 2.0], 0.1, 0.9)
@@ -94,6 +94,31 @@ def test_quality_and_covariance_follow_residual_and_ambiguity():
     assert ambiguous.pose_covariance[0] > 50 * clear.pose_covariance[0]
     far = odo([0, 0, 4.0], 0.1, 0.0)
     assert far.pose_covariance[0] == pytest.approx(16 * clear.pose_covariance[0], rel=1e-3)
+
+
+class _CountingFrames(g.VehicleFrames):
+    """WALL, counting the camera -> vehicle conversions."""
+
+    def vehicle_pose(self, R_cam_marker, tvec_m):
+        self.calls.append(1)
+        return super().vehicle_pose(R_cam_marker, tvec_m)
+
+
+def test_each_pose_is_converted_to_the_vehicle_once_for_all_its_messages():
+    frames = _CountingFrames(R_body_cam=WALL.R_body_cam, p_body_cam_m=WALL.p_body_cam_m,
+                             R_local_marker=WALL.R_local_marker)
+    object.__setattr__(frames, "calls", [])
+    peer = UdpPeer()
+    out = output(f"udpout:127.0.0.1:{peer.port}", frames=frames, messages=ALL)
+    try:
+        for k in range(3):
+            out.submit(vehicle_result(WALL, k, 40.0 + k / 30, (-2.0, 0.0, 0.0)))
+        msgs = peer.collect(2.0, until=lambda ms: len(of_type(ms, "LANDING_TARGET")) >= 3)
+    finally:
+        out.close()
+        peer.close()
+    assert [len(of_type(msgs, kind)) for kind in ALL] == [3, 3, 3]
+    assert len(frames.calls) == 3
 
 
 def test_stream_over_udp_keeps_every_autopilot_rule():

@@ -28,6 +28,7 @@ import hashlib
 import math
 import select
 import time
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -35,6 +36,7 @@ import numpy as np
 from ..camera import Camera, Marker
 from ..geometry import (
     VehicleFrames,
+    VehiclePose,
     euler_rpy_from_R,
     quaternion_from_R_3x3,
     rotation_angle_deg_3x3,
@@ -383,7 +385,11 @@ class MavlinkOutput(QueuedOutput):
             self._send_text(MAV_SEVERITY_INFO, "pose-daemon: marker found")
         self._lost = False
         self._tracked = True
-        n = self._send_pose(time_usec_from_s(t), pose)
+        inputs = PoseMessageInputs.from_pose(time_usec_from_s(t), pose, self.frames, vehicle=vehicle,
+                                             fx_px=self.fx_px, marker_width_m=self.marker_width_m,
+                                             marker_height_m=self.marker_height_m,
+                                             reset_counter=self.reset_counter)
+        n = self._send_pose(inputs)
         self._last_sent_t = t
         self._last_sent_pose = (p, R)
         return n
@@ -395,57 +401,91 @@ class MavlinkOutput(QueuedOutput):
         return (float(np.linalg.norm(p - p0)) > self.cfg.jump_m
                 or rotation_angle_deg_3x3(R0, R) > self.cfg.jump_deg)
 
-    def _send_pose(self, t_us: int, pose: Pose) -> int:
+    def _send_pose(self, inputs: PoseMessageInputs) -> int:
         assert self._link is not None
-        msgs = encode_pose_messages(self._link.mav, self.messages, t_us, pose, self.frames,
-                                    fx_px=self.fx_px, marker_width_m=self.marker_width_m,
-                                    marker_height_m=self.marker_height_m, reset_counter=self.reset_counter)
+        msgs = encode_pose_messages(self._link.mav, self.messages, inputs)
         for msg in msgs:
             self._link.mav.send(msg)
         return len(msgs)
 
 
-def encode_pose_messages(mav: Any, messages: Sequence[str], t_us: int, pose: Pose, frames: VehicleFrames, *,
-                         fx_px: float, marker_width_m: float, marker_height_m: Optional[float] = None,
-                         reset_counter: int = 0) -> List[Any]:
-    """The MAVLink messages (pymavlink objects, not yet packed) for one pose, in ``messages`` order.
+@dataclass(frozen=True)
+class PoseMessageInputs:
+    """What one pose's MAVLink messages carry, worked out once per pose (``from_pose``).
 
-    ``t_us``: capture time, integer microseconds. Positions in the local FRD frame of
-    ``frames`` (metres, radians); LANDING_TARGET in the body FRD frame.
+    ``p_local_m``/``R_local_body``: the vehicle in the local FRD frame (metres; rotation
+    body -> local). ``covariance``: MAVLink's 21-element upper triangle for (x, y, z, roll,
+    pitch, yaw), m^2 and rad^2. ``quality``: 1-100. ``p_marker_cam_m``: the marker centre in
+    the camera frame (LANDING_TARGET's angles and distance), ``p_marker_body_m`` in the body
+    FRD frame, ``R_body_marker`` its orientation; ``marker_size_m``: (width, height).
     """
-    t_us = int(t_us)
-    vehicle = frames.vehicle_pose(pose.R, pose.tvec)
-    R = vehicle.R_local_body
-    x, y, z = (float(v) for v in vehicle.p_local_body_m)
-    quality = pose_quality(pose.reprojection_error_px, pose.ambiguity_ratio)
-    cov = pose_covariance_local(pose, frames, fx_px, marker_width_m)
+
+    t_us: int
+    p_local_m: np.ndarray
+    R_local_body: np.ndarray
+    covariance: List[float]
+    reset_counter: int
+    quality: int
+    p_marker_cam_m: np.ndarray
+    p_marker_body_m: np.ndarray
+    R_body_marker: np.ndarray
+    marker_size_m: Tuple[float, float]
+
+    @classmethod
+    def from_pose(cls, t_us: int, pose: Pose, frames: VehicleFrames, *, fx_px: float, marker_width_m: float,
+                  marker_height_m: Optional[float] = None, reset_counter: int = 0,
+                  vehicle: Optional[VehiclePose] = None) -> PoseMessageInputs:
+        """From the camera's pose (``pose``: R_cam_marker, tvec) and the mounting; ``vehicle``:
+        ``frames.vehicle_pose`` of the same pose when the caller has it already."""
+        if vehicle is None:
+            vehicle = frames.vehicle_pose(pose.R, pose.tvec)
+        t_cam = np.asarray(pose.tvec, dtype=np.float64)
+        width_m = float(marker_width_m)
+        height_m = float(marker_height_m) if marker_height_m is not None else width_m
+        return cls(t_us=int(t_us), p_local_m=np.asarray(vehicle.p_local_body_m, dtype=np.float64),
+                   R_local_body=np.asarray(vehicle.R_local_body, dtype=np.float64),
+                   covariance=pose_covariance_local(pose, frames, fx_px, width_m),
+                   reset_counter=int(reset_counter),
+                   quality=pose_quality(pose.reprojection_error_px, pose.ambiguity_ratio),
+                   p_marker_cam_m=t_cam, p_marker_body_m=np.asarray(frames.marker_in_body(t_cam)),
+                   R_body_marker=frames.R_body_cam @ np.asarray(pose.R), marker_size_m=(width_m, height_m))
+
+
+def encode_pose_messages(mav: Any, messages: Sequence[str], inputs: PoseMessageInputs) -> List[Any]:
+    """The MAVLink messages (pymavlink objects, not yet packed) for one pose, in ``messages`` order:
+    ODOMETRY and VISION_POSITION_ESTIMATE in the local FRD frame, LANDING_TARGET in the body
+    FRD frame."""
+    t_us = inputs.t_us
+    x, y, z = (float(v) for v in inputs.p_local_m)
+    cov = inputs.covariance
     out: List[Any] = []
     for name in messages:
         if name == "ODOMETRY":
-            q = [float(v) for v in quaternion_from_R_3x3(R)]
+            q = [float(v) for v in quaternion_from_R_3x3(inputs.R_local_body)]
             out.append(mav.odometry_encode(t_us, MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD, x, y, z, q,
                                            NAN, NAN, NAN, NAN, NAN, NAN, cov, [NAN] * 21,
-                                           int(reset_counter), MAV_ESTIMATOR_TYPE_VISION, quality))
+                                           inputs.reset_counter, MAV_ESTIMATOR_TYPE_VISION, inputs.quality))
         elif name == "VISION_POSITION_ESTIMATE":
-            roll, pitch, yaw = (float(v) for v in euler_rpy_from_R(R))
-            out.append(mav.vision_position_estimate_encode(t_us, x, y, z, roll, pitch, yaw, cov, int(reset_counter)))
+            roll, pitch, yaw = (float(v) for v in euler_rpy_from_R(inputs.R_local_body))
+            out.append(mav.vision_position_estimate_encode(t_us, x, y, z, roll, pitch, yaw, cov,
+                                                           inputs.reset_counter))
         elif name == "LANDING_TARGET":
-            out.append(_landing_target(mav, t_us, pose, frames, marker_width_m,
-                                       marker_height_m if marker_height_m is not None else marker_width_m))
+            out.append(_landing_target(mav, inputs))
         else:
             raise ValueError(f"unknown pose message {name!r}")
     return out
 
 
-def _landing_target(mav: Any, t_us: int, pose: Pose, frames: VehicleFrames, width_m: float, height_m: float) -> Any:
-    t = np.asarray(pose.tvec, dtype=np.float64)
+def _landing_target(mav: Any, inputs: PoseMessageInputs) -> Any:
+    t = inputs.p_marker_cam_m
     distance = float(np.linalg.norm(t))
     # Angles of the marker centre off the optical axis (image x right, image y down), radians.
     angle_x = math.atan2(float(t[0]), float(t[2]))
     angle_y = math.atan2(float(t[1]), float(t[2]))
+    width_m, height_m = inputs.marker_size_m
     size_x = 2.0 * math.atan2(width_m / 2.0, distance)
     size_y = 2.0 * math.atan2(height_m / 2.0, distance)
-    xb, yb, zb = (float(v) for v in frames.marker_in_body(t))
-    q = [float(v) for v in quaternion_from_R_3x3(frames.R_body_cam @ np.asarray(pose.R))]
-    return mav.landing_target_encode(t_us, 0, MAV_FRAME_BODY_FRD, angle_x, angle_y, distance, size_x, size_y,
+    xb, yb, zb = (float(v) for v in inputs.p_marker_body_m)
+    q = [float(v) for v in quaternion_from_R_3x3(inputs.R_body_marker)]
+    return mav.landing_target_encode(inputs.t_us, 0, MAV_FRAME_BODY_FRD, angle_x, angle_y, distance, size_x, size_y,
                                      xb, yb, zb, q, LANDING_TARGET_TYPE_VISION_FIDUCIAL, 1)
