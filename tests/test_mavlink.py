@@ -244,6 +244,25 @@ def test_waits_for_the_autopilot_then_sends_origin_and_home():
     assert (hb.type, hb.autopilot, hb.get_srcComponent(), hb.get_srcSystem()) == (18, 8, 197, 1)
 
 
+def test_received_messages_go_to_the_handler_of_their_type():
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    peer = UdpPeer()
+    out = output(f"udpout:127.0.0.1:{peer.port}")
+    got = []
+    out.subscribe("SYSTEM_TIME", lambda msg, now_s: got.append((msg.time_unix_usec, msg.time_boot_ms, now_s)))
+    try:
+        assert peer.collect(2.0, until=lambda ms: bool(of_type(ms, "HEARTBEAT")))  # the peer's address
+        ap = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+        peer.send(ap.system_time_encode(1_700_000_000_000_000, 1234).pack(ap) + autopilot_heartbeat(system=1))
+        assert wait_for(lambda: bool(got) and out.autopilot_system == 1, 2.0)
+    finally:
+        out.close()
+        peer.close()
+    assert [g[:2] for g in got] == [(1_700_000_000_000_000, 1234)] and got[0][2] > 0
+    assert out.autopilot_system == 1  # HEARTBEAT keeps its own handler
+
+
 def test_signed_stream_verifies_only_with_the_key():
     key = hashlib.sha256(b"correct horse battery staple").digest()
     peer = UdpPeer(signing_key=key)

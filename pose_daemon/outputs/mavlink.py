@@ -18,7 +18,8 @@ The rules it keeps (shared/autopilot-rules.md, checked by tests/fc_acceptance.py
 The link is one pymavlink connection string (udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT,
 /dev/ttyX[:BAUD]) opened through ``mavutil.mavlink_connection``; this module does the reads
 and writes itself so that a failure is seen (pymavlink would print and carry on), and reopens
-the link with a doubling pause.
+the link with a doubling pause. Each received message goes to the handler of its type
+(``MavlinkOutput._handlers``, ``subscribe``; today HEARTBEAT), in the output's thread.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import math
 import select
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable, List, Optional, Sequence, Tuple
+from typing import TYPE_CHECKING, Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -71,6 +72,10 @@ MAV_SEVERITY_WARNING = 4
 MAV_SEVERITY_INFO = 6
 LANDING_TARGET_TYPE_VISION_FIDUCIAL = 2
 _SIGNING_EPOCH_S = 1420070400  # MAVLink 2 signing time stamps count from 2015-01-01
+
+# Handles one received message of its type: (pymavlink message, now_s on the output's clock).
+# Called in the output's thread with the link held, so it may send (self._link.mav).
+MessageHandler = Callable[[Any, float], None]
 
 
 def signing_key_bytes(key: str) -> bytes:
@@ -239,6 +244,11 @@ class MavlinkOutput(QueuedOutput):
         self._autopilot_heard_t: Optional[float] = None
         self._origin_sent = False
         self._started_text_sent = False
+        # What is done with each received message, by type (the one dispatch point, _on_message);
+        # a type not listed is ignored. More handlers: one line here, or subscribe().
+        self._handlers: Dict[str, MessageHandler] = {
+            "HEARTBEAT": self._on_heartbeat,
+        }
         # Track state: touched only with the link held (the io lock of QueuedOutput).
         self.reset_counter = 0
         self._last_sent_t: Optional[float] = None
@@ -304,9 +314,20 @@ class MavlinkOutput(QueuedOutput):
         if now - self._last_heartbeat_t >= HEARTBEAT_S:
             self._send_heartbeat(now)
 
+    def subscribe(self, msg_type: str, handler: MessageHandler) -> None:
+        """Call ``handler(msg, now_s)`` for every received message of ``msg_type`` (pymavlink's
+        name, e.g. "TIMESYNC"), in place of the handler it had."""
+        with self._io_lock:
+            self._handlers[msg_type] = handler
+
     def _on_message(self, msg: Any, now: float) -> None:
-        if msg.get_type() != "HEARTBEAT":
-            return
+        handler = self._handlers.get(msg.get_type())
+        if handler is not None:
+            handler(msg, now)
+
+    def _on_heartbeat(self, msg: Any, now: float) -> None:
+        """Notes the autopilot (not a ground station or another companion) and when it was
+        heard; sends the GPS origin to a new or rebooted one."""
         if msg.type == MAV_TYPE_GCS:
             self._count("gcs_heard")
         if msg.autopilot == MAV_AUTOPILOT_INVALID or msg.type in (MAV_TYPE_GCS, MAV_TYPE_ONBOARD_CONTROLLER):
