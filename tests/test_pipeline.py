@@ -139,6 +139,29 @@ def test_failing_output_is_counted_and_the_others_go_on():
     assert "good 10 sent (link closed)" in line
 
 
+class _RaisingOutput(FakeOutput):
+    """Breaks the Output promise: ``submit`` raises for even frames."""
+
+    def submit(self, result) -> None:
+        if result.seq % 2 == 0:
+            raise RuntimeError(f"bug at frame {result.seq}")
+        super().submit(result)
+
+
+def test_an_output_whose_submit_raises_is_counted_and_the_others_go_on():
+    gate = threading.Semaphore(0)
+    p = Pipeline(FakeSource(frames=10, gate=gate), FakeProcessor(gate=gate),
+                 outputs_of(functools.partial(_RaisingOutput, "bad", queue_size=16),
+                            functools.partial(FakeOutput, "good", queue_size=16)),
+                 latency_budget_s=5.0)
+    bad, good = p.outputs
+    _run(p)
+    assert [g[0] for g in good.got] == list(range(10))
+    assert [g[0] for g in bad.got] == [1, 3, 5, 7, 9]
+    assert p.stats.snapshot()["drops"] == {"failed[bad]": 5}
+    assert "drops failed[bad] 5;" in p.status_line()
+
+
 def test_source_failure_mid_run_reopens_with_backoff_and_resets_the_track():
     gate = threading.Semaphore(0)
     source = FakeSource(frames=20, gate=gate, fail_at={6, 7})
