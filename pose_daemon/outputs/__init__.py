@@ -18,7 +18,6 @@ from __future__ import annotations
 
 from typing import List, Optional
 
-from ..errors import ConfigError
 from .base import ClosedHook, Output, OutputFactory, WrittenHook
 from .jsonl import JsonlOutput
 from .mavlink import MavlinkOutput
