@@ -106,7 +106,8 @@ def _time_calls(fn: Callable, corners: np.ndarray) -> float:
 
 
 def run_bench(n: int, timing_n: int, seed: int, progress: bool = True) -> Dict[str, object]:
-    from ..pose.estimator import estimate_pose, estimate_pose_batch
+    from ..pose.batch import estimate_pose_batch
+    from ..pose.estimator import estimate_pose
 
     camera = Camera(fx=600.0, fy=600.0, cx=319.5, cy=239.5, width=640, height=480)
     marker = Marker(0.2, 0.2)
