@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from pose_daemon import geometry
+from pose_daemon.paper.table_build import build_table
 from pose_daemon.pose import loop
-from pose_daemon.pose.paper_table import build_table, load_table
+from pose_daemon.pose.paper_table import load_table
 
 
 def _image(R_cam_unrot, pos=(0.0, 0.0, 5.0), w=1.0, h=1.0, f=1.0):

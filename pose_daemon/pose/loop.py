@@ -15,6 +15,8 @@ from typing import List, Optional
 
 import numpy as np
 
+from .paper_table import load_table
+
 METHODS = ("iterative", "paper")
 
 
@@ -323,8 +325,6 @@ def correction_loop(points: np.ndarray, f: float, area: float, *, method: str = 
     batch = pts.shape[:-2]
     table = None
     if method == "paper":
-        from .paper_table import load_table
-
         table = load_table()
     xs = [np.array(pts[..., j, 0]) for j in range(4)]
     ys = [np.array(pts[..., j, 1]) for j in range(4)]
@@ -369,8 +369,6 @@ def loop_one(us: List[float], vs: List[float], area: float, method: str, iterati
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
     table = None
     if method == "paper":
-        from .paper_table import load_table
-
         table = load_table()
         scale_yaw, scale_pitch = math.sqrt(area / aspect), math.sqrt(area * aspect)
     i = 0
