@@ -13,6 +13,7 @@ from typing import Sequence
 import numpy as np
 
 from .. import geometry
+from ..geometry import R_from_rvec_f, matmul_f
 from .polish import polish
 
 # The second solution needs only enough polish to rank it: one step, then it is finished
@@ -86,7 +87,7 @@ def weak_perspective_pair(us: Sequence[float], vs: Sequence[float], width: float
         n2 = math.sqrt(x2 * x2 + y2 * y2 + z2 * z2)
         x2, y2, z2 = x2 / n2, y2 / n2, z2 / n2
         R = (x1, x2, y1 * z2 - z1 * y2, y1, y2, z1 * x2 - x1 * z2, z1, z2, x1 * y2 - y1 * x2)
-        out.append((geometry.matmul_f(Rc, R), t))
+        out.append((matmul_f(Rc, R), t))
     return out[0], out[1]
 
 
@@ -96,8 +97,8 @@ def mirror_pose(R: Sequence[float], t: Sequence[float]):
     line; the flip about the marker's own z keeps its corners where they were. Same centre."""
     n = math.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
     k = math.pi / n if n > 0.0 else math.nan
-    R_los = geometry.R_from_rvec_f(k * t[0], k * t[1], k * t[2])
-    return geometry.matmul_f(geometry.matmul_f(R_los, R), R_FLIP_Z), tuple(t)
+    R_los = R_from_rvec_f(k * t[0], k * t[1], k * t[2])
+    return matmul_f(matmul_f(R_los, R), R_FLIP_Z), tuple(t)
 
 
 def polished_pair(R, t, cost: float, zmin: float, wp, obj, us, vs, wx: float, wy: float):

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from typing import Optional, Sequence, Tuple
 
-from .. import geometry
+from ..geometry import R_from_rvec_f, matmul_f
 
 POLISH_MAX_ITER = 30
 POLISH_TOL = 1e-5
@@ -174,7 +174,7 @@ def polish(R: Sequence[float], t: Sequence[float], obj, us, vs, wx: float, wy: f
         if s is None:
             break
         s0, s1, s2, s3, s4, s5 = s
-        R_new = geometry.matmul_f(geometry.R_from_rvec_f(s0, s1, s2), R)
+        R_new = matmul_f(R_from_rvec_f(s0, s1, s2), R)
         t_new = (t[0] + s3, t[1] + s4, t[2] + s5)
         cost_n, zmin_n = reprojection_cost(R_new, t_new, obj, us, vs, wx, wy)
         if zmin_n > 0.0 and cost_n <= cost * (1.0 + 1e-12):
