@@ -34,7 +34,6 @@ def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = No
     to ``out_path`` (stdout without one), annotated images into the folder ``annotate``; the
     camera and marker are the recording's own when it has them, else ``config``'s. Returns
     the exit status; UserError when nothing could be read."""
-    from ..detect import MarkerDetector
 
     source = ReplaySource(path, realtime=False)
     try:
@@ -60,13 +59,7 @@ def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = No
         if ignored:
             print(f"pose-daemon: note: {path} has its own {' and '.join(ignored)}, used instead of "
                   f"those of {config}", file=sys.stderr)
-    # FrameProcessor.from_config takes the config's camera and marker, not the recording's:
-    # built here until processing.py has a constructor from models (from_models).
-    detector = MarkerDetector(marker, max_misses=cfg.detector.max_misses,
-                              min_side_px=cfg.detector.min_side_px, camera=camera)
-    processor = FrameProcessor(camera, marker, method=cfg.estimator.method,
-                               iterations=cfg.estimator.iterations, refine=cfg.estimator.refine,
-                               detector=detector)
+    processor = FrameProcessor.from_models(camera, marker, cfg.estimator, cfg.detector)
     annotate_dir: Optional[Path] = None
     if annotate:
         annotate_dir = Path(annotate)
