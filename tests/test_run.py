@@ -145,3 +145,105 @@ def test_run_with_a_missing_video_or_recording_exits_2_at_once(tmp_path, source,
     assert res.returncode == 2
     assert res.stderr == (f'pose-daemon: error: {cfg}: [camera] source: expected {expected}, '
                           f'got "{source}" (no such file or folder)\n')
+
+
+# Holds `pose-daemon run` (the `python -m pose_daemon` entry, via runpy) at the first import of
+# one module until the test has sent its signal: the start-up window hit on purpose, no sleep.
+_GATED_DAEMON = r"""
+import importlib.abc, os, runpy, sys
+
+class Gate(importlib.abc.MetaPathFinder):
+    def __init__(self, name, ready_fd, go_fd):
+        self.name, self.ready_fd, self.go_fd, self.done = name, ready_fd, go_fd, False
+
+    def find_spec(self, name, path=None, target=None):
+        if name == self.name and not self.done:
+            self.done = True
+            os.write(self.ready_fd, b"1")  # "start-up is here": the test sends its signal
+            os.read(self.go_fd, 1)         # blocks until the test lets it go on
+        return None
+
+name, ready_fd, go_fd = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+sys.meta_path.insert(0, Gate(name, ready_fd, go_fd))
+del sys.argv[1:4]
+runpy.run_module("pose_daemon", run_name="__main__", alter_sys=True)
+"""
+
+
+def _notify_socket(tmp_path):
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    path = str(tmp_path / "notify.sock")
+    sock.bind(path)
+    sock.setblocking(False)
+    return sock, path
+
+
+def _notify_lines(sock):
+    lines = []
+    while True:
+        try:
+            lines += sock.recv(4096).decode().split("\n")
+        except BlockingIOError:
+            return lines
+
+
+@pytest.mark.parametrize("module, signum", [
+    ("numpy", signal.SIGINT),                     # the command modules load numpy, OpenCV
+    ("cv2", signal.SIGTERM),
+    ("pose_daemon.service", signal.SIGHUP),       # config read, the service module loading
+    ("pose_daemon.capture.synthetic", signal.SIGTERM),  # inside Service(): the source
+    ("pose_daemon.pose.estimator", signal.SIGINT),      # inside Service(): the estimator's tables
+    ("pose_daemon.pose.estimator", signal.SIGHUP),
+])
+def test_stop_signal_during_start_up_is_a_clean_stop_with_stopping_1(tmp_path, module, signum):
+    cfg = _config(tmp_path, '[camera]\nsource = "synthetic"\n[output.jsonl]\npath = "-"\n')
+    notify, notify_path = _notify_socket(tmp_path)
+    ready_r, ready_w = os.pipe()
+    go_r, go_w = os.pipe()
+    env = dict(ENV, NOTIFY_SOCKET=notify_path)
+    proc = subprocess.Popen([sys.executable, "-c", _GATED_DAEMON, module, str(ready_w), str(go_r),
+                             "run", "--config", str(cfg)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env, pass_fds=(ready_w, go_r))
+    os.close(ready_w)
+    os.close(go_r)
+    try:
+        assert os.read(ready_r, 1) == b"1", "the daemon never reached the gate"
+        proc.send_signal(signum)
+        os.write(go_w, b"1")  # had the signal been ignored, start-up would go on and never stop
+        out, err = proc.communicate(timeout=60)
+    finally:
+        os.close(ready_r)
+        os.close(go_w)
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    lines = _notify_lines(notify)
+    notify.close()
+    name = signal.Signals(signum).name
+    assert proc.returncode == 0, (proc.returncode, err)
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err
+    assert err.endswith(f"pose-daemon: stopping: {name} during start-up\n"), err
+    assert "STOPPING=1" in lines and f"STATUS=stopping: {name} during start-up" in lines
+    assert "READY=1" not in lines and out == ""
+
+
+def test_sighup_after_start_up_stops_cleanly_with_stopping_1(tmp_path):
+    # SIGHUP (a terminal that hung up, kill -HUP) stops like SIGTERM: exit 0, STOPPING=1.
+    cfg = _config(tmp_path, '[camera]\nsource = "synthetic"\n[output.jsonl]\npath = "-"\n')
+    notify, notify_path = _notify_socket(tmp_path)
+    proc = subprocess.Popen([sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(ENV, NOTIFY_SOCKET=notify_path))
+    try:
+        assert proc.stdout.readline()  # a pose written: the service runs
+        proc.send_signal(signal.SIGHUP)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    lines = _notify_lines(notify)
+    notify.close()
+    assert proc.returncode == 0, (proc.returncode, err)
+    assert "stopping: SIGHUP" in err and "Traceback" not in err
+    assert "READY=1" in lines and "STOPPING=1" in lines and "STATUS=stopping: SIGHUP" in lines
