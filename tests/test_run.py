@@ -247,3 +247,16 @@ def test_sighup_after_start_up_stops_cleanly_with_stopping_1(tmp_path):
     assert proc.returncode == 0, (proc.returncode, err)
     assert "stopping: SIGHUP" in err and "Traceback" not in err
     assert "READY=1" in lines and "STOPPING=1" in lines and "STATUS=stopping: SIGHUP" in lines
+
+
+def test_run_with_stdout_closed_says_so_and_stops(tmp_path):
+    # `pose-daemon run >&-`: Python sets sys.stdout to None; the JSON-lines output must say
+    # that stdout is closed (the run ends, as when stdout's reader goes away), not count an
+    # AttributeError per frame.
+    cfg = _config(tmp_path, '[camera]\nsource = "synthetic"\n[output.jsonl]\npath = "-"\n')
+    res = subprocess.run(["bash", "-c", 'exec >&- && exec "$@"', "bash", sys.executable, "-m",
+                          "pose_daemon", "run", "--config", str(cfg)], capture_output=False,
+                         stderr=subprocess.PIPE, text=True, timeout=60, env=ENV)
+    assert res.returncode == 0, res.stderr
+    assert "stopping: jsonl output closed: stdout is closed" in res.stderr
+    assert "AttributeError" not in res.stderr and "Traceback" not in res.stderr
