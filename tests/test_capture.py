@@ -364,3 +364,31 @@ def test_recording_cut_off_mid_line_replays_the_frames_before_it(tmp_path: Path,
     index.write_text(full + "garbage\n")
     with pytest.raises(SourceError, match=r"index.jsonl:4: not a frame entry"):
         read_index(rec)
+
+
+def _recording(path: Path, times_s):
+    from pose_daemon.capture.base import Frame
+    from pose_daemon.capture.recording import RecordingWriter
+
+    with RecordingWriter(path, Camera(fx=500.0, fy=500.0, cx=159.5, cy=119.5, width=320, height=240)) as w:
+        for i, (img, t) in enumerate(zip(_frames(len(times_s)), times_s)):
+            w.write(Frame(image=cv2.resize(img, (320, 240)), t_capture_s=t, seq=i))
+    return path
+
+
+@pytest.mark.parametrize("file", ["../outside.png", "frames/../../outside.png", "/tmp/outside.png"])
+def test_index_entry_outside_the_recording_folder_is_refused(tmp_path: Path, file: str) -> None:
+    from pose_daemon.capture.recording import INDEX_FILE, read_index
+
+    rec = _recording(tmp_path / "rec", [0.0, 0.1, 0.2])
+    cv2.imwrite(str(tmp_path / "outside.png"), _frames(1)[0])
+    index = rec / INDEX_FILE
+    lines = index.read_text().splitlines(keepends=True)
+    lines[1] = lines[1].replace('"frames/000001.png"', f'"{file}"')
+    index.write_text("".join(lines))
+    with pytest.raises(SourceError) as err:
+        read_index(rec)
+    assert str(err.value) == (f'{index}:2: frame file "{file}" lies outside the recording folder '
+                              "(absolute, or with ..)")
+    with pytest.raises(SourceError, match="lies outside"):
+        ReplaySource(rec).open()

@@ -135,3 +135,32 @@ def test_replay_says_when_the_recording_overrides_the_config(recording: Path, tm
     same.write_text("[camera]\nfx = 500.0\n")   # what the recording holds: nothing to say
     assert main(["replay", str(recording), "--config", str(same), "--out", str(tmp_path / "b.jsonl")]) == 0
     assert "note:" not in capsys.readouterr().err
+
+
+def _cli(*args: str):
+    import os
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "pose_daemon", *args], capture_output=True, text=True,
+                          timeout=120, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+
+
+def test_replay_refuses_an_index_entry_outside_the_recording(recording: Path, tmp_path: Path) -> None:
+    import shutil
+
+    from pose_daemon.capture.recording import INDEX_FILE
+
+    rec = tmp_path / "rec"
+    shutil.copytree(recording, rec)
+    (tmp_path / "secret.png").write_bytes((recording / "frames" / "000000.png").read_bytes())
+    index = rec / INDEX_FILE
+    lines = index.read_text().splitlines(keepends=True)
+    lines[2] = lines[2].replace('"frames/000002.png"', '"../secret.png"')
+    index.write_text("".join(lines))
+    ann = tmp_path / "ann"
+    res = _cli("replay", str(rec), "--annotate", str(ann))
+    assert res.returncode == 2 and res.stdout == ""
+    assert res.stderr == (f'pose-daemon: error: {index}:3: frame file "../secret.png" lies outside the '
+                          "recording folder (absolute, or with ..)\n")
+    assert not ann.exists() or list(ann.iterdir()) == []
