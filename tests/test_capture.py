@@ -376,6 +376,31 @@ def _recording(path: Path, times_s):
     return path
 
 
+def test_replay_cuts_an_absurd_step_of_the_index_and_says_so(tmp_path: Path, caplog) -> None:
+    from pose_daemon.capture.replay import MAX_GAP_S
+
+    # An index that jumps 1e6 s forward (11 days of sleep) and, later, 50.3 s backwards.
+    times = [10.0, 10.1, 1e6 + 10.2, 1e6 + 10.3, 1e6 - 40.0, 1e6 - 39.9]
+    rec = _recording(tmp_path / "rec", times)
+    clock = FakeClock(50.0)
+    source = ReplaySource(rec, realtime=True, clock=clock, sleep=clock.sleep)
+    source.open()
+    with caplog.at_level("WARNING"):
+        frames = [source.read() for _ in times]
+    period = 1.0 / source.fps
+    assert clock.sleeps == pytest.approx([0.1, period, 0.1, period, 0.1])
+    assert max(clock.sleeps) <= MAX_GAP_S
+    # On this run's clock the frames keep their recorded spacing around the cut steps.
+    assert [f.t_capture_s for f in frames] == pytest.approx(
+        [50.0, 50.1, 50.1 + period, 50.2 + period, 50.2 + 2 * period, 50.3 + 2 * period])
+    assert [f.metadata["t_recorded_s"] for f in frames] == pytest.approx(times)
+    assert source.gaps_cut == 2
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 2
+    assert "frame 2 is recorded 1e+06 s after the previous one" in warnings[0]
+    assert "frame 4 is recorded -50.3 s after the previous one" in warnings[1]
+
+
 @pytest.mark.parametrize("file", ["../outside.png", "frames/../../outside.png", "/tmp/outside.png"])
 def test_index_entry_outside_the_recording_folder_is_refused(tmp_path: Path, file: str) -> None:
     from pose_daemon.capture.recording import INDEX_FILE, read_index

@@ -260,3 +260,37 @@ def test_run_with_stdout_closed_says_so_and_stops(tmp_path):
     assert res.returncode == 0, res.stderr
     assert "stopping: jsonl output closed: stdout is closed" in res.stderr
     assert "AttributeError" not in res.stderr and "Traceback" not in res.stderr
+
+
+def _recording_with_times(tmp_path, times_s):
+    import numpy as np
+
+    from pose_daemon.camera import Camera, Marker
+    from pose_daemon.capture.base import Frame
+    from pose_daemon.capture.recording import RecordingWriter
+    from pose_daemon.render import Effects, render_marker
+
+    cam = Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
+    rec = tmp_path / "rec"
+    with RecordingWriter(rec, cam, Marker(0.2), fps=30.0) as w:
+        for i, t in enumerate(times_s):
+            img = render_marker(cam, Marker(0.2), np.array([np.pi, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]),
+                                effects=Effects.clean()).image
+            w.write(Frame(image=img, t_capture_s=t, seq=i))
+    return rec
+
+
+def test_run_on_a_recording_whose_index_jumps_1e6_s_does_not_sleep_and_says_so(tmp_path):
+    times = [5.0 + i / 30 for i in range(5)] + [1e6 + 5.0 + i / 30 for i in range(5)]
+    rec = _recording_with_times(tmp_path, times)
+    cfg = _config(tmp_path, f'[camera]\nsource = "replay:{rec}"\n[output.jsonl]\npath = "-"\n'
+                            '[pipeline]\nlatency_budget_s = 10.0\n')
+    res = subprocess.run([sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
+                         capture_output=True, text=True, timeout=60, env=ENV)
+    assert res.returncode == 0, res.stderr
+    assert f"{rec}: frame 5 is recorded 1e+06 s after the previous one; replayed 0.033 s after it" in res.stderr
+    assert "stopping: end of stream" in res.stderr
+    # The frames after the jump were replayed (the last one is always processed; one on the way
+    # may be replaced by a newer one when the machine is busy, as from a camera).
+    frames = [json.loads(line)["frame"] for line in res.stdout.splitlines()]
+    assert frames == sorted(frames) and frames[-1] == 9
