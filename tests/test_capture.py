@@ -417,3 +417,48 @@ def test_index_entry_outside_the_recording_folder_is_refused(tmp_path: Path, fil
                               "(absolute, or with ..)")
     with pytest.raises(SourceError, match="lies outside"):
         ReplaySource(rec).open()
+
+
+def _damaged_video(path: Path, n: int = 90) -> Path:
+    # MPEG-4 part 2 in MP4, 20% of the bytes in the middle overwritten: the decoder stops there.
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (320, 240), False)
+    assert writer.isOpened()
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        img = np.full((240, 320), 200, np.uint8)
+        cv2.rectangle(img, (60 + i, 60), (160 + i, 160), 30, -1)
+        writer.write((img + rng.integers(0, 5, img.shape)).astype(np.uint8))
+    writer.release()
+    data = bytearray(path.read_bytes())
+    a, b = int(len(data) * 0.4), int(len(data) * 0.6)
+    data[a:b] = rng.integers(0, 256, b - a, dtype=np.uint8).tobytes()
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_damaged_video_counts_and_reports_the_lost_frames(tmp_path: Path) -> None:
+    path = _damaged_video(tmp_path / "damaged.mp4")
+    source = OpenCVSource(str(path), "video")
+    source.open()
+    got = []
+    with pytest.raises(EndOfStream) as end:
+        while True:
+            got.append(source.read())
+    source.close()
+    assert source.frame_count == 90 and 0 < len(got) < 90
+    assert source.lost == 90 - len(got)
+    assert end.value.lost == f"{source.lost} of 90 frames of {path} could not be decoded: a damaged video"
+    # The frames that came keep their places on the video's time line.
+    assert [f.t_capture_s for f in got] == pytest.approx([f.seq / 30.0 for f in got])
+    # An undamaged video loses nothing and says nothing.
+    clean = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(clean), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (320, 240), False)
+    for img in _frames(5):
+        writer.write(cv2.resize(img, (320, 240)))
+    writer.release()
+    source = OpenCVSource(str(clean), "video")
+    source.open()
+    assert [source.read().seq for _ in range(5)] == [0, 1, 2, 3, 4]
+    with pytest.raises(EndOfStream) as end:
+        source.read()
+    assert end.value.lost == "" and source.lost == 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -294,3 +295,23 @@ def test_run_on_a_recording_whose_index_jumps_1e6_s_does_not_sleep_and_says_so(t
     # may be replaced by a newer one when the machine is busy, as from a camera).
     frames = [json.loads(line)["frame"] for line in res.stdout.splitlines()]
     assert frames == sorted(frames) and frames[-1] == 9
+
+
+def test_run_on_a_damaged_video_says_how_many_frames_were_lost(tmp_path):
+    from test_capture import _damaged_video
+
+    path = _damaged_video(tmp_path / "damaged.mp4")
+    cfg = _config(tmp_path, f'[camera]\nsource = "video:{path}"\n[output.jsonl]\npath = "-"\n'
+                            '[pipeline]\nlatency_budget_s = 10.0\n')
+    res = subprocess.run([sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
+                         capture_output=True, text=True, timeout=60, env=ENV)
+    assert res.returncode == 0, res.stderr
+
+    sent = [json.loads(line)["frame"] for line in res.stdout.splitlines()]
+    n_lost = int(re.search(r"\((\d+) of 90 frames of", res.stderr).group(1))
+    lost = f"{n_lost} of 90 frames of {path} could not be decoded: a damaged video"
+    assert 0 < n_lost < 90 and 0 < len(sent) <= 90 - n_lost and max(sent) < 90 - n_lost
+    assert f"stopping: end of stream ({lost})" in res.stderr
+    last_status = [line for line in res.stderr.splitlines() if "status: " in line][-1]
+    assert f"source ended ({lost})" in last_status
+    assert " @ 0x" not in res.stderr  # none of FFmpeg's own "[mpeg4 @ 0x...] ..." lines

@@ -13,7 +13,7 @@ import numpy as np
 from ..errors import EndOfStream, SourceError
 from . import recording
 from .base import Frame
-from .opencv import OpenCVSource, to_gray
+from .opencv import OpenCVSource, quiet_opencv, to_gray
 
 log = logging.getLogger(__name__)
 
@@ -114,7 +114,8 @@ class ReplaySource:
             entry = self._entries[self._pos]
             self._pos += 1
             file = self.path / entry["file"]
-            image = cv2.imread(str(file), cv2.IMREAD_UNCHANGED)
+            with quiet_opencv():  # our warning below says what went wrong
+                image = cv2.imread(str(file), cv2.IMREAD_UNCHANGED)
             if image is None or image.size == 0:
                 reason = "missing" if not file.exists() else "unreadable or corrupt image"
                 log.warning("skipping frame %d (%s): %s", entry["seq"], file, reason)

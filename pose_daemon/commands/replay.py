@@ -133,11 +133,13 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"cannot write --out {args.out}: {exc.strerror or exc}") from None
     accuracy = Accuracy()
     count = 0
+    lost = ""
     try:
         while True:
             try:
                 frame = source.read()
-            except EndOfStream:
+            except EndOfStream as exc:
+                lost = exc.lost
                 break
             except SourceError as exc:  # a video that cannot decode on: the rest is lost
                 print(f"pose-daemon: {exc}; stopping", file=sys.stderr)
@@ -164,6 +166,8 @@ def run(args: argparse.Namespace) -> int:
     if source.skipped:
         print(f"pose-daemon: skipped {len(source.skipped)} unreadable frame(s): "
               + ", ".join(Path(f).name for f, _ in source.skipped[:10]), file=sys.stderr)
+    if lost:
+        print(f"pose-daemon: {lost}", file=sys.stderr)
     if accuracy.frames:
         print(accuracy.report(), file=sys.stderr)
     if count == 0:
