@@ -2,7 +2,8 @@
 
 Loading numpy and OpenCV and building the pipeline takes ~0.5 s on an x86-64 core and far
 longer on a Pi 2. A stop signal in that time must not print a KeyboardInterrupt traceback
-(SIGINT) nor kill the process before systemd hears STOPPING=1 (SIGTERM, SIGHUP). So
+(SIGINT) nor kill the process before systemd hears STOPPING=1 (SIGTERM, SIGHUP), and a SIGUSR1
+(``systemctl reload``: a status line) must not kill it either. So
 ``pose-daemon run`` calls ``hold()`` before anything heavy is imported: a stop signal then
 raises ``StartupStop`` in the main thread, which the command line turns into STOPPING=1, one
 line on stderr and exit 0, the same as a stop after start-up. Once the service has installed
@@ -42,11 +43,18 @@ def _on_stop(signum: int, _frame) -> None:
         raise StartupStop(signum)
 
 
+def _on_status(_signum: int, _frame) -> None:
+    """SIGUSR1 (``systemctl reload``) before there is a status to log: nothing to do, and
+    Python's default action would end the process."""
+
+
 def hold() -> None:
-    """From now on a stop signal raises StartupStop (first thing in ``pose-daemon run``)."""
+    """From now on a stop signal raises StartupStop and SIGUSR1 is passed over (first thing in
+    ``pose-daemon run``)."""
     global _raising
     for signum in STOP_SIGNALS:
         _previous.setdefault(signum, signal.signal(signum, _on_stop))
+    _previous.setdefault(signal.SIGUSR1, signal.signal(signal.SIGUSR1, _on_status))
     _raising = True
 
 

@@ -9,6 +9,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
@@ -88,6 +89,39 @@ path = "-"
         names += [m.get_type() for m in mav.parse_buffer(data) or []]
     sink.close()
     assert "HEARTBEAT" in names and names.count("ODOMETRY") >= 10
+
+
+class _Lines:
+    """Reads a pipe line by line in a thread; ``wait_for(text)`` waits for a line holding it."""
+
+    def __init__(self, pipe) -> None:
+        self.lines = []
+        self._cond = threading.Condition()
+        self._thread = threading.Thread(target=self._run, args=(pipe,), daemon=True)
+        self._thread.start()
+
+    def _run(self, pipe) -> None:
+        for line in pipe:
+            with self._cond:
+                self.lines.append(line)
+                self._cond.notify_all()
+        with self._cond:
+            self.lines.append(None)  # end of the pipe
+            self._cond.notify_all()
+
+    def wait_for(self, text: str, count: int = 1, timeout_s: float = 60.0) -> None:
+        """Until ``count`` lines hold ``text``; the timeout only ends a test whose daemon never
+        writes them (as does the end of the pipe)."""
+        def seen() -> int:
+            return sum(1 for line in self.lines if line is not None and text in line)
+
+        with self._cond:
+            self._cond.wait_for(lambda: seen() >= count or None in self.lines, timeout_s)
+            assert seen() >= count, f"fewer than {count} lines with {text!r}"
+
+    def text(self) -> str:
+        self._thread.join(10.0)
+        return "".join(line for line in self.lines if line is not None)
 
 
 def test_sigusr1_status_then_sigterm_under_load_exits_0_within_2_s(tmp_path):
@@ -226,6 +260,36 @@ def test_stop_signal_during_start_up_is_a_clean_stop_with_stopping_1(tmp_path, m
     assert err.endswith(f"pose-daemon: stopping: {name} during start-up\n"), err
     assert "STOPPING=1" in lines and f"STATUS=stopping: {name} during start-up" in lines
     assert "READY=1" not in lines and out == ""
+
+
+def test_sigusr1_during_start_up_does_not_kill_the_daemon(tmp_path):
+    # `systemctl reload` (SIGUSR1) while it starts: Python's default action would end it.
+    cfg = _config(tmp_path, '[camera]\nsource = "synthetic"\n[output.jsonl]\npath = "-"\n')
+    ready_r, ready_w = os.pipe()
+    go_r, go_w = os.pipe()
+    proc = subprocess.Popen([sys.executable, "-c", _GATED_DAEMON, "cv2", str(ready_w), str(go_r),
+                             "run", "--config", str(cfg)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=ENV, pass_fds=(ready_w, go_r))
+    os.close(ready_w)
+    os.close(go_r)
+    err = _Lines(proc.stderr)
+    out = _Lines(proc.stdout)
+    try:
+        assert os.read(ready_r, 1) == b"1", "the daemon never reached the gate"
+        proc.send_signal(signal.SIGUSR1)
+        os.write(go_w, b"1")
+        err.wait_for("first frame processed", timeout_s=120.0)
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=30)
+    finally:
+        os.close(ready_r)
+        os.close(go_w)
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    out.text()
+    assert proc.returncode == 0, err.text()
+    assert "stopping: SIGTERM" in err.text() and "Traceback" not in err.text()
 
 
 def test_sighup_after_start_up_stops_cleanly_with_stopping_1(tmp_path):
