@@ -382,14 +382,18 @@ class Pipeline:
     ``collect_when_idle``: garbage collection in the gaps between frames (IdleCollector; it
     freezes the objects alive after the first frame, process-wide: for the daemon, not for
     a pipeline among others in one process).
+    ``frame_observer(frame, result)``: called in the processing thread after every processed
+    frame (the live preview's handoff); it must take O(1) time and never raise.
     """
 
     def __init__(self, source: FrameSource, processor, outputs: Sequence[Output], *,
                  latency_budget_s: float = 0.1, output_buffer: int = 4,
                  source_retry_s: float = 0.5, source_retry_max_s: float = 5.0,
                  clock: Callable[[], float] = time.monotonic,
-                 on_written: Optional[WrittenHook] = None, collect_when_idle: bool = False) -> None:
+                 on_written: Optional[WrittenHook] = None, collect_when_idle: bool = False,
+                 frame_observer: Optional[Callable[[Frame, FrameResult], None]] = None) -> None:
         self.source = source
+        self.frame_observer = frame_observer
         self.processor = processor
         self.latency_budget_s = float(latency_budget_s)
         self.source_retry_s = float(source_retry_s)
@@ -566,6 +570,8 @@ class Pipeline:
                         stages[stage] = result.stage_s[stage]
                 result.stage_s.update({"capture": stages["capture"], "queue": stages["queue"]})
                 self.stats.processed_frame(result, stages)
+                if self.frame_observer is not None:
+                    self.frame_observer(frame, result)
                 if not self.first_frame.is_set():
                     self.first_frame.set()
                 if t_done - frame.t_capture_s > self.latency_budget_s:
