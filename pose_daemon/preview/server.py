@@ -13,6 +13,7 @@ import collections
 import json
 import logging
 import math
+import select
 import socket
 import threading
 import time
@@ -323,11 +324,11 @@ class PreviewServer:
 
     # ----------------------------------------------------------------- stream
 
-    def stream(self, write: Callable[[bytes], Any]) -> None:
-        """Feed one viewer until it goes away or the server stops."""
+    def stream(self, write: Callable[[bytes], Any], gone: Callable[[], bool] = lambda: False) -> None:
+        """Feed one viewer until it goes away (``gone()``, or a write fails) or the server stops."""
         last: Optional[Tapped] = None
         next_s = self.clock()
-        while not self.stopping:
+        while not self.stopping and not gone():
             wait_s = next_s - self.clock()
             if wait_s > 0 and self._stopping.wait(wait_s):
                 return
@@ -421,6 +422,14 @@ class _Handler(BaseHTTPRequestHandler):
         except (socket.timeout, ConnectionError, BrokenPipeError):
             pass
 
+    def _peer_closed(self) -> bool:
+        """True once the viewer closed its end (seen without a write: no frame may come)."""
+        try:
+            readable, _, _ = select.select([self.connection], [], [], 0)
+            return bool(readable) and self.connection.recv(1, socket.MSG_PEEK) == b""
+        except (OSError, ValueError):
+            return True
+
     def _stream(self, preview: PreviewServer) -> None:
         self.connection.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, STREAM_SNDBUF)
         self.send_response(200)
@@ -429,7 +438,7 @@ class _Handler(BaseHTTPRequestHandler):
         self.end_headers()
         preview.count("viewers")
         try:
-            preview.stream(self.wfile.write)
+            preview.stream(self.wfile.write, self._peer_closed)
         except socket.timeout:
             preview.count("viewers_dropped")
             log.info("preview: dropped a viewer that stopped reading (%s)", self.address_string())
