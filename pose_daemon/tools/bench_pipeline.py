@@ -4,14 +4,19 @@ Runs the daemon's real pipeline (detector, estimator, MAVLink over UDP to 127.0.
 lines to /dev/null) on rendered 640x480 frames handed out at a fixed rate by a paced source
 that stamps each frame when it is handed out, as a camera driver would. The rendered frames
 are played forth and back, so the camera moves continuously (and turns round) as in flight.
+``--preview idle`` adds the live preview with nobody watching, ``--preview watch`` with one
+viewer (a separate process reading /stream.mjpg), to measure what the page costs.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import socket
+import subprocess
 import sys
+import tempfile
 import threading
 import time
 from typing import List, Optional
@@ -35,6 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--distinct", type=int, default=48,
                         help="distinct rendered frames, cycled (default 48)")
     parser.add_argument("--seed", type=int, default=0, help="trajectory and noise seed")
+    parser.add_argument("--preview", choices=("off", "idle", "watch"), default="off",
+                        help="live preview: off (default), idle (served, nobody watching), "
+                             "watch (one viewer reading /stream.mjpg)")
 
 
 class PacedSource:
@@ -118,6 +126,24 @@ path = "{os.devnull}"
 """, "<bench>")
 
 
+# The viewer of --preview watch: a separate process, so its reading is not the daemon's CPU.
+VIEWER = r"""
+import sys, urllib.request
+frames = size = 0
+try:
+    with urllib.request.urlopen(sys.argv[1], timeout=30) as r:
+        while True:
+            chunk = r.read(65536)
+            if not chunk:
+                break
+            size += len(chunk)
+            frames += chunk.count(b"--frame")
+            print(frames, size, flush=True)
+except Exception:
+    pass
+"""
+
+
 def _percentiles_ms(values: np.ndarray) -> str:
     if values.size == 0:
         return "no samples"
@@ -184,18 +210,50 @@ def _run(args: argparse.Namespace, Pipeline, FrameProcessor, open_outputs) -> in
         if rss_warm[0] is None and result.seq >= warm_at:
             rss_warm[0] = rss_bytes()
 
+    tap = server = viewer = None
+    data_dir = tempfile.TemporaryDirectory(prefix="bench-preview-")
+    if args.preview != "off":
+        from ..config import PreviewConfig
+        from ..preview import FrameTap
+
+        cfg = dataclasses.replace(cfg, preview=PreviewConfig(listen="127.0.0.1:0", data_dir=data_dir.name))
+        tap = FrameTap(processor)
     # Garbage collection between frames, as `pose-daemon run` does.
     pipeline = Pipeline.from_config(cfg, source, processor, outputs, on_written=on_written,
-                                    collect_when_idle=True)
+                                    collect_when_idle=True, frame_observer=tap)
+    if tap is not None:
+        from ..preview import PreviewServer
+
+        server = PreviewServer(cfg, pipeline, tap)
+        server.start()
+        if args.preview == "watch":
+            viewer = subprocess.Popen([sys.executable, "-c", VIEWER, server.url + "stream.mjpg"],
+                                      stdout=subprocess.PIPE, text=True)
+            while server.counts["viewers"] < 1 and viewer.poll() is None:
+                time.sleep(0.01)
     rss_start = rss_bytes()
+    cpu0 = time.process_time()
     t0 = time.monotonic()
     print(f"running {args.frames} frames at {args.fps:g} fps through detect -> estimate -> "
           f"{', '.join(o.name for o in outputs)} ...")
     pipeline.start()
     pipeline.wait()
     elapsed = time.monotonic() - t0
+    cpu_s = time.process_time() - cpu0
     status = pipeline.status_line(reset=False)
     pipeline.stop()
+    preview_line = None
+    if server is not None:
+        c = dict(server.counts)
+        server.stop()
+        seen = ""
+        if viewer is not None:
+            viewer.terminate()
+            out = viewer.communicate(timeout=10)[0].split()
+            seen = f"; the viewer received {out[-2]} frames, {int(out[-1]) / 1e6:.1f} MB" if len(out) >= 2 else ""
+        preview_line = (f"preview ({args.preview}): {c['encoded']} frames annotated and encoded, "
+                        f"{c['frames_sent']} sent, {c['frames_skipped']} skipped{seen}")
+    data_dir.cleanup()
     for o in outputs:
         o.close()
     time.sleep(0.3)
@@ -207,6 +265,10 @@ def _run(args: argparse.Namespace, Pipeline, FrameProcessor, open_outputs) -> in
     print(f"frames: {snap['captured']} captured, {snap['processed']} processed, "
           f"{snap['detected']} with a pose, in {elapsed:.1f} s; drops: "
           + (", ".join(f"{k} {v}" for k, v in sorted(snap["drops"].items())) or "none"))
+    print(f"CPU: {cpu_s * 1e3 / max(snap['processed'], 1):.2f} ms per processed frame "
+          f"({100 * cpu_s / max(elapsed, 1e-9):.1f} % of one core over the run, all threads)")
+    if preview_line:
+        print(preview_line)
     print(f"UDP ground station received {received[0]} datagrams, {received[1]} bytes")
     print("end-to-end latency, capture -> bytes written (this machine):")
     worst = None
