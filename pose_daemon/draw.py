@@ -130,11 +130,12 @@ def annotate_live(image: np.ndarray, result, camera: Camera, marker: Marker, *,
             text += f" ({detector_step})"
         cv2.putText(out, text, (int(centre[0]) + 6, int(centre[1]) + 14), cv2.FONT_HERSHEY_SIMPLEX,
                     0.4, OUTLINE_COLOUR, 1, cv2.LINE_AA)
-    lines = []
+    # Bottom-up: the warnings (orange), above them the rejected solution's note (magenta).
+    notes = [(text, WARNING_COLOUR) for text in list(warnings)[:3]]
     if pose is not None and pose.alternative is not None:
-        lines.append(f"rejected solution (magenta): ambiguity {pose.ambiguity_ratio:.2f}")
-    lines.extend(warnings)
-    if lines:
-        h = out.shape[0]
-        draw_text(out, lines[-4:], origin_px=(8, h - 8 - 19 * (min(len(lines), 4) - 1)), colour=WARNING_COLOUR)
+        notes.insert(0, (f"rejected solution (magenta): ambiguity {pose.ambiguity_ratio:.2f}", REJECTED_COLOUR))
+    y = out.shape[0] - 8 - 19 * (len(notes) - 1)
+    for text, colour in notes:
+        draw_text(out, [text], origin_px=(8, y), colour=colour)
+        y += 19
     return out

@@ -427,3 +427,20 @@ def test_a_taken_port_leaves_the_daemon_running_without_the_preview(tmp_path, ca
     busy.close()
     assert service.preview is None and service.pipeline.frame_observer is None
     assert any("preview: cannot listen on 127.0.0.1:" in r.getMessage() for r in caplog.records)
+
+
+def test_the_annotated_frame_shows_the_rejected_solution_and_the_warnings(processed):
+    from pose_daemon.draw import REJECTED_COLOUR, WARNING_COLOUR, annotate_live
+
+    cfg = parse_config("", "c.toml")
+    frame, result = processed[3]
+    assert result.pose.alternative is not None
+    plain = annotate_live(frame.image, dataclasses.replace(result, pose=dataclasses.replace(
+        result.pose, alternative=None)), cfg.camera.model(), cfg.marker.model())
+    live = annotate_live(frame.image, result, cfg.camera.model(), cfg.marker.model(),
+                         detector_step="follow", warnings=["marker too small"])
+
+    def count(image, colour):
+        return int(np.count_nonzero(np.all(np.abs(image.astype(int) - colour) < 40, axis=2)))
+    assert count(live, REJECTED_COLOUR) > count(plain, REJECTED_COLOUR) + 50
+    assert count(live, WARNING_COLOUR) > 50 and count(plain, WARNING_COLOUR) == 0
