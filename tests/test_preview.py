@@ -230,7 +230,7 @@ def _open_stream(server, rcvbuf=None):
         s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
     s.settimeout(20)
     s.connect(("127.0.0.1", server.port))
-    s.sendall(b"GET /stream.mjpg HTTP/1.0\r\nHost: x\r\n\r\n")
+    s.sendall(b"GET /stream.mjpg HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n")
     f = s.makefile("rb")
     assert f.readline().split()[1] == b"200"
     headers = []
@@ -444,3 +444,19 @@ def test_the_annotated_frame_shows_the_rejected_solution_and_the_warnings(proces
         return int(np.count_nonzero(np.all(np.abs(image.astype(int) - colour) < 40, axis=2)))
     assert count(live, REJECTED_COLOUR) > count(plain, REJECTED_COLOUR) + 50
     assert count(live, WARNING_COLOUR) > 50 and count(plain, WARNING_COLOUR) == 0
+
+
+def test_a_request_naming_another_host_is_refused(served):
+    from pose_daemon.preview.server import host_allowed
+
+    server, feeder = served()
+    feeder.feed(2)
+    for host, ok in (("127.0.0.1:8080", True), ("[::1]:8080", True), ("localhost:8080", True),
+                     ("robot.local:8080", True), ("192.168.1.20", True), ("evil.example:8080", False),
+                     ("", False), (None, False)):
+        assert host_allowed(host, "127.0.0.1") is ok, host
+    s = socket.create_connection(("127.0.0.1", server.port), timeout=10)
+    s.sendall(b"GET /snapshot.jpg HTTP/1.0\r\nHost: evil.example:8080\r\n\r\n")
+    reply = s.makefile("rb").read()
+    s.close()
+    assert reply.split()[1] == b"403" and b"unexpected Host" in reply

@@ -10,6 +10,7 @@ SEND_TIMEOUT_S. Nothing is annotated or encoded while nobody watches.
 from __future__ import annotations
 
 import collections
+import ipaddress
 import json
 import logging
 import math
@@ -231,8 +232,8 @@ class PreviewServer:
         now = self.clock()
         snap, old, dt = self._sample(now)
         item = self.tap.latest
-        recent = [r for r in self.tap.history if item is not None
-                  and item.result.t_capture_s - r.t_capture_s <= 2.0]
+        history = list(self.tap.history)   # one C-level copy: the tap appends meanwhile
+        recent = [r for r in history if item is not None and item.result.t_capture_s - r.t_capture_s <= 2.0]
         fps = None
         if len(recent) >= 2:
             span = recent[-1].t_capture_s - recent[0].t_capture_s
@@ -345,6 +346,26 @@ class PreviewServer:
             next_s = max(next_s + self._period_s, self.clock() - self._period_s)
 
 
+def host_allowed(host_header: Optional[str], listen_host: str) -> bool:
+    """Whether a request's Host names this server as only a local or LAN client would: an IP
+    address, "localhost", the configured host or an mDNS name (*.local). A web page whose
+    domain was made to resolve to this address (DNS rebinding) sends its own domain instead,
+    and must not see the camera or press the buttons."""
+    if not host_header:
+        return False
+    host = host_header.strip().lower()
+    if host.startswith("["):
+        host = host[1:].split("]", 1)[0]
+    elif host.count(":") == 1:
+        host = host.split(":", 1)[0]
+    try:
+        ipaddress.ip_address(host)
+        return True
+    except ValueError:
+        pass
+    return host in ("localhost", listen_host.lower()) or host.endswith((".local", ".localhost"))
+
+
 class _HttpError(Exception):
     def __init__(self, code: HTTPStatus, message: str) -> None:
         super().__init__(message)
@@ -374,11 +395,17 @@ class _Handler(BaseHTTPRequestHandler):
     def _error(self, err: _HttpError) -> None:
         self._json({"error": err.message}, int(err.code))
 
+    def _check_host(self, preview: PreviewServer) -> None:
+        if not host_allowed(self.headers.get("Host"), preview.pcfg.address[0]):
+            raise _HttpError(HTTPStatus.FORBIDDEN, f"unexpected Host {self.headers.get('Host')!r}: "
+                             "use the address the daemon listens on")
+
     def do_GET(self) -> None:  # noqa: N802 - http.server's name
         preview = self.server.preview
         path = urlsplit(self.path).path
         self.connection.settimeout(SEND_TIMEOUT_S)
         try:
+            self._check_host(preview)
             if path in ("/", "/index.html"):
                 self._send(200, PAGE_HTML.encode(), "text/html; charset=utf-8")
             elif path == "/status.json":
@@ -404,6 +431,7 @@ class _Handler(BaseHTTPRequestHandler):
         url = urlsplit(self.path)
         self.connection.settimeout(SEND_TIMEOUT_S)
         try:
+            self._check_host(preview)
             if self.headers.get(ACTION_HEADER) != "1":
                 raise _HttpError(HTTPStatus.FORBIDDEN, f"actions need the header {ACTION_HEADER}: 1")
             if url.path == "/snapshot":
