@@ -91,6 +91,8 @@ class PreviewServer:
         self.recorder: Optional[Recorder] = None
         self.counts = {"viewers": 0, "frames_sent": 0, "frames_skipped": 0, "viewers_dropped": 0,
                        "encoded": 0, "snapshots": 0, "recordings": 0}
+        # CPU time (thread time) the viewers' threads spent annotating, encoding and sending.
+        self.stream_cpu_s = 0.0
         self.encode_s: Optional[float] = None
         host, port = self.pcfg.address
         try:
@@ -258,6 +260,7 @@ class PreviewServer:
             "detector_step": item.detector_step if item is not None else None,
             "warnings": [w.to_dict() for w in self.warnings()],
             "preview": {**counts, "encode_ms": None if self.encode_s is None else round(self.encode_s * 1e3, 2),
+                        "stream_cpu_s": round(self.stream_cpu_s, 3),
                         "max_fps": self.pcfg.max_fps, "max_width": self.pcfg.max_width},
             "recording": rec.status() if rec is not None else None,
             "marker": {"type": self.marker.type, "id": self.marker.id, "dictionary": self.marker.dictionary,
@@ -338,10 +341,13 @@ class PreviewServer:
                 continue
             if last is not None and item.seq > last.seq + 1:
                 self.count("frames_skipped", item.seq - last.seq - 1)
+            cpu0 = time.thread_time()
             data = self.jpeg(item)
             write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
                   + str(len(data)).encode() + b"\r\n\r\n" + data + b"\r\n")
-            self.count("frames_sent")
+            with self._lock:
+                self.counts["frames_sent"] += 1
+                self.stream_cpu_s += time.thread_time() - cpu0
             last = item
             next_s = max(next_s + self._period_s, self.clock() - self._period_s)
 

@@ -251,8 +251,11 @@ def _run(args: argparse.Namespace, Pipeline, FrameProcessor, open_outputs) -> in
             viewer.terminate()
             out = viewer.communicate(timeout=10)[0].split()
             seen = f"; the viewer received {out[-2]} frames, {int(out[-1]) / 1e6:.1f} MB" if len(out) >= 2 else ""
+        cpu = server.stream_cpu_s
         preview_line = (f"preview ({args.preview}): {c['encoded']} frames annotated and encoded, "
-                        f"{c['frames_sent']} sent, {c['frames_skipped']} skipped{seen}")
+                        f"{c['frames_sent']} sent, {c['frames_skipped']} skipped{seen}; viewer thread CPU "
+                        f"{cpu * 1e3 / max(c['frames_sent'], 1):.2f} ms per frame sent, "
+                        f"{100 * cpu / max(elapsed, 1e-9):.2f} % of one core")
     data_dir.cleanup()
     for o in outputs:
         o.close()
