@@ -128,8 +128,9 @@ path = "{os.devnull}"
 
 # The viewer of --preview watch: a separate process, so its reading is not the daemon's CPU.
 VIEWER = r"""
-import sys, urllib.request
+import signal, sys, urllib.request
 frames = size = 0
+signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
 try:
     with urllib.request.urlopen(sys.argv[1], timeout=30) as r:
         while True:
@@ -138,9 +139,10 @@ try:
                 break
             size += len(chunk)
             frames += chunk.count(b"--frame")
-            print(frames, size, flush=True)
 except Exception:
     pass
+finally:
+    print(frames, size, flush=True)
 """
 
 
