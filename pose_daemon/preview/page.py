@@ -153,6 +153,8 @@ async function act(url) {
 $("snap").onclick = () => act("/snapshot");
 $("rec").onclick = () => act("/record?seconds=" + encodeURIComponent($("secs").value));
 
+// A daemon restart ends the stream: ask again (the status poll says when it is back).
+$("live").onerror = () => setTimeout(() => { $("live").src = "/stream.mjpg?t=" + Date.now(); }, 2000);
 window.addEventListener("load", () => {
   $("live").src = "/stream.mjpg";
   poll("/status.json", showStatus, 500);
