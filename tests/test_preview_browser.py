@@ -129,6 +129,8 @@ def test_the_page_shows_the_marker_with_its_overlay_and_the_pose_of_status_json(
             "JSON.stringify((r => ({x: r.x, y: r.y, w: r.width, h: r.height}))"
             "(document.getElementById('live').getBoundingClientRect()))"))
         png = browser.screenshot_png()
+        # The corners the page had at that moment (the stream and the poll may be a frame apart).
+        corners = np.array(json.loads(browser.evaluate("JSON.stringify(window.lastStatus.last.corners)")))
         shot = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
         x0, y0 = int(round(rect["x"])), int(round(rect["y"]))
         view = shot[y0:y0 + int(rect["h"]), x0:x0 + int(rect["w"])].astype(int)
@@ -138,15 +140,17 @@ def test_the_page_shows_the_marker_with_its_overlay_and_the_pose_of_status_json(
         red = (r > 170) & (g < 100) & (b < 100)       # x axis, TL ring
         blue = (b > 170) & (r < 100) & (g < 120)      # z axis, BR ring
         assert green.sum() > 150 and red.sum() > 20 and blue.sum() > 10, (green.sum(), red.sum(), blue.sum())
-        corners = np.array(_status(url)["last"]["corners"])
         ys, xs = np.nonzero(green)
         lo, hi = corners.min(axis=0) - 80, corners.max(axis=0) + 80   # the marker moves between looks
         inside = (xs >= lo[0]) & (xs <= hi[0]) & (ys >= lo[1]) & (ys <= hi[1])
         assert inside.mean() > 0.6, (corners, xs.min(), xs.max(), ys.min(), ys.max())
-        # The marker itself: dark pixels inside its outline.
-        grey = view.mean(axis=2)
-        cx, cy = corners.mean(axis=0).astype(int)
-        assert grey[cy - 3:cy + 4, cx + 8:cx + 14].mean() < 110
+        # The marker itself: black pixels where the green outline is, as many as its area.
+        gx, gy = xs[inside], ys[inside]
+        (ax, bx), (ay, by) = np.percentile(gx, (2, 98)), np.percentile(gy, (2, 98))
+        box = view[int(ay):int(by) + 1, int(ax):int(bx) + 1]
+        dark = int(((box.max(axis=2) < 60)).sum())
+        area = cv2.contourArea(corners.astype(np.float32))
+        assert dark > 0.4 * area, (dark, area, (ax, bx, ay, by))
         target = os.environ.get("POSE_DAEMON_SCREENSHOT")
         if target:
             shutil.copyfile(_save(png, tmp_path / "shot.png"), target)
