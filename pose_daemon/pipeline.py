@@ -299,9 +299,9 @@ class Pipeline:
             self._source_state = state
 
     def status_line(self, reset: bool = True) -> str:
-        return self.stats.status_line(self.source_state, [self._output_state(o) for o in self.outputs], reset)
+        return self.stats.status_line(self.source_state, [self.output_state(o) for o in self.outputs], reset)
 
-    def _output_state(self, output: Output) -> str:
+    def output_state(self, output: Output) -> str:
         """"name N sent (...)": results written, with the output's own ``status()`` text."""
         try:
             text = str(output.status())

@@ -4,6 +4,7 @@ reading, the snapshot and record actions, the warnings, and the daemon that serv
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import socket
 import threading
@@ -15,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from pipeline_fakes import FakeSource
+from pipeline_fakes import FakeSource, outputs_of
 
 from pose_daemon.capture import recording
 from pose_daemon.capture.base import Frame
@@ -103,7 +104,7 @@ def served(tmp_path, processed):
         cfg = _cfg(tmp_path, **kw)
         processor = FrameProcessor.from_config(cfg)
         tap = FrameTap(processor)
-        pipeline = Pipeline(FakeSource(0), processor, [])
+        pipeline = Pipeline(FakeSource(0), processor, outputs_of())
         server = PreviewServer(cfg, pipeline, tap)
         server.start()
         servers.append(server)
@@ -373,10 +374,10 @@ def test_the_mavlink_output_that_waits_for_the_autopilot_shows_on_the_page(tmp_p
     cfg = _cfg(tmp_path, extra=f'[output.mavlink]\nconnection = "udpout:127.0.0.1:{sink.getsockname()[1]}"\n')
     from pose_daemon.outputs import open_outputs
 
-    outputs = open_outputs(cfg)
     processor = FrameProcessor.from_config(cfg)
     tap = FrameTap(processor)
-    pipeline = Pipeline(FakeSource(0), processor, outputs)
+    pipeline = Pipeline(FakeSource(0), processor, functools.partial(open_outputs, cfg))
+    outputs = pipeline.outputs
     server = PreviewServer(cfg, pipeline, tap)
     server.start()
     try:
@@ -398,7 +399,7 @@ def test_the_mavlink_output_that_waits_for_the_autopilot_shows_on_the_page(tmp_p
 
 def test_the_daemon_serves_the_preview_and_stops_it_cleanly(tmp_path):
     cfg = _cfg(tmp_path, extra="[pipeline]\nlatency_budget_s = 1.0\n")
-    service = Service(cfg, outputs=[])
+    service = Service(cfg, outputs=outputs_of())
     assert service.pipeline.frame_observer is service.preview.tap
     code = []
     t = threading.Thread(target=lambda: code.append(service.run()), daemon=True)
@@ -423,7 +424,7 @@ def test_a_taken_port_leaves_the_daemon_running_without_the_preview(tmp_path, ca
     text = BASE.format(fps=5.0, width=640, data=tmp_path).replace("127.0.0.1:0", f"127.0.0.1:{busy.getsockname()[1]}")
     cfg = parse_config(text, "p.toml")
     with caplog.at_level("ERROR"):
-        service = Service(cfg, outputs=[])
+        service = Service(cfg, outputs=outputs_of())
     busy.close()
     assert service.preview is None and service.pipeline.frame_observer is None
     assert any("preview: cannot listen on 127.0.0.1:" in r.getMessage() for r in caplog.records)

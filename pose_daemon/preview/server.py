@@ -178,9 +178,8 @@ class PreviewServer:
 
     def _outputs(self) -> List[Dict[str, Any]]:
         rows = []
-        for w in self.pipeline.workers:
-            out = w.output
-            row: Dict[str, Any] = {"name": w.name, "state": w.state()}
+        for out in self.pipeline.outputs:
+            row: Dict[str, Any] = {"name": out.name, "state": self.pipeline.output_state(out)}
             stats = getattr(out, "stats", None)
             if callable(stats):
                 try:
@@ -190,9 +189,10 @@ class PreviewServer:
                 for key in ("link", "link_up", "sent", "dropped", "autopilot"):
                     if key in s:
                         row[key] = s[key]
+            cfg = getattr(out, "cfg", None)  # the output's config table (MAVLink: wait_heartbeat)
             for key in ("wait_heartbeat", "connection"):
-                if hasattr(out, key):
-                    row[key] = getattr(out, key)
+                if hasattr(cfg, key):
+                    row[key] = getattr(cfg, key)
             if "autopilot" in row or hasattr(out, "autopilot_system"):
                 row["autopilot"] = getattr(out, "autopilot_system", row.get("autopilot"))
             rows.append(row)
