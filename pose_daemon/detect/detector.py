@@ -18,6 +18,7 @@ import numpy as np
 
 from ..camera import Camera, Marker
 from .quads import Roi
+from .response import Response, check_response
 from .square import Candidate, SquareFinder, SquareOptions, aspect_error, side_lengths
 
 #: Which step found the marker in the last call: "follow", "roi", "full" or None (not found).
@@ -103,13 +104,16 @@ class MarkerDetector:
       the marker's (perspective).
     - ``roi_margin`` (0.5): the tracked search region extends this fraction of the marker's
       size (at least 16 px) around the predicted corners.
+    - ``gamma`` (1.0): the camera's response, a power-law exponent (1.0 = linear intensity,
+      about 2.2 for sRGB/Rec. 709 cameras) or "srgb"; edges are located in linear intensity,
+      so that blur does not shrink the marker (see detect/response.py).
     """
 
     def __init__(self, marker: Marker, *, max_misses: int = 5, min_side_px: float = 10.0,
                  camera: Optional[Camera] = None, block_px: int = 25,
                  threshold_offset: float = 10.0, min_contrast: float = 20.0,
                  max_edge_residual_px: float = 0.4, max_aspect_ratio_error: float = 3.0,
-                 roi_margin: float = 0.5) -> None:
+                 roi_margin: float = 0.5, gamma: Response = 1.0) -> None:
         if not isinstance(marker, Marker):
             raise ValueError(f"marker must be a pose_daemon.Marker, got {type(marker).__name__}")
         if isinstance(max_misses, bool) or not isinstance(max_misses, (int, np.integer)) or max_misses < 0:
@@ -131,7 +135,7 @@ class MarkerDetector:
             min_side_px=float(min_side_px), block_px=int(block_px),
             threshold_offset=float(threshold_offset), min_contrast=float(min_contrast),
             max_edge_residual_px=float(max_edge_residual_px),
-            max_aspect_ratio_error=float(max_aspect_ratio_error))
+            max_aspect_ratio_error=float(max_aspect_ratio_error), gamma=check_response(gamma))
         if marker.type == "aruco":
             from .aruco import ArucoFinder
 

@@ -4,6 +4,10 @@ intersections of neighbouring lines.
 
 On blurred frames this beats a corner-window search (cv2.cornerSubPix), which is pulled
 towards the inside of the blurred corner; an edge fit uses the whole side.
+
+The half-way level is only the edge in linear intensity: a camera that encodes grey levels
+with a gamma curve puts it on the dark side (the marker shrinks with blur), so with a
+known response (``lut``, from ``response.decode_lut``) the profiles are linearised first.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ _NEXT = np.array([1, 2, 3, 0])
 #: A search starts from polygon corners about a pixel off: one pass of edge fits is as good
 #: as two unless it moves them further than this (pixels).
 SEARCH_CONVERGED_PX = 1.5
+_LEVELS = np.arange(256, dtype=np.float64)
 
 
 @dataclass
@@ -68,6 +73,26 @@ def _crossing(prof: np.ndarray, rows: np.ndarray, level: np.ndarray) -> np.ndarr
     return j - 1 + frac
 
 
+def _profiles(gray: np.ndarray, gx: np.ndarray, gy: np.ndarray, lut: Optional[np.ndarray]) -> np.ndarray:
+    """Grey levels (float64) at the sample points, bilinear; in linear intensity with ``lut``.
+
+    Linearised before interpolating (a pixel's light mixes linearly), over just the box
+    the samples touch."""
+    if lut is None:
+        return cv2.remap(gray, gx, gy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+    h, w = gray.shape
+    x0 = int(min(max(math.floor(float(gx.min())) - 1, 0), w - 1))
+    y0 = int(min(max(math.floor(float(gy.min())) - 1, 0), h - 1))
+    x1 = int(min(max(math.ceil(float(gx.max())) + 2, x0 + 1), w))
+    y1 = int(min(max(math.ceil(float(gy.max())) + 2, y0 + 1), h))
+    box = cv2.LUT(gray[y0:y1, x0:x1], lut)
+    # Outside the image a sample repeats the nearest pixel, as BORDER_REPLICATE does: clamp
+    # to the box (which reaches the image's edge wherever samples leave it).
+    mx = np.clip(gx - x0, 0.0, x1 - x0 - 1).astype(np.float32)
+    my = np.clip(gy - y0, 0.0, y1 - y0 - 1).astype(np.float32)
+    return cv2.remap(box, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+
+
 def _fit_line(points: np.ndarray) -> Tuple[float, float, float]:
     """Least-squares line through points (k, 2): unit normal (nx, ny) and offset c, n.x = c."""
     vx, vy, x0, y0 = cv2.fitLine(points.astype(np.float32), cv2.DIST_L2, 0, 1e-4, 1e-4).ravel().tolist()
@@ -77,7 +102,7 @@ def _fit_line(points: np.ndarray) -> Tuple[float, float, float]:
 def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_px: float,
               iterations: int = 2, camera=None, min_contrast: float = 8.0,
               max_move_px: Optional[float] = None, samples_per_side: int = 24,
-              converged_px: float = 0.5) -> Optional[EdgeFit]:
+              converged_px: float = 0.5, lut: Optional[np.ndarray] = None) -> Optional[EdgeFit]:
     """Refine approximate corners (4, 2) of a dark quadrilateral on a lighter surround.
 
     ``corners`` must be in image-clockwise order (positive ``signed_area``); the result
@@ -87,6 +112,9 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
     the corners mapped back. Stops after ``iterations`` passes or once corners move less
     than ``converged_px`` in a pass. None when the sides cannot be fitted (too few clean crossings,
     too little contrast, or corners that move further than ``max_move_px``).
+    ``lut``: the camera's response as a 256-entry table grey level -> linear intensity
+    (``response.decode_lut``); edges are then located in linear intensity. Contrasts stay in
+    the frame's own grey levels either way.
     """
     h, w = gray.shape
     start = np.asarray(corners, dtype=np.float64).reshape(4, 2)
@@ -129,10 +157,14 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
         else:
             ends_x, ends_y = gx[:, [0, -1]], gy[:, [0, -1]]
             inside = ((ends_x >= 0) & (ends_x <= w - 1) & (ends_y >= 0) & (ends_y <= h - 1)).all(axis=1)
-        prof = cv2.remap(gray, gx, gy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+        prof = _profiles(gray, gx, gy, lut)
         dark = 0.5 * (prof[:, 0] + prof[:, 1])
         light = 0.5 * (prof[:, -1] + prof[:, -2])
-        contrast = light - dark
+        if lut is None:
+            contrast = light - dark
+        else:
+            # Contrast in the frame's grey levels, as the thresholds are set.
+            contrast = np.interp(light, lut, _LEVELS) - np.interp(dark, lut, _LEVELS)
         mid = 0.5 * (dark + light)
         # A clean crossing: dark at the inner end, light at the outer end.
         ok = inside & (contrast >= min_contrast) & (prof[:, 0] < mid) & (prof[:, -1] >= mid)

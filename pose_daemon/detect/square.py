@@ -17,6 +17,7 @@ import numpy as np
 from ..camera import Marker
 from .quads import Roi, find_quads, inside_any, odd
 from .refine import SEARCH_CONVERGED_PX, EdgeFit, fit_edges
+from .response import Response, decode_lut
 
 
 @dataclass
@@ -43,6 +44,7 @@ class SquareOptions:
     max_edge_residual_px: float = 0.4
     max_aspect_ratio_error: float = 3.0   # measured W:H may differ from the marker's by this factor
     ring_px: float = 2.5             # how far outside the sides the light ring is sampled
+    gamma: Response = 1.0            # the camera's response (response.py): edges fitted in linear light
 
 
 def side_lengths(corners: np.ndarray) -> np.ndarray:
@@ -68,6 +70,7 @@ _RING_BASE = np.concatenate([np.column_stack([_s, 0 * _s]), np.column_stack([1 +
 _RING_DIR = np.concatenate([np.tile([0.0, -1.0], (7, 1)), np.tile([1.0, 0.0], (7, 1)),
                             np.tile([0.0, 1.0], (7, 1)), np.tile([-1.0, 0.0], (7, 1))])
 _N_GRID = len(_GRID)
+_LEVELS = np.arange(256, dtype=np.float64)
 
 
 def clamp(value: float, lo: float, hi: float) -> float:
@@ -134,6 +137,7 @@ class OutlineFinder:
         self.marker = marker
         self.options = options
         self.camera = camera
+        self.lut = decode_lut(options.gamma)
 
     def reach_px(self, corners: np.ndarray):
         raise NotImplementedError
@@ -146,7 +150,7 @@ class OutlineFinder:
         inner, outer = self.reach_px(corners)
         return fit_edges(gray, corners, inner_px=inner, outer_px=outer, iterations=iterations,
                          camera=self.camera, min_contrast=0.5 * self.options.min_contrast,
-                         max_move_px=max_move_px, converged_px=converged_px)
+                         max_move_px=max_move_px, converged_px=converged_px, lut=self.lut)
 
     def follow(self, gray: np.ndarray, predicted: np.ndarray) -> Optional[Candidate]:
         """The marker near ``predicted`` corners (tracked frames): edge fits from there, checked."""
@@ -195,6 +199,11 @@ class SquareFinder(OutlineFinder):
         dark, light = median_of(inside), median_of(ring)
         if light - dark < o.min_contrast:
             return False
+        if self.lut is not None:
+            # The shape of the blur is judged in linear light: encoded, the blurred rim of
+            # the inside looks like a lighter band.
+            inside, ring = np.interp(inside, _LEVELS, self.lut), np.interp(ring, _LEVELS, self.lut)
+            dark, light = median_of(inside), median_of(ring)
         mid = 0.5 * (dark + light)
         # The inside is one dark ink; the ring is paper (a shadow or glare may touch a few).
         if np.count_nonzero(inside >= mid) > 1 or float(inside.max() - inside.min()) > 0.5 * (light - dark):
