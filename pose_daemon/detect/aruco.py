@@ -5,21 +5,20 @@ edge fits, and followed between frames by reading its bits again.
 
 from __future__ import annotations
 
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 import cv2
 import numpy as np
 
 from ..camera import Marker
 from . import aruco_compat
-from .quads import Roi, find_quads, inside_any, odd
+from .quads import Roi, inside_any
 from .refine import SEARCH_CONVERGED_PX, EdgeFit, signed_area
 from .square import (
     Candidate,
     OutlineFinder,
     SquareOptions,
     clamp,
-    darker_inside,
     median_of,
     sample_canonical,
     side_lengths,
@@ -105,39 +104,61 @@ class ArucoFinder(OutlineFinder):
                 return k
         return None
 
+    def could_be(self, gray: np.ndarray, quad: np.ndarray) -> bool:
+        """Early rejection, before any sub-pixel work: the code read from the rough outline
+        (about a pixel off, so with one more bit error and border cell allowed). Rejects
+        the dark squares of a board, print and texture at a fraction of an edge fit's cost."""
+        values = sample_canonical(gray, quad, self._cell_and_ring_uv)
+        cells, ring = values[:len(self._cell_uv)], values[len(self._cell_uv):]
+        ring = ring[np.isfinite(ring)]
+        if not np.isfinite(cells).all() or len(ring) < 10:
+            return False
+        dark, light = median_of(cells[self._border]), median_of(ring)
+        if light - dark < 0.5 * self.options.min_contrast:
+            return False
+        white = cells > 0.5 * (dark + light)
+        if np.count_nonzero(white[self._border]) > 2:
+            return False
+        inner = self._inner
+        return any(np.count_nonzero(white[perm][inner] != self._expected_white[inner]) <= self.max_bit_errors + 1
+                   for perm in self._perms)
+
     def verify(self, gray: np.ndarray, fit: EdgeFit) -> bool:
         """Is this the marker, with the corners already labelled TL, TR, BR, BL?"""
         return self.orientation(gray, fit) == 0
 
-    def search(self, gray: np.ndarray, roi: Optional[Roi] = None,
-               expected_side_px: Optional[float] = None) -> List[Candidate]:
-        """Every instance of the marker in ``roi`` (or the whole frame), refined.
+    def try_quad(self, gray: np.ndarray, quad: np.ndarray, scale: int,
+                 found: List[Candidate]) -> Optional[Candidate]:
+        """A rough outline -> the marker (refined, labelled) or None; the code is read from
+        the rough outline first, the edges fitted only when it may be the marker."""
+        # Quads come largest first: one inside a marker already found is part of it.
+        if inside_any(quad.mean(axis=0), [c.corners for c in found]):
+            return None
+        # (could_be also checks that the border is darker than the quiet zone.)
+        if not self.could_be(gray, quad):
+            return None
+        fit = self.refine(gray, quad, iterations=2, max_move_px=1.5 * scale + 1.0,
+                          converged_px=SEARCH_CONVERGED_PX)
+        if fit is None:
+            return None
+        k = self.orientation(gray, fit)
+        return None if k is None else Candidate(np.roll(fit.corners, -k, axis=0), True, fit)
 
-        Our own quadrilaterals and bit reading first (cheap); OpenCV's ArUco detector, with
-        its several threshold scales, when they find nothing.
-        """
-        o = self.options
-        block = o.block_px if expected_side_px is None else odd(np.clip(expected_side_px / 3.0, 7, 41))
-        scales = (2, 1) if roi is None and min(gray.shape) >= 240 else (1,)
-        out: List[Candidate] = []
-        for scale in scales:
-            for quad in find_quads(gray, min_side_px=o.min_side_px, block_px=block,
-                                   offset_gray=o.threshold_offset, roi=roi, downscale=scale):
-                # Quads come largest first: one inside a marker already found is part of it.
-                if inside_any(quad.mean(axis=0), [c.corners for c in out]):
-                    continue
-                if not darker_inside(gray, quad, 0.5 / (self.n_bits + 2), 0.5 * o.min_contrast):
-                    continue
-                fit = self.refine(gray, quad, iterations=2, max_move_px=1.5 * scale + 1.0,
-                                  converged_px=SEARCH_CONVERGED_PX)
-                if fit is None:
-                    continue
-                k = self.orientation(gray, fit)
-                if k is not None:
-                    out.append(Candidate(np.roll(fit.corners, -k, axis=0), True, fit))
-            if out:
-                return out
-        return self._search_opencv(gray, roi)
+    def stages(self, gray: np.ndarray, roi: Optional[Roi]) -> List[Tuple[str, int]]:
+        """Our own quadrilaterals and bit reading first (cheap); OpenCV's ArUco detector, with
+        its several threshold scales, when they find nothing."""
+        return super().stages(gray, roi) + [("opencv", 1)]
+
+    def stage_items(self, gray: np.ndarray, stage: Tuple[str, int], roi: Optional[Roi], block: int) -> list:
+        if stage[0] == "opencv":
+            return [None]
+        return super().stage_items(gray, stage, roi, block)
+
+    def process(self, gray: np.ndarray, stage: Tuple[str, int], item, roi: Optional[Roi],
+                found: List[Candidate]) -> List[Candidate]:
+        if stage[0] == "opencv":
+            return self._search_opencv(gray, roi)
+        return super().process(gray, stage, item, roi, found)
 
     def _search_opencv(self, gray: np.ndarray, roi: Optional[Roi]) -> List[Candidate]:
         x0, y0 = 0, 0
