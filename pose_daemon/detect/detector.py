@@ -172,10 +172,13 @@ class MarkerDetector:
 
     def reset(self) -> None:
         """Forget the track: the next frame is searched whole and labelled afresh."""
+        self._forget_track()
+        self._cursor: Tuple[int, int] = (0, 0)   # where an interrupted whole-frame search goes on
+
+    def _forget_track(self) -> None:
         self._last: Optional[np.ndarray] = None
         self._previous: Optional[np.ndarray] = None
         self.misses = 0
-        self._cursor: Tuple[int, int] = (0, 0)   # where an interrupted whole-frame search goes on
 
     @property
     def tracking(self) -> bool:
@@ -203,7 +206,8 @@ class MarkerDetector:
             self.misses += 1
             self._previous = None  # no velocity across a gap
             if self.misses > self.max_misses:
-                self.reset()
+                # The track is lost; a capped whole-frame search still goes on where it stopped.
+                self._forget_track()
             return None
         self._previous = self._last if self.misses == 0 else None
         self._last = found
