@@ -13,7 +13,7 @@ import numpy as np
 from ..camera import Marker
 from . import aruco_compat
 from .quads import Roi, inside_any
-from .refine import SEARCH_CONVERGED_PX, EdgeFit, signed_area
+from .refine import SEARCH_CONVERGED_PX, SEARCH_ITERATIONS, EdgeFit, signed_area
 from .square import (
     Candidate,
     OutlineFinder,
@@ -137,7 +137,7 @@ class ArucoFinder(OutlineFinder):
         # (could_be also checks that the border is darker than the quiet zone.)
         if not self.could_be(gray, quad):
             return None
-        fit = self.refine(gray, quad, iterations=2, max_move_px=1.5 * scale + 1.0,
+        fit = self.refine(gray, quad, iterations=SEARCH_ITERATIONS, max_move_px=1.5 * scale + 1.0,
                           converged_px=SEARCH_CONVERGED_PX)
         if fit is None:
             return None

@@ -25,9 +25,15 @@ PROFILE_STEP_PX = 0.5
 _RECENTER_PASSES = 2
 
 _NEXT = np.array([1, 2, 3, 0])
+_PREV = np.array([3, 0, 1, 2])
 #: A search starts from polygon corners about a pixel off: one pass of edge fits is as good
 #: as two unless it moves them further than this (pixels).
 SEARCH_CONVERGED_PX = 1.5
+#: Passes of a search's edge fits: a blurred edge found from a rough outline needs its
+#: profiles re-centred on it before the half-way level is right (see ``fit_edges``).
+SEARCH_ITERATIONS = 3
+#: A pass is final only once the profiles' symmetric windows reach this many blur sigmas.
+WINDOW_BLUR_SIGMAS = 1.5
 _LEVELS = np.arange(256, dtype=np.float64)
 
 
@@ -93,6 +99,17 @@ def _profiles(gray: np.ndarray, gx: np.ndarray, gy: np.ndarray, lut: Optional[np
     return cv2.remap(box, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
 
 
+def _corner_clearance(u: np.ndarray, length: np.ndarray, blur_px: float) -> np.ndarray:
+    """How far from its ends (pixels) each side's profiles must start: a blurred corner
+    rounds the sides near it, the further the sharper its angle (the neighbouring side is
+    2.5 sigma away only that far along this one). At most 0.3 of the side."""
+    if blur_px <= 0.0:
+        return np.zeros(4)
+    sin_corner = np.abs(u[:, 0] * u[_PREV, 1] - u[:, 1] * u[_PREV, 0])   # at each side's start
+    sin_end = np.minimum(sin_corner, sin_corner[_NEXT])
+    return np.minimum(2.5 * blur_px / np.maximum(sin_end, 0.3), 0.3 * length)
+
+
 def _fit_line(points: np.ndarray) -> Tuple[float, float, float]:
     """Least-squares line through points (k, 2): unit normal (nx, ny) and offset c, n.x = c."""
     vx, vy, x0, y0 = cv2.fitLine(points.astype(np.float32), cv2.DIST_L2, 0, 1e-4, 1e-4).ravel().tolist()
@@ -131,6 +148,7 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
     rows2 = np.concatenate([rows, rows]) * n_off
     last = float(n_off - 1)
     frac_along = (np.arange(m) + 0.5) / m
+    blur_px = 0.0   # the edges' blur (Gaussian sigma equivalent), estimated by each pass
     for _ in range(iterations):
         d = current[_NEXT] - current
         length = np.hypot(d[:, 0], d[:, 1])
@@ -138,7 +156,7 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
             return None
         u = d / length[:, None]
         # Keep clear of the rounded, blurred corners where the side is not a straight edge.
-        end = np.maximum(1.5 + inner_px, 0.1 * length)
+        end = np.maximum(np.maximum(1.5 + inner_px, 0.1 * length), _corner_clearance(u, length, blur_px))
         span = length - 2.0 * end
         if span.min() < 2.0:
             return None
@@ -186,6 +204,12 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
             x = x_new
             if settled:
                 break
+        # Blur from the slope at the crossing, over +-1 px: sigma = contrast / (slope sqrt(2 pi)).
+        xs2 = np.stack([x - 2.0, x + 2.0])
+        slope = (_interp(prof, rows, xs2[1]) - _interp(prof, rows, xs2[0])) / (4.0 * PROFILE_STEP_PX)
+        good = ok & (slope > 1e-6)
+        if good.sum() >= 8:
+            blur_px = float(np.median((light - dark)[good] / (slope[good] * math.sqrt(2.0 * math.pi))))
         s_edge = (offsets[0] + x * PROFILE_STEP_PX).reshape(4, m)
         pts = np.stack([bx + s_edge * u[:, 1:2], by - s_edge * u[:, 0:1]], axis=-1)   # (4, m, 2)
         if distorted:
@@ -237,7 +261,9 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
         # of the edge; profiles that found their edge near one end get another pass.
         half = np.minimum(x, last - x)
         window_px = float(np.partition(half, n // 2)[n // 2]) * PROFILE_STEP_PX
-        if moved < converged_px and window_px >= 1.25:
+        # A blurred edge needs its profiles further from the corners than these were.
+        clear_of_corners = bool(np.all(_corner_clearance(u, length, blur_px) <= end + 0.5))
+        if moved < converged_px and window_px >= max(1.25, WINDOW_BLUR_SIGMAS * blur_px) and clear_of_corners:
             break
     if fit is None:
         return None

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..camera import Marker
 from .quads import Roi, find_quads, inside_any, odd
-from .refine import SEARCH_CONVERGED_PX, EdgeFit, fit_edges
+from .refine import SEARCH_CONVERGED_PX, SEARCH_ITERATIONS, EdgeFit, fit_edges
 from .response import Response, decode_lut
 
 
@@ -290,7 +290,7 @@ class SquareFinder(OutlineFinder):
             return None
         if not darker_inside(gray, quad, 0.1, 0.5 * o.min_contrast):
             return None
-        fit = self.refine(gray, quad, iterations=2, max_move_px=1.5 * scale + 1.0,
+        fit = self.refine(gray, quad, iterations=SEARCH_ITERATIONS, max_move_px=1.5 * scale + 1.0,
                           converged_px=SEARCH_CONVERGED_PX)
         if fit is not None and self.verify(gray, fit):
             return Candidate(fit.corners, False, fit)
