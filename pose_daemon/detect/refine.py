@@ -71,12 +71,14 @@ def _interp(prof: np.ndarray, rows: np.ndarray, x: np.ndarray) -> np.ndarray:
     return prof[rows, i] * (1.0 - f) + prof[rows, i + 1] * f
 
 
-def _crossing(prof: np.ndarray, rows: np.ndarray, level: np.ndarray) -> np.ndarray:
-    """Fractional sample index where each profile first rises through ``level``."""
+def _crossing(prof: np.ndarray, rows: np.ndarray, level: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Fractional sample index where each profile first rises through ``level``, and the
+    rise per sample there."""
     j = np.minimum(np.maximum((prof >= level[:, None]).argmax(axis=1), 1), prof.shape[1] - 1)
     lo, hi = prof[rows, j - 1], prof[rows, j]
-    frac = np.minimum(np.maximum((level - lo) / np.maximum(hi - lo, 1e-9), 0.0), 1.0)
-    return j - 1 + frac
+    rise = hi - lo
+    frac = np.minimum(np.maximum((level - lo) / np.maximum(rise, 1e-9), 0.0), 1.0)
+    return j - 1 + frac, rise
 
 
 def _profiles(gray: np.ndarray, gx: np.ndarray, gy: np.ndarray, lut: Optional[np.ndarray]) -> np.ndarray:
@@ -108,6 +110,20 @@ def _corner_clearance(u: np.ndarray, length: np.ndarray, blur_px: float) -> np.n
     sin_corner = np.abs(u[:, 0] * u[_PREV, 1] - u[:, 1] * u[_PREV, 0])   # at each side's start
     sin_end = np.minimum(sin_corner, sin_corner[_NEXT])
     return np.minimum(2.5 * blur_px / np.maximum(sin_end, 0.3), 0.3 * length)
+
+
+def _clear_of_corners(u: np.ndarray, length: np.ndarray, end: np.ndarray, blur_px: float) -> bool:
+    """Do the profiles start at least ``_corner_clearance`` (+ 0.5 px) from the corners?
+    Plain floats: four sides, where numpy's per-call overhead would dominate."""
+    (ax, ay), (bx, by), (cx, cy), (dx, dy) = u.tolist()
+    # |sin| of the corner at the start of each side (between the previous side and it).
+    s = [abs(ax * dy - ay * dx), abs(bx * ay - by * ax), abs(cx * by - cy * bx), abs(dx * cy - dy * cx)]
+    lengths, ends = length.tolist(), end.tolist()
+    for i in range(4):
+        need = min(2.5 * blur_px / max(min(s[i], s[(i + 1) % 4]), 0.3), 0.3 * lengths[i])
+        if need > ends[i] + 0.5:
+            return False
+    return True
 
 
 def _fit_line(points: np.ndarray) -> Tuple[float, float, float]:
@@ -186,7 +202,7 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
         mid = 0.5 * (dark + light)
         # A clean crossing: dark at the inner end, light at the outer end.
         ok = inside & (contrast >= min_contrast) & (prof[:, 0] < mid) & (prof[:, -1] >= mid)
-        x = _crossing(prof, rows, mid)
+        x, rise = _crossing(prof, rows, mid)
         # Re-take the dark and light levels symmetrically about the edge just found: a
         # symmetric blur leaks the same amount into both, so their mean stays the
         # half-way level even when the profile is too short to reach either plateau.
@@ -198,18 +214,12 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
             f = xs - i
             k = rows2 + i
             v = flat[k] * (1.0 - f) + flat[k + 1] * f
-            x_new = _crossing(prof, rows, 0.5 * (v[:n] + v[n:]))
+            x_new, rise = _crossing(prof, rows, 0.5 * (v[:n] + v[n:]))
             # Profiles already centred on their edge (a good prediction) settle at once.
             settled = float(np.abs(x_new - x).max()) < 0.1
             x = x_new
             if settled:
                 break
-        # Blur from the slope at the crossing, over +-1 px: sigma = contrast / (slope sqrt(2 pi)).
-        xs2 = np.stack([x - 2.0, x + 2.0])
-        slope = (_interp(prof, rows, xs2[1]) - _interp(prof, rows, xs2[0])) / (4.0 * PROFILE_STEP_PX)
-        good = ok & (slope > 1e-6)
-        if good.sum() >= 8:
-            blur_px = float(np.median((light - dark)[good] / (slope[good] * math.sqrt(2.0 * math.pi))))
         s_edge = (offsets[0] + x * PROFILE_STEP_PX).reshape(4, m)
         pts = np.stack([bx + s_edge * u[:, 1:2], by - s_edge * u[:, 0:1]], axis=-1)   # (4, m, 2)
         if distorted:
@@ -261,10 +271,16 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
         # of the edge; profiles that found their edge near one end get another pass.
         half = np.minimum(x, last - x)
         window_px = float(np.partition(half, n // 2)[n // 2]) * PROFILE_STEP_PX
-        # A blurred edge needs its profiles further from the corners than these were.
-        clear_of_corners = bool(np.all(_corner_clearance(u, length, blur_px) <= end + 0.5))
-        if moved < converged_px and window_px >= max(1.25, WINDOW_BLUR_SIGMAS * blur_px) and clear_of_corners:
-            break
+        if moved < converged_px and window_px >= 1.25:
+            # Final unless the edges are so blurred that the windows were too narrow for the
+            # half-way level or the profiles too close to the rounded corners. The blur from
+            # the slope at the crossings: sigma = contrast / (slope sqrt(2 pi)).
+            good = ok & (rise > 1e-6)
+            if int(np.count_nonzero(good)) >= 8:
+                sigmas = (light - dark)[good] / (rise[good] / PROFILE_STEP_PX * math.sqrt(2.0 * math.pi))
+                blur_px = float(np.partition(sigmas, len(sigmas) // 2)[len(sigmas) // 2])
+            if window_px >= WINDOW_BLUR_SIGMAS * blur_px and _clear_of_corners(u, length, end, blur_px):
+                break
     if fit is None:
         return None
     if max_move_px is not None and float(np.abs(fit.corners - start).max()) > max_move_px:

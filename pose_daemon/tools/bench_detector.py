@@ -610,6 +610,45 @@ def _print_tables(result: dict) -> None:
           " CPU = processor time of all threads (OpenCV's detector also uses idle cores)")
 
 
+def _print_clutter(rows: List[dict], n_frames: int) -> None:
+    print()
+    print(f"whole-frame search in clutter: {n_frames} frames per scene and marker type with the marker,"
+          f" as many without (false); detection alone, fastest of the repeats, median; anchor ="
+          f" OpenCV ArucoDetector + CORNER_REFINE_SUBPIX, interleaved on the same frames")
+    header = (f"{'scene, marker':<22}{'detected':>9}{'wrong':>6}{'false':>7}{'time':>10}{'no marker':>11}"
+              f"{'anchor det.':>12}{'anchor':>10}{'no marker':>11}{'ratio':>8}")
+    print(header)
+    print("-" * len(header))
+    for r in rows:
+        rate = _fmt(None if r["detection_rate"] is None else 100 * r["detection_rate"], ".0f", "%")
+        line = (f"{r['scene'] + ', ' + r['marker']:<22}{rate:>9}{r['wrong_detections']:>6}"
+                f"{r['false_detections']:>3}/{r['empty_frames']:<3}{_fmt(r['time_median_ms'], '.2f', ' ms'):>10}"
+                f"{_fmt(r['time_empty_median_ms'], '.2f', ' ms'):>11}")
+        if "anchor_time_median_ms" in r:
+            a_rate = _fmt(None if r["anchor_detection_rate"] is None else 100 * r["anchor_detection_rate"], ".0f", "%")
+            line += (f"{a_rate:>12}{_fmt(r['anchor_time_median_ms'], '.2f', ' ms'):>10}"
+                     f"{_fmt(r['anchor_time_empty_median_ms'], '.2f', ' ms'):>11}"
+                     f"{_fmt(r['time_ratio_median'], '.2f', 'x'):>8}")
+        print(line)
+    print("ratio: median over frames of pose-daemon's time / the anchor's on the same frame")
+
+
+def _print_sweep(rows: List[dict], n_frames: int) -> None:
+    print()
+    print(f"blur sweep, aruco marker, {n_frames} frames per condition (same poses): marker size bias ="
+          f" detected / true perimeter - 1")
+    header = (f"{'condition':<30}{'detector gamma':>15}{'detected':>9}{'corner RMS':>12}{'size bias mean':>16}"
+              f"{'anchor det.':>12}{'anchor RMS':>12}{'anchor bias':>13}")
+    print(header)
+    print("-" * len(header))
+    for r in rows:
+        print(f"{r['condition']:<30}{str(r['detector_gamma']):>15}"
+              f"{_fmt(None if r['detection_rate'] is None else 100 * r['detection_rate'], '.0f', '%'):>9}"
+              f"{_fmt(r['corner_rms_px'], '.3f', ' px'):>12}{_fmt(r['size_bias_mean_pct'], '+.3f', ' %'):>16}"
+              f"{_fmt(None if r['anchor_detection_rate'] is None else 100 * r['anchor_detection_rate'], '.0f', '%'):>12}"
+              f"{_fmt(r['anchor_corner_rms_px'], '.3f', ' px'):>12}{_fmt(r['anchor_size_bias_mean_pct'], '+.3f', ' %'):>13}")
+
+
 def run(args: argparse.Namespace) -> int:
     if args.frames < 1:
         raise UserError(f"--frames must be at least 1, got {args.frames}")
@@ -646,8 +685,15 @@ def run(args: argparse.Namespace) -> int:
         "anchor_full_ms": an["time_full_median_ms"],
         "anchor_full_cpu_ms": an["cpu_full_median_ms"],
     }
+    # Clutter scenes and the blur sweep: a tenth as many frames each, reported separately.
+    n_extra = max(1, args.frames // 10)
+    result["clutter"] = run_clutter(n_extra, args.seed, camera, args.repeat)
+    result["blur_sweep"] = run_blur_sweep(n_extra, args.seed, camera)
+    result["setup"]["clutter_frames"] = result["setup"]["sweep_frames"] = n_extra
     if args.json:
         print(json.dumps(result))
     else:
         _print_tables(result)
+        _print_clutter(result["clutter"], n_extra)
+        _print_sweep(result["blur_sweep"], n_extra)
     return 0
