@@ -78,7 +78,8 @@ class FrameProcessor:
 
         camera, marker = cfg.camera.model(), cfg.marker.model()
         detector = MarkerDetector(marker, max_misses=cfg.detector.max_misses,
-                                  min_side_px=cfg.detector.min_side_px, camera=camera)
+                                  min_side_px=cfg.detector.min_side_px, camera=camera,
+                                  gamma=cfg.detector.gamma)
         return cls(camera, marker, method=cfg.estimator.method,
                    iterations=cfg.estimator.iterations, refine=cfg.estimator.refine,
                    detector=detector)

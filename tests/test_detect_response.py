@@ -58,3 +58,16 @@ def test_linear_frames_are_unchanged_by_a_linear_response() -> None:
 def test_bad_gamma_is_refused(bad) -> None:
     with pytest.raises(ValueError, match="gamma must be a number in"):
         MarkerDetector(SQUARE, gamma=bad)
+
+
+def test_config_gamma_reaches_the_daemons_detector() -> None:
+    from pose_daemon.config import parse_config
+    from pose_daemon.errors import ConfigError
+    from pose_daemon.processing import FrameProcessor
+
+    cfg = parse_config("[detector]\ngamma = 2.2\n")
+    processor = FrameProcessor.from_config(cfg)
+    assert processor.detector._finder.options.gamma == 2.2 and processor.detector._finder.lut is not None
+    assert FrameProcessor.from_config(parse_config("")).detector._finder.lut is None
+    with pytest.raises(ConfigError, match="gamma"):
+        parse_config("[detector]\ngamma = 0.0\n")

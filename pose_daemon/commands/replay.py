@@ -114,7 +114,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"pose-daemon: note: {args.path} has its own {' and '.join(ignored)}, used instead of "
                   f"those of {args.config}", file=sys.stderr)
     detector = MarkerDetector(marker, max_misses=cfg.detector.max_misses,
-                              min_side_px=cfg.detector.min_side_px, camera=camera)
+                              min_side_px=cfg.detector.min_side_px, camera=camera,
+                              gamma=cfg.detector.gamma)
     processor = FrameProcessor(camera, marker, method=cfg.estimator.method,
                                iterations=cfg.estimator.iterations, refine=cfg.estimator.refine,
                                detector=detector)
