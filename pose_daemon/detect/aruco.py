@@ -5,6 +5,7 @@ edge fits, and followed between frames by reading its bits again.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from typing import List, Optional, Tuple
 
 import cv2
@@ -71,6 +72,26 @@ class ArucoFinder(OutlineFinder):
                                      np.column_stack([s, np.full_like(s, 1.08)]),
                                      np.column_stack([np.full_like(s, -0.08), s])])
         self._cell_and_ring_uv = np.concatenate([self._cell_uv, self._ring])
+        self._pool: Optional[ThreadPoolExecutor] = None
+        self._pending = None   # (future, frame, roi) of OpenCV's detector started early
+
+    def use_threads(self, threads: int) -> None:
+        """``threads`` >= 2: when a whole-frame search reaches its full-size pass (the
+        half-size one found nothing), OpenCV's detector, its last step, starts at once on
+        another core (the marker is then likely absent, and that step would come anyway).
+        The result is the same; the tracked path never uses it."""
+        if threads >= 2 and self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pose-daemon-aruco")
+            # Its own OpenCV detector object: never shared between two threads.
+            self._early_finder = aruco_compat.ArucoMarkerFinder(self.dictionary, self._finder.parameters)
+
+    def prepare_stage(self, gray: np.ndarray, plan: List[Tuple[str, int]], stage_i: int,
+                      roi: Optional[Roi]) -> None:
+        if self._pool is None or stage_i == 0 or stage_i + 1 >= len(plan) or plan[stage_i + 1][0] != "opencv":
+            return
+        if self._pending is not None and not self._pending[0].done():
+            return   # one early run at a time (a time-capped search may have left one)
+        self._pending = (self._pool.submit(self._search_opencv, gray, roi, self._early_finder), gray, roi)
 
     def reach_px(self, corners: np.ndarray):
         side = min(side_lengths(corners).tolist())
@@ -157,16 +178,19 @@ class ArucoFinder(OutlineFinder):
     def process(self, gray: np.ndarray, stage: Tuple[str, int], item, roi: Optional[Roi],
                 found: List[Candidate]) -> List[Candidate]:
         if stage[0] == "opencv":
+            pending, self._pending = self._pending, None
+            if pending is not None and pending[1] is gray and pending[2] == roi:
+                return pending[0].result()
             return self._search_opencv(gray, roi)
         return super().process(gray, stage, item, roi, found)
 
-    def _search_opencv(self, gray: np.ndarray, roi: Optional[Roi]) -> List[Candidate]:
+    def _search_opencv(self, gray: np.ndarray, roi: Optional[Roi], finder=None) -> List[Candidate]:
         x0, y0 = 0, 0
         img = gray
         if roi is not None:
             x0, y0, x1, y1 = roi
             img = gray[y0:y1, x0:x1]
-        corners_list, ids = self._finder.detect(img)
+        corners_list, ids = (finder or self._finder).detect(img)
         out: List[Candidate] = []
         for corners, marker_id in zip(corners_list, ids):
             if int(marker_id) != self.marker_id:

@@ -181,6 +181,10 @@ class OutlineFinder:
         cand = self.try_quad(gray, item, stage[1], found)
         return [] if cand is None else [cand]
 
+    def prepare_stage(self, gray: np.ndarray, plan: List[Tuple[str, int]], stage_i: int,
+                      roi: Optional[Roi]) -> None:
+        """Called as stage ``stage_i`` of ``plan`` starts (a finder may start later work early)."""
+
     def search(self, gray: np.ndarray, roi: Optional[Roi] = None,
                expected_side_px: Optional[float] = None) -> List[Candidate]:
         """Every verified marker outline in ``roi`` (or the whole frame)."""
@@ -207,6 +211,7 @@ class OutlineFinder:
             stage = plan[stage_i]
             if not first and over is not None and over():
                 return [], (stage_i, skip)
+            self.prepare_stage(gray, plan, stage_i, roi)
             items = self.stage_items(gray, stage, roi, block)
             out: List[Candidate] = []
             for k in range(min(skip, len(items)), len(items)):
