@@ -135,7 +135,8 @@ def _fit_line(points: np.ndarray) -> Tuple[float, float, float]:
 def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_px: float,
               iterations: int = 2, camera=None, min_contrast: float = 8.0,
               max_move_px: Optional[float] = None, samples_per_side: int = 24,
-              converged_px: float = 0.5, lut: Optional[np.ndarray] = None) -> Optional[EdgeFit]:
+              converged_px: float = 0.5, lut: Optional[np.ndarray] = None,
+              check_blur: bool = True) -> Optional[EdgeFit]:
     """Refine approximate corners (4, 2) of a dark quadrilateral on a lighter surround.
 
     ``corners`` must be in image-clockwise order (positive ``signed_area``); the result
@@ -147,7 +148,10 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
     too little contrast, or corners that move further than ``max_move_px``).
     ``lut``: the camera's response as a 256-entry table grey level -> linear intensity
     (``response.decode_lut``); edges are then located in linear intensity. Contrasts stay in
-    the frame's own grey levels either way.
+    the frame's own grey levels either way. ``check_blur``: a pass is final only once its
+    profiles are centred within ``WINDOW_BLUR_SIGMAS`` of the estimated blur and clear of
+    the blurred corners (off: as soon as the corners settle; a tracked marker's predicted
+    corners are already centred, and that path stays as cheap as it was).
     """
     h, w = gray.shape
     start = np.asarray(corners, dtype=np.float64).reshape(4, 2)
@@ -271,6 +275,8 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
         # of the edge; profiles that found their edge near one end get another pass.
         half = np.minimum(x, last - x)
         window_px = float(np.partition(half, n // 2)[n // 2]) * PROFILE_STEP_PX
+        if moved < converged_px and window_px >= 1.25 and not check_blur:
+            break
         if moved < converged_px and window_px >= 1.25:
             # Final unless the edges are so blurred that the windows were too narrow for the
             # half-way level or the profiles too close to the rounded corners. The blur from

@@ -149,11 +149,12 @@ class OutlineFinder:
 
     def refine(self, gray: np.ndarray, corners: np.ndarray, iterations: int,
                max_move_px: Optional[float] = None, converged_px: float = 0.5,
-               reach: Optional[Tuple[float, float]] = None) -> Optional[EdgeFit]:
+               reach: Optional[Tuple[float, float]] = None, check_blur: bool = True) -> Optional[EdgeFit]:
         inner, outer = self.reach_px(corners) if reach is None else reach
         return fit_edges(gray, corners, inner_px=inner, outer_px=outer, iterations=iterations,
                          camera=self.camera, min_contrast=0.5 * self.options.min_contrast,
-                         max_move_px=max_move_px, converged_px=converged_px, lut=self.lut)
+                         max_move_px=max_move_px, converged_px=converged_px, lut=self.lut,
+                         check_blur=check_blur)
 
     # ------------------------------------------------------------------ search
 
@@ -229,7 +230,7 @@ class OutlineFinder:
         """The marker near ``predicted`` corners (tracked frames): edge fits from there, checked."""
         inner, outer = self.reach_px(predicted)
         fit = self.refine(gray, predicted, iterations=2, max_move_px=0.8 * min(inner, outer) + 0.5,
-                          reach=(inner, outer))
+                          reach=(inner, outer), check_blur=False)
         if fit is None or not self.verify(gray, fit):
             return None
         return Candidate(fit.corners, self.oriented, fit)
