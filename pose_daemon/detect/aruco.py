@@ -5,8 +5,7 @@ edge fits, and followed between frames by reading its bits again.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-from typing import List, Optional, Tuple
+from typing import Any, List, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -72,7 +71,7 @@ class ArucoFinder(OutlineFinder):
                                      np.column_stack([s, np.full_like(s, 1.08)]),
                                      np.column_stack([np.full_like(s, -0.08), s])])
         self._cell_and_ring_uv = np.concatenate([self._cell_uv, self._ring])
-        self._pool: Optional[ThreadPoolExecutor] = None
+        self._pool: Optional[Any] = None   # a ThreadPoolExecutor once use_threads(2+)
         self._pending = None   # (future, frame, roi) of OpenCV's detector started early
 
     def use_threads(self, threads: int) -> None:
@@ -81,6 +80,9 @@ class ArucoFinder(OutlineFinder):
         another core (the marker is then likely absent, and that step would come anyway).
         The result is the same; the tracked path never uses it."""
         if threads >= 2 and self._pool is None:
+            # Imported here: the daemon's start-up does not pay for it on a single core.
+            from concurrent.futures import ThreadPoolExecutor
+
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pose-daemon-aruco")
             # Its own OpenCV detector object: never shared between two threads.
             self._early_finder = aruco_compat.ArucoMarkerFinder(self.dictionary, self._finder.parameters)
