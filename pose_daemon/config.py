@@ -323,6 +323,8 @@ class EstimatorConfig:
 class DetectorConfig:
     max_misses: int = _key(5, Rule("int", lo=0, hi=10_000), "frames a track survives without the marker")
     min_side_px: float = _key(10.0, Rule("float", lo=1, hi=10_000), "shortest accepted marker side, pixels")
+    gamma: float = _key(1.0, Rule("float", lo=0.2, hi=5), "camera response exponent: edges located in linear light "
+                        "(1.0 linear, about 2.2 for sRGB/Rec. 709 cameras)")
 
 
 @dataclass(frozen=True)
