@@ -69,3 +69,52 @@ def test_jsonl_on_a_full_disk_never_leaves_a_broken_line(small_tmpfs):
     assert frames[-5:] == [1000, 1001, 1002, 1003, 1004]
     assert frames == sorted(frames) and len(frames) >= 6
     assert out.stats()["dropped"].get("link_down", 0) >= 1
+
+
+def _signed_heartbeat(key, system: int = 1) -> bytes:
+    """An ArduPilot copter's HEARTBEAT signed with ``key`` (MAVLink 2 signing, a fresh time stamp)."""
+    import time
+
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    ap = mavlink2.MAVLink(None, srcSystem=system, srcComponent=1)
+    ap.signing.secret_key, ap.signing.sign_outgoing, ap.signing.link_id = key, True, 0
+    ap.signing.timestamp = int((time.time() - 1420070400) * 1e5)
+    return ap.heartbeat_encode(2, 3, 0, 0, 4).pack(ap)
+
+
+def test_with_a_signing_key_only_correctly_signed_messages_are_believed():
+    import hashlib
+
+    from mavlink_helpers import UdpPeer, autopilot_heartbeat, mavlink_output, of_type
+
+    key = hashlib.sha256(b"correct horse battery staple").digest()
+    peer = UdpPeer(signing_key=key)
+    out = mavlink_output(f"udpout:127.0.0.1:{peer.port}", WALL, wait_heartbeat=True, queue_size=0,
+                         signing_key="correct horse battery staple", origin=(47.397742, 8.545594, 488.0))
+    t = [50.0]
+
+    def poses(n):
+        for _ in range(n):
+            t[0] += 1 / 30
+            out.submit(vehicle_result(WALL, 0, t[0], (-2.0, 0.0, 0.0)))
+
+    try:
+        assert peer.collect(2.0, until=lambda ms: bool(of_type(ms, "HEARTBEAT")))
+        peer.send(autopilot_heartbeat(system=1))                                # unsigned
+        peer.send(_signed_heartbeat(hashlib.sha256(b"wrong").digest(), system=1))  # another key
+        assert wait_for(lambda: out.stats()["ignored"].get("bad_signature", 0) >= 2, 3.0), out.status()
+        poses(5)
+        msgs = peer.collect(0.3)
+        assert out.autopilot_system is None
+        assert not of_type(msgs, "ODOMETRY") and not of_type(msgs, "SET_GPS_GLOBAL_ORIGIN")
+        assert "ignored bad_signature=2" in out.status()
+        peer.send(_signed_heartbeat(key, system=1))                             # the autopilot
+        assert wait_for(lambda: out.autopilot_system == 1, 3.0), out.status()
+        poses(3)
+        msgs = peer.collect(2.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 3)
+    finally:
+        out.close()
+        peer.close()
+    assert len(of_type(msgs, "ODOMETRY")) == 3 and len(of_type(msgs, "SET_GPS_GLOBAL_ORIGIN")) == 1
+    assert out.stats()["ignored"] == {"bad_signature": 2}

@@ -117,11 +117,12 @@ class _MavlinkLink:
     """One open connection: pymavlink's opener and MAVLink 2 encoder, with our own byte I/O."""
 
     def __init__(self, kind: str, device: str, baud: int, source_system: int, source_component: int,
-                 signing_key: Optional[bytes]) -> None:
+                 signing_key: Optional[bytes], on_ignored: Callable[[str], None] = lambda cause: None) -> None:
         from pymavlink import mavutil
         from pymavlink.dialects.v20 import common as mavlink2
 
         self.kind = kind
+        self._on_ignored = on_ignored  # counts received data not believed, by cause
         self.conn = mavutil.mavlink_connection(device, baud=baud, source_system=source_system,
                                                source_component=source_component, retries=0,
                                                autoreconnect=False)
@@ -134,8 +135,9 @@ class _MavlinkLink:
             self.mav.signing.sign_outgoing = True
             self.mav.signing.link_id = 0
             self.mav.signing.timestamp = int((max(time.time(), _SIGNING_EPOCH_S) - _SIGNING_EPOCH_S) * 1e5)
-            # Accept the autopilot's unsigned HEARTBEAT: we only listen for its presence.
-            self.mav.signing.allow_unsigned_callback = lambda mav, msgid: True
+            # With a key only correctly signed messages are believed: no unsigned callback, so
+            # pymavlink turns an unsigned or badly signed message into BAD_DATA (counted below).
+            self.mav.signing.allow_unsigned_callback = None
         port = self.conn.port
         if kind == "serial":
             port.write_timeout = WRITE_TIMEOUT_S
@@ -178,9 +180,11 @@ class _MavlinkLink:
             data = self._read_some()
             if not data:
                 break
-            msgs = self.mav.parse_buffer(data)
-            if msgs:
-                out.extend(msgs)
+            for msg in self.mav.parse_buffer(data) or []:
+                if msg.get_type() != "BAD_DATA":
+                    out.append(msg)
+                elif "signature" in str(getattr(msg, "reason", "")).lower():
+                    self._on_ignored("bad_signature")
         return out
 
     def _read_some(self) -> bytes:
@@ -285,7 +289,7 @@ class MavlinkOutput(QueuedOutput):
 
     def _open(self) -> None:
         self._link = _MavlinkLink(self.kind, self.device, self.baud, self.cfg.source_system,
-                                  self.cfg.source_component, self._signing_key)
+                                  self.cfg.source_component, self._signing_key, on_ignored=self._ignore)
 
     def _close_link(self) -> None:
         link, self._link = self._link, None

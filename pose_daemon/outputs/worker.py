@@ -95,6 +95,8 @@ class QueuedOutput:
         self.log = logging.getLogger(f"pose_daemon.outputs.{self.name}")
         self._counts: Dict[str, int] = {"submitted": 0, "written": 0, "sent": 0, "errors": 0, "opens": 0, "link_failures": 0}
         self._dropped: Dict[str, int] = collections.defaultdict(int)
+        # Received bytes or messages not acted on, by cause (bad_signature, oversized, ...).
+        self._ignored: Dict[str, int] = collections.defaultdict(int)
         self._last_error = ""
         self._last_latency_s: Optional[float] = None
         self._thread: Optional[threading.Thread] = None
@@ -174,6 +176,7 @@ class QueuedOutput:
                 **dict(self._counts),
                 "dropped": dict(self._dropped),
                 "dropped_total": sum(self._dropped.values()),
+                "ignored": dict(self._ignored),
                 "queued": len(self._queue),
                 "last_error": self._last_error,
                 "last_latency_s": self._last_latency_s,
@@ -185,6 +188,8 @@ class QueuedOutput:
         parts = [f"link {s['link']}"]
         if s["dropped"]:
             parts.append("dropped " + " ".join(f"{k}={v}" for k, v in sorted(s["dropped"].items())))
+        if s["ignored"]:
+            parts.append("ignored " + " ".join(f"{k}={v}" for k, v in sorted(s["ignored"].items())))
         if s["errors"]:
             parts.append(f"errors {s['errors']} (last: {s['last_error']})")
         return ", ".join(parts)
@@ -231,6 +236,11 @@ class QueuedOutput:
         """Count one result not written, by cause (the status line shows each cause)."""
         with self._cond:
             self._dropped[cause] += 1
+
+    def _ignore(self, cause: str, n: int = 1) -> None:
+        """Count received data not acted on, by cause (the status line shows each cause)."""
+        with self._cond:
+            self._ignored[cause] += n
 
     def _count(self, key: str, n: int = 1) -> None:
         with self._cond:
