@@ -118,3 +118,58 @@ def test_with_a_signing_key_only_correctly_signed_messages_are_believed():
         peer.close()
     assert len(of_type(msgs, "ODOMETRY")) == 3 and len(of_type(msgs, "SET_GPS_GLOBAL_ORIGIN")) == 1
     assert out.stats()["ignored"] == {"bad_signature": 2}
+
+
+def test_a_flood_of_junk_datagrams_does_not_starve_the_pose_stream():
+    """100 random 64 KiB datagrams a second at the daemon's MAVLink socket while poses stream at
+    30 Hz: every pose still goes out, the junk is dropped unparsed, a real message still arrives."""
+    import socket
+    import threading
+    import time
+
+    from mavlink_helpers import UdpPeer, mavlink_output, of_type
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    peer = UdpPeer()
+    out = mavlink_output(f"udpout:127.0.0.1:{peer.port}", WALL, wait_heartbeat=False, queue_size=4)
+    got = []
+    out.subscribe("SYSTEM_TIME", lambda msg, now_s: got.append(msg.time_boot_ms))
+    stop = threading.Event()
+    sent_junk = [0]
+
+    def flood(addr):
+        rng = __import__("random").Random(7)
+        junk = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            while not stop.is_set() and sent_junk[0] < 400:   # at most 4 s of it
+                junk.sendto(rng.randbytes(65507), addr)
+                sent_junk[0] += 1
+                time.sleep(0.01)
+        finally:
+            junk.close()
+
+    try:
+        assert peer.collect(2.0, until=lambda ms: bool(of_type(ms, "HEARTBEAT")))
+        daemon_addr = peer.sender
+        flooder = threading.Thread(target=flood, args=(daemon_addr,), daemon=True)
+        flooder.start()
+        submitted = 0
+        for k in range(60):                       # 2 s of poses at 30 Hz
+            out.submit(vehicle_result(WALL, k, 100.0 + k / 30, (-2.0, 0.0, 0.0)))
+            submitted += 1
+            if k == 30:                           # a real message amid the junk
+                ap = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+                peer.send(ap.system_time_encode(0, 4321).pack(ap))
+            time.sleep(1 / 30)
+        wait_for(lambda: out.stats()["written"] + out.stats()["dropped_total"] >= submitted, 5.0)
+        msgs = peer.collect(3.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= submitted)
+        assert wait_for(lambda: bool(got), 3.0)
+    finally:
+        stop.set()
+        out.close()
+        peer.close()
+    odo = of_type(msgs, "ODOMETRY")
+    assert sent_junk[0] >= 20
+    assert len(odo) >= submitted - 3, (len(odo), submitted, out.status())
+    assert got == [4321]
+    assert out.stats()["ignored"].get("oversized", 0) >= 10

@@ -28,6 +28,7 @@ import errno
 import hashlib
 import math
 import select
+import socket
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, Dict, List, Optional, Sequence, Tuple
@@ -59,6 +60,13 @@ HEARTBEAT_S = 1.0
 # An autopilot silent this long and heard again gets the GPS origin again (it may have rebooted).
 AUTOPILOT_SILENCE_S = 3.0
 WRITE_TIMEOUT_S = 0.25
+# Reading what comes back is bounded per tick, so that no amount of incoming data (a flood of
+# junk datagrams) holds up the poses: at most this many reads, bytes and seconds of parsing.
+RX_DATAGRAMS = 32
+RX_BYTES = 4096
+RX_SECONDS = 0.002
+# A MAVLink 2 frame is at most 280 bytes; a datagram larger than an Ethernet frame is junk.
+RX_MAX_DATAGRAM = 1500
 NAN = float("nan")
 # MAVLink enum values (common.xml), named here so the module reads without the dialect.
 MAV_FRAME_BODY_FRD = 12
@@ -123,6 +131,7 @@ class _MavlinkLink:
 
         self.kind = kind
         self._on_ignored = on_ignored  # counts received data not believed, by cause
+        self._rx_buf = bytearray(RX_MAX_DATAGRAM + 1)
         self.conn = mavutil.mavlink_connection(device, baud=baud, source_system=source_system,
                                                source_component=source_component, retries=0,
                                                autoreconnect=False)
@@ -174,40 +183,64 @@ class _MavlinkLink:
             raise LinkError(f"write failed: {exc}") from exc
 
     def read_messages(self) -> List[Any]:
-        """Every complete message waiting on the link (non-blocking)."""
+        """The complete messages waiting on the link (non-blocking), within a strict budget per
+        call (RX_DATAGRAMS, RX_BYTES, RX_SECONDS): what is left waits for the next call, so
+        reading never holds up sending however much arrives. A datagram larger than
+        RX_MAX_DATAGRAM is junk: dropped unparsed and counted as ``oversized``."""
         out: List[Any] = []
-        for _ in range(64):
-            data = self._read_some()
-            if not data:
+        t_end = time.perf_counter() + RX_SECONDS
+        budget = RX_BYTES
+        for _ in range(RX_DATAGRAMS):
+            got = self._read_some(budget)
+            if got is None:
                 break
+            data, sender = got
+            if not data:
+                continue
+            budget -= len(data)
+            good = False
             for msg in self.mav.parse_buffer(data) or []:
                 if msg.get_type() != "BAD_DATA":
                     out.append(msg)
+                    good = True
                 elif "signature" in str(getattr(msg, "reason", "")).lower():
                     self._on_ignored("bad_signature")
+            if good and sender is not None and self.kind == "udpin":
+                # A peer to send to: only one that sent a real (with a key: signed) message,
+                # so junk from anywhere cannot redirect the stream.
+                self.conn.clients.add(sender)
+                self.conn.clients_last_alive[sender] = time.time()
+            if budget <= 0 or time.perf_counter() >= t_end:
+                break
         return out
 
-    def _read_some(self) -> bytes:
+    def _read_some(self, budget: int) -> Optional[Tuple[bytes, Any]]:
+        """(bytes, sender) of one read of at most ``budget`` bytes; (b"", None) for a datagram
+        dropped unparsed; None when nothing is waiting."""
         port = self.conn.port
         try:
             if self.kind == "serial":
-                n = port.in_waiting
-                return port.read(n) if n else b""
+                n = min(port.in_waiting, budget)
+                return (port.read(n), None) if n else None
             if self.kind in ("udpout", "udpin"):
-                data = self.conn.recv()  # notes the sender as a peer (udpin)
-                return data if isinstance(data, (bytes, bytearray)) else b""
+                # MSG_TRUNC: the datagram's real length, though only the buffer's worth is copied.
+                n, sender = port.recvfrom_into(self._rx_buf, len(self._rx_buf), socket.MSG_TRUNC)
+                if n > RX_MAX_DATAGRAM:
+                    self._on_ignored("oversized")
+                    return b"", None
+                return bytes(self._rx_buf[:n]), sender
             # select, not MSG_DONTWAIT: the socket has a send timeout, which recv would wait out.
             if not select.select([port], [], [], 0.0)[0]:
-                return b""
-            data = port.recv(4096)
+                return None
+            data = port.recv(max(1, min(budget, 4096)))
             if not data:
                 raise LinkError("connection closed by peer")
-            return data
+            return data, None
         except LinkError:
             raise
         except OSError as exc:
             if exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK, errno.ECONNREFUSED):
-                return b""
+                return None
             raise LinkError(f"read failed: {exc}") from exc
         except Exception as exc:
             raise LinkError(f"read failed: {exc}") from exc
