@@ -173,3 +173,62 @@ def test_a_flood_of_junk_datagrams_does_not_starve_the_pose_stream():
     assert len(odo) >= submitted - 3, (len(odo), submitted, out.status())
     assert got == [4321]
     assert out.stats()["ignored"].get("oversized", 0) >= 10
+
+
+def _free_udp_port() -> int:
+    import socket
+
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+def test_a_serial_port_is_held_by_one_daemon_only(tmp_path, caplog):
+    from mavlink_helpers import VanishingPty, mavlink_output
+
+    from pose_daemon.config import SerialOutputConfig
+    from pose_daemon.outputs import PlainSerialOutput
+    from pose_daemon.outputs.plain_serial import parse_pose_line
+
+    pty = VanishingPty(str(tmp_path / "ttyMCU"))
+    first = PlainSerialOutput(SerialOutputConfig(port=pty.path), WALL, queue_size=0)
+    caplog.set_level("WARNING", logger="pose_daemon.outputs")
+    second = PlainSerialOutput(SerialOutputConfig(port=pty.path, retry_s=0.05, retry_max_s=0.1), WALL,
+                               queue_size=0)
+    fc = mavlink_output(pty.path, WALL, wait_heartbeat=False, queue_size=0, retry_s=0.05, retry_max_s=0.1)
+    try:
+        assert first.link_up and not second.link_up and not fc.link_up
+        for k in range(5):
+            second.submit(vehicle_result(WALL, k, 200.0 + k / 30, (-3.0, 0.0, 0.0)))
+            first.submit(vehicle_result(WALL, k, 100.0 + k / 30, (-2.0, 0.0, 0.0)))
+        data = pty.read(1.0, until=lambda b: b.count(b"\r\n") >= 5)
+        wait_for(lambda: False, 0.3)               # the second's retries: still one line each
+        refused = second.status()
+    finally:
+        second.close()
+        fc.close()
+        first.close()
+        pty.close()
+    lines = [parse_pose_line(s + "\r\n") for s in data.decode("ascii").split("\r\n")[:-1]]
+    assert [f["t_us"] for f in lines] == [round((100.0 + k / 30) * 1e6) for k in range(5)]
+    assert "in use by another process" in refused and second.stats()["dropped"] == {"link_down": 5}
+    warnings = [r.getMessage() for r in caplog.records if "in use by another process" in r.getMessage()]
+    assert len(warnings) == 2, warnings            # one line for each refused output, not one per retry
+
+
+def test_a_second_udpin_daemon_on_one_port_is_warned_about(caplog):
+    from mavlink_helpers import mavlink_output
+
+    port = _free_udp_port()
+    caplog.set_level("WARNING", logger="pose_daemon.outputs")
+    first = mavlink_output(f"udpin:127.0.0.1:{port}", WALL, wait_heartbeat=False, queue_size=0)
+    try:
+        assert first.link_up and not [r for r in caplog.records if "UDP port" in r.getMessage()]
+        second = mavlink_output(f"udpin:127.0.0.1:{port}", WALL, wait_heartbeat=False, queue_size=0)
+        second.close()
+    finally:
+        first.close()
+    warnings = [r.getMessage() for r in caplog.records if "UDP port" in r.getMessage()]
+    assert len(warnings) == 1 and f"127.0.0.1:{port}" in warnings[0] and "another" in warnings[0], warnings

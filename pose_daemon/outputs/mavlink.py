@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import errno
 import hashlib
+import logging
 import math
 import select
 import socket
@@ -47,7 +48,7 @@ from ..pose.types import Pose
 from ..result import FrameResult, time_usec_from_s
 from .base import ClosedHook, WrittenHook
 from .quality import pose_covariance_local, pose_quality
-from .worker import LinkBusy, LinkError, QueuedOutput
+from .worker import LinkBusy, LinkError, QueuedOutput, hold_serial_port, release_serial_port
 
 if TYPE_CHECKING:  # config.py may import this module's choices: no import back at run time
     from ..config import MavlinkOutputConfig
@@ -132,9 +133,17 @@ class _MavlinkLink:
         self.kind = kind
         self._on_ignored = on_ignored  # counts received data not believed, by cause
         self._rx_buf = bytearray(RX_MAX_DATAGRAM + 1)
+        if kind == "udpin":
+            _warn_if_udp_port_taken(device)
         self.conn = mavutil.mavlink_connection(device, baud=baud, source_system=source_system,
                                                source_component=source_component, retries=0,
                                                autoreconnect=False)
+        if kind == "serial":
+            try:
+                hold_serial_port(self.conn.port.fd, device)
+            except OSError:
+                self.conn.close()
+                raise
         # MAVLink 2 whatever MAVLINK20 says, writing through self so that errors surface.
         self.mav = mavlink2.MAVLink(self, srcSystem=source_system, srcComponent=source_component)
         self.mav.robust_parsing = True
@@ -246,7 +255,26 @@ class _MavlinkLink:
             raise LinkError(f"read failed: {exc}") from exc
 
     def close(self) -> None:
+        if self.kind == "serial":
+            release_serial_port(self.conn.port.fd)
         self.conn.close()
+
+
+def _warn_if_udp_port_taken(device: str) -> None:
+    """One log line when another socket has the udpin address bound already: pymavlink binds
+    with SO_REUSEADDR, so a second daemon would share the port silently and the datagrams would
+    go to one of them only. Probed with a bind without SO_REUSEADDR, which fails then."""
+    host, _, port = device.partition(":")[2].rpartition(":")
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        probe.bind((host, int(port)))
+    except OSError as exc:
+        if exc.errno == errno.EADDRINUSE:
+            logging.getLogger("pose_daemon.outputs.mavlink").warning(
+                "mavlink output: UDP port %s:%s is bound by another socket too (another pose-daemon or "
+                "ground station?): datagrams from the autopilot reach only one of them", host, port)
+    finally:
+        probe.close()
 
 
 class MavlinkOutput(QueuedOutput):

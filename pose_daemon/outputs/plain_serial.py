@@ -25,7 +25,7 @@ from ..geometry import VehicleFrames
 from ..result import FrameResult, time_usec_from_s
 from .base import ClosedHook, WrittenHook
 from .quality import LOST_QUALITY, pose_quality
-from .worker import LinkBusy, LinkError, QueuedOutput
+from .worker import LinkBusy, LinkError, QueuedOutput, hold_serial_port, release_serial_port
 
 if TYPE_CHECKING:
     from ..config import SerialOutputConfig
@@ -108,12 +108,23 @@ class PlainSerialOutput(QueuedOutput):
     def _open(self) -> None:
         import serial
 
-        self._serial = serial.serial_for_url(self.cfg.port, baudrate=self.cfg.baud, timeout=0,
-                                             write_timeout=WRITE_TIMEOUT_S)
+        port = serial.serial_for_url(self.cfg.port, baudrate=self.cfg.baud, timeout=0,
+                                     write_timeout=WRITE_TIMEOUT_S)
+        fd = getattr(port, "fd", None)
+        if isinstance(fd, int):  # a device (not a pyserial URL): this daemon's alone
+            try:
+                hold_serial_port(fd, self.cfg.port)
+            except OSError:
+                port.close()
+                raise
+        self._serial = port
 
     def _close_link(self) -> None:
         port, self._serial = self._serial, None
         if port is not None:
+            fd = getattr(port, "fd", None)
+            if isinstance(fd, int):
+                release_serial_port(fd)
             port.close()
 
     def _write(self, result: FrameResult) -> int:

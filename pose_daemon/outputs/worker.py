@@ -52,6 +52,35 @@ class LinkClosed(LinkError):
     pipeline ends the run, as SIGPIPE ends `yes | head`."""
 
 
+def hold_serial_port(fd: int, device: str) -> None:
+    """Make an open serial port this process's alone: an exclusive ``flock`` (which every
+    pose-daemon and pyserial's ``exclusive=True`` honour, root included) and TIOCEXCL (no further
+    open() of the tty by anyone but root). OSError "DEVICE is in use by another process" when
+    another holds the lock. ``release_serial_port`` undoes TIOCEXCL before the port is closed."""
+    import fcntl
+    import termios
+
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError as exc:
+        raise OSError(f"{device} is in use by another process (it holds the port's lock)") from exc
+    try:
+        fcntl.ioctl(fd, termios.TIOCEXCL)
+    except OSError:
+        pass  # not a tty (a pyserial URL): the lock is what counts
+
+
+def release_serial_port(fd: int) -> None:
+    """Clear TIOCEXCL (it outlives our descriptor while anyone else holds the tty open)."""
+    import fcntl
+    import termios
+
+    try:
+        fcntl.ioctl(fd, termios.TIOCNXCL)
+    except OSError:
+        pass
+
+
 class LinkBusy(Exception):
     """The link could not take the bytes in time (full buffer): this write is dropped."""
 
