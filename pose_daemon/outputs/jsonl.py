@@ -86,6 +86,7 @@ class JsonlOutput(QueuedOutput):
         if self._stream is None:
             # Started with fd 1 closed (`>&-`): Python then sets sys.stdout to None.
             raise LinkClosed("stdout is closed")
+        self._before_send(len(line) + 1)  # the last step before the bytes go out
         try:
             self._stream.write(line + "\n")
             self._stream.flush()
@@ -97,6 +98,7 @@ class JsonlOutput(QueuedOutput):
             raise LinkError(f"cannot write {self.path}: {exc}") from exc
         except (OSError, ValueError) as exc:  # ValueError: write to a closed file
             raise LinkError(f"cannot write {self.path}: {exc}") from exc
+        self._after_send(len(line) + 1)
         return 1
 
     def _write_file(self, data: bytes) -> None:
@@ -111,6 +113,7 @@ class JsonlOutput(QueuedOutput):
         except OSError as exc:
             raise LinkError(f"cannot write {self.path}: {exc}") from exc
         done = 0
+        self._before_send(len(data))      # the last step before the bytes go out
         try:
             while done < len(data):
                 done += os.write(fd, data[done:])
@@ -121,6 +124,7 @@ class JsonlOutput(QueuedOutput):
                 except OSError:
                     self._cut_to = start
             raise LinkError(f"cannot write {self.path}: {exc}") from exc
+        self._after_send(len(data))
 
     def _detach_stdout(self) -> None:
         """Point fd 1 at /dev/null, so that flushing what stdout still buffers (at exit) does not
