@@ -25,7 +25,16 @@ from ..geometry import VehicleFrames
 from ..result import FrameResult, time_usec_from_s
 from .base import ClosedHook, WrittenHook
 from .quality import LOST_QUALITY, pose_quality
-from .worker import LinkBusy, LinkError, QueuedOutput
+from .worker import (
+    LinkBusy,
+    LinkError,
+    QueuedOutput,
+    discard_tty_output,
+    fd_queued_bytes,
+    hold_serial_port,
+    is_pty,
+    release_serial_port,
+)
 
 if TYPE_CHECKING:
     from ..config import SerialOutputConfig
@@ -95,6 +104,8 @@ class PlainSerialOutput(QueuedOutput):
         self.cfg = cfg
         self.frames = frames
         self._serial = None
+        self._fd: Optional[int] = None     # the tty's descriptor (None for a pyserial URL)
+        self._pty = False
         self._last_sent_t: Optional[float] = None
         super().__init__(queue_size=queue_size, max_age_s=max_age_s, on_written=on_written,
                          on_closed=on_closed, retry_s=cfg.retry_s, retry_max_s=cfg.retry_max_s,
@@ -108,12 +119,40 @@ class PlainSerialOutput(QueuedOutput):
     def _open(self) -> None:
         import serial
 
-        self._serial = serial.serial_for_url(self.cfg.port, baudrate=self.cfg.baud, timeout=0,
-                                             write_timeout=WRITE_TIMEOUT_S)
+        port = serial.serial_for_url(self.cfg.port, baudrate=self.cfg.baud, timeout=0,
+                                     write_timeout=WRITE_TIMEOUT_S)
+        fd = getattr(port, "fd", None)
+        if isinstance(fd, int):  # a device (not a pyserial URL): this daemon's alone
+            try:
+                hold_serial_port(fd, self.cfg.port)
+            except OSError:
+                port.close()
+                raise
+            self._fd, self._pty = fd, is_pty(fd)
+        else:
+            self._fd, self._pty = None, False
+        self._serial = port
+
+    def _queued_bytes(self) -> Optional[int]:
+        if self._fd is None:
+            return 0
+        return None if self._pty else fd_queued_bytes(self._fd)
+
+    def _link_rate_Bps(self) -> Optional[float]:
+        return None if self._pty or self._fd is None else self.cfg.baud / 10.0
+
+    def _discard_queued(self) -> bool:
+        if self._fd is None:
+            return False
+        discard_tty_output(self._fd)
+        return True
 
     def _close_link(self) -> None:
         port, self._serial = self._serial, None
         if port is not None:
+            fd = getattr(port, "fd", None)
+            if isinstance(fd, int):
+                release_serial_port(fd)
             port.close()
 
     def _write(self, result: FrameResult) -> int:
@@ -131,13 +170,22 @@ class PlainSerialOutput(QueuedOutput):
             self._drop("not_finite")
             return 0
         data = line.encode("ascii")
+        self._before_send(len(data))      # the last step before the bytes go out
         try:
             n = self._serial.write(data)
         except serial.SerialTimeoutException as exc:
-            raise LinkBusy("serial write timed out (nobody reading?)") from exc
+            self._timed_out()
+            raise LinkBusy("serial write timed out (nobody reading?): what waited was discarded") from exc
         except Exception as exc:
             raise LinkError(f"write failed: {exc}") from exc
         if n is not None and n < len(data):
-            raise LinkBusy(f"serial write timed out after {n} of {len(data)} bytes")
+            self._timed_out()
+            raise LinkBusy(f"serial write timed out after {n} of {len(data)} bytes: what waited was discarded")
+        self._after_send(len(data))
         self._last_sent_t = t
         return 1
+
+    def _timed_out(self) -> None:
+        """The reader stopped and its buffer is full: what waits there is stale, discard it."""
+        if self._discard_queued():
+            self._discarded_after_timeout()
