@@ -28,6 +28,7 @@ from pose_daemon.config import parse_config
 from pose_daemon.errors import ConfigError
 from pose_daemon.outputs import MavlinkOutput
 from pose_daemon.outputs.mavlink import encode_pose_messages, parse_connection, time_usec_from_s
+from pose_daemon.outputs.quality import pose_quality
 
 ALL = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
 WALL = g.VehicleFrames.from_settings("forward", placement="wall")
@@ -72,26 +73,43 @@ def test_encoding_round_trip_with_time_usec_beyond_32_bits():
         assert lt.size_x == pytest.approx(2 * math.atan2(0.1, math.sqrt(4.25)), rel=1e-6)
 
 
-def test_quality_and_covariance_follow_residual_and_ambiguity():
+def test_quality_and_covariance_follow_residual_and_a_real_flip_risk():
+    """Two planar solutions that agree are no risk; two that disagree with a near-tie are."""
+    import dataclasses
+
     from pymavlink.dialects.v20 import common as mavlink2
 
     mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
-    R = np.diag([1.0, -1.0, -1.0])
+    R = g.R_from_euler_rpy(0.0, math.radians(20.0), 0.0) @ np.diag([1.0, -1.0, -1.0])
 
-    def odo(t, err, amb):
-        (m,) = encode_pose_messages(mav, ["ODOMETRY"], 1, camera_pose(R, t, err, amb), WALL,
-                                    fx_px=500.0, marker_width_m=0.2)
+    def with_alt(pose, R_alt, ratio):
+        return dataclasses.replace(pose, alternative=camera_pose(R_alt, pose.tvec, pose.reprojection_error_px),
+                                   ambiguity_ratio=ratio)
+
+    def odo(pose):
+        (m,) = encode_pose_messages(mav, ["ODOMETRY"], 1, pose, WALL, fx_px=500.0, marker_width_m=0.2)
         return m
 
-    clear, noisy, ambiguous = odo([0, 0, 2.0], 0.1, 0.0), odo([0, 0, 2.0], 2.0, 0.0), odo([0, 0, 2.0], 0.1, 0.9)
-    assert clear.quality == 99 and noisy.quality == 20 and ambiguous.quality == 10
-    # Depth (local x for a wall marker) is the least certain axis; variance grows with the residual,
-    # with ambiguity, and with distance.
-    assert clear.pose_covariance[0] > clear.pose_covariance[6] > 0
-    assert noisy.pose_covariance[0] > 50 * clear.pose_covariance[0]
-    assert ambiguous.pose_covariance[0] > 50 * clear.pose_covariance[0]
-    far = odo([0, 0, 4.0], 0.1, 0.0)
-    assert far.pose_covariance[0] == pytest.approx(16 * clear.pose_covariance[0], rel=1e-3)
+    clear = camera_pose(R, [0, 0, 1.0], 0.1)
+    noisy = camera_pose(R, [0, 0, 1.0], 2.0)
+    # The mirror solution 40 deg away fits almost as well: a coin flip between two poses.
+    flip = with_alt(clear, g.R_from_euler_rpy(0.0, math.radians(-20.0), 0.0) @ np.diag([1.0, -1.0, -1.0]), 0.95)
+    # Face-on: the two solutions coincide (ratio 1) and either is right.
+    level = with_alt(camera_pose(np.diag([1.0, -1.0, -1.0]), [0, 0, 1.0], 0.1), np.diag([1.0, -1.0, -1.0]), 1.0)
+    q = {k: odo(p).quality for k, p in dict(clear=clear, noisy=noisy, flip=flip, level=level).items()}
+    assert q["clear"] >= 80 and q["level"] >= 80, q
+    assert q["noisy"] <= 25 and q["flip"] <= 10, q
+    # Chosen by the vehicle's attitude, the same near-tie is no risk any more.
+    assert pose_quality(flip, 500.0, 0.2, flip_resolved=True) == pose_quality(clear, 500.0, 0.2)
+    # Variances grow with the residual, with a real flip risk, and with distance.
+    c = odo(clear).pose_covariance
+    assert all(c[k] > 0 for k in (0, 6, 11, 15, 18, 20))
+    assert odo(noisy).pose_covariance[0] > 50 * c[0]
+    assert odo(flip).pose_covariance[0] > 50 * c[0]
+    assert odo(level).pose_covariance[0] < 2 * odo(camera_pose(np.diag([1.0, -1.0, -1.0]), [0, 0, 1.0], 0.1)
+                                                     ).pose_covariance[0]
+    far = odo(camera_pose(R, [0, 0, 4.0], 0.1))
+    assert far.pose_covariance[0] > 10 * c[0]
 
 
 def test_stream_over_udp_keeps_every_autopilot_rule():

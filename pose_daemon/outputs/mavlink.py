@@ -432,7 +432,7 @@ def encode_pose_messages(mav: Any, messages: Sequence[str], t_us: int, pose: Pos
     vehicle = frames.vehicle_pose(pose.R, pose.tvec)
     R = vehicle.R_local_body
     x, y, z = (float(v) for v in vehicle.p_local_body_m)
-    quality = pose_quality(pose.reprojection_error_px, pose.ambiguity_ratio)
+    quality = pose_quality(pose, fx_px, marker_width_m)
     cov = pose_covariance_local(pose, frames, fx_px, marker_width_m)
     out: List[Any] = []
     for name in messages:

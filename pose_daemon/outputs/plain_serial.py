@@ -50,7 +50,7 @@ def pose_line(result: FrameResult, frames: VehicleFrames) -> Optional[str]:
         rpy = np.degrees(v.rpy_rad)
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(rpy))):
             return None
-        q = pose_quality(pose.reprojection_error_px, pose.ambiguity_ratio)
+        q = pose_quality(pose)
         # "+ 0.0" turns -0.0 into 0.0 so that a still vehicle prints the same line every time.
         fields = [f"{float(x) + 0.0:.4f}" for x in p] + [f"{float(a) + 0.0:.2f}" for a in rpy]
         body = f"POSE,{t_us}," + ",".join(fields) + f",{q}"
