@@ -380,7 +380,7 @@ class MavlinkOutput(QueuedOutput):
         self._state_request_t = -1e18
         self._timesync_peer: Optional[TimesyncPeer] = None
         self._timesync_request_t = -1e18
-        self._qual_min_asked = False
+        self._qual_min_asked = self._qual_min_warned = False
         # What is done with each received message, by type (the one dispatch point, _on_message);
         # a type not listed is ignored. More handlers: one line here, or subscribe().
         self._handlers: Dict[str, MessageHandler] = {
@@ -417,6 +417,7 @@ class MavlinkOutput(QueuedOutput):
         s["reset_counter"] = self.reset_counter
         s["autopilot"] = self.autopilot_system
         s["autopilot_kind"] = self.autopilot_kind
+        s["autopilot_component"] = self._autopilot_component
         s["origin"] = self.origin_state
         if s["link_up"] and self.cfg.wait_heartbeat and self.autopilot_system is None:
             s["link"] = "up, waiting for the autopilot's HEARTBEAT"
@@ -493,6 +494,19 @@ class MavlinkOutput(QueuedOutput):
         the output's own handler (which keeps working: e.g. TIMESYNC is still answered)."""
         with self._io_lock:
             self._listeners[msg_type].append(handler)
+
+    def send(self, build: Callable[[Any], Any]) -> bool:
+        """Run ``build(mav)`` with the link held, e.g. ``lambda mav: mav.param_request_read_send(
+        1, 1, b"VISO_TYPE", -1)`` (pymavlink's ``*_send`` encoders); False when the link is down."""
+        with self._io_lock:
+            if not self._link_up or self._link is None:
+                return False
+            try:
+                build(self._link.mav)
+            except (LinkError, LinkBusy) as exc:
+                self.log.warning("send failed: %s", exc)
+                return False
+            return True
 
     def attach_timesync(self, peer: TimesyncPeer) -> None:
         """Send ``peer``'s TIMESYNC requests to the autopilot every ``TIMESYNC_REQUEST_S`` and
@@ -636,7 +650,9 @@ class MavlinkOutput(QueuedOutput):
 
     def _on_param_value(self, msg: Any, now: float) -> None:
         name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode("ascii", "replace")
-        if self._from_autopilot(msg) and name.rstrip("\x00") == "VISO_QUAL_MIN" and msg.param_value > 0:
+        if (self._from_autopilot(msg) and name.rstrip("\x00") == "VISO_QUAL_MIN" and msg.param_value > 0
+                and not self._qual_min_warned):
+            self._qual_min_warned = True
             text = f"VPE has no quality: VISO_QUAL_MIN {msg.param_value:g} drops all"
             self.log.warning("VISION_POSITION_ESTIMATE carries no quality (ArduPilot takes 0): with "
                              "VISO_QUAL_MIN = %g every one is dropped; set it to 0 or send ODOMETRY",
