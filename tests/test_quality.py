@@ -52,6 +52,6 @@ def test_bench_quality_runs_and_separates(capsys):
     report = bench_quality.run_bench(3, 0, heights_m=(1.0,), tilts_deg=(0.0, 15.0))
     assert [c["tilt_deg"] for c in report["cases"]] == [0.0, 15.0]
     assert report["all"]["new"]["poses"] >= 4
-    assert report["all"]["new"]["drop_correct_10"] == 0.0
+    assert report["all"]["new"]["drop_correct_10"] == 0.0 and "pass_wrong_30" in report["all"]["new"]
     bench_quality.print_report(report)
     assert "min quality 10: drops" in capsys.readouterr().out

@@ -11,7 +11,7 @@ where the two coincide (ratio -> 1) and either one is right.
 
 The quality is the product of three factors, each 0..1:
 - fit: the reprojection residual against what corner noise explains (a residual of
-  ``HALF_QUALITY_ERROR_PX`` halves it; the gate of the pose estimate in other words);
+  ``HALF_QUALITY_ERROR_PX`` halves it, 4th power beyond: a gate on the fit);
 - precision: the expected position error of the solve (1 .. 0.5, 0.75 at ``HALF_QUALITY_POSITION_M``);
 - flip: 1 - (ambiguity_ratio x how far the alternative disagrees beyond the expected error),
   unless the choice between the two was settled by the vehicle's attitude (``flip_resolved``).
@@ -31,8 +31,10 @@ from ..pose.types import Pose
 # Corners are never located better than this, whatever the residual says (four points fit
 # eight numbers with six unknowns: a small residual does not prove a small error).
 MIN_CORNER_ERROR_PX = 0.25
-# A residual of this many pixels halves the quality.
-HALF_QUALITY_ERROR_PX = 1.0
+# A residual of this many pixels halves the quality, and it falls with the 4th power beyond:
+# four corners leave two redundant numbers, so the RMS residual is about half the corner
+# noise (~0.1-0.2 px on a good frame); 0.5 px means a corner is off by a pixel or more.
+HALF_QUALITY_ERROR_PX = 0.5
 # The expected position error (1 sigma, all axes) takes off at most PRECISION_WEIGHT of the
 # quality, half of that at HALF_QUALITY_POSITION_M: an imprecise but right pose still helps
 # an EKF that weighs it (and ArduPilot floors the noise at VISO_POS_M_NSE anyway); only a
@@ -146,7 +148,7 @@ def pose_quality(pose: Pose, fx_px: Optional[float] = None, marker_width_m: Opti
     r = float(pose.ambiguity_ratio)
     if not _finite(e, r) or not (np.all(np.isfinite(pose.tvec)) and np.all(np.isfinite(pose.R))):
         return 1
-    f_fit = 1.0 / (1.0 + (max(e, 0.0) / HALF_QUALITY_ERROR_PX) ** 2)
+    f_fit = 1.0 / (1.0 + (max(e, 0.0) / HALF_QUALITY_ERROR_PX) ** 4)
     f_precision = 1.0
     if fx_px is not None and marker_width_m is not None:
         sigma_m = position_std_m(pose, fx_px, marker_width_m)

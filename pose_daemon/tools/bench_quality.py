@@ -5,7 +5,10 @@ marker), level, within +-5 deg and within +-15 deg of tilt, at 0.5, 1, 2 and 3 m
 through the daemon's own detector, estimator and continuity choice (FrameProcessor). Each pose
 is judged against the renderer's truth: "correct" (vehicle position within 2 cm and attitude
 within 2 deg), "wrong" (attitude off by more than 10 deg, or the wrong planar solution where
-the two are more than 5 deg apart), or neither; "imprecise" counts poses more than 10 cm off. Printed per case: the
+the two are more than 5 deg apart), or neither; "imprecise" counts poses more than 10 cm off.
+Each frame is also estimated with one corner knocked 3 px off (gate-worthy: wrong unless its
+pose is still correct) and, where the other planar solution is more than 10 deg off the
+truth, as if that one had been taken by a coin flip (wrong). Printed per case: the
 quality distribution (today's model and the old 100/(1+e^2)(1-ambiguity_ratio)), the fraction
 of correct poses a minimum quality would drop and the wrong poses it would let through.
 """
@@ -28,6 +31,8 @@ from ..geometry import (
     rvec_from_R,
 )
 from ..outputs.quality import pose_quality
+from ..pose.estimator import estimate_pose
+from ..pose.types import EstimationError
 from ..processing import FrameProcessor
 from ..render import Effects, render_frame
 
@@ -36,7 +41,9 @@ MARKER = Marker(0.2, 0.2)
 FRAMES = VehicleFrames.from_settings("down", placement="floor")
 HEIGHTS_M = (0.5, 1.0, 2.0, 3.0)
 TILTS_DEG = (0.0, 5.0, 15.0)
-THRESHOLDS = (5, 10, 20)
+THRESHOLDS = (10, 30, 40)
+# Gate-worthy frames: the same corners with one knocked this far off (a bad edge fit).
+BAD_CORNER_PX = 3.0
 CORRECT_M, CORRECT_DEG = 0.02, 2.0
 # Wrong: the attitude off by more than 10 deg, or the other planar solution taken where the
 # two are more than 5 deg apart (the alternative is the nearer one to the truth).
@@ -103,6 +110,24 @@ def run_case(height_m: float, tilt_deg: float, n_frames: int, seed: int) -> Dict
                      "correct": pos_err < CORRECT_M and rot_err < CORRECT_DEG,
                      "wrong": rot_err > WRONG_DEG or flipped,
                      "imprecise": pos_err > IMPRECISE_M})
+        # The same corners with one knocked BAD_CORNER_PX off: gate-worthy, judged wrong when
+        # its pose is not correct.
+        if result.corners is not None:
+            bad = np.array(result.corners, dtype=np.float64)
+            a = rng.uniform(0, 2 * math.pi)
+            bad[rng.integers(4)] += BAD_CORNER_PX * np.array([math.cos(a), math.sin(a)])
+            try:
+                bp = estimate_pose(bad, CAMERA, MARKER)
+            except EstimationError:
+                bp = None
+            if bp is not None:
+                be = FRAMES.vehicle_pose(bp.R, bp.tvec)
+                b_pos = float(np.linalg.norm(be.p_local_body_m - vehicle.p_local_body_m))
+                b_rot = rotation_angle_deg_3x3(be.R_local_body, vehicle.R_local_body)
+                ok = b_pos < CORRECT_M and b_rot < CORRECT_DEG
+                rows.append({"q": pose_quality(bp, CAMERA.fx, MARKER.width),
+                             "q_old": _old_quality(bp.reprojection_error_px, bp.ambiguity_ratio),
+                             "correct": False, "wrong": not ok, "imprecise": b_pos > IMPRECISE_M, "gate": True})
         # The same frame had the estimator taken the other solution by a coin flip: a wrong
         # pose whenever that solution is more than 10 deg off the truth.
         if alt is not None and rotation_angle_deg_3x3(alt.R, R_cm) > WRONG_DEG:
