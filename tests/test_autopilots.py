@@ -21,16 +21,13 @@ DOWN = g.VehicleFrames.from_settings("down", placement="floor")
 ORIGIN = (47.397742, 8.545594, 488.0)
 ORIGIN_E7 = (473977420, 85455940, 488000)
 # The README's VISO_QUAL_MIN / EKF2_EV_QMIN.
-README_QUAL_MIN = 10
+README_QUAL_MIN = 30
 
 
-def _stream(out, seconds: float, p_local=(0.0, 0.0, -1.5), yaw_deg: float = 0.0, results=None) -> None:
-    """Poses at ~30 Hz for ``seconds``, stamped with the real capture clock."""
-    end = time.monotonic() + seconds
-    k = 0
-    while time.monotonic() < end:
+def _stream(out, n: int, p_local=(0.0, 0.0, -1.5), yaw_deg: float = 0.0, results=None) -> None:
+    """``n`` poses at ~30 Hz (slower on a loaded machine), stamped with the real capture clock."""
+    for k in range(n):
         out.submit(results(k) if results else vehicle_result(DOWN, k, time.monotonic(), p_local, yaw_deg))
-        k += 1
         time.sleep(1 / 30)
 
 
@@ -82,8 +79,8 @@ def test_a_level_hover_is_fused_with_the_readme_quality_minimum():
     rng = np.random.default_rng(0)
     try:
         assert wait_for(lambda: out.autopilot_system == 1, 5.0)
-        _stream(out, 1.0, results=lambda k: _level_result(k, rng))
-        assert wait_for(lambda: fc.tally.fused.get("ODOMETRY", 0) >= 20, 3.0), fc.tally.ignored
+        _stream(out, 30, results=lambda k: _level_result(k, rng))
+        assert wait_for(lambda: fc.tally.fused.get("ODOMETRY", 0) >= 30, 10.0), (fc.tally.fused, fc.tally.ignored)
     finally:
         out.close()
         fc.close()
@@ -99,14 +96,15 @@ def test_vision_position_estimate_with_a_quality_minimum_is_said_plainly():
     out = mavlink_output(fc.connection, DOWN, messages=("ODOMETRY", "VISION_POSITION_ESTIMATE"), queue_size=0)
     try:
         assert wait_for(lambda: out.autopilot_system == 1, 5.0)
-        _stream(out, 0.7)
+        _stream(out, 20)
         assert wait_for(lambda: any("VPE has no quality" in m.text
-                                    for m in of_type(fc.tally.received, "STATUSTEXT")), 3.0)
+                                    for m in of_type(fc.tally.received, "STATUSTEXT")), 10.0)
+        assert wait_for(lambda: fc.tally.fused.get("ODOMETRY", 0) >= 20, 10.0)
     finally:
         out.close()
         fc.close()
     assert fc.tally.fused.get("VISION_POSITION_ESTIMATE", 0) == 0
-    assert fc.tally.ignored["VISION_POSITION_ESTIMATE quality"] >= 10 and fc.tally.fused["ODOMETRY"] >= 10
+    assert fc.tally.ignored["VISION_POSITION_ESTIMATE quality"] == 20 and fc.tally.fused["ODOMETRY"] == 20
 
 
 def test_px4_takes_the_landing_target_in_local_ned_and_syncs_time():
@@ -121,15 +119,16 @@ def test_px4_takes_the_landing_target_in_local_ned_and_syncs_time():
     try:
         assert wait_for(lambda: out.autopilot_system == 1, 5.0)
         assert wait_for(lambda: fc.intervals_us.get(32) == 20_000 and fc.intervals_us.get(30) == 20_000, 5.0)
-        _stream(out, 1.5, p_local=(0.3, -0.2, -1.5), yaw_deg=20.0)
-        assert wait_for(lambda: len(fc.tally.landing_targets) >= 20, 3.0)
+        _stream(out, 45, p_local=(0.3, -0.2, -1.5), yaw_deg=20.0)
+        assert wait_for(lambda: len(fc.tally.landing_targets) >= 45, 10.0), (fc.tally.landing_refused,
+                                                                              len(fc.tally.landing_targets))
     finally:
         out.close()
         fc.close()
     assert fc.tally.landing_refused == 0
     assert not [t for t in fc.statustexts if "unsupported" in t]
     located = [m for m in fc.tally.landing_targets if m.position_valid == 1]
-    assert len(located) >= 15 and all(m.frame == 1 for m in located)
+    assert len(located) >= 5 and all(m.frame == 1 for m in located)
     # The marker (the marker frame's origin) in PX4's NED: 0.3 m north, 0.2 m west of... the
     # vehicle's PX4 position minus its marker-frame position.
     for m in located:

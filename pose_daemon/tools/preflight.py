@@ -35,7 +35,7 @@ EKF_STATUS_REPORT_ID = 193
 # EKF_STATUS_REPORT / ESTIMATOR_STATUS flags: horizontal position, relative or absolute.
 POS_HORIZ_FLAGS = 0x08 | 0x10
 # The README's minimum quality (VISO_QUAL_MIN / EKF2_EV_QMIN) for ODOMETRY.
-QUALITY_MIN = 10
+QUALITY_MIN = 30
 HEARTBEAT_TIMEOUT_S = 10.0
 PARAM_TIMEOUT_S = 2.0
 # ArduPilot's SERIALn_BAUD codes for the usual rates (the rest are rate / 1000).
