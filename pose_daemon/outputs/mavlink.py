@@ -75,7 +75,7 @@ from ..geometry import (
 from ..pose.types import Pose
 from ..result import FrameResult, time_usec_from_s
 from .base import ClosedHook, WrittenHook
-from .quality import pose_covariance_local, pose_quality
+from .quality import pose_covariance_local, pose_quality, uncertainty
 from .worker import LinkBusy, LinkError, QueuedOutput
 
 if TYPE_CHECKING:  # config.py may import this module's choices: no import back at run time
@@ -778,12 +778,13 @@ class PoseMessageInputs:
             vehicle = frames.vehicle_pose(pose.R, pose.tvec)
         t_cam = np.asarray(pose.tvec, dtype=np.float64)
         width_m = float(marker_width_m)
+        u = uncertainty(pose, fx_px, width_m)   # the solve's covariance, once per pose
         height_m = float(marker_height_m) if marker_height_m is not None else width_m
         return cls(t_us=int(t_us), p_local_m=np.asarray(vehicle.p_local_body_m, dtype=np.float64),
                    R_local_body=np.asarray(vehicle.R_local_body, dtype=np.float64),
-                   covariance=pose_covariance_local(pose, frames, fx_px, width_m),
+                   covariance=pose_covariance_local(pose, frames, fx_px, width_m, u=u),
                    reset_counter=int(reset_counter),
-                   quality=pose_quality(pose, fx_px, width_m),
+                   quality=pose_quality(pose, fx_px, width_m, u=u),
                    p_marker_cam_m=t_cam, p_marker_body_m=np.asarray(frames.marker_in_body(t_cam)),
                    R_body_marker=frames.R_body_cam @ np.asarray(pose.R), marker_size_m=(width_m, height_m),
                    target_local_ned_m=target_local_ned_m)

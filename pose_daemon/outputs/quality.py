@@ -21,6 +21,7 @@ The covariance is widened by the same flip risk.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import List, Optional, Tuple
 
 import numpy as np
@@ -61,16 +62,9 @@ def _corner_error_px(pose: Pose) -> float:
     return max(e, MIN_CORNER_ERROR_PX) if math.isfinite(e) else math.inf
 
 
-def _skew(w: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (..., 3, 3) cross-product matrices."""
-    z = np.zeros(w.shape[:-1])
-    return np.stack([np.stack([z, -w[..., 2], w[..., 1]], -1), np.stack([w[..., 2], z, -w[..., 0]], -1),
-                     np.stack([-w[..., 1], w[..., 0], z], -1)], -2)
-
-
-_STEP = 1e-6
-# The 12 parameter perturbations (+-step on each of rotation (3, marker frame) and translation (3)).
-_DELTAS = np.concatenate([np.eye(6), -np.eye(6)]) * _STEP
+def _skew3(v: np.ndarray) -> np.ndarray:
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
 def solve_covariance(pose: Pose, fx_px: float, marker_width_m: float,
@@ -86,27 +80,79 @@ def solve_covariance(pose: Pose, fx_px: float, marker_width_m: float,
     """
     w2 = marker_width_m / 2.0
     h2 = (marker_height_m if marker_height_m is not None else marker_width_m) / 2.0
+    R = np.asarray(pose.R, dtype=np.float64)
+    t = np.asarray(pose.tvec, dtype=np.float64).reshape(3)
+    # Corners in the camera frame, (4, 3); dP/dw = -R [X]x = -[R X]x R, dP/dt = I.
     X = np.array([[-w2, h2, 0.0], [w2, h2, 0.0], [w2, -h2, 0.0], [-w2, -h2, 0.0]])
-    R0 = np.asarray(pose.R, dtype=np.float64)
-    t0 = np.asarray(pose.tvec, dtype=np.float64).reshape(3)
-    # First-order rotation perturbation is enough for a step of 1e-6 rad.
-    Rs = R0 @ (np.eye(3) + _skew(_DELTAS[:, :3]))                  # (12, 3, 3)
-    ts = t0 + _DELTAS[:, 3:]                                        # (12, 3)
-    P = np.einsum("kij,nj->kni", Rs, X) + ts[:, None, :]            # (12, 4, 3)
-    uv = fx_px * P[..., :2] / P[..., 2:3]                           # (12, 4, 2)
-    J = ((uv[:6] - uv[6:]) / (2 * _STEP)).reshape(6, 8).T           # (8, 6)
-    C = np.einsum("kji,kj->ki", Rs, ts)                             # R^T t, (12, 3)
-    Jc = (-(C[:6] - C[6:]) / (2 * _STEP)).T                         # camera centre, (3, 6)
+    RX = X @ R.T
+    P = RX + t
+    inv_z = 1.0 / P[:, 2]
+    # d(u, v)/dP per corner: f / z * [[1, 0, -x/z], [0, 1, -y/z]] -> (4, 2, 3)
+    A = np.zeros((4, 2, 3))
+    A[:, 0, 0] = A[:, 1, 1] = fx_px * inv_z
+    A[:, 0, 2] = -fx_px * P[:, 0] * inv_z * inv_z
+    A[:, 1, 2] = -fx_px * P[:, 1] * inv_z * inv_z
+    # -[R X]x R for each corner: (4, 3, 3)
+    S = np.zeros((4, 3, 3))
+    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -RX[:, 2], RX[:, 1], -RX[:, 0]
+    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = RX[:, 2], -RX[:, 1], RX[:, 0]
+    J = np.concatenate([A @ (-S @ R), A], axis=2).reshape(8, 6)
+    # Camera centre c = -R^T t: dc/dw = -[R^T t]x, dc/dt = -R^T.
+    Rt = R.T
+    Jc = np.hstack([-_skew3(Rt @ t), -Rt])
     e = _corner_error_px(pose)
-    cov_x = e * e * np.linalg.pinv(J.T @ J)
+    JtJ = J.T @ J
+    try:
+        cov_x = e * e * np.linalg.inv(JtJ)
+    except np.linalg.LinAlgError:
+        cov_x = e * e * np.linalg.pinv(JtJ)
     return Jc @ cov_x @ Jc.T, cov_x[:3, :3]
 
 
-def _attitude_std_plain_rad(pose: Pose, fx_px: Optional[float], marker_width_m: Optional[float]) -> float:
-    if fx_px is None or marker_width_m is None:
+@dataclass(frozen=True)
+class Uncertainty:
+    """One pose's uncertainty, worked out once (``uncertainty``) for its quality and covariance:
+    ``cov_centre_m2`` camera centre and ``cov_rotation_rad2`` rotation, both in the marker frame
+    and from the solve alone; ``flip_risk`` 0..1 (see ``flip_risk``)."""
+
+    cov_centre_m2: np.ndarray
+    cov_rotation_rad2: np.ndarray
+    flip_risk: float
+
+    @property
+    def position_std_m(self) -> float:
+        return math.sqrt(max(float(np.trace(self.cov_centre_m2)), 0.0))
+
+    @property
+    def attitude_std_rad(self) -> float:
+        return math.sqrt(max(float(np.max(np.diag(self.cov_rotation_rad2))), 0.0))
+
+    @property
+    def inflation(self) -> float:
+        # A real near-tie between two different poses makes the chosen one a guess: widen the
+        # covariance up to 20x rather than claim a precision the pose does not have.
+        return 1.0 / max(1.0 - self.flip_risk, 0.05)
+
+
+def _flip_risk(pose: Pose, attitude_std_rad: float) -> float:
+    alt = pose.alternative
+    r = float(pose.ambiguity_ratio)
+    if alt is None or not math.isfinite(r) or r <= 0.0:
         return 0.0
-    _, cov_w = solve_covariance(pose, fx_px, marker_width_m)
-    return math.sqrt(max(float(np.max(np.linalg.eigvalsh(cov_w))), 0.0))
+    if not (np.all(np.isfinite(alt.R)) and np.all(np.isfinite(pose.R))):
+        return min(r, 1.0)
+    bound_deg = max(AGREE_DEG, 3.0 * math.degrees(attitude_std_rad))
+    apart_deg = rotation_angle_deg_3x3(pose.R, alt.R)
+    weight = min(max((apart_deg - bound_deg) / bound_deg, 0.0), 1.0)
+    return weight * min(r, 1.0)
+
+
+def uncertainty(pose: Pose, fx_px: float, marker_width_m: float) -> Uncertainty:
+    """The solve's covariance and the flip risk of ``pose``, for ``pose_quality`` and the
+    covariance functions (pass it as ``u`` to work it out once per pose)."""
+    cov_c, cov_w = solve_covariance(pose, fx_px, marker_width_m)
+    att = math.sqrt(max(float(np.max(np.diag(cov_w))), 0.0))
+    return Uncertainty(cov_c, cov_w, _flip_risk(pose, att))
 
 
 def flip_risk(pose: Pose, fx_px: Optional[float] = None, marker_width_m: Optional[float] = None) -> float:
@@ -114,19 +160,13 @@ def flip_risk(pose: Pose, fx_px: Optional[float] = None, marker_width_m: Optiona
 
     ``ambiguity_ratio`` (best residual / the alternative's) times how far the alternative's
     rotation lies beyond the agreement bound (max of ``AGREE_DEG`` and 3 sigma of the pose's
-    attitude): 0 at the bound, full weight at twice it. Without ``pose.alternative`` there is
-    nothing to confuse the pose with (a ratio without an alternative is not a risk).
+    attitude; without ``fx_px``/``marker_width_m`` the bound is ``AGREE_DEG``): 0 at the bound,
+    full weight at twice it. Without ``pose.alternative`` there is nothing to confuse the pose
+    with (a ratio without an alternative is not a risk).
     """
-    alt = pose.alternative
-    r = float(pose.ambiguity_ratio)
-    if alt is None or not math.isfinite(r) or r <= 0.0:
-        return 0.0
-    if not (np.all(np.isfinite(alt.R)) and np.all(np.isfinite(pose.R))):
-        return min(r, 1.0)
-    bound_deg = max(AGREE_DEG, 3.0 * math.degrees(_attitude_std_plain_rad(pose, fx_px, marker_width_m)))
-    apart_deg = rotation_angle_deg_3x3(pose.R, alt.R)
-    weight = min(max((apart_deg - bound_deg) / bound_deg, 0.0), 1.0)
-    return weight * min(r, 1.0)
+    if fx_px is None or marker_width_m is None:
+        return _flip_risk(pose, 0.0)
+    return uncertainty(pose, fx_px, marker_width_m).flip_risk
 
 
 def position_std_m(pose: Pose, fx_px: float, marker_width_m: float) -> float:
@@ -137,12 +177,13 @@ def position_std_m(pose: Pose, fx_px: float, marker_width_m: float) -> float:
 
 
 def pose_quality(pose: Pose, fx_px: Optional[float] = None, marker_width_m: Optional[float] = None, *,
-                 flip_resolved: bool = False) -> int:
+                 flip_resolved: bool = False, u: Optional[Uncertainty] = None) -> int:
     """1 (worst) .. 100 (best) for a pose; -1 (LOST_QUALITY) is kept for "no pose".
 
     ``fx_px``/``marker_width_m``: the focal length (pixels) and marker width (metres) behind the
     expected error; without them the precision factor is left out. ``flip_resolved``: the
     planar solution was chosen by the vehicle's attitude, so the alternative is no risk.
+    ``u``: ``uncertainty(pose, fx_px, marker_width_m)`` when the caller has it already.
     """
     e = float(pose.reprojection_error_px)
     r = float(pose.ambiguity_ratio)
@@ -150,38 +191,39 @@ def pose_quality(pose: Pose, fx_px: Optional[float] = None, marker_width_m: Opti
         return 1
     f_fit = 1.0 / (1.0 + (max(e, 0.0) / HALF_QUALITY_ERROR_PX) ** 4)
     f_precision = 1.0
-    if fx_px is not None and marker_width_m is not None:
-        sigma_m = position_std_m(pose, fx_px, marker_width_m)
-        f_precision = 1.0 - PRECISION_WEIGHT * (1.0 - 1.0 / (1.0 + (sigma_m / HALF_QUALITY_POSITION_M) ** 2))
-    f_flip = 1.0 if flip_resolved else 1.0 - flip_risk(pose, fx_px, marker_width_m)
+    if u is None and fx_px is not None and marker_width_m is not None:
+        u = uncertainty(pose, fx_px, marker_width_m)
+    if u is not None:
+        f_precision = 1.0 - PRECISION_WEIGHT * (1.0 - 1.0 / (1.0 + (u.position_std_m / HALF_QUALITY_POSITION_M) ** 2))
+        risk = u.flip_risk
+    else:
+        risk = _flip_risk(pose, 0.0)
+    f_flip = 1.0 if flip_resolved else 1.0 - risk
     return int(min(100, max(1, round(100.0 * f_fit * f_precision * f_flip))))
 
 
-def _inflation(pose: Pose, fx_px: float, marker_width_m: float) -> float:
-    # A real near-tie between two different poses makes the chosen one a guess: widen the
-    # covariance up to 20x rather than claim a precision the pose does not have.
-    return 1.0 / max(1.0 - flip_risk(pose, fx_px, marker_width_m), 0.05)
-
-
-def position_covariance_cam(pose: Pose, fx_px: float, marker_width_m: float) -> np.ndarray:
+def position_covariance_cam(pose: Pose, fx_px: float, marker_width_m: float,
+                            u: Optional[Uncertainty] = None) -> np.ndarray:
     """3x3 covariance of the camera position (m^2), in the camera frame, widened by the flip risk."""
-    cov_c, _ = solve_covariance(pose, fx_px, marker_width_m)
-    R = np.asarray(pose.R, dtype=np.float64)
-    return _inflation(pose, fx_px, marker_width_m) ** 2 * rotate_covariance(R, cov_c)
+    u = u if u is not None else uncertainty(pose, fx_px, marker_width_m)
+    return u.inflation ** 2 * rotate_covariance(np.asarray(pose.R, dtype=np.float64), u.cov_centre_m2)
 
 
-def attitude_std_rad(pose: Pose, fx_px: float, marker_width_m: float) -> float:
+def attitude_std_rad(pose: Pose, fx_px: float, marker_width_m: float, u: Optional[Uncertainty] = None) -> float:
     """Standard deviation of the worst attitude angle (rad) from the solve, widened by the flip risk."""
-    return _inflation(pose, fx_px, marker_width_m) * _attitude_std_plain_rad(pose, fx_px, marker_width_m)
+    u = u if u is not None else uncertainty(pose, fx_px, marker_width_m)
+    return u.inflation * u.attitude_std_rad
 
 
-def pose_covariance_local(pose: Pose, frames: VehicleFrames, fx_px: float, marker_width_m: float) -> List[float]:
+def pose_covariance_local(pose: Pose, frames: VehicleFrames, fx_px: float, marker_width_m: float,
+                          u: Optional[Uncertainty] = None) -> List[float]:
     """MAVLink's 21-element upper-right triangle (row-major) of the 6x6 covariance of
     (x, y, z, roll, pitch, yaw) in the local frame: m^2 and rad^2 (``solve_covariance``
     rotated into the local frame, widened by the flip risk)."""
-    cov_c, cov_w = solve_covariance(pose, fx_px, marker_width_m)
-    k2 = _inflation(pose, fx_px, marker_width_m) ** 2
+    u = u if u is not None else uncertainty(pose, fx_px, marker_width_m)
+    k2 = u.inflation ** 2
+    R = frames.R_local_marker
     full = np.zeros((6, 6))
-    full[:3, :3] = k2 * rotate_covariance(frames.R_local_marker, cov_c)
-    full[3:, 3:] = k2 * rotate_covariance(frames.R_local_marker, cov_w)
-    return [float(full[i, j]) for i in range(6) for j in range(i, 6)]
+    full[:3, :3] = k2 * (R @ u.cov_centre_m2 @ R.T)
+    full[3:, 3:] = k2 * (R @ u.cov_rotation_rad2 @ R.T)
+    return full[np.triu_indices(6)].tolist()
