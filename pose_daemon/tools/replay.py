@@ -34,7 +34,6 @@ def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = No
     to ``out_path`` (stdout without one), annotated images into the folder ``annotate``; the
     camera and marker are the recording's own when it has them, else ``config``'s. Returns
     the exit status; UserError when nothing could be read."""
-    from ..detect import MarkerDetector
 
     source = ReplaySource(path, realtime=False)
     try:
@@ -60,13 +59,7 @@ def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = No
         if ignored:
             print(f"pose-daemon: note: {path} has its own {' and '.join(ignored)}, used instead of "
                   f"those of {config}", file=sys.stderr)
-    # FrameProcessor.from_config takes the config's camera and marker, not the recording's:
-    # built here until processing.py has a constructor from models (from_models).
-    detector = MarkerDetector(marker, max_misses=cfg.detector.max_misses,
-                              min_side_px=cfg.detector.min_side_px, camera=camera)
-    processor = FrameProcessor(camera, marker, method=cfg.estimator.method,
-                               iterations=cfg.estimator.iterations, refine=cfg.estimator.refine,
-                               detector=detector)
+    processor = FrameProcessor.from_models(camera, marker, cfg.estimator, cfg.detector)
     annotate_dir: Optional[Path] = None
     if annotate:
         annotate_dir = Path(annotate)
@@ -82,11 +75,13 @@ def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = No
         raise UserError(f"cannot write --out {out_path}: {exc.strerror or exc}") from None
     accuracy = Accuracy()
     count = 0
+    lost = ""
     try:
         while True:
             try:
                 frame = source.read()
-            except EndOfStream:
+            except EndOfStream as exc:
+                lost = exc.lost
                 break
             except SourceError as exc:  # a video that cannot decode on: the rest is lost
                 print(f"pose-daemon: {exc}; stopping", file=sys.stderr)
@@ -113,6 +108,8 @@ def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = No
     if source.skipped:
         print(f"pose-daemon: skipped {len(source.skipped)} unreadable frame(s): "
               + ", ".join(Path(f).name for f, _ in source.skipped[:10]), file=sys.stderr)
+    if lost:
+        print(f"pose-daemon: {lost}", file=sys.stderr)
     if accuracy.frames:
         print(accuracy.report(), file=sys.stderr)
     if count == 0:
