@@ -109,6 +109,10 @@ def solve_covariance(pose: Pose, fx_px: float, marker_width_m: float,
     return Jc @ cov_x @ Jc.T, cov_x[:3, :3]
 
 
+def _worst_std(cov: np.ndarray) -> float:
+    return math.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0))
+
+
 @dataclass(frozen=True)
 class Uncertainty:
     """One pose's uncertainty, worked out once (``uncertainty``) for its quality and covariance:
@@ -125,7 +129,8 @@ class Uncertainty:
 
     @property
     def attitude_std_rad(self) -> float:
-        return math.sqrt(max(float(np.max(np.diag(self.cov_rotation_rad2))), 0.0))
+        """Sigma of the worst-seen rotation axis (the largest eigenvalue), rad."""
+        return _worst_std(self.cov_rotation_rad2)
 
     @property
     def inflation(self) -> float:
@@ -151,8 +156,7 @@ def uncertainty(pose: Pose, fx_px: float, marker_width_m: float) -> Uncertainty:
     """The solve's covariance and the flip risk of ``pose``, for ``pose_quality`` and the
     covariance functions (pass it as ``u`` to work it out once per pose)."""
     cov_c, cov_w = solve_covariance(pose, fx_px, marker_width_m)
-    att = math.sqrt(max(float(np.max(np.diag(cov_w))), 0.0))
-    return Uncertainty(cov_c, cov_w, _flip_risk(pose, att))
+    return Uncertainty(cov_c, cov_w, _flip_risk(pose, _worst_std(cov_w)))
 
 
 def flip_risk(pose: Pose, fx_px: Optional[float] = None, marker_width_m: Optional[float] = None) -> float:
