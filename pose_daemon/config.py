@@ -25,8 +25,8 @@ from .camera import MARKER_TYPES, Camera, Marker
 from .capture.sources import SOURCE_FORMS, parse_source
 from .errors import ConfigError
 from .geometry import MARKER_PLACEMENTS, MOUNT_PRESETS
+from .outputs.mavlink import AUTOPILOTS, parse_connection
 from .outputs.mavlink import MESSAGES as MAVLINK_MESSAGES
-from .outputs.mavlink import parse_connection
 from .pose.loop import METHODS
 
 __all__ = [
@@ -386,7 +386,9 @@ class MavlinkOutputConfig:
     origin: Optional[Tuple[float, ...]] = _key(None, Rule("floats", lengths=(3,)),
                                                "latitude deg, longitude deg, altitude m: SET_GPS_GLOBAL_ORIGIN "
                                                "sent to the autopilot (flying without GPS)")
-    set_home: bool = _key(False, Rule("bool"), "also SET_HOME_POSITION at the origin")
+    set_home: bool = _key(False, Rule("bool"), "also MAV_CMD_DO_SET_HOME at the origin once it holds")
+    autopilot: str = _key("auto", Rule("str", choices=AUTOPILOTS),
+                          "auto (from its HEARTBEAT), ardupilot or px4: the messages' frames it takes")
     signing_key: Optional[str] = _key(None, Rule("str", nonempty=True),
                                       "MAVLink 2 signing: 64 hex digits, or a passphrase (SHA-256, as MAVProxy)")
     retry_s: float = _key(0.5, Rule("float", lo=0.01, hi=60), "first pause before reopening a failed link")

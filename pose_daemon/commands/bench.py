@@ -17,6 +17,7 @@ BENCHES = {
     "detector": "detection rate, corner and pose error, time per frame against ArUco + IPPE",
     "pipeline": "end-to-end latency (capture -> bytes written) and memory over a long run",
     "outputs": "time each output takes from publish to bytes written on its link",
+    "quality": "the quality sent to the autopilot against the pose's true error (rendered hovers)",
 }
 
 
@@ -36,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p["detector"].add_argument("--seed", type=int, default=0, help="random seed of poses and images")
     p["detector"].add_argument("--repeat", type=int, default=3, metavar="K",
                                help="time each frame K times and keep the fastest (default 3)")
-    for name in ("estimator", "detector"):
+    for name in ("estimator", "detector", "quality"):
         p[name].add_argument("--json", action="store_true", help="print one JSON object instead of tables")
     p["pipeline"].add_argument("--frames", type=int, default=3000,
                                help="frames to run (default 3000; 20000 for the memory figure)")
@@ -48,6 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                help="live preview: off (default), idle (served, nobody watching), "
                                     "watch (one viewer reading /stream.mjpg)")
     p["outputs"].add_argument("--poses", type=int, default=3000, help="poses per output (default 3000)")
+    p["quality"].add_argument("--frames", type=int, default=150, metavar="N",
+                              help="hover frames per tilt and height (default 150)")
+    p["quality"].add_argument("--seed", type=int, default=0, help="random seed of hovers and images")
     for parser in p.values():
         parser.set_defaults(func=run)
 
@@ -71,6 +75,9 @@ def run(a: argparse.Namespace) -> int:
     elif a.bench == "pipeline":
         _check(a.frames >= 1 and a.fps > 0 and a.distinct >= 1, "--frames and --distinct must be >= 1 and --fps > 0")
         report = bench.run_bench(a.frames, a.fps, a.distinct, a.seed, preview=a.preview)
+    elif a.bench == "quality":
+        _check(a.frames >= 1, f"--frames must be at least 1, got {a.frames}")
+        report = bench.run_bench(a.frames, a.seed)
     else:
         _check(a.poses >= 1, f"--poses must be at least 1, got {a.poses}")
         report = bench.run_bench(a.poses)

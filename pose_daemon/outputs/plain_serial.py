@@ -50,8 +50,11 @@ def nmea_checksum(body: str) -> str:
     return f"{c:02X}"
 
 
-def pose_line(result: FrameResult, frames: VehicleFrames) -> Optional[str]:
-    """The ``$POSE`` line (with CR LF) for one result; None when the pose is not finite."""
+def pose_line(result: FrameResult, frames: VehicleFrames, fx_px: Optional[float] = None,
+              marker_width_m: Optional[float] = None) -> Optional[str]:
+    """The ``$POSE`` line (with CR LF) for one result; None when the pose is not finite.
+    ``fx_px``/``marker_width_m``: the focal length and marker width behind the quality's
+    expected-error factor (quality.pose_quality; without them that factor is left out)."""
     t_us = time_usec_from_s(result.t_capture_s)
     pose = result.pose
     if pose is None:
@@ -62,7 +65,7 @@ def pose_line(result: FrameResult, frames: VehicleFrames) -> Optional[str]:
         rpy = np.degrees(v.rpy_rad)
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(rpy))):
             return None
-        q = pose_quality(pose.reprojection_error_px, pose.ambiguity_ratio)
+        q = pose_quality(pose, fx_px, marker_width_m)
         # "+ 0.0" turns -0.0 into 0.0 so that a still vehicle prints the same line every time.
         fields = [f"{float(x) + 0.0:.4f}" for x in p] + [f"{float(a) + 0.0:.2f}" for a in rpy]
         body = f"POSE,{t_us}," + ",".join(fields) + f",{q}"
@@ -98,11 +101,14 @@ class PlainSerialOutput(QueuedOutput):
     def __init__(self, cfg: SerialOutputConfig, frames: VehicleFrames, *, queue_size: int = 4,
                  max_age_s: Optional[float] = None, on_written: Optional[WrittenHook] = None,
                  on_closed: Optional[ClosedHook] = None, clock: Callable[[], float] = time.monotonic,
-                 start: bool = True) -> None:
-        """``cfg``: the ``[output.serial]`` table; ``frames``: mount and marker placement; the
-        rest as QueuedOutput."""
+                 start: bool = True, fx_px: Optional[float] = None,
+                 marker_width_m: Optional[float] = None) -> None:
+        """``cfg``: the ``[output.serial]`` table; ``frames``: mount and marker placement;
+        ``fx_px``/``marker_width_m``: for the quality, as MAVLink's; the rest as QueuedOutput."""
         self.cfg = cfg
         self.frames = frames
+        self.fx_px = fx_px
+        self.marker_width_m = marker_width_m
         self._serial = None
         self._fd: Optional[int] = None     # the tty's descriptor (None for a pyserial URL)
         self._pty = False
@@ -114,7 +120,8 @@ class PlainSerialOutput(QueuedOutput):
     @classmethod
     def from_config(cls, cfg, **kwargs) -> PlainSerialOutput:
         """The output of a whole Config's ``[output.serial]``; ``kwargs`` as ``__init__``."""
-        return cls(cfg.output.serial, VehicleFrames.from_config(cfg.mount, cfg.marker.placement), **kwargs)
+        return cls(cfg.output.serial, VehicleFrames.from_config(cfg.mount, cfg.marker.placement),
+                   fx_px=cfg.camera.fx, marker_width_m=cfg.marker.width, **kwargs)
 
     def _open(self) -> None:
         import serial
@@ -165,7 +172,7 @@ class PlainSerialOutput(QueuedOutput):
         if self._last_sent_t is not None and t - self._last_sent_t < self.cfg.min_interval_s - 1e-9:
             self._drop("rate")
             return 0
-        line = pose_line(result, self.frames)
+        line = pose_line(result, self.frames, self.fx_px, self.marker_width_m)
         if line is None:
             self._drop("not_finite")
             return 0
