@@ -319,3 +319,27 @@ class VehicleFrames:
     def R_local_cam(self, R_cam_marker: np.ndarray) -> np.ndarray:
         """Camera axes in the local frame: turns camera-frame covariances into local ones."""
         return self.R_local_marker @ np.asarray(R_cam_marker, dtype=np.float64).T
+
+    # -- which way is down (the gravity prior): unit vectors in the camera frame
+
+    def down_cam_from_marker(self, R_cam_marker: np.ndarray) -> np.ndarray:
+        """The local frame's down (gravity) in the camera frame, as the marker pose says:
+        the placement fixes where down is in the marker frame."""
+        return np.asarray(R_cam_marker, dtype=np.float64) @ self.R_local_marker[2]
+
+    def down_cam_from_attitude(self, roll_rad: float, pitch_rad: float) -> np.ndarray:
+        """Down in the camera frame for a body at ``roll_rad``/``pitch_rad`` (yaw plays no part:
+        down is the body's third row of R_local_body, which yaw leaves alone)."""
+        down_body = R_from_euler_rpy(roll_rad, pitch_rad, 0.0)[2]
+        return self.R_cam_body @ down_body
+
+    @property
+    def down_cam_level(self) -> np.ndarray:
+        """Down in the camera frame of a level vehicle (the body's z axis)."""
+        return self.R_cam_body[:, 2].copy()
+
+
+def angle_between_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle between two 3-vectors, degrees (atan2 form: exact near 0 and 180)."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    return math.degrees(math.atan2(float(np.linalg.norm(np.cross(a, b))), float(a @ b)))

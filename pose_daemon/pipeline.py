@@ -150,6 +150,8 @@ class PipelineStats:
             if result.ok:
                 self.detected += 1
                 self._detected_w += 1
+            elif result.choice is not None and result.choice.withheld:
+                self.drops[result.choice.withheld] += 1  # "inconsistent" / "gated": not sent
             for stage, value in stages.items():
                 self.window.add(stage, value)
 
@@ -470,7 +472,10 @@ class Pipeline:
             self._source_state = state
 
     def status_line(self, reset: bool = True) -> str:
-        return self.stats.status_line(self.source_state, [w.state() for w in self.workers], reset)
+        extra = getattr(self.processor, "status", None)
+        extra = extra() if callable(extra) else None
+        return self.stats.status_line(self.source_state, ([extra] if extra else [])
+                                      + [w.state() for w in self.workers], reset)
 
     @property
     def last_progress_s(self) -> Optional[float]:

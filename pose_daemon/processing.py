@@ -11,13 +11,15 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import Optional
+from typing import Any, Callable, Optional
 
 import cv2
 import numpy as np
 
 from .camera import Camera, Marker
 from .capture.base import Frame
+from .geometry import VehicleFrames
+from .pose.prior import HeadingReference, PriorSettings, choose_solution
 from .pose.types import EstimationError, Pose
 from .result import FrameResult
 
@@ -55,7 +57,12 @@ class FrameProcessor:
     """detect -> estimate for one marker and one camera."""
 
     def __init__(self, camera: Camera, marker: Marker, *, method: str = "iterative",
-                 iterations: int = 5, refine: bool = True, detector=None) -> None:
+                 iterations: int = 5, refine: bool = True, detector=None,
+                 frames: Optional[VehicleFrames] = None, prior: Optional[PriorSettings] = None,
+                 attitude_source: Any = None, clock: Callable[[], float] = time.monotonic) -> None:
+        """``frames``: mount and placement (default: forward camera, wall marker); ``prior``:
+        the gate and tilt bounds; ``attitude_source``: an ``attitude_at(t_capture_s, t_now_s)``
+        (attitude.AutopilotAttitude) asked when a frame carries no attitude of its own."""
         from .detect import MarkerDetector
         from .pose.estimator import estimate_pose
 
@@ -68,8 +75,15 @@ class FrameProcessor:
         self._estimate = estimate_pose
         # The track: smoothed marker normal in the camera frame (None = no track).
         self._normal_ref: Optional[np.ndarray] = None
-        # Frames whose ambiguous pose was flipped to the alternative by continuity.
+        # Frames whose ambiguous pose was flipped to the alternative (by continuity or a prior).
         self.flips = 0
+        self.frames = frames if frames is not None else VehicleFrames.from_settings()
+        self.prior = prior if prior is not None else PriorSettings()
+        self.attitude_source = attitude_source
+        self._clock = clock
+        # The autopilot's heading reference against the marker's: outlives tracks.
+        self.heading = HeadingReference()
+        self.frames_seen = self.frames_with_attitude = 0
 
     @classmethod
     def from_config(cls, cfg) -> FrameProcessor:
@@ -81,7 +95,18 @@ class FrameProcessor:
                                   min_side_px=cfg.detector.min_side_px, camera=camera)
         return cls(camera, marker, method=cfg.estimator.method,
                    iterations=cfg.estimator.iterations, refine=cfg.estimator.refine,
-                   detector=detector)
+                   detector=detector, frames=VehicleFrames.from_config(cfg.mount, cfg.marker.placement),
+                   prior=PriorSettings.from_config(cfg))
+
+    def status(self) -> Optional[str]:
+        """The attitude's freshness for the status line: the live source's figures, or how
+        many frames came with an attitude of their own (None when none ever did)."""
+        status = getattr(self.attitude_source, "status", None)
+        if callable(status):
+            return status(self._clock())
+        if self.frames_with_attitude:
+            return f"attitude in {self.frames_with_attitude}/{self.frames_seen} frames"
+        return None
 
     def reset(self) -> None:
         """Forget tracking state (after a source restart or a long gap)."""
@@ -89,7 +114,11 @@ class FrameProcessor:
         self._normal_ref = None
 
     def process(self, frame: Frame) -> FrameResult:
-        result = FrameResult(seq=frame.seq, t_capture_s=frame.t_capture_s)
+        result = FrameResult(seq=frame.seq, t_capture_s=frame.t_capture_s, attitude=frame.attitude)
+        if result.attitude is None and self.attitude_source is not None:
+            result.attitude = self.attitude_source.attitude_at(frame.t_capture_s, self._clock())
+        self.frames_seen += 1
+        self.frames_with_attitude += result.attitude is not None
         t0 = time.perf_counter()
         try:
             corners: Optional[np.ndarray] = self.detector.detect(frame.image)
@@ -113,8 +142,19 @@ class FrameProcessor:
             result.error = f"pose: {exc}"
             self._normal_ref = None
         else:
-            chosen = choose_by_continuity(pose, self._normal_ref)
-            if chosen is not pose:
+            side_px = float(np.mean(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1)))
+            choice = choose_solution(pose, self.frames, attitude=result.attitude, settings=self.prior,
+                                     side_px=side_px,
+                                     by_continuity=lambda p: choose_by_continuity(p, self._normal_ref),
+                                     corners_px=corners, camera=self.camera, marker=self.marker,
+                                     heading=self.heading)
+            result.choice = choice
+            if choice.pose is None:
+                result.error = f"{choice.withheld}: {choice.reason}"
+                result.stage_s["estimate"] = time.perf_counter() - t1
+                return result
+            chosen = choice.pose
+            if choice.flipped:
                 self.flips += 1
             n = chosen.R[:, 2]
             self._normal_ref = n.copy() if self._normal_ref is None else (
