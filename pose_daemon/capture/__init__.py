@@ -51,9 +51,13 @@ def open_source(camera_cfg: Any, cfg: Optional[Any] = None, *, realtime: bool = 
         syn = cfg.synthetic
         effects = Effects(blur_px=syn.blur_px, noise_gray=syn.noise_gray,
                           motion_blur_px=syn.motion_blur_px, jpeg_quality=syn.jpeg_quality)
+        from ..geometry import VehicleFrames
+
         return SyntheticSource(_camera_model(camera_cfg), cfg.marker.model(), trajectory=syn.trajectory,
                                seed=syn.seed, fps=fps, frames=syn.frames, effects=effects,
-                               realtime=realtime)
+                               realtime=realtime, attitude=syn.attitude,
+                               attitude_noise_deg=syn.attitude_noise_deg, attitude_lag_s=syn.attitude_lag_s,
+                               frames_on_vehicle=VehicleFrames.from_config(cfg.mount, cfg.marker.placement))
     if kind == "picamera2":
         from .picamera2 import Picamera2Source
 

@@ -115,9 +115,13 @@ def run(args: argparse.Namespace) -> int:
                   f"those of {args.config}", file=sys.stderr)
     detector = MarkerDetector(marker, max_misses=cfg.detector.max_misses,
                               min_side_px=cfg.detector.min_side_px, camera=camera)
+    from ..geometry import VehicleFrames
+    from ..pose.prior import PriorSettings
+
     processor = FrameProcessor(camera, marker, method=cfg.estimator.method,
                                iterations=cfg.estimator.iterations, refine=cfg.estimator.refine,
-                               detector=detector)
+                               detector=detector, prior=PriorSettings.from_config(cfg),
+                               frames=VehicleFrames.from_config(cfg.mount, cfg.marker.placement))
     annotate_dir: Optional[Path] = None
     if args.annotate:
         annotate_dir = Path(args.annotate)

@@ -25,7 +25,7 @@ import numpy as np
 from ..attitude import Attitude
 from ..camera import Camera, Marker
 from ..geometry import (
-    R_from_euler_rpy,
+    R_from_euler_rpy_3x3,
     VehicleFrames,
     angle_between_deg,
     paper_angles_deg_from_R_cam_marker,
@@ -47,6 +47,8 @@ RESOLVED_BY = ("attitude", "tilt", "continuity", "clear")
 SAME_POSE_DEG = 5.0
 # A heading this far off the learnt reference in 5 frames in a row: the reference moved.
 HEADING_RESET_DEG = 30.0
+# Both candidates are polished unless the cheaper's unpolished cost is this much lower (sigma^2).
+POLISH_BOTH_BELOW = 25.0
 # The vision side's own share of the error in the down direction (small markers), degrees.
 VISION_DOWN_SIGMA_DEG = 1.0
 
@@ -107,7 +109,7 @@ def _swap(pose: Pose) -> Pose:
 
 def polish_toward_down(pose: Pose, corners_px: np.ndarray, camera: Camera, marker: Marker,
                        down_m: np.ndarray, down_cam: np.ndarray, weight_px: float,
-                       iterations: int = 6) -> Tuple[Pose, float]:
+                       iterations: int = 3) -> Tuple[Pose, float]:
     """``pose`` re-fitted to its corners with a prior term pulling the down direction it
     implies (``R @ down_m``, ``down_m`` = down in the marker frame) towards ``down_cam``.
 
@@ -122,7 +124,7 @@ def polish_toward_down(pose: Pose, corners_px: np.ndarray, camera: Camera, marke
 
 def polish_toward(pose: Pose, corners_px: np.ndarray, camera: Camera, marker: Marker,
                   terms: Sequence[Tuple[np.ndarray, np.ndarray, float]],
-                  iterations: int = 6) -> Tuple[Pose, float]:
+                  iterations: int = 3) -> Tuple[Pose, float]:
     """``polish_toward_down`` with any number of direction terms (dir in the marker frame,
     wanted dir in the camera frame, weight px): down, and the heading once it is known."""
     obj = marker.object_points.astype(np.float64)
@@ -132,7 +134,7 @@ def polish_toward(pose: Pose, corners_px: np.ndarray, camera: Camera, marker: Ma
     terms = [(np.asarray(d_m, dtype=np.float64), np.asarray(d_c, dtype=np.float64), float(w))
              for d_m, d_c, w in terms]
 
-    def residual(rv: np.ndarray, tv: np.ndarray, jac: bool):
+    def residual(rv: np.ndarray, tv: np.ndarray):
         img, J = cv2.projectPoints(obj, rv, tv, camera.K, camera.dist_coeffs)
         R, dR = cv2.Rodrigues(rv)
         rs, Js = [img.reshape(-1) - uv], [J[:, :6]]
@@ -144,26 +146,28 @@ def polish_toward(pose: Pose, corners_px: np.ndarray, camera: Camera, marker: Ma
             Js.append(J_dir)
         return np.concatenate(rs), np.vstack(Js)
 
-    r, J = residual(rvec, tvec, True)
+    r, J = residual(rvec, tvec)
     cost = float(r @ r)
-    lam = 1e-3
+    lam = 1e-4
+    eye = np.eye(6)
     for _ in range(iterations):
         H = J.T @ J
         g = J.T @ r
-        try:
-            step = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), -g)
-        except np.linalg.LinAlgError:
+        ok, step = cv2.solve(H + lam * (eye * np.diag(H) + 1e-12 * eye), -g.reshape(6, 1))
+        if not ok:
             break
+        step = step.reshape(6)
         rv_new, tv_new = rvec + step[:3], tvec + step[3:]
         if tv_new[2] <= 0:
             lam *= 10.0
             continue
-        r_new, J_new = residual(rv_new, tv_new, True)
+        r_new, J_new = residual(rv_new, tv_new)
         cost_new = float(r_new @ r_new)
         if cost_new < cost:
+            converged = cost - cost_new < 1e-6 * cost + 1e-9
             rvec, tvec, r, J, cost = rv_new, tv_new, r_new, J_new, cost_new
             lam = max(lam / 10.0, 1e-9)
-            if float(np.abs(step).max()) < 1e-10:
+            if converged:
                 break
         else:
             lam *= 10.0
@@ -211,14 +215,17 @@ class HeadingReference:
         self._cached = None
 
     def _estimate(self) -> Optional[Tuple[float, float]]:
+        """(circular mean of the samples near the median, robust spread in degrees)."""
         if self._cached is None and len(self._samples) >= self.min_samples:
-            a = np.asarray(self._samples)
-            mean = math.atan2(float(np.sin(a).sum()), float(np.cos(a).sum()))
-            dev = np.abs(np.angle(np.exp(1j * (a - mean))))
-            spread = math.degrees(float(np.median(dev))) * 1.4826  # MAD -> sigma
-            keep = a[dev <= max(3.0 * math.radians(spread), math.radians(2.0))]
-            if len(keep):
-                mean = math.atan2(float(np.sin(keep).sum()), float(np.cos(keep).sum()))
+            # Plain floats: 60 samples, once a frame; numpy's per-call cost would dominate.
+            a = list(self._samples)
+            mean = math.atan2(sum(math.sin(v) for v in a), sum(math.cos(v) for v in a))
+            dev = [abs(math.remainder(v - mean, math.tau)) for v in a]
+            spread = math.degrees(sorted(dev)[len(dev) // 2]) * 1.4826  # MAD -> sigma
+            limit = max(3.0 * math.radians(spread), math.radians(2.0))
+            keep = [v for v, d in zip(a, dev) if d <= limit]
+            if keep:
+                mean = math.atan2(sum(math.sin(v) for v in keep), sum(math.cos(v) for v in keep))
             self._cached = (mean, spread)
         return self._cached
 
@@ -240,6 +247,11 @@ class HeadingReference:
         """The offset's own uncertainty: the samples' spread over the root of their number."""
         ready = self._ready()
         return ready[1] if ready is not None else None
+
+
+def decisive_polish(cost: List[float], best: int, other: int) -> bool:
+    """Whether the unpolished costs (in sigmas squared) already rule ``other`` out."""
+    return cost[other] - cost[best] > POLISH_BOTH_BELOW
 
 
 def _body_yaw(frames: VehicleFrames, pose: Pose) -> float:
@@ -316,7 +328,7 @@ def _choose_by_attitude(pose: Pose, candidates: List[Pose], down_meas: List[np.n
     if offset is not None:
         assert heading is not None and heading.sigma_deg is not None
         sigma_head_deg = math.hypot(sigma_down_deg, heading.sigma_deg)
-        R_local_body = R_from_euler_rpy(roll, pitch, yaw + offset)
+        R_local_body = R_from_euler_rpy_3x3(roll, pitch, yaw + offset)
         north_att = frames.R_cam_body @ R_local_body[0]
         head = [angle_between_deg(c.R @ frames.R_local_marker[0], north_att) for c in candidates]
         heading.check(min(head))
@@ -336,8 +348,13 @@ def _choose_by_attitude(pose: Pose, candidates: List[Pose], down_meas: List[np.n
         terms = [(frames.R_local_marker[2], down_att, weight_down)]
         if north_att is not None:
             terms.append((frames.R_local_marker[0], north_att, settings.corner_sigma_px / math.radians(sigma_head_deg)))
-        results = [polish_toward(c, corners_px, camera, marker, terms) for c in candidates]
-        best = min(range(len(results)), key=lambda i: results[i][1])
+        # The cheap costs' favourite first; the other too only when it could still win.
+        order = [best] + [i for i in range(len(candidates)) if i != best]
+        results = {best: polish_toward(candidates[best], corners_px, camera, marker, terms)}
+        for i in order[1:]:
+            if not decisive_polish(cost, best, i):
+                results[i] = polish_toward(candidates[i], corners_px, camera, marker, terms)
+        best = min(results, key=lambda i: results[i][1])
         polished = results[best][0]
         e = angle_between_deg(frames.down_cam_from_marker(polished.R), down_att)
         if e > bound_deg or (settings.gate and polished.reprojection_error_px > bound_px):
@@ -345,9 +362,10 @@ def _choose_by_attitude(pose: Pose, candidates: List[Pose], down_meas: List[np.n
                           reason=(f"no solution agrees with the attitude: down {e:.1f} deg off (bound "
                                   f"{bound_deg:.1f}), reprojection RMS {polished.reprojection_error_px:.2f} px "
                                   f"(bound {bound_px:.2f})"))
-        if len(results) == 1:
+        if len(candidates) == 1:
             return Choice(polished, "clear", down_error_deg=e)
-        other = dataclasses.replace(results[1 - best][0], alternative=None)
+        other = dataclasses.replace(results[1 - best][0] if 1 - best in results else candidates[1 - best],
+                                    alternative=None)
         return Choice(dataclasses.replace(polished, alternative=other), "attitude", down_error_deg=e,
                       flipped=best == 1)
 
