@@ -30,7 +30,8 @@ import numpy as np
 
 from .geometry import R_from_euler_rpy, euler_rpy_from_R, quaternion_from_R_3x3
 
-__all__ = ["Attitude", "ClockMapper", "AttitudeHistory", "AutopilotAttitude", "slerp"]
+__all__ = ["Attitude", "ClockMapper", "AttitudeHistory", "AutopilotAttitude", "slerp", "attitude_connection",
+           "autopilot_attitude_from_config"]
 
 
 @dataclass(frozen=True)
@@ -384,3 +385,23 @@ class AutopilotAttitude:
         if f["rtt_s"] is not None:
             text += f" (rtt {f['rtt_s'] * 1e3:.1f} ms)"
         return text + f", used {f['used']} missing {f['missing']}"
+
+
+def attitude_connection(cfg) -> Optional[str]:
+    """Where the daemon's attitude comes from, by the config's ``[attitude] source``: the
+    ``[output.mavlink]`` connection for "mavlink" (None when there is no MAVLink output),
+    None for "none", else the connection string given (a link only listened on)."""
+    source = cfg.attitude.source.strip()
+    if source == "none":
+        return None
+    if source == "mavlink":
+        mavlink = cfg.output.mavlink
+        return mavlink.connection if mavlink is not None else None
+    return source
+
+
+def autopilot_attitude_from_config(cfg) -> AutopilotAttitude:
+    """The AutopilotAttitude the ``[attitude]`` keys ask for (ages, extrapolation, sigma)."""
+    a = cfg.attitude
+    return AutopilotAttitude(max_age_s=a.max_age_s, max_extrapolation_s=a.max_extrapolation_s,
+                             sigma_rad=math.radians(a.sigma_deg))

@@ -19,7 +19,7 @@ import numpy as np
 from .camera import Camera, Marker
 from .capture.base import Frame
 from .geometry import VehicleFrames
-from .pose.prior import HeadingReference, PriorSettings, choose_solution
+from .pose.prior import CornerNoise, HeadingReference, PriorSettings, choose_solution
 from .pose.types import EstimationError, Pose
 from .result import FrameResult
 
@@ -83,6 +83,7 @@ class FrameProcessor:
         self._clock = clock
         # The autopilot's heading reference against the marker's: outlives tracks.
         self.heading = HeadingReference()
+        self.corner_noise = CornerNoise()
         self.frames_seen = self.frames_with_attitude = 0
 
     @classmethod
@@ -147,7 +148,8 @@ class FrameProcessor:
                                      side_px=side_px,
                                      by_continuity=lambda p: choose_by_continuity(p, self._normal_ref),
                                      corners_px=corners, camera=self.camera, marker=self.marker,
-                                     heading=self.heading)
+                                     heading=self.heading, corner_sigma_px=self.corner_noise.sigma_px)
+            self.corner_noise.observe(pose.reprojection_error_px)
             result.choice = choice
             if choice.pose is None:
                 result.error = f"{choice.withheld}: {choice.reason}"

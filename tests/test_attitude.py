@@ -138,3 +138,19 @@ def test_attitude_refuses_non_finite_angles():
         Attitude((0.0, math.inf, 0.0))
     with pytest.raises(ValueError, match="sigma"):
         Attitude((0.0, 0.0, 0.0), sigma_rad=-1.0)
+
+
+def test_attitude_source_from_config():
+    from pose_daemon.attitude import attitude_connection, autopilot_attitude_from_config
+    from pose_daemon.config import ConfigError, parse_config
+
+    with_link = parse_config('[output.mavlink]\nconnection = "udpin:0.0.0.0:14550"\n')
+    assert attitude_connection(with_link) == "udpin:0.0.0.0:14550"
+    assert attitude_connection(parse_config("")) is None          # "mavlink" without a MAVLink output
+    assert attitude_connection(parse_config('[attitude]\nsource = "none"\n'
+                                            '[output.mavlink]\nconnection = "udpin:0.0.0.0:1"\n')) is None
+    assert attitude_connection(parse_config('[attitude]\nsource = "/dev/ttyACM0"\n')) == "/dev/ttyACM0"
+    with pytest.raises(ConfigError, match=r"\[attitude\] source: expected \"mavlink\", \"none\" or a pymavlink"):
+        parse_config('[attitude]\nsource = "autopilot"\n')
+    att = autopilot_attitude_from_config(parse_config("[attitude]\nmax_age_s = 0.2\nsigma_deg = 2.0\n"))
+    assert att.max_age_s == 0.2 and att.sigma_rad == pytest.approx(math.radians(2.0))

@@ -33,7 +33,7 @@ from ..geometry import (
 )
 from .types import Pose
 
-__all__ = ["PriorSettings", "Choice", "HeadingReference", "RESOLVED_BY", "choose_solution", "gate_bound_px",
+__all__ = ["PriorSettings", "Choice", "CornerNoise", "HeadingReference", "RESOLVED_BY", "choose_solution", "gate_bound_px",
            "polish_toward", "polish_toward_down"]
 
 # flip_resolved_by: what picked the solution that was sent.
@@ -49,6 +49,8 @@ SAME_POSE_DEG = 5.0
 HEADING_RESET_DEG = 30.0
 # Both candidates are polished unless the cheaper's unpolished cost is this much lower (sigma^2).
 POLISH_BOTH_BELOW = 25.0
+# No attitude is trusted to better than this in the polish, degrees.
+MIN_PRIOR_SIGMA_DEG = 0.25
 # The vision side's own share of the error in the down direction (small markers), degrees.
 VISION_DOWN_SIGMA_DEG = 1.0
 
@@ -64,7 +66,7 @@ class PriorSettings:
     gate: bool = True
     attitude_sigma_deg: float = 1.0    # an attitude's accuracy when it does not state one
     polish: bool = True                # re-fit the chosen pose with the attitude's down as a prior term
-    corner_sigma_px: float = 0.3       # corner noise the polish weighs the down term against
+    corner_sigma_px: float = 0.3       # corner noise the polish weighs the prior against, until measured
 
     @classmethod
     def from_config(cls, cfg) -> PriorSettings:
@@ -179,6 +181,30 @@ def polish_toward(pose: Pose, corners_px: np.ndarray, camera: Camera, marker: Ma
     return polished, cost
 
 
+class CornerNoise:
+    """The corner noise of this camera and detector, from the best fits' reprojection RMS.
+
+    Four corners fit a 6-DoF pose with 2 degrees of freedom to spare, so RMS^2 = sigma^2
+    chi2_2 / 4 and the median RMS is 0.589 sigma. The polish weighs the attitude against it:
+    a sharp camera's corners (the renderer's: hundredths of a pixel) are barely pulled, a
+    webcam's small markers (0.3-0.4 px) are pulled as much as they need."""
+
+    def __init__(self, window: int = 31, min_samples: int = 5) -> None:
+        self._rms: Deque[float] = collections.deque(maxlen=window)
+        self.min_samples = int(min_samples)
+
+    def observe(self, rms_px: float) -> None:
+        if math.isfinite(rms_px) and rms_px >= 0:
+            self._rms.append(float(rms_px))
+
+    @property
+    def sigma_px(self) -> Optional[float]:
+        if len(self._rms) < self.min_samples:
+            return None
+        median = sorted(self._rms)[len(self._rms) // 2]
+        return min(max(median / 0.589, 0.01), 2.0)
+
+
 class HeadingReference:
     """The constant turn between the autopilot's heading and the marker's local frame.
 
@@ -237,6 +263,10 @@ class HeadingReference:
         sigma = max(est[1] / math.sqrt(len(self._samples)), 0.25)
         return (est[0], sigma) if sigma <= self.max_sigma_deg else None
 
+    def reference(self) -> Optional[Tuple[float, float]]:
+        """(offset rad, its sigma deg), or None while the offset is not known well enough."""
+        return self._ready()
+
     @property
     def offset_rad(self) -> Optional[float]:
         ready = self._ready()
@@ -263,14 +293,16 @@ def choose_solution(pose: Pose, frames: VehicleFrames, *, attitude: Optional[Att
                     settings: PriorSettings, side_px: float,
                     by_continuity: Callable[[Pose], Pose],
                     corners_px: Optional[np.ndarray] = None, camera: Optional[Camera] = None,
-                    marker: Optional[Marker] = None, heading: Optional[HeadingReference] = None) -> Choice:
+                    marker: Optional[Marker] = None, heading: Optional[HeadingReference] = None,
+                    corner_sigma_px: Optional[float] = None) -> Choice:
     """The solution to send for the estimator's ``pose`` (the better fit, its other planar
     solution in ``pose.alternative``), or why none is sent.
 
     ``attitude``: the vehicle's at the frame's capture time, or None; ``side_px``: the
     marker's mean side in the image; ``by_continuity(pose)``: the track's choice between
     ``pose`` and its alternative (returns one of the two). ``heading``: the track of the
-    autopilot's heading reference (learnt and used here), or None for roll and pitch only.
+    autopilot's heading reference (learnt and used here), or None for roll and pitch only;
+    ``corner_sigma_px`` the measured corner noise (CornerNoise; else ``settings``').
     With ``corners_px``, ``camera`` and ``marker`` and ``settings.polish``, an attitude also
     polishes the candidates (``polish_toward``) and the one with the lower cost is chosen."""
     bound_px = gate_bound_px(settings, side_px)
@@ -285,7 +317,8 @@ def choose_solution(pose: Pose, frames: VehicleFrames, *, attitude: Optional[Att
 
     if attitude is not None:
         return _choose_by_attitude(pose, candidates, down_meas, frames, attitude, settings, bound_px,
-                                   by_continuity, corners_px, camera, marker, heading)
+                                   by_continuity, corners_px, camera, marker, heading,
+                                   settings.corner_sigma_px if corner_sigma_px is None else corner_sigma_px)
 
     if settings.max_tilt_deg > 0:
         level = frames.down_cam_level
@@ -312,7 +345,8 @@ def _choose_by_attitude(pose: Pose, candidates: List[Pose], down_meas: List[np.n
                         frames: VehicleFrames, attitude: Attitude, settings: PriorSettings,
                         bound_px: float, by_continuity: Callable[[Pose], Pose],
                         corners_px: Optional[np.ndarray], camera: Optional[Camera],
-                        marker: Optional[Marker], heading: Optional[HeadingReference]) -> Choice:
+                        marker: Optional[Marker], heading: Optional[HeadingReference],
+                        corner_sigma_px: float) -> Choice:
     roll, pitch, yaw = attitude.rpy_rad
     down_att = frames.down_cam_from_attitude(roll, pitch)
     err = [angle_between_deg(d, down_att) for d in down_meas]
@@ -322,12 +356,12 @@ def _choose_by_attitude(pose: Pose, candidates: List[Pose], down_meas: List[np.n
     sigma_down_deg = math.hypot(sigma_att_deg, VISION_DOWN_SIGMA_DEG)
     # Each candidate's cost in sigmas squared: its down, and its heading once that is known.
     cost = [(e / sigma_down_deg) ** 2 for e in err]
-    offset = heading.offset_rad if heading is not None else None
+    reference = heading.reference() if heading is not None else None
     north_att: Optional[np.ndarray] = None
-    sigma_head_deg = 0.0
-    if offset is not None:
-        assert heading is not None and heading.sigma_deg is not None
-        sigma_head_deg = math.hypot(sigma_down_deg, heading.sigma_deg)
+    if reference is not None:
+        assert heading is not None
+        offset, sigma_reference_deg = reference
+        sigma_head_deg = math.hypot(sigma_down_deg, sigma_reference_deg)
         R_local_body = R_from_euler_rpy_3x3(roll, pitch, yaw + offset)
         north_att = frames.R_cam_body @ R_local_body[0]
         head = [angle_between_deg(c.R @ frames.R_local_marker[0], north_att) for c in candidates]
@@ -344,10 +378,13 @@ def _choose_by_attitude(pose: Pose, candidates: List[Pose], down_meas: List[np.n
         heading.observe(_body_yaw(frames, candidates[best]), yaw)
 
     if settings.polish and corners_px is not None and camera is not None and marker is not None:
-        weight_down = settings.corner_sigma_px / math.radians(sigma_down_deg)
-        terms = [(frames.R_local_marker[2], down_att, weight_down)]
-        if north_att is not None:
-            terms.append((frames.R_local_marker[0], north_att, settings.corner_sigma_px / math.radians(sigma_head_deg)))
+        # The image term carries the vision's own uncertainty: the prior's weight is the
+        # attitude's alone (and the heading reference's).
+        sigma_prior_deg = max(sigma_att_deg, MIN_PRIOR_SIGMA_DEG)
+        terms = [(frames.R_local_marker[2], down_att, corner_sigma_px / math.radians(sigma_prior_deg))]
+        if north_att is not None and reference is not None:
+            sigma_north_deg = math.hypot(sigma_prior_deg, reference[1])
+            terms.append((frames.R_local_marker[0], north_att, corner_sigma_px / math.radians(sigma_north_deg)))
         # The cheap costs' favourite first; the other too only when it could still win.
         order = [best] + [i for i in range(len(candidates)) if i != best]
         results = {best: polish_toward(candidates[best], corners_px, camera, marker, terms)}
