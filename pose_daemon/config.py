@@ -481,6 +481,8 @@ class GateConfig:
                              "reprojection RMS bound, pixels (0 = no gate)")
     max_rms_frac: float = _key(0.01, Rule("float", lo=0, hi=1),
                                "... raised to this fraction of the marker's side for large markers")
+    max_view_deg: float = _key(55.0, Rule("float", lo=0, hi=90),
+                               "a marker seen further off its face than this is not believed (0 = any angle)")
 
 
 MAVLINK_MESSAGES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")

@@ -198,3 +198,17 @@ def test_withheld_frames_are_counted_on_the_status_line_with_the_attitude():
     proc = FrameProcessor(CAMERA, MARKER, detector=_Scripted([None]))
     proc.process(Frame(np.zeros((480, 640), np.uint8), 0.0, 0, attitude=Attitude((0.0, 0.0, 0.0))))
     assert proc.status() == "attitude in 1/1 frames"
+
+
+def test_a_long_rectangle_that_fits_an_oblique_square_is_gated_by_the_view_angle():
+    # 46 x 21 px: a 0.1 m square ~65 deg off its face images like this, to a fraction of a pixel.
+    c = np.array([[300.0, 230.0], [346.0, 230.0], [346.0, 251.0], [300.0, 251.0]])
+    pose = estimate_pose(c, CAMERA, MARKER)
+    side = _side(c)
+    assert pose.reprojection_error_px < gate_bound_px(PriorSettings(), side)  # the RMS gate alone lets it by
+    choice = choose_solution(pose, VehicleFrames.from_settings(), attitude=None, settings=PriorSettings(),
+                             side_px=side, by_continuity=_keep)
+    assert choice.pose is None and choice.withheld == "gated" and "off its face" in choice.reason
+    anyway = choose_solution(pose, VehicleFrames.from_settings(), attitude=None,
+                             settings=PriorSettings(max_view_deg=0.0), side_px=side, by_continuity=_keep)
+    assert anyway.pose is not None

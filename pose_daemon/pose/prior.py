@@ -63,6 +63,7 @@ class PriorSettings:
     attitude_bound_deg: float = 15.0   # a solution whose down is further from the attitude's disagrees
     gate_rms_px: float = 1.0           # reprojection RMS bound for small markers, pixels
     gate_rms_frac: float = 0.01        # ... and as a fraction of the marker's side for large ones
+    max_view_deg: float = 55.0         # a marker seen further off its face than this is not believed (0 = any)
     gate: bool = True
     attitude_sigma_deg: float = 1.0    # an attitude's accuracy when it does not state one
     polish: bool = True                # re-fit the chosen pose with the attitude's down as a prior term
@@ -73,6 +74,7 @@ class PriorSettings:
         """From a Config's [attitude] and [gate] sections."""
         return cls(max_tilt_deg=cfg.attitude.max_tilt_deg, attitude_bound_deg=cfg.attitude.max_error_deg,
                    gate_rms_px=cfg.gate.max_rms_px, gate_rms_frac=cfg.gate.max_rms_frac,
+                   max_view_deg=cfg.gate.max_view_deg,
                    gate=cfg.gate.max_rms_px > 0, attitude_sigma_deg=cfg.attitude.sigma_deg,
                    polish=cfg.attitude.polish)
 
@@ -99,6 +101,12 @@ def gate_bound_px(settings: PriorSettings, side_px: float) -> float:
     being held to a fraction of a pixel they cannot meet); lens-model and blur errors grow
     with the image of the marker (``gate_rms_frac`` of its side)."""
     return max(settings.gate_rms_px, settings.gate_rms_frac * float(side_px))
+
+
+def view_angle_deg(pose: Pose) -> float:
+    """How far off its face the camera sees the marker: the angle between the marker's normal
+    and the direction from its centre to the camera, degrees (0 = face-on)."""
+    return angle_between_deg(pose.R[:, 2], -np.asarray(pose.tvec, dtype=np.float64))
 
 
 def _swap(pose: Pose) -> Pose:
@@ -310,8 +318,29 @@ def choose_solution(pose: Pose, frames: VehicleFrames, *, attitude: Optional[Att
         return Choice(None, withheld="gated",
                       reason=f"reprojection RMS {pose.reprojection_error_px:.2f} px > {bound_px:.2f} px")
     alt = pose.alternative
-    two = (alt is not None and (not settings.gate or alt.reprojection_error_px <= bound_px)
-           and rotation_angle_deg_3x3(pose.R, alt.R) >= SAME_POSE_DEG)
+    max_view = settings.max_view_deg if settings.gate and settings.max_view_deg > 0 else 180.0
+    view = view_angle_deg(pose)
+    alt_ok = (alt is not None and (not settings.gate or alt.reprojection_error_px <= bound_px)
+              and view_angle_deg(alt) <= max_view)
+    if view > max_view and not alt_ok:
+        # Long rectangles pass for squares seen very obliquely (measured on clutter: 58-71 deg);
+        # a real marker that oblique is rarely found and its pose is poor anyway.
+        return Choice(None, withheld="gated", reason=f"marker seen {view:.0f} deg off its face (> {max_view:g})")
+    if view > max_view:
+        # Only the alternative is believable: it is the one.
+        choice = _choose(_swap(pose), False, frames, attitude, settings, bound_px, by_continuity,
+                         corners_px, camera, marker, heading, corner_sigma_px)
+        return dataclasses.replace(choice, flipped=choice.pose is not None)
+    two = alt_ok and alt is not None and rotation_angle_deg_3x3(pose.R, alt.R) >= SAME_POSE_DEG
+    return _choose(pose, two, frames, attitude, settings, bound_px, by_continuity, corners_px, camera,
+                   marker, heading, corner_sigma_px)
+
+
+def _choose(pose: Pose, two: bool, frames: VehicleFrames, attitude: Optional[Attitude],
+            settings: PriorSettings, bound_px: float, by_continuity: Callable[[Pose], Pose],
+            corners_px: Optional[np.ndarray], camera: Optional[Camera], marker: Optional[Marker],
+            heading: Optional[HeadingReference], corner_sigma_px: Optional[float]) -> Choice:
+    """choose_solution past the gate: ``two`` = the alternative is still a contender."""
     candidates: List[Pose] = [pose, _swap(pose)] if two else [pose]
     down_meas = [frames.down_cam_from_marker(c.R) for c in candidates]
 
