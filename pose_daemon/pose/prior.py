@@ -387,6 +387,7 @@ def _choose_by_attitude(pose: Pose, candidates: List[Pose], down_meas: List[np.n
     cost = [(e / sigma_down_deg) ** 2 for e in err]
     reference = heading.reference() if heading is not None else None
     north_att: Optional[np.ndarray] = None
+    head: List[float] = []
     if reference is not None:
         assert heading is not None
         offset, sigma_reference_deg = reference
@@ -406,7 +407,12 @@ def _choose_by_attitude(pose: Pose, candidates: List[Pose], down_meas: List[np.n
         # The heading of this frame is known without the heading prior: learn from it.
         heading.observe(_body_yaw(frames, candidates[best]), yaw)
 
-    if settings.polish and corners_px is not None and camera is not None and marker is not None:
+    # Where the vision already agrees with the attitude to within the attitude's own noise,
+    # the prior could move it by a fraction of that noise: not worth a re-fit per frame.
+    agrees = err[best] <= max(sigma_att_deg, MIN_PRIOR_SIGMA_DEG) and (
+        reference is None or head[best] <= math.hypot(sigma_att_deg, reference[1]))
+    if (settings.polish and corners_px is not None and camera is not None and marker is not None
+            and not (agrees and decisive)):
         # The image term carries the vision's own uncertainty: the prior's weight is the
         # attitude's alone (and the heading reference's).
         sigma_prior_deg = max(sigma_att_deg, MIN_PRIOR_SIGMA_DEG)
