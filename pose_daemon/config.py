@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import json
 import math
+import stat
 import sys
 from dataclasses import MISSING, asdict, dataclass, field, fields, replace
+from importlib import resources
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
@@ -19,8 +21,13 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.9/3.10 (Raspberry Pi OS Bullseye)
     import tomli as tomllib
 
-from .camera import Camera, Marker
+from .camera import MARKER_TYPES, Camera, Marker
+from .capture.sources import SOURCE_FORMS, parse_source
 from .errors import ConfigError
+from .geometry import MARKER_PLACEMENTS, MOUNT_PRESETS
+from .outputs.mavlink import MESSAGES as MAVLINK_MESSAGES
+from .outputs.mavlink import parse_connection
+from .pose.loop import METHODS
 
 __all__ = [
     "Config",
@@ -38,73 +45,25 @@ __all__ = [
     "JsonlOutputConfig",
     "OutputConfig",
     "LoggingConfig",
+    "PreviewConfig",
     "ConfigError",
-    "DEFAULT_CONFIG_TOML",
+    "DEFAULT_CONFIG_FILE",
+    "check_whole",
+    "default_config_text",
     "load_config",
     "parse_config",
 ]
 
-# The embedded default: the same text as config/demo.toml (a test keeps the two equal), so
-# `pose-daemon run` without --config works from an installed wheel.
-DEFAULT_CONFIG_TOML = """\
-# pose-daemon demo configuration: the synthetic source (a rendered camera moving in front of a
-# wall marker), poses to a ground station on UDP 14550 over MAVLink and as JSON lines on stdout.
-#   pose-daemon run --config config/demo.toml
-# This is also the embedded default of `pose-daemon run` without --config.
+#: The embedded default, shipped as package data (pose_daemon/data/demo.toml, in the wheel
+#: too) so that `pose-daemon run` without --config works anywhere. config/demo.toml in the
+#: repository is a symbolic link to it: one file, nothing to keep equal.
+DEFAULT_CONFIG_FILE = "demo.toml"
 
-[camera]                 # intrinsics in pixels at the capture resolution
-source = "synthetic"
-width = 640
-height = 480
-fx = 500.0
-fy = 500.0
-cx = 319.5
-cy = 239.5
-dist = [0.0, 0.0, 0.0, 0.0, 0.0]   # k1 k2 p1 p2 k3
-fps = 30.0
 
-[marker]
-type = "square"          # plain dark square on a light surround
-width = 0.20             # metres, outer edge of the dark region
-height = 0.20
-placement = "wall"
-
-[estimator]
-method = "iterative"
-iterations = 5
-refine = true
-
-[detector]
-max_misses = 5
-min_side_px = 10.0
-
-[synthetic]
-trajectory = "wall"
-seed = 0
-blur_px = 0.8
-noise_gray = 2.0
-frames = 0               # 0 = endless
-
-[pipeline]
-latency_budget_s = 0.1
-status_interval_s = 10.0
-
-[mount]
-preset = "forward"
-
-[output.mavlink]
-connection = "udpout:127.0.0.1:14550"
-messages = ["ODOMETRY"]
-source_system = 1
-source_component = 197
-wait_heartbeat = false   # a ground station listens here, not an autopilot: stream at once
-
-[output.jsonl]
-path = "-"               # stdout
-
-[logging]
-level = "INFO"
-"""
+def default_config_text() -> str:
+    """The TOML text of the embedded default configuration (the demo: synthetic source)."""
+    data = resources.files("pose_daemon").joinpath("data")
+    return data.joinpath(DEFAULT_CONFIG_FILE).read_text(encoding="utf-8")
 
 
 # --------------------------------------------------------------------------- rules
@@ -140,7 +99,6 @@ class Rule:
     nonempty: bool = False
     unique: bool = False
     upper: bool = False
-    doc: str = ""
 
     def expectation(self) -> str:
         noun = {"int": "an integer", "float": "a number", "str": "a string", "bool": "true or false",
@@ -244,16 +202,21 @@ class Rule:
         return tuple(out)
 
 
+_SHOW_DEPTH = 4
+
+
 def _num(v: float) -> str:
     return str(int(v)) if float(v).is_integer() and abs(v) < 1e15 else repr(float(v))
 
 
-def _show(value: Any) -> str:
-    """A value as it would be written in TOML (for error messages)."""
+def _show(value: Any, _depth: int = 0) -> str:
+    """A value as it would be written in TOML (for error messages); deep lists end in "[...]"."""
     if value is MISSING:
         return "nothing"
     if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_show(v) for v in value) + "]"
+        if _depth >= _SHOW_DEPTH:  # hundreds of levels would exhaust the stack, and say nothing
+            return "[...]"
+        return "[" + ", ".join(_show(v, _depth + 1) for v in value) + "]"
     if isinstance(value, dict):
         return "a table"
     if isinstance(value, float) and not math.isfinite(value):
@@ -264,26 +227,27 @@ def _show(value: Any) -> str:
         return str(value)
 
 
-def _key(default: Any, rule: Rule, doc: str = "") -> Any:
-    """A dataclass field with its rule; mutable defaults (lists) are stored as tuples."""
+def _key(default: Any, rule: Rule, doc: str, *, default_from: Optional[str] = None) -> Any:
+    """A dataclass field with its rule and its meaning (the config reference's text).
+
+    ``default_from``: when the key is absent but that key of the same table is given, take
+    its value (a marker's height is its width unless told otherwise). Mutable defaults
+    (lists) are stored as tuples.
+    """
     if isinstance(default, list):
         default = tuple(default)
-    return field(default=default, metadata={"rule": rule, "doc": doc})
+    if default_from is not None:
+        doc = f"{doc} (default: {default_from})"
+    return field(default=default, metadata={"rule": rule, "doc": doc, "default_from": default_from})
 
 
 # --------------------------------------------------------------------------- sections
-
-SOURCE_WORDS = ("picamera2", "synthetic")
-SOURCE_PREFIXES = ("opencv:", "video:", "replay:")
-SOURCE_EXPECTED = ('"picamera2", "synthetic", "opencv:N", "video:PATH", "replay:PATH" '
-                   'or a GStreamer pipeline ("... ! appsink")')
-
 
 @dataclass(frozen=True)
 class CameraConfig:
     """The frame source and its intrinsics (pixels at the capture resolution)."""
 
-    source: str = _key("synthetic", Rule("str", nonempty=True), "frame source: " + SOURCE_EXPECTED)
+    source: str = _key("synthetic", Rule("str", nonempty=True), "frame source: " + SOURCE_FORMS)
     width: int = _key(640, Rule("int", lo=16, hi=8192), "capture width, pixels")
     height: int = _key(480, Rule("int", lo=16, hi=8192), "capture height, pixels")
     fx: float = _key(500.0, Rule("float", lo=0, lo_open=True), "focal length x, pixels")
@@ -297,14 +261,10 @@ class CameraConfig:
     analogue_gain: float = _key(0.0, Rule("float", lo=0, hi=64), "sensor analogue gain (0 = auto)")
 
     def check(self) -> None:
-        s = self.source.strip()
-        if not (s in SOURCE_WORDS or "!" in s
-                or any(s.startswith(p) and len(s) > len(p) for p in SOURCE_PREFIXES)):
-            raise _Invalid("source", SOURCE_EXPECTED, self.source)
-        if s.startswith("opencv:"):
-            dev = s[len("opencv:"):]
-            if not (dev.isdigit() or dev.startswith("/")):
-                raise _Invalid("source", '"opencv:N" with a camera index N or a device path', self.source)
+        try:
+            parse_source(self.source)
+        except ValueError as exc:
+            raise _Invalid("source", str(exc), self.source) from None
         if not 0.0 <= self.cx < self.width:
             raise _Invalid("cx", f"a number in [0, {self.width}) (inside the image width)", self.cx)
         if not 0.0 <= self.cy < self.height:
@@ -312,23 +272,13 @@ class CameraConfig:
 
     @property
     def source_kind(self) -> str:
-        """"picamera2", "synthetic", "opencv", "video", "replay" or "gstreamer"."""
-        s = self.source.strip()
-        if s in SOURCE_WORDS:
-            return s
-        for p in SOURCE_PREFIXES:
-            if s.startswith(p):
-                return p[:-1]
-        return "gstreamer"
+        """One of capture.SOURCE_KINDS (from ``capture.parse_source``)."""
+        return parse_source(self.source)[0]
 
     @property
     def source_arg(self) -> str:
-        """What follows "kind:" (index, device or path), or the whole pipeline string."""
-        s = self.source.strip()
-        for p in SOURCE_PREFIXES:
-            if s.startswith(p):
-                return s[len(p):]
-        return s
+        """The source's argument (from ``capture.parse_source``): index, device, path or pipeline."""
+        return parse_source(self.source)[1]
 
     def model(self) -> Camera:
         return Camera(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, dist=tuple(self.dist),
@@ -339,12 +289,12 @@ class CameraConfig:
 class MarkerConfig:
     """The rectangle looked for (metres) and where it is placed."""
 
-    type: str = _key("square", Rule("str", choices=("square", "aruco")), "square or aruco")
+    type: str = _key("square", Rule("str", choices=MARKER_TYPES), "square or aruco")
     width: float = _key(0.20, Rule("float", lo=0, hi=100, lo_open=True), "outer edge of the dark region, metres")
-    height: float = _key(0.20, Rule("float", lo=0, hi=100, lo_open=True), "metres (default: width)")
+    height: float = _key(0.20, Rule("float", lo=0, hi=100, lo_open=True), "metres", default_from="width")
     dictionary: Optional[str] = _key(None, Rule("str", nonempty=True), "aruco only: OpenCV dictionary, e.g. DICT_4X4_50")
     id: Optional[int] = _key(None, Rule("int", lo=0, hi=100_000), "aruco only: marker id")
-    placement: str = _key("wall", Rule("str", choices=("wall", "floor")), "wall (vertical) or floor (face up)")
+    placement: str = _key("wall", Rule("str", choices=MARKER_PLACEMENTS), "wall (vertical) or floor (face up)")
 
     def check(self) -> None:
         if self.type == "aruco":
@@ -352,11 +302,7 @@ class MarkerConfig:
                 raise _Invalid("dictionary", 'a dictionary name such as "DICT_4X4_50" (needed when type = "aruco")')
             if self.id is None:
                 raise _Invalid("id", 'an integer >= 0 (needed when type = "aruco")')
-            if not self.dictionary.startswith("DICT_") or not _aruco_dictionary_exists(self.dictionary):
-                raise _Invalid("dictionary", 'an OpenCV ArUco dictionary name such as "DICT_4X4_50"', self.dictionary)
-            n_ids = _aruco_dictionary_size(self.dictionary)
-            if n_ids is not None and self.id >= n_ids:
-                raise _Invalid("id", f"an integer in [0, {n_ids - 1}] (the ids of {self.dictionary})", self.id)
+            # Whether OpenCV has the dictionary and the id: check_whole.
         else:
             if self.dictionary is not None:
                 raise _Invalid("dictionary", 'no dictionary unless type = "aruco"', self.dictionary)
@@ -368,49 +314,24 @@ class MarkerConfig:
                       dictionary=self.dictionary, id=self.id)
 
 
-def _aruco_dictionary_exists(name: str) -> bool:
-    try:
-        import cv2
-    except ImportError:  # pragma: no cover - OpenCV is a dependency
-        return True
-    aruco = getattr(cv2, "aruco", None)
-    if aruco is None:  # an OpenCV build without aruco: the detector reports it
-        return True
-    return isinstance(getattr(aruco, name, None), int)
-
-
-def _aruco_dictionary_size(name: str) -> Optional[int]:
-    """How many ids the dictionary has, or None when this OpenCV cannot tell."""
-    try:
-        from pose_daemon.detect import aruco_compat
-        return aruco_compat.dictionary_size(aruco_compat.get_dictionary(name))
-    except Exception:  # an OpenCV build without aruco: the detector reports it
-        return None
-
-
 @dataclass(frozen=True)
 class EstimatorConfig:
-    method: str = _key("iterative", Rule("str", nonempty=True), "pose method: iterative, paper, ...")
+    method: str = _key("iterative", Rule("str", choices=METHODS), "pose method (see Pose estimation)")
     iterations: int = _key(5, Rule("int", lo=1, hi=100), "iterations of the correction loop")
     refine: bool = _key(True, Rule("bool"), "final least-squares refinement")
-
-    def check(self) -> None:
-        # Checked here, not at the first frame: an unknown method would otherwise fail every
-        # frame of a running daemon with no pose and no hint in the config check.
-        from pose_daemon.pose.loop import METHODS
-        if self.method not in METHODS:
-            raise _Invalid("method", "one of " + ", ".join(_show(m) for m in METHODS), self.method)
 
 
 @dataclass(frozen=True)
 class DetectorConfig:
     max_misses: int = _key(5, Rule("int", lo=0, hi=10_000), "frames a track survives without the marker")
     min_side_px: float = _key(10.0, Rule("float", lo=1, hi=10_000), "shortest accepted marker side, pixels")
+    gamma: float = _key(1.0, Rule("float", lo=0.2, hi=5), "camera response exponent: edges located in linear light "
+                        "(1.0 linear, about 2.2 for sRGB/Rec. 709 cameras)")
 
 
 @dataclass(frozen=True)
 class SyntheticConfig:
-    trajectory: str = _key("wall", Rule("str", choices=("wall", "floor")),
+    trajectory: str = _key("wall", Rule("str", choices=MARKER_PLACEMENTS),
                            "wall: camera in front of a wall marker; floor: over a floor marker")
     seed: int = _key(0, Rule("int", lo=0, hi=2**32 - 1), "random seed of noise and trajectory")
     blur_px: float = _key(0.8, Rule("float", lo=0, hi=20), "Gaussian blur sigma, pixels")
@@ -440,7 +361,7 @@ class PipelineConfig:
 
 @dataclass(frozen=True)
 class MountConfig:
-    preset: str = _key("forward", Rule("str", choices=("forward", "down", "custom")),
+    preset: str = _key("forward", Rule("str", choices=MOUNT_PRESETS),
                        "forward: camera looks ahead; down: looks down; custom: rotation_deg + offset_m")
     rotation_deg: Tuple[float, ...] = _key([0.0, 0.0, 0.0], Rule("floats", lengths=(3,), lo=-360, hi=360),
                                            "custom mount: roll, pitch, yaw of the camera on the body, degrees")
@@ -483,9 +404,6 @@ class GateConfig:
                                "... raised to this fraction of the marker's side for large markers")
     max_view_deg: float = _key(55.0, Rule("float", lo=0, hi=90),
                                "a marker seen further off its face than this is not believed (0 = any angle)")
-
-
-MAVLINK_MESSAGES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
 
 
 @dataclass(frozen=True)
@@ -562,6 +480,34 @@ class LoggingConfig:
                       "log level")
 
 
+@dataclass(frozen=True)
+class PreviewConfig:
+    """The live preview web page (pose_daemon.preview); None unless the table is present."""
+
+    listen: str = _key("127.0.0.1:8080", Rule("str", nonempty=True),
+                       'HOST:PORT the page is served on (port 0 = any free port); another host than '
+                       '127.0.0.1 opens it to the network')
+    max_fps: float = _key(5.0, Rule("float", lo=0, hi=30, lo_open=True), "most annotated frames per second a viewer gets")
+    max_width: int = _key(640, Rule("int", lo=64, hi=4096), "annotated frames wider than this are scaled down, pixels")
+    data_dir: str = _key(".", Rule("str", nonempty=True),
+                         "folder for the page's snapshots and recordings (relative: to the working "
+                         "directory, /var/lib/pose-daemon under systemd)")
+
+    def check(self) -> None:
+        host, port = self.address
+        if not host or port is None:
+            raise _Invalid("listen", '"HOST:PORT" with a port in [0, 65535], e.g. "127.0.0.1:8080"', self.listen)
+
+    @property
+    def address(self) -> Tuple[str, Optional[int]]:
+        """(host, port) of ``listen`` ("[::1]:8080" -> ("::1", 8080)); port None if unusable."""
+        host, _, port = self.listen.strip().rpartition(":")
+        host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+        if not port.isdigit() or not 0 <= int(port) <= 65535:
+            return host, None
+        return host, int(port)
+
+
 SECTIONS: Dict[str, type] = {
     "camera": CameraConfig,
     "marker": MarkerConfig,
@@ -573,6 +519,10 @@ SECTIONS: Dict[str, type] = {
     "attitude": AttitudeConfig,
     "gate": GateConfig,
     "logging": LoggingConfig,
+}
+# Sections that are None unless present (enabled by their table, like the outputs).
+OPTIONAL_SECTIONS: Dict[str, type] = {
+    "preview": PreviewConfig,
 }
 OUTPUTS: Dict[str, type] = {
     "mavlink": MavlinkOutputConfig,
@@ -596,18 +546,22 @@ class Config:
     gate: GateConfig = field(default_factory=GateConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
+    preview: Optional[PreviewConfig] = None
     name: str = "<default config>"
 
     @classmethod
     def default(cls) -> Config:
-        """The embedded demo configuration (= config/demo.toml)."""
-        return parse_config(DEFAULT_CONFIG_TOML, "<default config>")
+        """The embedded demo configuration (pose_daemon/data/demo.toml = config/demo.toml)."""
+        return parse_config(default_config_text(), "<default config>")
 
     def to_dict(self) -> Dict[str, Any]:
         """Plain data in the TOML layout (absent outputs and unset optional keys left out)."""
         out: Dict[str, Any] = {}
         for name in SECTIONS:
             out[name] = _plain(asdict(getattr(self, name)))
+        for name in OPTIONAL_SECTIONS:
+            if getattr(self, name) is not None:
+                out[name] = _plain(asdict(getattr(self, name)))
         outputs = {k: _plain(asdict(v)) for k, v in asdict_shallow(self.output).items() if v is not None}
         out["output"] = outputs
         return out
@@ -649,8 +603,10 @@ def _build(cls: type, table: Dict[str, Any], where: str) -> Any:
         if f is None:
             raise _Invalid(key, "one of " + ", ".join(known), _Unknown)
         kwargs[key] = f.metadata["rule"].convert(key, value)
-    if cls is MarkerConfig and "height" not in table and "width" in kwargs:
-        kwargs["height"] = kwargs["width"]  # a square unless told otherwise
+    for f in known.values():
+        source = f.metadata["default_from"]
+        if source is not None and f.name not in kwargs and source in kwargs:
+            kwargs[f.name] = kwargs[source]
     obj = cls(**kwargs)
     check = getattr(obj, "check", None)
     if check is not None:
@@ -674,6 +630,8 @@ def parse_config(text: str, name: str = "<config>") -> Config:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{name}: invalid TOML: {' '.join(str(exc).split())}") from None
+    except RecursionError:  # the reader recurses once per level of nested arrays/inline tables
+        raise ConfigError(f"{name}: invalid TOML: arrays or inline tables nested too deeply") from None
     return config_from_dict(data, name)
 
 
@@ -681,9 +639,10 @@ def config_from_dict(data: Dict[str, Any], name: str = "<config>") -> Config:
     """Config from an already-parsed TOML document (a dict of tables)."""
     sections: Dict[str, Any] = {}
     outputs: Dict[str, Any] = {}
-    allowed = ", ".join(list(SECTIONS) + ["output"])
+    known_sections = {**SECTIONS, **OPTIONAL_SECTIONS}
+    allowed = ", ".join(list(known_sections) + ["output"])
     for section, table in data.items():
-        if section not in SECTIONS and section != "output":
+        if section not in known_sections and section != "output":
             raise ConfigError(f"{name}: [{section}]: unknown section (expected one of {allowed})")
         if not isinstance(table, dict):
             raise ConfigError(f"{name}: {section}: expected a table [{section}], got {_show(table)}")
@@ -703,7 +662,7 @@ def config_from_dict(data: Dict[str, Any], name: str = "<config>") -> Config:
             continue
         where = f"[{section}]"
         try:
-            sections[section] = _build(SECTIONS[section], table, where)
+            sections[section] = _build(known_sections[section], table, where)
         except _Invalid as err:
             raise ConfigError(_message(name, where, err)) from None
     synthetic_table = data.get("synthetic", {})
@@ -713,20 +672,77 @@ def config_from_dict(data: Dict[str, Any], name: str = "<config>") -> Config:
         sections["synthetic"] = replace(sections.get("synthetic", SyntheticConfig()),
                                         trajectory=marker.placement)
     cfg = Config(output=OutputConfig(**outputs), name=name, **sections)
-    _check_whole(cfg)
+    check_whole(cfg, files=False)
     return cfg
 
 
-def _check_whole(cfg: Config) -> None:
-    """Rules that join two sections."""
+def check_whole(cfg: Config, *, files: bool = True) -> None:
+    """Every rule that joins sections or concerns links and paths; ConfigError (one line) otherwise.
+
+    - the synthetic source's [synthetic] trajectory is the [marker] placement;
+    - an ArUco [marker] dictionary is one of OpenCV's, and its id one of the dictionary's;
+    - the [output.mavlink] connection is a link ``outputs.mavlink.parse_connection`` accepts;
+    - with ``files``: a ``video:``/``replay:`` source exists. A missing file will not appear
+      later, so it is refused at start rather than reopened for ever like an unplugged camera.
+
+    ``parse_config`` runs it with files=False, so every Config is whole wherever it is read
+    (``replay PATH --config`` ignores the config's source). ``pose-daemon run`` and
+    ``pose-daemon check-config`` run all of it, so check-config refuses what run refuses.
+    """
     if cfg.camera.source_kind == "synthetic" and cfg.marker.placement != cfg.synthetic.trajectory:
         raise ConfigError(f"{cfg.name}: [synthetic] trajectory: expected {_show(cfg.marker.placement)} "
                           f"(the [marker] placement), got {_show(cfg.synthetic.trajectory)}")
+    try:
+        _check_aruco(cfg.marker)
+    except _Invalid as err:
+        raise ConfigError(_message(cfg.name, "[marker]", err)) from None
+    m = cfg.output.mavlink
+    if m is not None:
+        try:
+            parse_connection(m.connection, m.baud)
+        except ValueError as exc:
+            raise ConfigError(f"{cfg.name}: [output.mavlink] connection: expected {exc}, "
+                              f"got {m.connection!r}") from None
+    kind, arg = parse_source(cfg.camera.source)
+    if files and kind in ("video", "replay") and not Path(arg).exists():
+        what = "a video file" if kind == "video" else "a recording, image folder or video"
+        raise ConfigError(f"{cfg.name}: [camera] source: expected {what} that exists, "
+                          f"got {_show(cfg.camera.source)} (no such file or folder)")
+
+
+def _check_aruco(marker: MarkerConfig) -> None:
+    """The dictionary is one this OpenCV has and the id is one of its ids (_Invalid otherwise)."""
+    if marker.type != "aruco" or marker.dictionary is None or marker.id is None:
+        return
+    try:
+        from .detect import aruco_compat
+    except ImportError:  # an OpenCV build without aruco: the detector reports it
+        return
+    try:
+        dictionary = aruco_compat.get_dictionary(marker.dictionary)
+    except ValueError:
+        raise _Invalid("dictionary", 'an OpenCV ArUco dictionary name such as "DICT_4X4_50"',
+                       marker.dictionary) from None
+    n_ids = aruco_compat.dictionary_size(dictionary)
+    if marker.id >= n_ids:
+        raise _Invalid("id", f"an integer in [0, {n_ids - 1}] (the ids of {marker.dictionary})", marker.id)
+
+
+_NOT_REGULAR = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+                (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
 
 
 def load_config(path: Union[str, Path]) -> Config:
     """Read and validate a TOML file; ConfigError (one line: file, key, expectation) otherwise."""
     p = Path(path)
+    try:
+        mode = p.stat().st_mode  # follows links; never opens the file
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read config: {exc.strerror or exc}") from None
+    if not stat.S_ISREG(mode):
+        # A FIFO would block the read for ever, a device could be endless: refuse, unread.
+        what = next((name for test, name in _NOT_REGULAR if test(mode)), "not a file")
+        raise ConfigError(f"{p}: cannot read config: not a regular file ({what})")
     try:
         raw = p.read_bytes()
     except OSError as exc:
@@ -747,6 +763,7 @@ def reference() -> List[Tuple[str, str, str, str, str]]:
     """(section, key, default, expectation, meaning) for every key: the README's config reference."""
     rows: List[Tuple[str, str, str, str, str]] = []
     tables: Sequence[Tuple[str, type]] = (list((f"[{k}]", v) for k, v in SECTIONS.items())
+                                          + list((f"[{k}]", v) for k, v in OPTIONAL_SECTIONS.items())
                                           + list((f"[output.{k}]", v) for k, v in OUTPUTS.items()))
     for where, cls in tables:
         for f in fields(cls):

@@ -8,8 +8,7 @@ import numpy as np
 
 from pose_daemon import Camera, Marker
 from pose_daemon.geometry import R_UNROT_MARKER, rot_x, rot_z, rvec_from_R
-from pose_daemon.render import Effects
-from pose_daemon.tools.bench_detector import render_frame
+from pose_daemon.render import Effects, render_frame
 
 # Smaller than the daemon's 640x480 so that rendering keeps the suite fast; same field of view.
 CAM = Camera(fx=250.0, fy=250.0, cx=159.5, cy=119.5, width=320, height=240)

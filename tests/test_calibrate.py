@@ -478,29 +478,24 @@ class ListSource:
         self.closed = True
 
 
-def live_args(views: int = 20, seconds=None):
-    import argparse
-    return argparse.Namespace(views=views, seconds=seconds)
-
-
 def test_ctrl_c_ends_live_collection_with_the_views_so_far(chessboard_views):
-    from pose_daemon.commands.calibrate import _views_from_source
+    from pose_daemon.tools.calibrate import views_from_source
 
     lines: List[str] = []
     source = ListSource(list(chessboard_views), interrupt_after=13)
-    views, size, _ = _views_from_source(source, cal.parse_board(CHESSBOARD), live_args(), lines.append, "camera")
+    views, size, _ = views_from_source(source, cal.parse_board(CHESSBOARD), say=lines.append, name="camera")
     assert len(views) == 13 and size == (640, 480) and source.closed
     assert "stopped after 13 frame(s)" in lines
 
 
 def test_seconds_limit_ends_live_collection(chessboard_views):
-    from pose_daemon.commands.calibrate import _views_from_source
+    from pose_daemon.tools.calibrate import views_from_source
 
     source = ListSource(list(chessboard_views))
     lines: List[str] = []
     # A camera at 1 frame per second: the clock is the number of frames read so far.
-    views, _, _ = _views_from_source(source, cal.parse_board(CHESSBOARD), live_args(seconds=5.0),
-                                     lines.append, "camera", clock=lambda: float(source.pos))
+    views, _, _ = views_from_source(source, cal.parse_board(CHESSBOARD), seconds=5.0,
+                                    say=lines.append, name="camera", clock=lambda: float(source.pos))
     assert len(views) == 5 and source.pos == 5
     # A status line every 5 s, whether or not the board is in view (here at the 5th frame).
     status = [x for x in lines if "frame(s), board seen in" in x]
@@ -536,3 +531,12 @@ def _accuracy_report(seeds: int = 6) -> None:
 
 if __name__ == "__main__":
     _accuracy_report()
+
+
+def test_an_image_of_another_dtype_is_a_clear_error_not_a_silent_cast(tmp_path: Path, capsys) -> None:
+    image = np.full((48, 64), 0.5, np.float32)
+    assert cv2.imwrite(str(tmp_path / "a.tiff"), image)
+    code, _, err = run_cli([tmp_path, "--board", CHESSBOARD], capsys)
+    assert code == 2
+    assert err.strip().splitlines()[-1] == (f"pose-daemon: error: {tmp_path / 'a.tiff'}: image must be uint8 "
+                                            "(or uint16) grey levels, got dtype float32")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -38,3 +39,58 @@ def test_missing_config_file_is_one_line_and_exit_2(tmp_path):
     assert res.returncode == 2
     assert "Traceback" not in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and "nope.toml" in res.stderr
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "pose_daemon", *args], capture_output=True,
+                          text=True, timeout=60)
+
+
+CONFIG_COMMANDS = [("check-config",), ("run", "--config")]
+
+
+@pytest.mark.parametrize("command", CONFIG_COMMANDS)
+@pytest.mark.parametrize("text", ["a = " + "[" * 400 + "\n", "a = " + "[" * 1000 + "]" * 1000 + "\n",
+                                  "a = " + "{b = " * 1000 + "\n",
+                                  "[camera]\ndist = " + "[" * 450 + "]" * 450 + "\n"])
+def test_deeply_nested_toml_is_one_line_and_exit_2(tmp_path, command, text):
+    # The TOML reader recurses once per level, and so did the error message's rendering of
+    # the value: a RecursionError must not become a traceback.
+    path = tmp_path / "deep.toml"
+    path.write_text(text)
+    res = _cli(*command, str(path))
+    assert res.returncode == 2, res.stderr
+    assert res.stderr.startswith(f"pose-daemon: error: {path}: ")
+    assert res.stderr.count("\n") == 1 and res.stdout == ""
+    if text.startswith("a = "):
+        assert "invalid TOML: " in res.stderr
+
+
+@pytest.mark.parametrize("command", CONFIG_COMMANDS)
+def test_a_fifo_or_folder_as_config_is_refused_without_reading_it(tmp_path, command):
+    # Reading a FIFO with no writer would block for ever (check-config in ExecStartPre too).
+    fifo = tmp_path / "fifo.toml"
+    os.mkfifo(fifo)
+    res = _cli(*command, str(fifo))
+    assert (res.returncode, res.stdout, res.stderr) == (
+        2, "", f"pose-daemon: error: {fifo}: cannot read config: not a regular file (a FIFO)\n")
+    res = _cli(*command, str(tmp_path))
+    assert (res.returncode, res.stdout, res.stderr) == (
+        2, "", f"pose-daemon: error: {tmp_path}: cannot read config: not a regular file (a directory)\n")
+
+
+def test_argparse_only_in_the_command_line():
+    """cli.py's rule: argparse lives in cli.py and commands/ alone; tools/ and the library
+    are plain functions."""
+    import pathlib
+    import re
+
+    package = pathlib.Path(__file__).resolve().parent.parent / "pose_daemon"
+    offenders = []
+    for path in sorted(package.rglob("*.py")):
+        rel = path.relative_to(package).as_posix()
+        if rel == "cli.py" or rel.startswith("commands/"):
+            continue
+        if re.search(r"^\s*(import argparse|from argparse import)", path.read_text(encoding="utf-8"), re.M):
+            offenders.append(rel)
+    assert offenders == []

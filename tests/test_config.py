@@ -4,15 +4,21 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 
 import pytest
 
 from pose_daemon.config import (
-    DEFAULT_CONFIG_TOML,
+    DEFAULT_CONFIG_FILE,
     Config,
     ConfigError,
+    EstimatorConfig,
+    MarkerConfig,
+    MavlinkOutputConfig,
+    MountConfig,
+    SyntheticConfig,
+    default_config_text,
     load_config,
     parse_config,
     reference,
@@ -33,7 +39,10 @@ def _error(text: str) -> str:
 
 @pytest.mark.pi
 def test_demo_file_is_the_embedded_default():
-    assert (ROOT / "config" / "demo.toml").read_text() == DEFAULT_CONFIG_TOML
+    # One file: the package data, with config/demo.toml a link to it (nothing can drift).
+    shipped = ROOT / "pose_daemon" / "data" / DEFAULT_CONFIG_FILE
+    assert (ROOT / "config" / "demo.toml").resolve() == shipped.resolve()
+    assert default_config_text() == shipped.read_text()
     cfg = Config.default()
     assert replace(load_config(ROOT / "config" / "demo.toml"), name=cfg.name) == cfg
     assert cfg.camera.source == "synthetic"
@@ -130,7 +139,7 @@ def test_marker_placement_drives_the_synthetic_trajectory():
      "dist, fps, exposure_us, analogue_gain)"),
     ("[cam]\nfx = 1\n",
      "config.toml: [cam]: unknown section (expected one of camera, marker, estimator, detector, "
-     "synthetic, pipeline, mount, attitude, gate, logging, output)"),
+     "synthetic, pipeline, mount, attitude, gate, logging, preview, output)"),
     ("[output.udp]\nport = 1\n",
      "config.toml: [output.udp]: unknown output (expected one of mavlink, serial, jsonl)"),
     ("[output.jsonl]\nfile = \"x\"\n",
@@ -214,6 +223,24 @@ def test_check_config_checks_the_mavlink_connection_string(tmp_path):
                           "udpout:HOST:PORT with a port in 1..65535, got 'udpout:localhost'\n")
 
 
+@pytest.mark.parametrize("kind, what", [("video", "a video file"),
+                                        ("replay", "a recording, image folder or video")])
+def test_check_config_refuses_a_missing_video_or_recording_as_run_does(tmp_path, kind, what):
+    source = f"{kind}:{tmp_path / 'clip'}"
+    path = tmp_path / "c.toml"
+    path.write_text(f'[camera]\nsource = "{source}"\n')
+    # The text alone is valid (`replay PATH --config c.toml` ignores the source) ...
+    assert load_config(path).camera.source == source
+    # ... but check-config refuses it with run's line: the daemon could never start.
+    expected = (f"pose-daemon: error: {path}: [camera] source: expected {what} that exists, "
+                f'got "{source}" (no such file or folder)\n')
+    for args in (["check-config", str(path)], ["run", "--config", str(path)]):
+        res = _cli(*args)
+        assert (res.returncode, res.stdout, res.stderr) == (2, "", expected)
+    (tmp_path / "clip").write_bytes(b"")
+    assert _cli("check-config", str(path)).returncode == 0
+
+
 def test_aruco_id_outside_its_dictionary_is_a_config_error():
     # DICT_4X4_50 has ids 0..49; the detector would otherwise fail at start-up with a traceback.
     base = '[marker]\ntype = "aruco"\ndictionary = "DICT_4X4_50"\n'
@@ -227,3 +254,32 @@ def test_unknown_estimator_method_is_a_config_error():
     assert parse_config('[estimator]\nmethod = "paper"\n', "config.toml").estimator.method == "paper"
     assert _error('[estimator]\nmethod = "foo"\n') == (
         'config.toml: [estimator] method: expected one of "iterative", "paper", got "foo"')
+
+
+def _rule(cls: type, key: str):
+    return next(f for f in fields(cls) if f.name == key).metadata["rule"]
+
+
+def test_every_list_of_choices_is_its_owners():
+    # A copied list drifts: a new MAVLink message or pose method must need one edit, not two.
+    from pose_daemon.camera import MARKER_TYPES
+    from pose_daemon.geometry import MARKER_PLACEMENTS, MOUNT_PRESETS
+    from pose_daemon.outputs.mavlink import MESSAGES
+    from pose_daemon.pose.loop import METHODS
+
+    assert _rule(MarkerConfig, "type").choices is MARKER_TYPES
+    assert _rule(MarkerConfig, "placement").choices is MARKER_PLACEMENTS
+    assert _rule(SyntheticConfig, "trajectory").choices is MARKER_PLACEMENTS
+    assert _rule(MountConfig, "preset").choices is MOUNT_PRESETS
+    assert _rule(MavlinkOutputConfig, "messages").choices is MESSAGES
+    assert _rule(EstimatorConfig, "method").choices is METHODS
+
+
+@pytest.mark.parametrize("first", ["pose_daemon.outputs.mavlink", "pose_daemon.pose.loop",
+                                   "pose_daemon.capture", "pose_daemon.config"])
+def test_config_and_the_owners_of_its_choices_import_in_any_order(first):
+    # config imports from these modules; one importing config back would be a cycle that
+    # breaks whichever is imported first.
+    res = subprocess.run([sys.executable, "-c", f"import {first}; import pose_daemon.config"],
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr

@@ -76,3 +76,51 @@ def test_opencv_search_path_refines_to_subpixel() -> None:
     assert rms(cands[0].corners, truth) < 0.15
     other = MarkerDetector(Marker(0.2, type="aruco", dictionary="DICT_4X4_50", id=8))._finder
     assert other._search_opencv(image, None) == []
+
+
+def test_charuco_board_image_is_found_corner_for_corner() -> None:
+    """The board's own image, through this OpenCV's ChArUco detection: every inner corner,
+    where the board's geometry puts it (a plane maps by a homography)."""
+    from types import SimpleNamespace
+
+    spec = SimpleNamespace(cols=6, rows=5, square_m=0.04, marker_m=0.03, dictionary="DICT_4X4_50")
+    board = aruco_compat.charuco_board(spec)
+    image = aruco_compat.charuco_board_image(board, (6 * 50, 5 * 50))
+    assert image.shape == (250, 300) and image.dtype == np.uint8
+    image = cv2.copyMakeBorder(image, 25, 25, 25, 25, cv2.BORDER_CONSTANT, value=255)
+    corners, ids = aruco_compat.CharucoFinder(board).detect(image)
+    assert corners.dtype == np.float32 and corners.shape == (20, 2) and sorted(ids.tolist()) == list(range(20))
+    obj = aruco_compat.charuco_corners_3d(board)
+    assert obj.shape == (20, 3) and np.all(obj[:, 2] == 0)
+    H, _ = cv2.findHomography(obj[ids, :2].astype(np.float64), corners.astype(np.float64))
+    mapped = cv2.perspectiveTransform(obj[ids, :2].reshape(-1, 1, 2).astype(np.float64), H).reshape(-1, 2)
+    assert float(np.abs(mapped - corners).max()) < 0.5
+    # 1250 px per metre: one square is 50 px.
+    assert abs(np.linalg.norm(H[:2, 0]) / H[2, 2] - 1250.0) < 5.0
+
+
+def test_charuco_finder_without_a_board_gives_empty_results() -> None:
+    board = aruco_compat.charuco_board(type("Spec", (), dict(cols=4, rows=3, square_m=0.04, marker_m=0.03,
+                                                               dictionary="DICT_4X4_50")))
+    corners, ids = aruco_compat.CharucoFinder(board).detect(np.full((200, 200), 200, np.uint8))
+    assert corners.shape == (0, 2) and ids.shape == (0,)
+
+
+def test_unknown_dictionary_for_a_charuco_board_is_a_clear_error() -> None:
+    spec = type("Spec", (), dict(cols=4, rows=3, square_m=0.04, marker_m=0.03, dictionary="DICT_9X9_1"))
+    with pytest.raises(ValueError, match="unknown ArUco dictionary 'DICT_9X9_1'"):
+        aruco_compat.charuco_board(spec)
+    with pytest.raises(ValueError, match="unknown ArUco dictionary 'CORNER_REFINE_NONE'"):
+        aruco_compat.get_dictionary("CORNER_REFINE_NONE")
+
+
+def test_cv2_aruco_is_used_in_aruco_compat_alone() -> None:
+    """The boundary the module docstring promises: nowhere else in the package is cv2.aruco."""
+    import pathlib
+    import re
+
+    package = pathlib.Path(aruco_compat.__file__).resolve().parent.parent
+    pattern = re.compile(r"\bcv2\s*\.\s*aruco\b|from\s+cv2\s+import\s+aruco|import\s+cv2\.aruco")
+    offenders = [path.relative_to(package).as_posix() for path in sorted(package.rglob("*.py"))
+                 if path.name != "aruco_compat.py" and pattern.search(path.read_text(encoding="utf-8"))]
+    assert offenders == []

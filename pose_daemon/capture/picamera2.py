@@ -4,11 +4,19 @@ The low-resolution stream is configured as YUV420 at the capture size and its Y 
 the grey frame: no colour conversion on the Pi's CPU. Exposure and gain are fixed when the
 config gives them (motion blur and brightness stay predictable), and each frame is stamped
 with the request's SensorTimestamp (nanoseconds, kernel monotonic clock = time.monotonic).
+
+A read waits for its frame with picamera2's own timeout (``capture_request(wait=False)`` and
+``wait(job, timeout=...)``): a camera that stops delivering frames without an error raises
+SourceError, and the pipeline closes and reopens it, instead of the capture thread blocking
+until the systemd watchdog restarts the whole service.
 """
 
 from __future__ import annotations
 
+import inspect
+import logging
 import time
+from concurrent.futures import TimeoutError as FutureTimeoutError
 from typing import Any, Callable, Dict, Optional
 
 import numpy as np
@@ -16,20 +24,43 @@ import numpy as np
 from ..errors import SourceError
 from .base import Frame
 
+log = logging.getLogger(__name__)
+
+#: A frame is awaited at least this long before the camera counts as stalled, seconds; at low
+#: frame rates STALL_FRAMES frame periods. Well inside the systemd watchdog (5 s), so that the
+#: reopen (pause 0.5 s, camera start) comes first.
+STALL_MIN_S = 1.0
+STALL_FRAMES = 4
+#: The first frame after start may take longer (sensor start-up, first exposure), seconds.
+FIRST_FRAME_TIMEOUT_S = 3.0
+
+
+def _wait_takes_timeout(cam: Any) -> bool:
+    """Whether this picamera2's ``wait(job, timeout=...)`` exists (>= 0.3.13; 0.3.12 had none)."""
+    try:
+        return "timeout" in inspect.signature(cam.wait).parameters
+    except (AttributeError, TypeError, ValueError):
+        return False
+
 
 class Picamera2Source:
     """``camera_index``: which camera (picamera2's numbering); ``exposure_us``/``analogue_gain``
-    0 = automatic."""
+    0 = automatic; ``read_timeout_s``: how long a read waits for a frame before SourceError
+    (default: the longer of STALL_MIN_S and STALL_FRAMES frame periods)."""
 
     def __init__(self, width: int, height: int, *, fps: float = 30.0, exposure_us: int = 0,
                  analogue_gain: float = 0.0, camera_index: int = 0,
+                 read_timeout_s: Optional[float] = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.width, self.height, self.fps = int(width), int(height), float(fps)
         self.exposure_us, self.analogue_gain = int(exposure_us), float(analogue_gain)
         self.camera_index = camera_index
+        self.read_timeout_s = (float(read_timeout_s) if read_timeout_s is not None
+                               else max(STALL_MIN_S, STALL_FRAMES / self.fps))
         self._clock = clock
         self._cam: Any = None
         self._seq = 0
+        self._timed_wait = False
 
     def controls(self) -> Dict[str, Any]:
         """The libcamera controls asked for: frame rate, and fixed exposure / gain if set."""
@@ -62,14 +93,15 @@ class Picamera2Source:
             raise SourceError(f"source picamera2: cannot start camera {self.camera_index}: {exc}") from exc
         self._cam = cam
         self._seq = 0
+        self._timed_wait = _wait_takes_timeout(cam)
+        if not self._timed_wait:
+            log.warning("picamera2 without wait(job, timeout=...): a stalled camera is noticed only "
+                        "by the systemd watchdog (update python3-picamera2)")
 
     def read(self) -> Frame:
         if self._cam is None:
             raise SourceError("source picamera2: read() before open()")
-        try:
-            request = self._cam.capture_request()
-        except Exception as exc:
-            raise SourceError(f"source picamera2: capture failed: {exc}") from exc
+        request = self._capture_request()
         try:
             yuv = request.make_array("lores")
             metadata = dict(request.get_metadata())
@@ -87,6 +119,26 @@ class Picamera2Source:
                                 if k in metadata})
         self._seq += 1
         return frame
+
+    def _capture_request(self) -> Any:
+        """The next completed request; SourceError when it fails or does not come in time."""
+        cam = self._cam
+        timeout_s = max(self.read_timeout_s, FIRST_FRAME_TIMEOUT_S) if self._seq == 0 else self.read_timeout_s
+        try:
+            if not self._timed_wait:
+                return cam.capture_request()
+            return cam.wait(cam.capture_request(wait=False), timeout=timeout_s)
+        except FutureTimeoutError:
+            # The job is still queued: cancel it, or stop() in close() would queue behind it.
+            if hasattr(cam, "cancel_all_and_flush"):
+                try:
+                    cam.cancel_all_and_flush()
+                except Exception as exc:  # the camera is being given up anyway
+                    log.warning("picamera2 cancel_all_and_flush failed: %s", exc)
+            raise SourceError(f"source picamera2: no frame from camera {self.camera_index} within "
+                              f"{timeout_s:g} s (camera stalled)") from None
+        except Exception as exc:
+            raise SourceError(f"source picamera2: capture failed: {exc}") from exc
 
     def close(self) -> None:
         if self._cam is not None:

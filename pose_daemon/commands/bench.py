@@ -1,53 +1,91 @@
-"""``pose-daemon bench {estimator,detector,pipeline,ambiguity}``: benchmarks that print figures."""
+"""``pose-daemon bench {estimator,detector,pipeline,outputs,ambiguity}``: benchmarks that print figures.
+
+Each benchmark is ``run_bench(...)`` (parameters in, report out) and ``print_report(report)``
+in ``pose_daemon/tools/bench_<name>.py``; this file holds their arguments.
+"""
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import json
+
+from ..errors import UserError
 
 BENCHES = {
     "estimator": "accuracy under pixel noise and time per call against OpenCV's solvers",
     "detector": "detection rate, corner and pose error, time per frame against ArUco + IPPE",
     "pipeline": "end-to-end latency (capture -> bytes written) and memory over a long run",
+    "outputs": "time each output takes from publish to bytes written on its link",
+    "ambiguity": "mirror-pose flips per way of choosing the planar solution, and the gate on clutter",
 }
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser("bench", help="benchmarks: accuracy, speed, latency",
                             description=__doc__.splitlines()[0])
-    benches = parser.add_subparsers(dest="bench", metavar="BENCH", required=True,
-                                    parser_class=type(parser))
-    for name, help_text in BENCHES.items():
-        module = importlib.import_module(f"pose_daemon.tools.bench_{name}")
-        p = benches.add_parser(name, help=help_text, description=help_text)
-        module.add_arguments(p)
-        p.set_defaults(func=module.run)
-    _register_ambiguity(benches)
+    benches = parser.add_subparsers(dest="bench", metavar="BENCH", required=True, parser_class=type(parser))
+    p = {name: benches.add_parser(name, help=text, description=text) for name, text in BENCHES.items()}
+    p["estimator"].add_argument("--n", type=int, default=10_000, help="random poses per noise level (default 10000)")
+    p["estimator"].add_argument("--timing-n", type=int, default=1000,
+                                help="corner sets timed one call at a time per method (default 1000)")
+    p["estimator"].add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    p["detector"].add_argument("--frames", type=int, default=300, metavar="N",
+                               help="marker frames per marker type (default 300)")
+    p["detector"].add_argument("--empty", type=int, default=200, metavar="N",
+                               help="marker-free frames for false detections (default 200)")
+    p["detector"].add_argument("--seed", type=int, default=0, help="random seed of poses and images")
+    p["detector"].add_argument("--repeat", type=int, default=3, metavar="K",
+                               help="time each frame K times and keep the fastest (default 3)")
+    p["ambiguity"].add_argument("--frames", type=int, default=300, metavar="N",
+                                help="frames per flight (default 300)")
+    p["ambiguity"].add_argument("--clutter", type=int, default=500, metavar="N",
+                                help="marker-free clutter frames (default 500, 0 = none)")
+    p["ambiguity"].add_argument("--seed", type=int, default=0, help="random seed of flights, noise and clutter")
+    for name in ("estimator", "detector", "ambiguity"):
+        p[name].add_argument("--json", action="store_true", help="print one JSON object instead of tables")
+    p["pipeline"].add_argument("--frames", type=int, default=3000,
+                               help="frames to run (default 3000; 20000 for the memory figure)")
+    p["pipeline"].add_argument("--fps", type=float, default=100.0,
+                               help="rate at which the source hands out frames (default 100)")
+    p["pipeline"].add_argument("--distinct", type=int, default=48, help="distinct rendered frames, cycled (default 48)")
+    p["pipeline"].add_argument("--seed", type=int, default=0, help="trajectory and noise seed")
+    p["pipeline"].add_argument("--preview", choices=("off", "idle", "watch"), default="off",
+                               help="live preview: off (default), idle (served, nobody watching), "
+                                    "watch (one viewer reading /stream.mjpg)")
+    p["outputs"].add_argument("--poses", type=int, default=3000, help="poses per output (default 3000)")
+    for parser in p.values():
+        parser.set_defaults(func=run)
 
 
-AMBIGUITY_HELP = "mirror-pose flips per way of choosing the planar solution, and the gate on clutter"
+def _check(ok: bool, message: str) -> None:
+    if not ok:
+        raise UserError(message)
 
 
-def _register_ambiguity(benches: argparse._SubParsersAction) -> None:
-    p = benches.add_parser("ambiguity", help=AMBIGUITY_HELP, description=AMBIGUITY_HELP)
-    p.add_argument("--frames", type=int, default=300, metavar="N", help="frames per flight (default 300)")
-    p.add_argument("--clutter", type=int, default=500, metavar="N",
-                   help="marker-free clutter frames (default 500, 0 = none)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of flights, noise and clutter")
-    p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
-    p.set_defaults(func=_run_ambiguity)
-
-
-def _run_ambiguity(args: argparse.Namespace) -> int:
-    import json
-
-    from ..errors import UserError
-    from ..tools.bench_ambiguity import format_tables, run_bench
-
-    if args.frames < 30:
-        raise UserError(f"--frames must be at least 30, got {args.frames}")
-    if args.clutter < 0:
-        raise UserError(f"--clutter must be 0 or more, got {args.clutter}")
-    result = run_bench(args.frames, args.clutter, args.seed)
-    print(json.dumps(result) if args.json else format_tables(result))
+def run(a: argparse.Namespace) -> int:
+    bench = importlib.import_module(f"pose_daemon.tools.bench_{a.bench}")
+    if a.bench == "estimator":
+        _check(a.n >= 10, f"--n must be at least 10, got {a.n}")
+        _check(a.timing_n >= 1, f"--timing-n must be positive, got {a.timing_n}")
+        report = bench.run_bench(a.n, min(a.timing_n, a.n), a.seed, progress=not a.json)
+    elif a.bench == "detector":
+        _check(a.frames >= 1, f"--frames must be at least 1, got {a.frames}")
+        _check(a.repeat >= 1, f"--repeat must be at least 1, got {a.repeat}")
+        _check(a.empty >= 0, f"--empty must be 0 or more, got {a.empty}")
+        report = bench.run_bench(a.frames, a.empty, a.seed, a.repeat)
+    elif a.bench == "pipeline":
+        _check(a.frames >= 1 and a.fps > 0 and a.distinct >= 1, "--frames and --distinct must be >= 1 and --fps > 0")
+        report = bench.run_bench(a.frames, a.fps, a.distinct, a.seed, preview=a.preview)
+    elif a.bench == "ambiguity":
+        _check(a.frames >= 30, f"--frames must be at least 30, got {a.frames}")
+        _check(a.clutter >= 0, f"--clutter must be 0 or more, got {a.clutter}")
+        report = bench.run_bench(a.frames, a.clutter, a.seed)
+    else:
+        _check(a.poses >= 1, f"--poses must be at least 1, got {a.poses}")
+        report = bench.run_bench(a.poses)
+    if getattr(a, "json", False):
+        print(json.dumps(report))
+    else:
+        bench.print_report(report)
     return 0

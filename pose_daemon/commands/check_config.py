@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..config import Config, load_config
-from ..errors import ConfigError
+from ..config import check_whole, load_config
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -19,7 +18,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
-    check_links(cfg)
+    check_whole(cfg)  # what `pose-daemon run` refuses at start, files and links included
     if args.show:
         print(cfg.to_toml(), end="")
     else:
@@ -27,17 +26,3 @@ def run(args: argparse.Namespace) -> int:
         print(f"{args.config}: ok (source {cfg.camera.source}, marker {cfg.marker.type} "
               f"{cfg.marker.width:g}x{cfg.marker.height:g} m, outputs: {', '.join(outputs) or 'none'})")
     return 0
-
-
-def check_links(cfg: Config) -> None:
-    """What only the outputs know: a MAVLink connection string that cannot be a link."""
-    m = cfg.output.mavlink
-    if m is None:
-        return
-    from ..outputs.mavlink import parse_connection
-
-    try:
-        parse_connection(m.connection, m.baud)
-    except ValueError as exc:
-        raise ConfigError(f"{cfg.name}: [output.mavlink] connection: expected {exc}, "
-                          f"got {m.connection!r}") from None

@@ -98,3 +98,57 @@ def marker_bits(dictionary: Any, marker_id: int) -> np.ndarray:
     else:  # pragma: no cover - attribute spelling in some builds
         bits = _aruco.Dictionary.getBitsFromByteList(dictionary.bytesList[int(marker_id)].reshape(1, -1, 4), n)
     return np.asarray(bits, dtype=np.uint8).reshape(n, n)
+
+
+# --------------------------------------------------------------------------- ChArUco boards
+
+#: True where ChArUco detection goes through cv2.aruco.CharucoDetector (OpenCV >= 4.7).
+NEW_CHARUCO_API: bool = hasattr(_aruco, "CharucoDetector")
+
+
+def charuco_board(spec: Any) -> Any:
+    """The ChArUco board of ``spec``: any object with ``cols`` x ``rows`` squares, ``square_m``,
+    ``marker_m`` (metres) and ``dictionary`` (a name for ``get_dictionary``)."""
+    dictionary = get_dictionary(spec.dictionary)
+    if NEW_CHARUCO_API:
+        return _aruco.CharucoBoard((int(spec.cols), int(spec.rows)), float(spec.square_m),
+                                   float(spec.marker_m), dictionary)
+    return _aruco.CharucoBoard_create(int(spec.cols), int(spec.rows), float(spec.square_m),
+                                      float(spec.marker_m), dictionary)
+
+
+def charuco_corners_3d(board: Any) -> np.ndarray:
+    """The board's inner chessboard corners (N, 3) float32 in metres, indexed by corner id."""
+    corners = board.getChessboardCorners() if hasattr(board, "getChessboardCorners") else board.chessboardCorners
+    return np.asarray(corners, dtype=np.float32).reshape(-1, 3)
+
+
+def charuco_board_image(board: Any, size_px: Tuple[int, int]) -> np.ndarray:
+    """The board's squares area as printed, (height, width) = ``size_px`` reversed, uint8."""
+    size = (int(size_px[0]), int(size_px[1]))
+    return board.generateImage(size) if hasattr(board, "generateImage") else board.draw(size)
+
+
+class CharucoFinder:
+    """ChArUco corner detection for one board, on whichever API this OpenCV has."""
+
+    def __init__(self, board: Any) -> None:
+        self.board = board
+        self._detector = _aruco.CharucoDetector(board) if NEW_CHARUCO_API else None
+        self._parameters = None if NEW_CHARUCO_API else make_parameters()
+
+    def detect(self, gray: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """The board's corners seen in ``gray``: (corners (N, 2) float32 px, ids (N,) int64);
+        N = 0 when none is found."""
+        if self._detector is not None:
+            ch_corners, ch_ids, _, _ = self._detector.detectBoard(gray)
+        else:
+            m_corners, m_ids, _ = _aruco.detectMarkers(gray, self.board.dictionary, parameters=self._parameters)
+            if m_ids is None or len(m_ids) == 0:
+                ch_corners = ch_ids = None
+            else:
+                _, ch_corners, ch_ids = _aruco.interpolateCornersCharuco(m_corners, m_ids, gray, self.board)
+        if ch_ids is None or ch_corners is None or len(ch_ids) == 0:
+            return np.zeros((0, 2), dtype=np.float32), np.zeros(0, dtype=np.int64)
+        return (np.asarray(ch_corners, dtype=np.float32).reshape(-1, 2),
+                np.asarray(ch_ids, dtype=np.int64).reshape(-1))

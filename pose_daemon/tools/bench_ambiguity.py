@@ -14,8 +14,8 @@ p95, frames withheld, and the median rotation error on the frames both the strat
 estimator alone get right. Then marker-free frames of long rectangles, picture frames and
 text: poses sent with the gate off and on.
 
-Plain functions (``run_bench`` returns the figures, ``format_tables`` prints them); the
-command line lives in commands/bench.py.
+Plain functions (``run_bench`` returns the figures, ``format_tables`` lays them out and
+``print_report`` prints them); the command line lives in commands/bench.py.
 """
 
 from __future__ import annotations
@@ -31,8 +31,12 @@ import numpy as np
 from ..attitude import Attitude
 from ..camera import Camera, Marker
 from ..capture.base import Frame
+from ..detect import MarkerDetector
 from ..geometry import R_from_euler_rpy, VehicleFrames, VehiclePose, rotation_angle_deg_3x3
+from ..pose.estimator import estimate_pose
 from ..pose.prior import PriorSettings
+from ..processing import FrameProcessor
+from ..render import Effects, make_background, render_marker, render_plane
 
 CAMERA = Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
 MARKER = Marker(0.20, 0.20)
@@ -99,9 +103,6 @@ def vehicle_at(placement: str, size: str, t_s: float, phases: np.ndarray) -> Tup
 def render_flight(placement: str, size: str, n_frames: int, seed: int) -> Flight:
     """``n_frames`` rendered frames of one flight, through the real detector (the corners
     as found; ``with_corner_noise`` adds more)."""
-    from ..detect import MarkerDetector
-    from ..render import Effects, make_background, render_marker
-
     frames = VehicleFrames.from_settings(PLACEMENTS[placement], placement=placement)
     rng = np.random.default_rng(seed)
     phases = rng.uniform(0, 2 * math.pi, 8)
@@ -193,9 +194,6 @@ def _attitudes(flight: Flight, noise_deg: float, lag_s: float, seed: int) -> Lis
 def run_strategy(flight: Flight, name: str, prior: Optional[PriorSettings],
                  attitudes: Optional[List[Attitude]] = None) -> Row:
     """The flight's corners through one strategy; ``prior`` None = the estimator alone."""
-    from ..pose.estimator import estimate_pose
-    from ..processing import FrameProcessor
-
     row = Row(name)
     image = np.zeros((CAMERA.height, CAMERA.width), np.uint8)
     proc = None
@@ -284,9 +282,6 @@ def run_clutter(n_frames: int, seed: int) -> Dict[str, int]:
     """Marker-free frames of a clutter sheet on a wall seen by a level forward camera at
     0.6-2.5 m: poses sent with the gate off, on, and on with the attitude prior (the true
     attitude of the rendered view, 0.5 deg noise)."""
-    from ..processing import FrameProcessor
-    from ..render import Effects, make_background, render_plane
-
     rng = np.random.default_rng(seed)
     frames = VehicleFrames.from_settings("forward", placement="wall")
     background = make_background(rng, CAMERA.width, CAMERA.height)
@@ -364,3 +359,8 @@ def format_tables(result: Dict[str, object]) -> str:
                   f"| {clutter['frames']} | {clutter['detected']} | {clutter['sent gate off']} "
                   f"| {clutter['sent gate on']} | {clutter['sent gate + attitude']} |"]
     return "\n".join(lines)
+
+
+def print_report(report: Dict[str, object]) -> None:
+    """The report of ``run_bench`` as the README's Markdown tables."""
+    print(format_tables(report))

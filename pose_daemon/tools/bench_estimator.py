@@ -7,8 +7,6 @@ Random poses of a 0.2 m square seen by a 640x480, f = 600 px camera from 0.5-4 m
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import sys
 import time
@@ -19,17 +17,12 @@ import numpy as np
 
 from .. import geometry
 from ..camera import Camera, Marker
+from ..pose.batch import estimate_pose_batch
+from ..pose.estimator import estimate_pose
+from ..pose.types import EstimationError
 
 NOISE_PX = (0.0, 0.25, 0.5, 1.0)
 FLIP_DEG = 10.0
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--n", type=int, default=10_000, help="random poses per noise level (default 10000)")
-    parser.add_argument("--timing-n", type=int, default=1000,
-                        help="corner sets timed one call at a time per method (default 1000)")
-    parser.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
-    parser.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
 
 
 def random_poses(n: int, camera: Camera, marker: Marker, rng: np.random.Generator,
@@ -92,8 +85,6 @@ def _ippe(camera: Camera, marker: Marker, refine: bool) -> Callable:
 
 def _time_calls(fn: Callable, corners: np.ndarray) -> float:
     """Median microseconds of one call over the corner sets (a refused set counts too)."""
-    from ..pose.types import EstimationError
-
     times = np.empty(len(corners))
     for i, c in enumerate(corners):
         t0 = time.perf_counter()
@@ -106,8 +97,6 @@ def _time_calls(fn: Callable, corners: np.ndarray) -> float:
 
 
 def run_bench(n: int, timing_n: int, seed: int, progress: bool = True) -> Dict[str, object]:
-    from ..pose.estimator import estimate_pose, estimate_pose_batch
-
     camera = Camera(fx=600.0, fy=600.0, cx=319.5, cy=239.5, width=640, height=480)
     marker = Marker(0.2, 0.2)
     rng = np.random.default_rng(seed)
@@ -172,7 +161,7 @@ def run_bench(n: int, timing_n: int, seed: int, progress: bool = True) -> Dict[s
             "opencv": cv2.__version__, "numpy": np.__version__}
 
 
-def _print_tables(res: Dict[str, object]) -> None:
+def print_report(res: Dict[str, object]) -> None:
     print(f"estimator accuracy: {res['n']} random poses, {res['camera']}, {res['marker_m']} m square, "
           f"{res['distance_m'][0]}-{res['distance_m'][1]} m, tilt <= {res['tilt_max_deg']:g} deg "
           f"(OpenCV {res['opencv']}, numpy {res['numpy']})")
@@ -195,17 +184,3 @@ def _print_tables(res: Dict[str, object]) -> None:
     print(f"batch: {res['batch_poses_per_s']:,.0f} poses/s (default), "
           f"{res['batch_poses_per_s_no_polish']:,.0f} poses/s without the polish")
 
-
-def run(args: argparse.Namespace) -> int:
-    from ..errors import UserError
-
-    if args.n < 10:
-        raise UserError(f"--n must be at least 10, got {args.n}")
-    if args.timing_n < 1:
-        raise UserError(f"--timing-n must be positive, got {args.timing_n}")
-    res = run_bench(args.n, min(args.timing_n, args.n), args.seed, progress=not args.json)
-    if args.json:
-        print(json.dumps(res))
-    else:
-        _print_tables(res)
-    return 0

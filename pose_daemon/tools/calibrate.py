@@ -1,7 +1,8 @@
 """Camera calibration from views of a chessboard or ChArUco board: board detection, view
 selection, OpenCV's calibrateCamera, and the [camera] TOML section it produces.
 
-Works on OpenCV 4.6 (the Pi's: old cv2.aruco functions) and >= 4.7 (CharucoDetector).
+ChArUco boards go through detect/aruco_compat.py, which works on OpenCV 4.6 (the Pi's) and
+newer alike.
 """
 
 from __future__ import annotations
@@ -9,16 +10,22 @@ from __future__ import annotations
 import math
 import os
 import re
+import sys
 import tempfile
+import time
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Tuple, Union
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import cv2
 import numpy as np
 
 from ..camera import Camera
-from ..errors import ConfigError, UserError
+from ..capture.base import as_gray
+from ..capture.replay import IMAGE_EXTENSIONS
+from ..detect import aruco_compat
+from ..errors import ConfigError, EndOfStream, SourceError, UserError
 from ..geometry import R_from_rvec
 
 BOARD_KINDS = ("chessboard", "charuco")
@@ -118,10 +125,8 @@ def parse_board(text: str) -> BoardSpec:
         raise UserError(f"--board {text!r}: a ChArUco board needs at least 3x3 squares")
     if not (math.isfinite(marker_m) and 0 < marker_m < square_m):
         raise UserError(f"--board {text!r}: the marker size must be positive and smaller than the square")
-    from ..detect.aruco_compat import dictionary_size, get_dictionary
-
     try:
-        size = dictionary_size(get_dictionary(parts[4]))
+        size = aruco_compat.dictionary_size(aruco_compat.get_dictionary(parts[4]))
     except ValueError as exc:
         raise UserError(f"--board {text!r}: {exc}") from None
     if size < cols * rows // 2:
@@ -149,10 +154,9 @@ class BoardDetector:
             self._object = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1) * spec.square_m
             self._object = self._object.astype(np.float32)
         else:
-            self._board, self._charuco = _charuco_board(spec)
-            corners = (self._board.getChessboardCorners() if hasattr(self._board, "getChessboardCorners")
-                       else self._board.chessboardCorners)
-            self._object = np.asarray(corners, dtype=np.float32).reshape(-1, 3)
+            board = aruco_compat.charuco_board(spec)
+            self._charuco = aruco_compat.CharucoFinder(board)
+            self._object = aruco_compat.charuco_corners_3d(board)
 
     def detect(self, gray: np.ndarray, name: str = "") -> Optional[BoardView]:
         """The board's corners in ``gray``, or None when it is not found."""
@@ -182,19 +186,9 @@ class BoardDetector:
         return BoardView(_refine(gray, corners, 0.5), self._object.copy(), name)
 
     def _detect_charuco(self, gray: np.ndarray, name: str) -> Optional[BoardView]:
-        if self._charuco is not None:
-            ch_corners, ch_ids, _, _ = self._charuco.detectBoard(gray)
-        else:
-            aruco = cv2.aruco
-            params = aruco.DetectorParameters_create()
-            m_corners, m_ids, _ = aruco.detectMarkers(gray, self._board.dictionary, parameters=params)
-            if m_ids is None or len(m_ids) == 0:
-                return None
-            _, ch_corners, ch_ids = aruco.interpolateCornersCharuco(m_corners, m_ids, gray, self._board)
-        if ch_ids is None or ch_corners is None or len(ch_ids) < 6:
+        pts, ids = self._charuco.detect(gray)
+        if len(ids) < 6:
             return None
-        ids = np.asarray(ch_ids).reshape(-1)
-        pts = np.asarray(ch_corners, dtype=np.float32).reshape(-1, 2)
         # Refined again with a window that stays inside the white margin between a corner and
         # the markers next to it: OpenCV's interpolation leaves errors up to ~0.3 px on
         # blurred views, this brings them under ~0.1 px.
@@ -221,19 +215,6 @@ def _refine(gray: np.ndarray, corners: np.ndarray, window_fraction: float) -> np
     return refined.reshape(-1, 2).astype(np.float64)
 
 
-def _charuco_board(spec: BoardSpec):
-    """(board, CharucoDetector or None on OpenCV 4.6)."""
-    from ..detect.aruco_compat import get_dictionary
-
-    aruco = cv2.aruco
-    dictionary = get_dictionary(spec.dictionary)
-    if hasattr(aruco, "CharucoDetector"):
-        board = aruco.CharucoBoard((spec.cols, spec.rows), spec.square_m, spec.marker_m, dictionary)
-        return board, aruco.CharucoDetector(board)
-    board = aruco.CharucoBoard_create(spec.cols, spec.rows, spec.square_m, spec.marker_m, dictionary)
-    return board, None
-
-
 def board_image(spec: BoardSpec, px_per_square: int = 40, margin_squares: float = 0.5) -> np.ndarray:
     """The board as printed (uint8, 255 white), with a white margin of ``margin_squares``
     squares around the squares area; its physical size is ``board_image_size_m``."""
@@ -244,8 +225,7 @@ def board_image(spec: BoardSpec, px_per_square: int = 40, margin_squares: float 
         # Top-left square black, as OpenCV's and most printed boards.
         inner = np.where((xx + yy) % 2 == 0, 0, 255).astype(np.uint8)
     else:
-        board, _ = _charuco_board(spec)
-        inner = (board.generateImage((w, h)) if hasattr(board, "generateImage") else board.draw((w, h)))
+        inner = aruco_compat.charuco_board_image(aruco_compat.charuco_board(spec), (w, h))
     m = int(round(margin_squares * px_per_square))
     return cv2.copyMakeBorder(inner, m, m, m, m, cv2.BORDER_CONSTANT, value=255)
 
@@ -447,6 +427,260 @@ def distortion_difference_px(a: Camera, b: Camera, step_px: float = 10.0,
         return np.stack([n[:, 0] * cam.fx + cam.cx, n[:, 1] * cam.fy + cam.cy], axis=1) - px
 
     return float(np.linalg.norm(shift(a) - shift(b), axis=1).max())
+
+
+# --------------------------------------------------------------------------- collecting views
+
+#: Live collection: a status line at least this often, seconds.
+STATUS_INTERVAL_S = 5.0
+
+
+def refuse_too_few(views: List[BoardView], name: str) -> None:
+    """UserError when ``views`` are fewer than MIN_VIEWS."""
+    if len(views) < MIN_VIEWS:
+        raise UserError(f"{name}: only {len(views)} usable view(s) of the board; calibration needs at "
+                        f"least {MIN_VIEWS} (show the board at more places, tilts and distances)")
+
+
+def report(result: CalibrationResult, say: Callable[[str], None]) -> None:
+    """The result as lines through ``say``: errors per view, coverage map, the fitted model."""
+    cam = result.camera
+    say(f"RMS reprojection error: {result.rms_px:.3f} px over {len(result.views)} views")
+    median = float(np.median(result.view_errors_px))
+    for k, (view, err) in enumerate(zip(result.views, result.view_errors_px)):
+        flag = f"  OUTLIER (> {max(OUTLIER_FACTOR * median, OUTLIER_FLOOR_PX):.2f} px)" \
+            if k in result.outliers else ""
+        say(f"  view {k + 1:3d} {view.name:<28s} {len(view.image_points):4d} corners  {err:6.3f} px{flag}")
+    if result.rejected_corners:
+        whole = sum(1 for v, n in zip(result.views, result.rejected) if n == len(v.image_points))
+        say(f"{result.rejected_corners} corner(s) in {sum(1 for n in result.rejected if n)} view(s) left out of "
+            f"the fit, their residual far above the rest ({whole} view(s) left out whole)")
+    cov = Coverage(cam.width, cam.height)
+    for v in result.views:
+        cov.add(v.image_points)
+    say(f"coverage of the image: {result.coverage:.0%} of {COVERAGE_GRID[0]}x{COVERAGE_GRID[1]} cells")
+    for line in cov.map():
+        say("  " + line)
+    d = ", ".join(f"{x:.5f}" for x in cam.dist[:5])
+    say(f"fx {cam.fx:.2f} fy {cam.fy:.2f} cx {cam.cx:.2f} cy {cam.cy:.2f} px; dist [{d}] "
+        f"({cam.width}x{cam.height})")
+
+
+def views_from_path(path: Path, spec: BoardSpec, *, max_views: int = 20, seconds: Optional[float] = None,
+                    save_views: Optional[Union[str, Path]] = None,
+                    say: Callable[[str], None] = print) -> Tuple[List[BoardView], Tuple[int, int], str]:
+    """Views of the board in a folder of images (every image a view) or in a recording
+    (``views_from_source``): (views, (width, height), name for messages)."""
+    from ..capture import recording
+
+    if not path.exists():
+        raise UserError(f"{path}: no such folder or recording")
+    if path.is_dir() and recording.is_recording(path):
+        from ..capture.replay import ReplaySource
+
+        return views_from_source(ReplaySource(path, realtime=False), spec, max_views=max_views,
+                                 seconds=seconds, save_views=save_views, say=say, name=str(path))
+    if not path.is_dir():
+        raise UserError(f"{path}: expected a folder of images or a recording folder")
+    files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+    if not files:
+        raise UserError(f"{path}: holds no images ({', '.join(IMAGE_EXTENSIONS)})")
+    detector = BoardDetector(spec)
+    views: List[BoardView] = []
+    size: Optional[Tuple[int, int]] = None
+    unreadable = 0
+    for f in files:
+        image = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        if image is None or image.size == 0:
+            unreadable += 1
+            say(f"  {f.name}: unreadable image, skipped")
+            continue
+        try:
+            gray = as_gray(image)
+        except ValueError as exc:
+            raise UserError(f"{f}: {exc}") from None
+        this = (gray.shape[1], gray.shape[0])
+        if size is None:
+            size = this
+        elif this != size:
+            raise UserError(f"{f}: image is {this[0]}x{this[1]}, the others {size[0]}x{size[1]}; "
+                            "calibrate one resolution at a time")
+        view = detector.detect(gray, f.name)
+        if view is None:
+            say(f"  {f.name}: no board found")
+            continue
+        views.append(view)
+    if size is None:
+        raise UserError(f"{path}: none of its {len(files)} image file(s) could be read")
+    if not views:
+        raise UserError(f"{path}: no {spec.noun} found in any of its {len(files) - unreadable} "
+                        f"image(s) (check --board: {spec.describe()})")
+    say(f"board found in {len(views)} of {len(files)} image(s)")
+    return views, size, str(path)
+
+
+def views_live(spec: BoardSpec, config: Optional[str] = None, *, max_views: int = 20,
+               seconds: Optional[float] = None, save_views: Optional[Union[str, Path]] = None,
+               say: Callable[[str], None] = print) -> Tuple[List[BoardView], Tuple[int, int], str]:
+    """Views from the camera source of ``config`` (the default config without one)."""
+    from ..capture import open_source
+    from ..config import load_config_or_default
+
+    cfg = load_config_or_default(config)
+    try:
+        source = open_source(cfg.camera, cfg)
+    except SourceError as exc:
+        raise UserError(str(exc)) from None
+    if seconds is None:
+        say(f"live from {cfg.camera.source}: move the board around until {max_views} views are "
+            "kept (Ctrl-C stops)")
+    else:
+        say(f"live from {cfg.camera.source}: up to {max_views} views or {seconds:g} s")
+    return views_from_source(source, spec, max_views=max_views, seconds=seconds, save_views=save_views,
+                             say=say, name=f"camera {cfg.camera.source}")
+
+
+def views_from_source(source, spec: BoardSpec, *, max_views: int = 20, seconds: Optional[float] = None,
+                      save_views: Optional[Union[str, Path]] = None, say: Callable[[str], None] = print,
+                      name: str = "source",
+                      clock: Callable[[], float] = time.monotonic) -> Tuple[List[BoardView], Tuple[int, int], str]:
+    """Views from a frame source, kept only when the board is somewhere new; stops after
+    ``max_views`` views, ``seconds`` s on ``clock``, the end of the stream or Ctrl-C. With
+    ``save_views`` the kept frames are also written there as PNG files."""
+    detector = BoardDetector(spec, fast=True)
+    views: List[BoardView] = []
+    selector: Optional[ViewSelector] = None
+    coverage: Optional[Coverage] = None
+    size: Optional[Tuple[int, int]] = None
+    frames = seen = 0
+    save_dir = Path(save_views) if save_views else None
+    if save_dir is not None:
+        try:
+            save_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise UserError(f"{save_dir}: cannot create: {exc.strerror or exc}") from None
+    try:
+        source.open()
+    except SourceError as exc:
+        raise UserError(f"{name}: {exc}") from None
+    t0 = last_status = clock()
+    try:
+        while len(views) < max_views and (seconds is None or clock() - t0 < seconds):
+            try:
+                frame = source.read()
+            except EndOfStream:
+                break
+            except SourceError as exc:
+                raise UserError(f"{name}: {exc}") from None
+            frames += 1
+            try:
+                gray = as_gray(frame.image)
+            except ValueError as exc:
+                raise UserError(f"{name}: frame {frame.seq}: {exc}") from None
+            if size is None:
+                size = (gray.shape[1], gray.shape[0])
+                selector, coverage = ViewSelector(*size), Coverage(*size)
+            elif (gray.shape[1], gray.shape[0]) != size:
+                raise UserError(f"{name}: frame {frame.seq} is {gray.shape[1]}x{gray.shape[0]}, the first was "
+                                f"{size[0]}x{size[1]}; calibrate one resolution at a time")
+            now = clock()
+            if now - last_status >= STATUS_INTERVAL_S:
+                # Something on screen while nobody holds the board up.
+                last_status = now
+                say(f"  {frames} frame(s), board seen in {seen}, {len(views)} view(s) kept")
+            view = detector.detect(gray, f"frame {frame.seq}")
+            if view is None:
+                continue
+            seen += 1
+            assert selector is not None and coverage is not None
+            if not selector.is_new(view):
+                continue
+            views.append(view)
+            coverage.add(view.image_points)
+            if save_dir is not None:
+                view.name = f"view{len(views):03d}.png"
+                if not cv2.imwrite(str(save_dir / view.name), gray):
+                    raise UserError(f"{save_dir}: cannot write {view.name}")
+            sig = selector.signatures[-1]
+            say(f"  kept view {len(views):3d}/{max_views} (frame {frame.seq}): centre "
+                f"({sig[0]:.2f}, {sig[1]:.2f}) size {np.exp(sig[2]):.2f} tilt "
+                f"({np.degrees(sig[3]):+.0f}, {np.degrees(sig[4]):+.0f}) deg; coverage {coverage.fraction:.0%}")
+    except KeyboardInterrupt:
+        # Ctrl-C ends the collection; the views kept so far are calibrated.
+        say(f"stopped after {frames} frame(s)")
+    finally:
+        source.close()
+    if size is None:
+        raise UserError(f"{name}: no frames")
+    if not views:
+        raise UserError(f"{name}: no {spec.noun} found in any of {frames} frame(s) "
+                        f"(check --board: {spec.describe()})")
+    say(f"board seen in {seen} of {frames} frame(s); {len(views)} distinct view(s) kept")
+    return views, size, name
+
+
+def run_calibration(spec: BoardSpec, input_path: Optional[str] = None, *, config: Optional[str] = None,
+                    out: Optional[str] = None, max_views: int = 20, seconds: Optional[float] = None,
+                    save_views: Optional[Union[str, Path]] = None, drop_outliers: bool = False,
+                    min_coverage: float = DEFAULT_MIN_COVERAGE, fit_k3: bool = False) -> int:
+    """``pose-daemon calibrate``: views from ``input_path`` (a folder of images or a recording)
+    or live from ``config``'s camera, the fit, its report, and the [camera] section written to
+    ``out`` ('-' = stdout, the default without ``config``) and/or into ``config`` in place.
+    Returns the exit status; UserError for every user mistake or a poor calibration."""
+    if config:
+        from ..config import load_config
+
+        load_config(config)   # a broken config is reported before the work, not after
+    # The TOML goes to stdout when nothing else is asked for: the report then goes to stderr.
+    to_stdout = out == "-" or (out is None and not config)
+    stream = sys.stderr if to_stdout else sys.stdout
+
+    def say(line: str) -> None:
+        print(line, file=stream, flush=True)
+
+    say(f"board: {spec.describe()}")
+    if input_path:
+        views, size, name = views_from_path(Path(input_path), spec, max_views=max_views, seconds=seconds,
+                                            save_views=save_views, say=say)
+    else:
+        views, size, name = views_live(spec, config, max_views=max_views, seconds=seconds,
+                                       save_views=save_views, say=say)
+    width, height = size
+    refuse_too_few(views, name)
+
+    result = calibrate_views(views, width, height, fit_k3=fit_k3)
+    report(result, say)
+    if result.outliers and drop_outliers:
+        keep = [v for k, v in enumerate(result.views) if k not in set(result.outliers)]
+        say(f"dropping {len(result.outliers)} outlier view(s) and calibrating again")
+        refuse_too_few(keep, name)
+        result = calibrate_views(keep, width, height, fit_k3=fit_k3)
+        report(result, say)
+    elif result.outliers:
+        say(f"{len(result.outliers)} view(s) flagged as outliers: check them, or run again with "
+            "--drop-outliers to leave them out")
+    if result.coverage < min_coverage:
+        raise UserError(f"poor coverage: the board's corners reached {result.coverage:.0%} of the image "
+                        f"(need {min_coverage:.0%}); add views with the board near the edges and corners")
+
+    cam = result.camera
+    stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    comment = (f"pose-daemon calibrate, {stamp}: {len(result.views)} views of {spec.describe()}\n"
+               f"RMS reprojection error {result.rms_px:.3f} px, image coverage {result.coverage:.0%}")
+    section = camera_toml(cam, comment)
+    if out and out != "-":
+        try:
+            Path(out).write_text(section, encoding="utf-8")
+        except OSError as exc:
+            raise UserError(f"{out}: cannot write: {exc.strerror or exc}") from None
+        say(f"wrote [camera] to {out}")
+    elif to_stdout:
+        sys.stdout.write(section)
+        sys.stdout.flush()
+    if config:
+        update_config_file(config, cam)
+        say(f"updated [camera] in {config}")
+    return 0
 
 
 # --------------------------------------------------------------------------- [camera] TOML
