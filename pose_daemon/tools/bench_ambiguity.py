@@ -221,11 +221,11 @@ def run_strategy(flight: Flight, name: str, prior: Optional[PriorSettings],
         if pose is None:
             continue
         row.sent += 1
-        rot = rotation_angle_deg_3x3(pose.R, flight.R_cam_marker[i])
+        rot = float(rotation_angle_deg_3x3(pose.R, flight.R_cam_marker[i]))
         row.rot_deg.append(rot)
         row.trans_m.append(float(np.linalg.norm(pose.tvec - flight.tvec[i])))
         raw = estimate_pose(corners, CAMERA, MARKER)
-        raw_rot = rotation_angle_deg_3x3(raw.R, flight.R_cam_marker[i])
+        raw_rot = float(rotation_angle_deg_3x3(raw.R, flight.R_cam_marker[i]))
         if rot <= FLIP_DEG and raw_rot <= FLIP_DEG:
             row.both_right_deg.append(rot)
             row.estimator_both_right_deg.append(raw_rot)
