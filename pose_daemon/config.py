@@ -38,6 +38,8 @@ __all__ = [
     "SyntheticConfig",
     "PipelineConfig",
     "MountConfig",
+    "AttitudeConfig",
+    "GateConfig",
     "MavlinkOutputConfig",
     "SerialOutputConfig",
     "JsonlOutputConfig",
@@ -337,6 +339,9 @@ class SyntheticConfig:
     motion_blur_px: float = _key(0.0, Rule("float", lo=0, hi=100), "motion blur length, pixels")
     jpeg_quality: int = _key(0, Rule("int", lo=0, hi=100), "JPEG round trip quality (0 = none)")
     frames: int = _key(0, Rule("int", lo=0, hi=10**9), "frames before end of stream (0 = endless)")
+    attitude: bool = _key(True, Rule("bool"), "frames carry the vehicle's true attitude (plus the noise and lag below)")
+    attitude_noise_deg: float = _key(0.5, Rule("float", lo=0, hi=30), "attitude noise sigma per axis, degrees")
+    attitude_lag_s: float = _key(0.0, Rule("float", lo=0, hi=1), "attitude lags the frame by this much, seconds")
 
 
 @dataclass(frozen=True)
@@ -362,6 +367,43 @@ class MountConfig:
                                            "custom mount: roll, pitch, yaw of the camera on the body, degrees")
     offset_m: Tuple[float, ...] = _key([0.0, 0.0, 0.0], Rule("floats", lengths=(3,), lo=-100, hi=100),
                                        "camera position in the body frame (FRD), metres")
+
+
+@dataclass(frozen=True)
+class AttitudeConfig:
+    """The vehicle's attitude at capture time, for the choice of the planar solution."""
+
+    source: str = _key("mavlink", Rule("str", nonempty=True),
+                       '"mavlink": from the [output.mavlink] link (none without one), a pymavlink '
+                       'connection string to listen on, or "none"')
+    max_age_s: float = _key(0.5, Rule("float", lo=0, hi=10, lo_open=True),
+                            "no attitude message for this long = no attitude")
+    max_extrapolation_s: float = _key(0.05, Rule("float", lo=0, hi=1),
+                                      "furthest past the newest attitude sample a capture time may be")
+    sigma_deg: float = _key(1.0, Rule("float", lo=0, hi=30), "stated accuracy of roll and pitch, degrees")
+    max_error_deg: float = _key(15.0, Rule("float", lo=0, hi=90, lo_open=True),
+                                "a pose whose down is further from the attitude's (and 3 sigma) is inconsistent: not sent")
+    max_tilt_deg: float = _key(0.0, Rule("float", lo=0, hi=90, hi_open=True),
+                               "without attitude: the vehicle tilts at most this much (0 = no tilt prior)")
+    polish: bool = _key(True, Rule("bool"), "re-fit the chosen pose with the attitude's roll and pitch as a weighted prior")
+
+    def check(self) -> None:
+        s = self.source.strip()
+        if s not in ("mavlink", "none") and not (":" in s or s.startswith("/")):
+            raise _Invalid("source", '"mavlink", "none" or a pymavlink connection string '
+                           '(udpin:HOST:PORT, /dev/ttyACM0, tcp:HOST:PORT)', self.source)
+
+
+@dataclass(frozen=True)
+class GateConfig:
+    """The quality gate: poses that fit their corners worse than corner noise explains are not sent."""
+
+    max_rms_px: float = _key(1.0, Rule("float", lo=0, hi=100),
+                             "reprojection RMS bound, pixels (0 = no gate)")
+    max_rms_frac: float = _key(0.01, Rule("float", lo=0, hi=1),
+                               "... raised to this fraction of the marker's side for large markers")
+    max_view_deg: float = _key(55.0, Rule("float", lo=0, hi=90),
+                               "a marker seen further off its face than this is not believed (0 = any angle)")
 
 
 @dataclass(frozen=True)
@@ -476,6 +518,8 @@ SECTIONS: Dict[str, type] = {
     "synthetic": SyntheticConfig,
     "pipeline": PipelineConfig,
     "mount": MountConfig,
+    "attitude": AttitudeConfig,
+    "gate": GateConfig,
     "logging": LoggingConfig,
 }
 # Sections that are None unless present (enabled by their table, like the outputs).
@@ -500,6 +544,8 @@ class Config:
     synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
     mount: MountConfig = field(default_factory=MountConfig)
+    attitude: AttitudeConfig = field(default_factory=AttitudeConfig)
+    gate: GateConfig = field(default_factory=GateConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
     preview: Optional[PreviewConfig] = None

@@ -279,6 +279,16 @@ def R_from_euler_rpy(roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
     return rot_z(yaw_rad) @ rot_y(-np.asarray(pitch_rad, dtype=np.float64)) @ rot_x(roll_rad)
 
 
+def R_from_euler_rpy_3x3(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
+    """R_from_euler_rpy for one set of angles without the stack machinery (per-frame path)."""
+    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                     [-sp, cp * sr, cp * cr]])
+
+
 def euler_rpy_from_R(R: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(roll, pitch, yaw) in radians of R = Rz(yaw) Ry(pitch) Rx(roll); pitch in [-90, 90] deg."""
     R = np.asarray(R, dtype=np.float64)
@@ -381,3 +391,31 @@ class VehicleFrames:
     def R_local_cam(self, R_cam_marker: np.ndarray) -> np.ndarray:
         """Camera axes in the local frame: turns camera-frame covariances into local ones."""
         return self.R_local_marker @ np.asarray(R_cam_marker, dtype=np.float64).T
+
+    # -- which way is down (the gravity prior): unit vectors in the camera frame
+
+    def down_cam_from_marker(self, R_cam_marker: np.ndarray) -> np.ndarray:
+        """The local frame's down (gravity) in the camera frame, as the marker pose says:
+        the placement fixes where down is in the marker frame."""
+        return np.asarray(R_cam_marker, dtype=np.float64) @ self.R_local_marker[2]
+
+    def down_cam_from_attitude(self, roll_rad: float, pitch_rad: float) -> np.ndarray:
+        """Down in the camera frame for a body at ``roll_rad``/``pitch_rad`` (yaw plays no part:
+        down is the third row of R_local_body = Rz(yaw) Ry(pitch) Rx(roll), which yaw leaves
+        alone: (-sin p, cos p sin r, cos p cos r))."""
+        cp = math.cos(pitch_rad)
+        down_body = np.array([-math.sin(pitch_rad), cp * math.sin(roll_rad), cp * math.cos(roll_rad)])
+        return self.R_cam_body @ down_body
+
+    @property
+    def down_cam_level(self) -> np.ndarray:
+        """Down in the camera frame of a level vehicle (the body's z axis)."""
+        return self.R_cam_body[:, 2].copy()
+
+
+def angle_between_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle between two 3-vectors, degrees (atan2 form: exact near 0 and 180)."""
+    (a0, a1, a2), (b0, b1, b2) = np.asarray(a, dtype=np.float64).tolist(), np.asarray(b, dtype=np.float64).tolist()
+    # Plain floats: the per-frame choice calls this a few times, numpy's cross costs 20x more.
+    cx, cy, cz = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+    return math.degrees(math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), a0 * b0 + a1 * b1 + a2 * b2))

@@ -147,6 +147,8 @@ class PipelineStats:
             if result.ok:
                 self.detected += 1
                 self._detected_w += 1
+            elif result.choice is not None and result.choice.withheld:
+                self.drops[result.choice.withheld] += 1  # "inconsistent" / "gated": not sent
             for stage, value in stages.items():
                 self.window.add(stage, value)
 
@@ -299,7 +301,19 @@ class Pipeline:
             self._source_state = state
 
     def status_line(self, reset: bool = True) -> str:
-        return self.stats.status_line(self.source_state, [self.output_state(o) for o in self.outputs], reset)
+        return self.stats.status_line(self.source_state, self.processor_state()
+                                      + [self.output_state(o) for o in self.outputs], reset)
+
+    def processor_state(self) -> List[str]:
+        """The processor's own ``status()`` text (the attitude's freshness), if it has one."""
+        status = getattr(self.processor, "status", None)
+        if not callable(status):
+            return []
+        try:
+            text = status()
+        except Exception as exc:  # a status text must never take the daemon down
+            return [f"processor status failed: {exc}"]
+        return [str(text)] if text else []
 
     def output_state(self, output: Output) -> str:
         """"name N sent (...)": results written, with the output's own ``status()`` text."""

@@ -3,14 +3,15 @@
 FrameProcessor only runs the stages; each runs inside ``timed(result, stage)``, so the
 per-stage latency in ``FrameResult.stage_s`` is a by-product. Never raises for a bad frame:
 the FrameResult says what went wrong. The choice between a plain square's two planar
-solutions is pose/continuity.py's.
+solutions is pose/prior.py's (attitude, tilt prior and quality gate), falling back on
+pose/continuity.py's track.
 """
 
 from __future__ import annotations
 
 import time
 from contextlib import contextmanager
-from typing import Iterator, Optional
+from typing import Any, Callable, Iterator, Optional
 
 import cv2
 import numpy as np
@@ -19,9 +20,11 @@ from .camera import Camera, Marker
 from .capture.base import Frame
 from .config import DetectorConfig, EstimatorConfig
 from .detect import MarkerDetector
-from .pose.continuity import Track
+from .geometry import VehicleFrames
+from .pose.continuity import Track, choose_by_continuity
 from .pose.estimator import estimate_pose
-from .pose.types import EstimationError
+from .pose.prior import CornerNoise, HeadingReference, PriorSettings, choose_solution
+from .pose.types import EstimationError, Pose
 from .result import FrameResult
 
 
@@ -37,10 +40,15 @@ def timed(result: FrameResult, stage: str) -> Iterator[None]:
 
 
 class FrameProcessor:
-    """detect -> estimate for one marker and one camera."""
+    """detect -> estimate -> choose the planar solution, for one marker and one camera."""
 
     def __init__(self, camera: Camera, marker: Marker, *, method: str = "iterative",
-                 iterations: int = 5, refine: bool = True, detector=None) -> None:
+                 iterations: int = 5, refine: bool = True, detector=None,
+                 frames: Optional[VehicleFrames] = None, prior: Optional[PriorSettings] = None,
+                 attitude_source: Any = None, clock: Callable[[], float] = time.monotonic) -> None:
+        """``frames``: mount and placement (default: forward camera, wall marker); ``prior``:
+        the gate and tilt bounds; ``attitude_source``: an ``attitude_at(t_capture_s, t_now_s)``
+        (attitude.AutopilotAttitude) asked when a frame carries no attitude of its own."""
         self.camera = camera
         self.marker = marker
         self.method = method
@@ -48,27 +56,51 @@ class FrameProcessor:
         self.refine = refine
         self.detector = detector if detector is not None else MarkerDetector(marker, camera=camera)
         self.track = Track()
+        self.frames = frames if frames is not None else VehicleFrames.from_settings()
+        self.prior = prior if prior is not None else PriorSettings()
+        self.attitude_source = attitude_source
+        self._clock = clock
+        # The autopilot's heading reference against the marker's: outlives tracks.
+        self.heading = HeadingReference()
+        self.corner_noise = CornerNoise()
+        self.frames_seen = self.frames_with_attitude = 0
 
     @classmethod
     def from_models(cls, camera: Camera, marker: Marker, estimator: EstimatorConfig,
-                    detector: DetectorConfig) -> FrameProcessor:
+                    detector: DetectorConfig, *, frames: Optional[VehicleFrames] = None,
+                    prior: Optional[PriorSettings] = None, attitude_source: Any = None) -> FrameProcessor:
         """The processor for a camera and marker model with the [estimator] and [detector]
-        keys of a Config (replay takes the camera and marker from the recording)."""
+        keys of a Config (replay takes the camera and marker from the recording); ``frames``,
+        ``prior`` and ``attitude_source`` as for the constructor (defaults: its defaults)."""
         return cls(camera, marker, method=estimator.method, iterations=estimator.iterations,
                    refine=estimator.refine,
                    detector=MarkerDetector(marker, max_misses=detector.max_misses,
                                            min_side_px=detector.min_side_px, camera=camera,
-                                           gamma=detector.gamma))
+                                           gamma=detector.gamma),
+                   frames=frames, prior=prior, attitude_source=attitude_source)
 
     @classmethod
     def from_config(cls, cfg) -> FrameProcessor:
-        """The processor a Config asks for: its camera, marker, estimator and detector keys."""
-        return cls.from_models(cfg.camera.model(), cfg.marker.model(), cfg.estimator, cfg.detector)
+        """The processor a Config asks for: its camera, marker, estimator, detector, mount,
+        [attitude] and [gate] keys."""
+        return cls.from_models(cfg.camera.model(), cfg.marker.model(), cfg.estimator, cfg.detector,
+                               frames=VehicleFrames.from_config(cfg.mount, cfg.marker.placement),
+                               prior=PriorSettings.from_config(cfg))
 
     @property
     def flips(self) -> int:
-        """Frames whose ambiguous pose was flipped to the alternative by continuity."""
+        """Frames whose ambiguous pose was flipped to the alternative (by continuity or a prior)."""
         return self.track.flips
+
+    def status(self) -> Optional[str]:
+        """The attitude's freshness for the status line: the live source's figures, or how
+        many frames came with an attitude of their own (None when none ever did)."""
+        status = getattr(self.attitude_source, "status", None)
+        if callable(status):
+            return status(self._clock())
+        if self.frames_with_attitude:
+            return f"attitude in {self.frames_with_attitude}/{self.frames_seen} frames"
+        return None
 
     def reset(self) -> None:
         """Forget tracking state (after a source restart or a long gap)."""
@@ -76,7 +108,11 @@ class FrameProcessor:
         self.track.reset()
 
     def process(self, frame: Frame) -> FrameResult:
-        result = FrameResult(seq=frame.seq, t_capture_s=frame.t_capture_s)
+        result = FrameResult(seq=frame.seq, t_capture_s=frame.t_capture_s, attitude=frame.attitude)
+        if result.attitude is None and self.attitude_source is not None:
+            result.attitude = self.attitude_source.attitude_at(frame.t_capture_s, self._clock())
+        self.frames_seen += 1
+        self.frames_with_attitude += result.attitude is not None
         try:
             with timed(result, "detect"):
                 corners: Optional[np.ndarray] = self.detector.detect(frame.image)
@@ -98,5 +134,23 @@ class FrameProcessor:
                 result.error = f"pose: {exc}"
                 self.track.reset()
             else:
-                result.pose = self.track.choose(pose)
+                result.pose = self._choose(pose, corners, result)
         return result
+
+    def _choose(self, pose: Pose, corners: np.ndarray, result: FrameResult) -> Optional[Pose]:
+        """The prior's choice between the planar solutions (the track's where the prior has no
+        say), or None with ``result.error`` saying why the pose is withheld. The track follows
+        the pose finally sent; a withheld pose leaves it as it was."""
+        side_px = float(np.mean(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1)))
+        choice = choose_solution(pose, self.frames, attitude=result.attitude, settings=self.prior,
+                                 side_px=side_px,
+                                 by_continuity=lambda p: choose_by_continuity(p, self.track.normal_ref),
+                                 corners_px=corners, camera=self.camera, marker=self.marker,
+                                 heading=self.heading, corner_sigma_px=self.corner_noise.sigma_px)
+        self.corner_noise.observe(pose.reprojection_error_px)
+        result.choice = choice
+        if choice.pose is None:
+            result.error = f"{choice.withheld}: {choice.reason}"
+            return None
+        self.track.follow(choice.pose, flipped=choice.flipped)
+        return choice.pose

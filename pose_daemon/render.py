@@ -22,7 +22,7 @@ import numpy as np
 
 from .camera import Camera, Marker
 from .detect.response import Response, check_response, decode, encode, is_linear
-from .geometry import R_UNROT_MARKER, R_from_rvec, rot_z, rvec_from_R
+from .geometry import R_UNROT_MARKER, R_from_rvec, VehicleFrames, rot_z, rvec_from_R
 
 __all__ = [
     "Effects",
@@ -42,6 +42,8 @@ __all__ = [
 ]
 
 TRAJECTORIES = ("wall", "floor")
+# The camera mount each trajectory flies with: it looks at a wall marker ahead, a floor marker below.
+TRAJECTORY_MOUNTS = {"wall": "forward", "floor": "down"}
 
 
 @dataclass
@@ -766,6 +768,17 @@ class Trajectory:
         R_cam_unrot = rot_z(roll) @ _aim(p_marker, look_off)
         R = R_cam_unrot @ R_UNROT_MARKER
         return TruePose(t_s=float(t_s), rvec=rvec_from_R(R), tvec=-R @ p_marker)
+
+    def frames(self) -> VehicleFrames:
+        """The mount and placement this trajectory flies with (TRAJECTORY_MOUNTS)."""
+        return VehicleFrames.from_settings(TRAJECTORY_MOUNTS[self.kind], placement=self.kind)
+
+    def attitude_at(self, t_s: float, frames: Optional[VehicleFrames] = None) -> Tuple[float, float, float]:
+        """The vehicle body's true (roll, pitch, yaw) in the local frame at ``t_s``, radians,
+        for a camera on ``frames`` (default: ``self.frames()``)."""
+        truth = self.at(t_s)
+        vehicle = (frames or self.frames()).vehicle_pose(R_from_rvec(truth.rvec), truth.tvec)
+        return vehicle.rpy_rad
 
 
 def _aim(p_marker: np.ndarray, look_off: np.ndarray) -> np.ndarray:

@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, Optional
+from typing import TYPE_CHECKING, Dict, Optional
 
 import numpy as np
 
 from .pose.types import Pose
+
+if TYPE_CHECKING:
+    from .attitude import Attitude
+    from .pose.prior import Choice
 
 
 @dataclass
@@ -24,6 +28,10 @@ class FrameResult:
     # Capture -> handed to the outputs (the daemon) or the processing time (replay): the JSON's
     # latency_ms.
     latency_s: Optional[float] = None
+    # The vehicle's attitude at capture time when known, and how the solution was chosen
+    # (or why the pose was withheld: choice.withheld "inconsistent" / "gated").
+    attitude: Optional[Attitude] = None
+    choice: Optional[Choice] = None
     # Monotonic time the pipeline handed the result to the outputs (None outside a pipeline).
     t_dispatch_s: Optional[float] = None
 
@@ -37,8 +45,12 @@ class FrameResult:
             out["corners"] = [[round(float(u), 3), round(float(v), 3)] for u, v in self.corners]
         if self.pose is not None:
             out.update(self.pose.to_dict())
+            if self.choice is not None and self.choice.resolved_by is not None:
+                out["flip_resolved_by"] = self.choice.resolved_by
         else:
             out["error"] = self.error or "no marker"
+            if self.choice is not None and self.choice.withheld is not None:
+                out["withheld"] = self.choice.withheld
         if self.latency_s is not None:
             out["latency_ms"] = round(self.latency_s * 1e3, 3)
         return out

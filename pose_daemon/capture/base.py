@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Dict, Protocol, runtime_checkable
+from typing import Any, Dict, Optional, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
+
+from ..attitude import Attitude
 
 
 @dataclass
@@ -14,13 +16,15 @@ class Frame:
     """One grayscale image with its capture time.
 
     ``t_capture_s`` is the sensor time stamp where the camera gives one, on the monotonic
-    clock (seconds); it is carried unchanged to every output.
+    clock (seconds); it is carried unchanged to every output. ``attitude``: the vehicle's at
+    ``t_capture_s`` when the source knows it (a recording, the synthetic source), else None.
     """
 
     image: np.ndarray
     t_capture_s: float
     seq: int
     metadata: Dict[str, Any] = field(default_factory=dict)
+    attitude: Optional[Attitude] = None
 
 
 @runtime_checkable

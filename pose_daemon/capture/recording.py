@@ -6,7 +6,10 @@
     DIR/index.jsonl      one line per frame: {"seq": 0, "file": "frames/000000.png",
                           "t_capture_s": 12.345678} plus, from the synthetic source, the
                           truth: "true_rvec", "true_tvec" (marker in camera frame, rad / m),
-                          "true_corners" ([[u, v] x 4], px, TL TR BR BL)
+                          "true_corners" ([[u, v] x 4], px, TL TR BR BL); and when the
+                          frame had one, the vehicle's attitude: "attitude_rpy_rad" ([roll,
+                          pitch, yaw], body FRD in local NED, Z-Y-X) and optionally
+                          "attitude_sigma_rad" (interface.md)
     DIR/frames/NNNNNN.png  8-bit grey frames
 """
 
@@ -21,6 +24,7 @@ from typing import Any, Dict, List, Optional, Union
 import cv2
 import numpy as np
 
+from ..attitude import Attitude
 from ..camera import Camera, Marker
 from ..errors import SourceError
 from .base import Frame
@@ -32,6 +36,7 @@ INDEX_FILE = "index.jsonl"
 
 _log = logging.getLogger(__name__)
 TRUTH_KEYS = ("true_rvec", "true_tvec", "true_corners")
+ATTITUDE_KEY, ATTITUDE_SIGMA_KEY = "attitude_rpy_rad", "attitude_sigma_rad"
 
 
 def is_recording(path: Union[str, Path]) -> bool:
@@ -76,6 +81,10 @@ class RecordingWriter:
         for key in TRUTH_KEYS:
             if key in frame.metadata:
                 entry[key] = np.asarray(frame.metadata[key], dtype=np.float64).tolist()
+        if frame.attitude is not None:
+            entry[ATTITUDE_KEY] = [float(v) for v in frame.attitude.rpy_rad]
+            if frame.attitude.sigma_rad is not None:
+                entry[ATTITUDE_SIGMA_KEY] = float(frame.attitude.sigma_rad)
         self._index.write(json.dumps(entry) + "\n")
         self._index.flush()
         self.count += 1
@@ -156,6 +165,7 @@ def read_index(path: Union[str, Path]) -> List[Dict[str, Any]]:
                                   "the recording folder (absolute, or with ..)")
             entry["t_capture_s"] = float(entry["t_capture_s"])
             entry["seq"] = int(entry.get("seq", len(entries)))
+            entry["attitude"] = attitude_from_entry(entry)
         except (ValueError, KeyError, TypeError) as exc:
             if n == len(lines) and not text.endswith("\n"):
                 _log.warning("%s:%d: skipping the unfinished last line (recording cut off)", index_path, n)
@@ -163,3 +173,19 @@ def read_index(path: Union[str, Path]) -> List[Dict[str, Any]]:
             raise SourceError(f"{index_path}:{n}: not a frame entry ({exc})") from exc
         entries.append(entry)
     return entries
+
+
+def attitude_from_entry(entry: Dict[str, Any]) -> Optional[Attitude]:
+    """The frame's attitude from an index entry (None when the line has none); ValueError
+    naming the key for a value that is not an attitude."""
+    if ATTITUDE_KEY not in entry:
+        if ATTITUDE_SIGMA_KEY in entry:
+            raise ValueError(f"{ATTITUDE_SIGMA_KEY} without {ATTITUDE_KEY}")
+        return None
+    rpy, sigma = entry[ATTITUDE_KEY], entry.get(ATTITUDE_SIGMA_KEY)
+    if (not isinstance(rpy, list) or len(rpy) != 3
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in rpy)):
+        raise ValueError(f"{ATTITUDE_KEY} must be [roll, pitch, yaw] in radians, got {rpy!r}")
+    if sigma is not None and (isinstance(sigma, bool) or not isinstance(sigma, (int, float))):
+        raise ValueError(f"{ATTITUDE_SIGMA_KEY} must be a number of radians, got {sigma!r}")
+    return Attitude(tuple(float(v) for v in rpy), None if sigma is None else float(sigma))

@@ -133,7 +133,7 @@ class ReplaySource:
                 if key in entry:
                     metadata[key] = np.asarray(entry[key], dtype=np.float64)
             return Frame(image=gray, t_capture_s=entry["t_capture_s"], seq=entry["seq"],
-                         metadata=metadata)
+                         metadata=metadata, attitude=entry.get("attitude"))
         raise EndOfStream(f"end of {self.path}")
 
     def read(self) -> Frame:

@@ -9,6 +9,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any, Optional, Tuple
 
 from ..errors import SourceError
+from ..geometry import VehicleFrames
 from .base import FrameSource
 
 if TYPE_CHECKING:  # config imports this module: no import back at run time
@@ -51,9 +52,9 @@ def open_source(camera: CameraConfig, cfg: Optional[Config] = None, *,
                 realtime: bool = True) -> FrameSource:
     """The frame source ``camera.source`` names, constructed but not opened.
 
-    ``camera``: the [camera] section; ``cfg``: the whole config (its ``marker`` and
-    ``synthetic`` sections are used by the synthetic source). ``realtime`` False: replay and
-    synthetic frames as fast as they can be read. SourceError for a source string that
+    ``camera``: the [camera] section; ``cfg``: the whole config (its ``marker``, ``synthetic``
+    and ``mount`` sections are used by the synthetic source, the mount for its simulated
+    attitude). ``realtime`` False: replay and synthetic frames as fast as they can be read. SourceError for a source string that
     ``parse_source`` refuses (config validation refuses it first).
     """
     try:
@@ -71,7 +72,9 @@ def open_source(camera: CameraConfig, cfg: Optional[Config] = None, *,
                           motion_blur_px=syn.motion_blur_px, jpeg_quality=syn.jpeg_quality)
         return SyntheticSource(camera.model(), cfg.marker.model(), trajectory=syn.trajectory,
                                seed=syn.seed, fps=camera.fps, frames=syn.frames, effects=effects,
-                               realtime=realtime)
+                               realtime=realtime, attitude=syn.attitude,
+                               attitude_noise_deg=syn.attitude_noise_deg, attitude_lag_s=syn.attitude_lag_s,
+                               frames_on_vehicle=VehicleFrames.from_config(cfg.mount, cfg.marker.placement))
     if kind == "picamera2":
         from .picamera2 import Picamera2Source
 

@@ -1,15 +1,19 @@
 """The synthetic source: the renderer along a configured trajectory, paced at the camera's
-frame rate; every frame's metadata carries its true pose and corners."""
+frame rate; every frame's metadata carries its true pose and corners, and the frame the
+vehicle's attitude as an autopilot would give it (the truth plus noise and lag)."""
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Callable, Optional
 
 import numpy as np
 
+from ..attitude import Attitude
 from ..camera import Camera, Marker
 from ..errors import EndOfStream, SourceError
+from ..geometry import VehicleFrames
 from ..render import Effects, Trajectory, make_background, render_marker
 from .base import Frame
 
@@ -27,16 +31,29 @@ class SyntheticSource:
     renders) restarts the schedule at the present frame, as a camera does: it never hands
     out a backlog of frames stamped in the past, which would all be too old to use. Each
     restart is counted in ``restarts``; the trajectory goes on from where it was.
+
+    ``attitude``: each frame carries the body's attitude ``attitude_lag_s`` before its
+    capture (an autopilot's estimate lags) plus Gaussian noise of ``attitude_noise_deg``
+    per axis (its own random stream: the images do not change with it), stated with that
+    sigma; for a camera on ``frames`` (default: the trajectory's mount and placement).
     """
 
     def __init__(self, camera: Camera, marker: Marker, *, trajectory: str = "wall", seed: int = 0,
                  fps: float = 30.0, frames: int = 0, effects: Optional[Effects] = None,
                  realtime: bool = True, clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep) -> None:
+                 sleep: Callable[[float], None] = time.sleep, attitude: bool = True,
+                 attitude_noise_deg: float = 0.5, attitude_lag_s: float = 0.0,
+                 frames_on_vehicle: Optional[VehicleFrames] = None) -> None:
         if fps <= 0:
             raise SourceError(f"synthetic source: fps must be positive, got {fps}")
+        if not (attitude_noise_deg >= 0 and attitude_lag_s >= 0):
+            raise SourceError("synthetic source: attitude noise and lag must be >= 0")
+        self.attitude = attitude
+        self.attitude_noise_deg, self.attitude_lag_s = float(attitude_noise_deg), float(attitude_lag_s)
         self.camera, self.marker = camera, marker
         self.path = Trajectory(trajectory, seed, camera, marker)
+        self.vehicle_frames = frames_on_vehicle if frames_on_vehicle is not None else self.path.frames()
+        self._attitude_rng: Optional[np.random.Generator] = None
         self.seed, self.fps, self.frames = seed, float(fps), int(frames)
         self.effects = effects if effects is not None else Effects()
         self.realtime = realtime
@@ -49,6 +66,7 @@ class SyntheticSource:
 
     def open(self) -> None:
         self._rng = np.random.default_rng(self.seed)
+        self._attitude_rng = np.random.default_rng([self.seed, 1])
         # One background for the whole run: a camera on a robot sees the same room.
         self._background = make_background(self._rng, self.camera.width, self.camera.height,
                                            self.effects.background, self.effects.plain_gray)
@@ -77,9 +95,19 @@ class SyntheticSource:
         frame = Frame(image=rendered.image, t_capture_s=t_capture, seq=self._seq,
                       metadata={"true_rvec": truth.rvec, "true_tvec": truth.tvec,
                                 "true_corners": rendered.corners_px, "visible": rendered.visible,
-                                "trajectory_t_s": t_traj})
+                                "trajectory_t_s": t_traj},
+                      attitude=self._attitude(t_traj))
         self._seq += 1
         return frame
+
+    def _attitude(self, t_traj_s: float) -> Optional[Attitude]:
+        if not self.attitude:
+            return None
+        rpy = np.asarray(self.path.attitude_at(t_traj_s - self.attitude_lag_s, self.vehicle_frames))
+        assert self._attitude_rng is not None
+        sigma = math.radians(self.attitude_noise_deg)
+        rpy = rpy + self._attitude_rng.normal(0.0, 1.0, 3) * sigma
+        return Attitude(tuple(float(v) for v in rpy), sigma)
 
     def close(self) -> None:
         self._rng = None

@@ -1,4 +1,4 @@
-"""``pose-daemon bench {estimator,detector,pipeline,outputs}``: benchmarks that print figures.
+"""``pose-daemon bench {estimator,detector,pipeline,outputs,ambiguity}``: benchmarks that print figures.
 
 Each benchmark is ``run_bench(...)`` (parameters in, report out) and ``print_report(report)``
 in ``pose_daemon/tools/bench_<name>.py``; this file holds their arguments.
@@ -18,6 +18,7 @@ BENCHES = {
     "pipeline": "end-to-end latency (capture -> bytes written) and memory over a long run",
     "outputs": "time each output takes from publish to bytes written on its link",
     "quality": "the quality sent to the autopilot against the pose's true error (rendered hovers)",
+    "ambiguity": "mirror-pose flips per way of choosing the planar solution, and the gate on clutter",
 }
 
 
@@ -37,7 +38,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p["detector"].add_argument("--seed", type=int, default=0, help="random seed of poses and images")
     p["detector"].add_argument("--repeat", type=int, default=3, metavar="K",
                                help="time each frame K times and keep the fastest (default 3)")
-    for name in ("estimator", "detector", "quality"):
+    p["ambiguity"].add_argument("--frames", type=int, default=300, metavar="N",
+                                help="frames per flight (default 300)")
+    p["ambiguity"].add_argument("--clutter", type=int, default=500, metavar="N",
+                                help="marker-free clutter frames (default 500, 0 = none)")
+    p["ambiguity"].add_argument("--seed", type=int, default=0, help="random seed of flights, noise and clutter")
+    for name in ("estimator", "detector", "quality", "ambiguity"):
         p[name].add_argument("--json", action="store_true", help="print one JSON object instead of tables")
     p["pipeline"].add_argument("--frames", type=int, default=3000,
                                help="frames to run (default 3000; 20000 for the memory figure)")
@@ -78,6 +84,10 @@ def run(a: argparse.Namespace) -> int:
     elif a.bench == "quality":
         _check(a.frames >= 1, f"--frames must be at least 1, got {a.frames}")
         report = bench.run_bench(a.frames, a.seed)
+    elif a.bench == "ambiguity":
+        _check(a.frames >= 30, f"--frames must be at least 30, got {a.frames}")
+        _check(a.clutter >= 0, f"--clutter must be 0 or more, got {a.clutter}")
+        report = bench.run_bench(a.frames, a.clutter, a.seed)
     else:
         _check(a.poses >= 1, f"--poses must be at least 1, got {a.poses}")
         report = bench.run_bench(a.poses)

@@ -57,9 +57,14 @@ class Track:
     def choose(self, pose: Pose) -> Pose:
         """choose_by_continuity against the track, then the track follows the chosen pose."""
         chosen = choose_by_continuity(pose, self.normal_ref)
-        if chosen is not pose:
+        self.follow(chosen, flipped=chosen is not pose)
+        return chosen
+
+    def follow(self, chosen: Pose, *, flipped: bool = False) -> None:
+        """The track follows ``chosen``, the pose finally sent whoever chose it (continuity or
+        the attitude prior); ``flipped``: it is the estimator's alternative, counted in flips."""
+        if flipped:
             self.flips += 1
         n = chosen.R[:, 2]
         self.normal_ref = n.copy() if self.normal_ref is None else (
             (1.0 - NORMAL_SMOOTHING) * self.normal_ref + NORMAL_SMOOTHING * n)
-        return chosen

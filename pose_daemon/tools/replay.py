@@ -12,7 +12,9 @@ from ..capture import recording
 from ..capture.replay import ReplaySource
 from ..config import load_config_or_default
 from ..errors import EndOfStream, SourceError, UserError
+from ..geometry import VehicleFrames
 from ..outputs.jsonl import json_line
+from ..pose.prior import PriorSettings
 from ..processing import FrameProcessor
 from ..result import FrameResult
 from .accuracy import Accuracy
@@ -59,7 +61,9 @@ def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = No
         if ignored:
             print(f"pose-daemon: note: {path} has its own {' and '.join(ignored)}, used instead of "
                   f"those of {config}", file=sys.stderr)
-    processor = FrameProcessor.from_models(camera, marker, cfg.estimator, cfg.detector)
+    processor = FrameProcessor.from_models(
+        camera, marker, cfg.estimator, cfg.detector, prior=PriorSettings.from_config(cfg),
+        frames=VehicleFrames.from_config(cfg.mount, cfg.marker.placement))
     annotate_dir: Optional[Path] = None
     if annotate:
         annotate_dir = Path(annotate)

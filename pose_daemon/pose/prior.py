@@ -1,0 +1,454 @@
+"""Which planar solution to send, if any: the quality gate and the gravity prior.
+
+A square's four corners fit two poses (the estimator's ``pose`` and its ``alternative``);
+on small markers the wrong one often fits best. The vehicle knows which way is down: with
+the camera mount and the marker placement, roll and pitch give the direction of gravity in
+the camera frame, and each solution implies one too (from where the marker says down is).
+The solution that agrees is chosen; when neither does the frame is ``inconsistent`` (not
+sent). Without attitude, ``max_tilt_deg`` (the vehicle is near level) plays the same part,
+and the track's continuity decides what is left. Before any of this, a pose whose
+reprojection error is more than corner noise explains is not sent (``gated``): marker-free
+rectangles fit a square's model worse than a marker does.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Callable, Deque, List, Optional, Sequence, Tuple
+
+import cv2
+import numpy as np
+
+from ..attitude import Attitude
+from ..camera import Camera, Marker
+from ..geometry import (
+    R_from_euler_rpy_3x3,
+    VehicleFrames,
+    angle_between_deg,
+    paper_angles_deg_from_R_cam_marker,
+    rotation_angle_deg_3x3,
+)
+from .types import Pose
+
+__all__ = ["PriorSettings", "Choice", "CornerNoise", "HeadingReference", "RESOLVED_BY", "choose_solution", "gate_bound_px",
+           "polish_toward", "polish_toward_down"]
+
+# flip_resolved_by: what picked the solution that was sent.
+#   "attitude":   the autopilot's roll/pitch ruled one solution out (or clearly favoured it)
+#   "tilt":       the vehicle-near-level prior ruled one out
+#   "continuity": both were possible; the track's previous poses chose (at a track's first
+#                 frame, the better fit)
+#   "clear":      only one solution fits the corners (or both are the same pose)
+RESOLVED_BY = ("attitude", "tilt", "continuity", "clear")
+# Two solutions closer than this are one pose: nothing to choose (a face-on view).
+SAME_POSE_DEG = 5.0
+# A heading this far off the learnt reference in 5 frames in a row: the reference moved.
+HEADING_RESET_DEG = 30.0
+# Both candidates are polished unless the cheaper's unpolished cost is this much lower (sigma^2).
+POLISH_BOTH_BELOW = 25.0
+# No attitude is trusted to better than this in the polish, degrees.
+MIN_PRIOR_SIGMA_DEG = 0.25
+# The vision side's own share of the error in the down direction (small markers), degrees.
+VISION_DOWN_SIGMA_DEG = 1.0
+
+
+@dataclass(frozen=True)
+class PriorSettings:
+    """The choice's bounds (config: [attitude] and [estimator] keys)."""
+
+    max_tilt_deg: float = 0.0          # 0: no tilt prior
+    attitude_bound_deg: float = 15.0   # a solution whose down is further from the attitude's disagrees
+    gate_rms_px: float = 1.0           # reprojection RMS bound for small markers, pixels
+    gate_rms_frac: float = 0.01        # ... and as a fraction of the marker's side for large ones
+    max_view_deg: float = 55.0         # a marker seen further off its face than this is not believed (0 = any)
+    gate: bool = True
+    attitude_sigma_deg: float = 1.0    # an attitude's accuracy when it does not state one
+    polish: bool = True                # re-fit the chosen pose with the attitude's down as a prior term
+    corner_sigma_px: float = 0.3       # corner noise the polish weighs the prior against, until measured
+
+    @classmethod
+    def from_config(cls, cfg) -> PriorSettings:
+        """From a Config's [attitude] and [gate] sections."""
+        return cls(max_tilt_deg=cfg.attitude.max_tilt_deg, attitude_bound_deg=cfg.attitude.max_error_deg,
+                   gate_rms_px=cfg.gate.max_rms_px, gate_rms_frac=cfg.gate.max_rms_frac,
+                   max_view_deg=cfg.gate.max_view_deg,
+                   gate=cfg.gate.max_rms_px > 0, attitude_sigma_deg=cfg.attitude.sigma_deg,
+                   polish=cfg.attitude.polish)
+
+
+@dataclass(frozen=True)
+class Choice:
+    """The outcome for one frame: ``pose`` to send with ``resolved_by``, or ``withheld``
+    ("inconsistent" or "gated") with ``reason``. ``down_error_deg``: the chosen pose's
+    angle to the attitude's down (with attitude) or its tilt (tilt prior), else None."""
+
+    pose: Optional[Pose]
+    resolved_by: Optional[str] = None
+    withheld: Optional[str] = None
+    reason: str = ""
+    down_error_deg: Optional[float] = None
+    flipped: bool = False  # the estimator's alternative was chosen over its better fit
+
+
+def gate_bound_px(settings: PriorSettings, side_px: float) -> float:
+    """The reprojection RMS a real marker of ``side_px`` (mean side, pixels) stays under.
+
+    Corner noise is about the same number of pixels whatever the marker's size (a floor of
+    ``gate_rms_px``, which also keeps small markers, whose corners are the noisiest, from
+    being held to a fraction of a pixel they cannot meet); lens-model and blur errors grow
+    with the image of the marker (``gate_rms_frac`` of its side)."""
+    return max(settings.gate_rms_px, settings.gate_rms_frac * float(side_px))
+
+
+def view_angle_deg(pose: Pose) -> float:
+    """How far off its face the camera sees the marker: the angle between the marker's normal
+    and the direction from its centre to the camera, degrees (0 = face-on)."""
+    return angle_between_deg(pose.R[:, 2], -np.asarray(pose.tvec, dtype=np.float64))
+
+
+def _swap(pose: Pose) -> Pose:
+    """The alternative of ``pose`` as the pose sent, carrying ``pose`` as its alternative."""
+    alt = pose.alternative
+    assert alt is not None
+    return dataclasses.replace(alt, alternative=dataclasses.replace(pose, alternative=None),
+                               ambiguity_ratio=pose.ambiguity_ratio)
+
+
+def polish_toward_down(pose: Pose, corners_px: np.ndarray, camera: Camera, marker: Marker,
+                       down_m: np.ndarray, down_cam: np.ndarray, weight_px: float,
+                       iterations: int = 3) -> Tuple[Pose, float]:
+    """``pose`` re-fitted to its corners with a prior term pulling the down direction it
+    implies (``R @ down_m``, ``down_m`` = down in the marker frame) towards ``down_cam``.
+
+    Minimises sum |reprojection|^2 + weight_px^2 |R down_m - down_cam|^2 (Gauss-Newton on
+    rvec, tvec; OpenCV's projection Jacobian through the distortion). ``weight_px`` = corner
+    noise / the down direction's accuracy (radians): the two terms in the same units.
+    Like PhotonVision's constrained solver and Limelight's MegaTag2, only the poorly seen
+    part of the pose (the marker's tilt) moves. Returns the pose (its reprojection RMS
+    recomputed) and the final cost in px^2."""
+    return polish_toward(pose, corners_px, camera, marker, [(down_m, down_cam, weight_px)], iterations)
+
+
+def polish_toward(pose: Pose, corners_px: np.ndarray, camera: Camera, marker: Marker,
+                  terms: Sequence[Tuple[np.ndarray, np.ndarray, float]],
+                  iterations: int = 3) -> Tuple[Pose, float]:
+    """``polish_toward_down`` with any number of direction terms (dir in the marker frame,
+    wanted dir in the camera frame, weight px): down, and the heading once it is known."""
+    obj = marker.object_points.astype(np.float64)
+    uv = np.asarray(corners_px, dtype=np.float64).reshape(-1)
+    rvec = np.asarray(pose.rvec, dtype=np.float64).reshape(3).copy()
+    tvec = np.asarray(pose.tvec, dtype=np.float64).reshape(3).copy()
+    terms = [(np.asarray(d_m, dtype=np.float64), np.asarray(d_c, dtype=np.float64), float(w))
+             for d_m, d_c, w in terms]
+
+    def residual(rv: np.ndarray, tv: np.ndarray):
+        img, J = cv2.projectPoints(obj, rv, tv, camera.K, camera.dist_coeffs)
+        R, dR = cv2.Rodrigues(rv)
+        rs, Js = [img.reshape(-1) - uv], [J[:, :6]]
+        for d_m, d_c, w in terms:
+            rs.append(w * (R @ d_m - d_c))
+            J_dir = np.zeros((3, 6))
+            # dR is (3, 9): d R.flat / d rvec_k, row-major R.
+            J_dir[:, :3] = w * (dR.reshape(3, 3, 3) @ d_m).T
+            Js.append(J_dir)
+        return np.concatenate(rs), np.vstack(Js)
+
+    r, J = residual(rvec, tvec)
+    cost = float(r @ r)
+    lam = 1e-4
+    eye = np.eye(6)
+    for _ in range(iterations):
+        H = J.T @ J
+        g = J.T @ r
+        ok, step = cv2.solve(H + lam * (eye * np.diag(H) + 1e-12 * eye), -g.reshape(6, 1))
+        if not ok:
+            break
+        step = step.reshape(6)
+        rv_new, tv_new = rvec + step[:3], tvec + step[3:]
+        if tv_new[2] <= 0:
+            lam *= 10.0
+            continue
+        r_new, J_new = residual(rv_new, tv_new)
+        cost_new = float(r_new @ r_new)
+        if cost_new < cost:
+            converged = cost - cost_new < 1e-6 * cost + 1e-9
+            rvec, tvec, r, J, cost = rv_new, tv_new, r_new, J_new, cost_new
+            lam = max(lam / 10.0, 1e-9)
+            if converged:
+                break
+        else:
+            lam *= 10.0
+    R = cv2.Rodrigues(rvec)[0]
+    rms = float(np.sqrt(np.mean(np.sum(r[:8].reshape(4, 2) ** 2, axis=1))))
+    a, b, c = paper_angles_deg_from_R_cam_marker(R)
+    polished = dataclasses.replace(pose, rvec=rvec, tvec=tvec, R=R, alpha_deg=a, beta_deg=b, gamma_deg=c,
+                                   reprojection_error_px=rms)
+    return polished, cost
+
+
+class CornerNoise:
+    """The corner noise of this camera and detector, from the best fits' reprojection RMS.
+
+    Four corners fit a 6-DoF pose with 2 degrees of freedom to spare, so RMS^2 = sigma^2
+    chi2_2 / 4 and the median RMS is 0.589 sigma. The polish weighs the attitude against it:
+    a sharp camera's corners (the renderer's: hundredths of a pixel) are barely pulled, a
+    webcam's small markers (0.3-0.4 px) are pulled as much as they need."""
+
+    def __init__(self, window: int = 31, min_samples: int = 5) -> None:
+        self._rms: Deque[float] = collections.deque(maxlen=window)
+        self.min_samples = int(min_samples)
+
+    def observe(self, rms_px: float) -> None:
+        if math.isfinite(rms_px) and rms_px >= 0:
+            self._rms.append(float(rms_px))
+
+    @property
+    def sigma_px(self) -> Optional[float]:
+        if len(self._rms) < self.min_samples:
+            return None
+        median = sorted(self._rms)[len(self._rms) // 2]
+        return min(max(median / 0.589, 0.01), 2.0)
+
+
+class HeadingReference:
+    """The constant turn between the autopilot's heading and the marker's local frame.
+
+    The autopilot's yaw is on its own reference (compass, EKF origin), the marker's local
+    frame on the marker's; the difference stays put while the marker does. Learnt from the
+    frames whose heading the marker gives without doubt (one solution, or two that agree on
+    the heading, or two the down direction told apart with a wide margin), it lets the yaw
+    decide too: a wall marker's left/right ambiguity turns about the vertical, which roll and
+    pitch cannot see. ``offset_rad`` is None until ``min_samples`` give it to ``max_sigma_deg``.
+    """
+
+    def __init__(self, *, window: int = 60, min_samples: int = 8, max_sigma_deg: float = 2.0) -> None:
+        self._samples: Deque[float] = collections.deque(maxlen=window)
+        self.min_samples, self.max_sigma_deg = int(min_samples), float(max_sigma_deg)
+        self._cached: Optional[Tuple[float, float]] = None
+        self._misses = 0
+
+    def reset(self) -> None:
+        self._samples.clear()
+        self._cached = None
+        self._misses = 0
+
+    def check(self, heading_error_deg: float) -> None:
+        """The best solution's heading is ``heading_error_deg`` off the prediction: several
+        frames in a row far off mean the autopilot's heading reference moved (an EKF yaw
+        reset, a reboot); the reference is learnt again."""
+        self._misses = self._misses + 1 if heading_error_deg > HEADING_RESET_DEG else 0
+        if self._misses >= 5:
+            self.reset()
+
+    def observe(self, yaw_marker_rad: float, yaw_autopilot_rad: float) -> None:
+        self._samples.append(math.atan2(math.sin(yaw_marker_rad - yaw_autopilot_rad),
+                                        math.cos(yaw_marker_rad - yaw_autopilot_rad)))
+        self._cached = None
+
+    def _estimate(self) -> Optional[Tuple[float, float]]:
+        """(circular mean of the samples near the median, robust spread in degrees)."""
+        if self._cached is None and len(self._samples) >= self.min_samples:
+            # Plain floats: 60 samples, once a frame; numpy's per-call cost would dominate.
+            a = list(self._samples)
+            mean = math.atan2(sum(math.sin(v) for v in a), sum(math.cos(v) for v in a))
+            dev = [abs(math.remainder(v - mean, math.tau)) for v in a]
+            spread = math.degrees(sorted(dev)[len(dev) // 2]) * 1.4826  # MAD -> sigma
+            limit = max(3.0 * math.radians(spread), math.radians(2.0))
+            keep = [v for v, d in zip(a, dev) if d <= limit]
+            if keep:
+                mean = math.atan2(sum(math.sin(v) for v in keep), sum(math.cos(v) for v in keep))
+            self._cached = (mean, spread)
+        return self._cached
+
+    def _ready(self) -> Optional[Tuple[float, float]]:
+        """(offset rad, its sigma deg) once the offset is known to ``max_sigma_deg``."""
+        est = self._estimate()
+        if est is None:
+            return None
+        sigma = max(est[1] / math.sqrt(len(self._samples)), 0.25)
+        return (est[0], sigma) if sigma <= self.max_sigma_deg else None
+
+    def reference(self) -> Optional[Tuple[float, float]]:
+        """(offset rad, its sigma deg), or None while the offset is not known well enough."""
+        return self._ready()
+
+    @property
+    def offset_rad(self) -> Optional[float]:
+        ready = self._ready()
+        return ready[0] if ready is not None else None
+
+    @property
+    def sigma_deg(self) -> Optional[float]:
+        """The offset's own uncertainty: the samples' spread over the root of their number."""
+        ready = self._ready()
+        return ready[1] if ready is not None else None
+
+
+def decisive_polish(cost: List[float], best: int, other: int) -> bool:
+    """Whether the unpolished costs (in sigmas squared) already rule ``other`` out."""
+    return cost[other] - cost[best] > POLISH_BOTH_BELOW
+
+
+def _body_yaw(frames: VehicleFrames, pose: Pose) -> float:
+    R = frames.vehicle_pose(pose.R, pose.tvec).R_local_body
+    return math.atan2(R[1, 0], R[0, 0])
+
+
+def choose_solution(pose: Pose, frames: VehicleFrames, *, attitude: Optional[Attitude],
+                    settings: PriorSettings, side_px: float,
+                    by_continuity: Callable[[Pose], Pose],
+                    corners_px: Optional[np.ndarray] = None, camera: Optional[Camera] = None,
+                    marker: Optional[Marker] = None, heading: Optional[HeadingReference] = None,
+                    corner_sigma_px: Optional[float] = None) -> Choice:
+    """The solution to send for the estimator's ``pose`` (the better fit, its other planar
+    solution in ``pose.alternative``), or why none is sent.
+
+    ``attitude``: the vehicle's at the frame's capture time, or None; ``side_px``: the
+    marker's mean side in the image; ``by_continuity(pose)``: the track's choice between
+    ``pose`` and its alternative (returns one of the two). ``heading``: the track of the
+    autopilot's heading reference (learnt and used here), or None for roll and pitch only;
+    ``corner_sigma_px`` the measured corner noise (CornerNoise; else ``settings``').
+    With ``corners_px``, ``camera`` and ``marker`` and ``settings.polish``, an attitude also
+    polishes the candidates (``polish_toward``) and the one with the lower cost is chosen."""
+    bound_px = gate_bound_px(settings, side_px)
+    if settings.gate and pose.reprojection_error_px > bound_px:
+        return Choice(None, withheld="gated",
+                      reason=f"reprojection RMS {pose.reprojection_error_px:.2f} px > {bound_px:.2f} px")
+    alt = pose.alternative
+    max_view = settings.max_view_deg if settings.gate and settings.max_view_deg > 0 else 180.0
+    view = view_angle_deg(pose)
+    alt_ok = (alt is not None and (not settings.gate or alt.reprojection_error_px <= bound_px)
+              and view_angle_deg(alt) <= max_view)
+    if view > max_view and not alt_ok:
+        # Long rectangles pass for squares seen very obliquely (measured on clutter: 58-71 deg);
+        # a real marker that oblique is rarely found and its pose is poor anyway.
+        return Choice(None, withheld="gated", reason=f"marker seen {view:.0f} deg off its face (> {max_view:g})")
+    if view > max_view:
+        # Only the alternative is believable: it is the one.
+        choice = _choose(_swap(pose), False, frames, attitude, settings, bound_px, by_continuity,
+                         corners_px, camera, marker, heading, corner_sigma_px)
+        return dataclasses.replace(choice, flipped=choice.pose is not None)
+    two = alt_ok and alt is not None and rotation_angle_deg_3x3(pose.R, alt.R) >= SAME_POSE_DEG
+    return _choose(pose, two, frames, attitude, settings, bound_px, by_continuity, corners_px, camera,
+                   marker, heading, corner_sigma_px)
+
+
+def _choose(pose: Pose, two: bool, frames: VehicleFrames, attitude: Optional[Attitude],
+            settings: PriorSettings, bound_px: float, by_continuity: Callable[[Pose], Pose],
+            corners_px: Optional[np.ndarray], camera: Optional[Camera], marker: Optional[Marker],
+            heading: Optional[HeadingReference], corner_sigma_px: Optional[float]) -> Choice:
+    """choose_solution past the gate: ``two`` = the alternative is still a contender."""
+    candidates: List[Pose] = [pose, _swap(pose)] if two else [pose]
+    down_meas = [frames.down_cam_from_marker(c.R) for c in candidates]
+
+    if attitude is not None:
+        return _choose_by_attitude(pose, candidates, down_meas, frames, attitude, settings, bound_px,
+                                   by_continuity, corners_px, camera, marker, heading,
+                                   settings.corner_sigma_px if corner_sigma_px is None else corner_sigma_px)
+
+    if settings.max_tilt_deg > 0:
+        level = frames.down_cam_level
+        tilt = [angle_between_deg(d, level) for d in down_meas]
+        agree = [i for i in range(len(candidates)) if tilt[i] <= settings.max_tilt_deg]
+        if not agree:
+            return Choice(None, withheld="inconsistent",
+                          reason=f"the vehicle would be tilted {min(tilt):.1f} deg (max_tilt_deg {settings.max_tilt_deg:g})")
+        if len(candidates) == 1:
+            return Choice(pose, "clear", down_error_deg=tilt[0])
+        if len(agree) == 1:
+            return Choice(candidates[agree[0]], "tilt", down_error_deg=tilt[agree[0]], flipped=agree[0] == 1)
+        chosen = by_continuity(pose)
+        return Choice(chosen, "continuity", down_error_deg=tilt[0 if chosen is pose else 1],
+                      flipped=chosen is not pose)
+
+    if len(candidates) == 1:
+        return Choice(pose, "clear")
+    chosen = by_continuity(pose)
+    return Choice(chosen, "continuity", flipped=chosen is not pose)
+
+
+def _choose_by_attitude(pose: Pose, candidates: List[Pose], down_meas: List[np.ndarray],
+                        frames: VehicleFrames, attitude: Attitude, settings: PriorSettings,
+                        bound_px: float, by_continuity: Callable[[Pose], Pose],
+                        corners_px: Optional[np.ndarray], camera: Optional[Camera],
+                        marker: Optional[Marker], heading: Optional[HeadingReference],
+                        corner_sigma_px: float) -> Choice:
+    roll, pitch, yaw = attitude.rpy_rad
+    down_att = frames.down_cam_from_attitude(roll, pitch)
+    err = [angle_between_deg(d, down_att) for d in down_meas]
+    sigma_att_deg = (math.degrees(attitude.sigma_rad) if attitude.sigma_rad is not None
+                     else settings.attitude_sigma_deg)
+    bound_deg = max(settings.attitude_bound_deg, 3.0 * sigma_att_deg)
+    sigma_down_deg = math.hypot(sigma_att_deg, VISION_DOWN_SIGMA_DEG)
+    # Each candidate's cost in sigmas squared: its down, and its heading once that is known.
+    cost = [(e / sigma_down_deg) ** 2 for e in err]
+    reference = heading.reference() if heading is not None else None
+    north_att: Optional[np.ndarray] = None
+    head: List[float] = []
+    if reference is not None:
+        assert heading is not None
+        offset, sigma_reference_deg = reference
+        sigma_head_deg = math.hypot(sigma_down_deg, sigma_reference_deg)
+        R_local_body = R_from_euler_rpy_3x3(roll, pitch, yaw + offset)
+        north_att = frames.R_cam_body @ R_local_body[0]
+        head = [angle_between_deg(c.R @ frames.R_local_marker[0], north_att) for c in candidates]
+        heading.check(min(head))
+        cost = [c + (h / sigma_head_deg) ** 2 for c, h in zip(cost, head)]
+    best = min(range(len(candidates)), key=lambda i: cost[i])
+    decisive = len(candidates) == 1 or cost[1 - best] - cost[best] > 4.0  # 2 sigma
+
+    if heading is not None and (len(candidates) == 1 or err[1 - best] - err[best] > 4.0 * sigma_down_deg
+                                or abs(math.remainder(_body_yaw(frames, candidates[0])
+                                                      - _body_yaw(frames, candidates[1]), math.tau))
+                                < math.radians(2.0)):
+        # The heading of this frame is known without the heading prior: learn from it.
+        heading.observe(_body_yaw(frames, candidates[best]), yaw)
+
+    # Where the vision already agrees with the attitude to within the attitude's own noise,
+    # the prior could move it by a fraction of that noise: not worth a re-fit per frame.
+    agrees = err[best] <= max(sigma_att_deg, MIN_PRIOR_SIGMA_DEG) and (
+        reference is None or head[best] <= math.hypot(sigma_att_deg, reference[1]))
+    if (settings.polish and corners_px is not None and camera is not None and marker is not None
+            and not (agrees and decisive)):
+        # The image term carries the vision's own uncertainty: the prior's weight is the
+        # attitude's alone (and the heading reference's).
+        sigma_prior_deg = max(sigma_att_deg, MIN_PRIOR_SIGMA_DEG)
+        terms = [(frames.R_local_marker[2], down_att, corner_sigma_px / math.radians(sigma_prior_deg))]
+        if north_att is not None and reference is not None:
+            sigma_north_deg = math.hypot(sigma_prior_deg, reference[1])
+            terms.append((frames.R_local_marker[0], north_att, corner_sigma_px / math.radians(sigma_north_deg)))
+        # The cheap costs' favourite first; the other too only when it could still win.
+        order = [best] + [i for i in range(len(candidates)) if i != best]
+        results = {best: polish_toward(candidates[best], corners_px, camera, marker, terms)}
+        for i in order[1:]:
+            if not decisive_polish(cost, best, i):
+                results[i] = polish_toward(candidates[i], corners_px, camera, marker, terms)
+        best = min(results, key=lambda i: results[i][1])
+        polished = results[best][0]
+        e = angle_between_deg(frames.down_cam_from_marker(polished.R), down_att)
+        if e > bound_deg or (settings.gate and polished.reprojection_error_px > bound_px):
+            return Choice(None, withheld="inconsistent",
+                          reason=(f"no solution agrees with the attitude: down {e:.1f} deg off (bound "
+                                  f"{bound_deg:.1f}), reprojection RMS {polished.reprojection_error_px:.2f} px "
+                                  f"(bound {bound_px:.2f})"))
+        if len(candidates) == 1:
+            return Choice(polished, "clear", down_error_deg=e)
+        other = dataclasses.replace(results[1 - best][0] if 1 - best in results else candidates[1 - best],
+                                    alternative=None)
+        return Choice(dataclasses.replace(polished, alternative=other), "attitude", down_error_deg=e,
+                      flipped=best == 1)
+
+    if err[best] > bound_deg:
+        return Choice(None, withheld="inconsistent",
+                      reason=f"the marker's down is {err[best]:.1f} deg from the attitude's (bound {bound_deg:.1f})")
+    if len(candidates) == 1:
+        return Choice(pose, "clear", down_error_deg=err[0])
+    if decisive:
+        return Choice(candidates[best], "attitude", down_error_deg=err[best], flipped=best == 1)
+    chosen = 0 if by_continuity(pose) is pose else 1
+    if err[chosen] > bound_deg:
+        chosen = best
+    return Choice(candidates[chosen], "continuity", down_error_deg=err[chosen], flipped=chosen == 1)

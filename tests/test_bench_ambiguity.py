@@ -1,0 +1,64 @@
+"""bench ambiguity: the flights are what they claim (marker sizes, attitude), the strategies
+run through the real processor, and the command prints its table."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from pose_daemon.cli import main
+from pose_daemon.geometry import R_from_euler_rpy, VehiclePose
+from pose_daemon.tools import bench_ambiguity as bench
+
+
+@pytest.mark.parametrize("placement", ["floor", "wall"])
+@pytest.mark.parametrize("size", ["20-40", "40-80"])
+def test_flights_image_the_marker_at_the_stated_size_and_tilt_into_their_accelerations(placement, size):
+    frames = bench.VehicleFrames.from_settings(bench.PLACEMENTS[placement], placement=placement)
+    phases = np.random.default_rng(1).uniform(0, 2 * math.pi, 8)
+    lo, hi = bench.SIZES_PX[size]
+    sides, tilts = [], []
+    for t in np.arange(0.0, 30.0, 0.1):
+        p, rpy = bench.vehicle_at(placement, size, float(t), phases)
+        R_cm, tvec = frames.camera_pose(VehiclePose(p, R_from_euler_rpy(*rpy)))
+        px = bench.CAMERA.project(bench.MARKER.object_points @ R_cm.T + tvec)
+        assert np.all(px > 0) and np.all(px < [639, 479]), (t, px)   # always whole in the image
+        sides.append(float(np.mean(np.linalg.norm(px - np.roll(px, 1, 0), axis=1))))
+        tilts.append(math.degrees(max(abs(rpy[0]), abs(rpy[1]))))
+    assert lo * 0.85 <= min(sides) and max(sides) <= hi * 1.15, (min(sides), max(sides))
+    assert 1.0 < max(tilts) < 10.0
+
+
+def test_attitudes_are_the_truth_lagged_and_noisy_on_another_heading_reference():
+    flight = bench.Flight("floor", "20-40", None, t_s=[i / 30 for i in range(300)],
+                          rpy_rad=[(0.1 * math.sin(i / 30), 0.0, 0.0) for i in range(300)])
+    atts = bench._attitudes(flight, 0.0, 0.0, 0)
+    assert atts[10].rpy_rad == pytest.approx((0.1 * math.sin(10 / 30), 0.0, bench.YAW_REFERENCE_OFFSET_RAD))
+    lagged = bench._attitudes(flight, 0.0, 0.1, 0)
+    assert lagged[60].rpy_rad[0] == pytest.approx(0.1 * math.sin(57 / 30), abs=1e-9)   # 3 frames = 100 ms
+    noisy = bench._attitudes(flight, 2.0, 0.0, 0)
+    d = np.degrees([n.rpy_rad[1] for n in noisy])
+    assert np.std(d) == pytest.approx(2.0, rel=0.2) and noisy[0].sigma_rad == pytest.approx(math.radians(2.0))
+
+
+def test_clutter_is_never_a_square_and_the_small_bench_runs_end_to_end(capsys):
+    rng = np.random.default_rng(0)
+    tex = bench.clutter_texture(rng)
+    assert tex.shape == (600, 800) and tex.dtype == np.float32 and tex.min() < 80 < tex.max()
+    assert main(["bench", "ambiguity", "--frames", "30", "--clutter", "4", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert len(result["flights"]) == 8 and result["clutter"]["frames"] == 4
+    for flight in result["flights"]:
+        names = [r["strategy"] for r in flight["rows"]]
+        assert names[:3] == ["estimator alone", "continuity (before)", "tilt prior 15 deg"] and len(names) == 11
+        for r in flight["rows"]:
+            assert r["sent"] + r["withheld"] <= r["detected"] <= 30
+    assert "| marker-free clutter frames |" in bench.format_tables(result)
+
+
+def test_bench_ambiguity_refuses_bad_counts(capsys):
+    assert main(["bench", "ambiguity", "--frames", "5"]) == 2
+    assert "--frames must be at least 30" in capsys.readouterr().err
