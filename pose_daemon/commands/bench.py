@@ -1,4 +1,4 @@
-"""``pose-daemon bench {estimator,detector,pipeline,outputs,ambiguity}``: benchmarks that print figures.
+"""``pose-daemon bench {estimator,detector,pipeline,outputs,quality,ambiguity}``: benchmarks that print figures.
 
 Each benchmark is ``run_bench(...)`` (parameters in, report out) and ``print_report(report)``
 in ``pose_daemon/tools/bench_<name>.py``; this file holds their arguments.
