@@ -374,8 +374,8 @@ class AttitudeConfig:
     """The vehicle's attitude at capture time, for the choice of the planar solution."""
 
     source: str = _key("mavlink", Rule("str", nonempty=True),
-                       '"mavlink": from the [output.mavlink] link (none without one), a pymavlink '
-                       'connection string to listen on, or "none"')
+                       '"mavlink": from the [output.mavlink] link (none without one) or "none" '
+                       '(a separate connection string is not supported yet)')
     max_age_s: float = _key(0.5, Rule("float", lo=0, hi=10, lo_open=True),
                             "no attitude message for this long = no attitude")
     max_extrapolation_s: float = _key(0.05, Rule("float", lo=0, hi=1),
@@ -684,6 +684,7 @@ def check_whole(cfg: Config, *, files: bool = True) -> None:
     - the synthetic source's [synthetic] trajectory is the [marker] placement;
     - an ArUco [marker] dictionary is one of OpenCV's, and its id one of the dictionary's;
     - the [output.mavlink] connection is a link ``outputs.mavlink.parse_connection`` accepts;
+    - the [attitude] source is "mavlink" or "none": a connection of its own is not supported yet;
     - with ``files``: a ``video:``/``replay:`` source exists. A missing file will not appear
       later, so it is refused at start rather than reopened for ever like an unplugged camera.
 
@@ -705,6 +706,11 @@ def check_whole(cfg: Config, *, files: bool = True) -> None:
         except ValueError as exc:
             raise ConfigError(f"{cfg.name}: [output.mavlink] connection: expected {exc}, "
                               f"got {m.connection!r}") from None
+    source = cfg.attitude.source.strip()
+    if source not in ("mavlink", "none"):
+        raise ConfigError(f'{cfg.name}: [attitude] source: expected "mavlink" (the [output.mavlink] link) or '
+                          f'"none", got {_show(cfg.attitude.source)} (a separate attitude connection is not '
+                          f'supported yet)')
     kind, arg = parse_source(cfg.camera.source)
     if files and kind in ("video", "replay") and not Path(arg).exists():
         what = "a video file" if kind == "video" else "a recording, image folder or video"

@@ -149,7 +149,8 @@ def test_attitude_source_from_config():
     assert attitude_connection(parse_config("")) is None          # "mavlink" without a MAVLink output
     assert attitude_connection(parse_config('[attitude]\nsource = "none"\n'
                                             '[output.mavlink]\nconnection = "udpin:0.0.0.0:1"\n')) is None
-    assert attitude_connection(parse_config('[attitude]\nsource = "/dev/ttyACM0"\n')) == "/dev/ttyACM0"
+    with pytest.raises(ConfigError, match=r"\[attitude\] source: expected \"mavlink\" .* not supported yet"):
+        parse_config('[attitude]\nsource = "/dev/ttyACM0"\n')
     with pytest.raises(ConfigError, match=r"\[attitude\] source: expected \"mavlink\", \"none\" or a pymavlink"):
         parse_config('[attitude]\nsource = "autopilot"\n')
     att = autopilot_attitude_from_config(parse_config("[attitude]\nmax_age_s = 0.2\nsigma_deg = 2.0\n"))
