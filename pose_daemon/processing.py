@@ -80,12 +80,12 @@ class FrameProcessor:
                    frames=frames, prior=prior, attitude_source=attitude_source)
 
     @classmethod
-    def from_config(cls, cfg) -> FrameProcessor:
+    def from_config(cls, cfg, *, attitude_source: Any = None) -> FrameProcessor:
         """The processor a Config asks for: its camera, marker, estimator, detector, mount,
-        [attitude] and [gate] keys."""
+        [attitude] and [gate] keys; ``attitude_source`` as for the constructor."""
         return cls.from_models(cfg.camera.model(), cfg.marker.model(), cfg.estimator, cfg.detector,
                                frames=VehicleFrames.from_config(cfg.mount, cfg.marker.placement),
-                               prior=PriorSettings.from_config(cfg))
+                               prior=PriorSettings.from_config(cfg), attitude_source=attitude_source)
 
     @property
     def flips(self) -> int:

@@ -107,11 +107,23 @@ class IdleCollector:
         self.collections[generation] += 1
 
 
-def build_processor(cfg: Config):
-    """The FrameProcessor the config asks for (camera, marker, estimator, detector)."""
+def build_processor(cfg: Config, attitude_source=None):
+    """The FrameProcessor the config asks for (camera, marker, estimator, detector), asking
+    ``attitude_source`` (``live_attitude``) for the attitude of frames that carry none."""
     from .processing import FrameProcessor
 
-    return FrameProcessor.from_config(cfg)
+    return FrameProcessor.from_config(cfg, attitude_source=attitude_source)
+
+
+def live_attitude(cfg: Config):
+    """The autopilot's attitude fed by the ``[output.mavlink]`` link (attitude.AutopilotAttitude)
+    when ``[attitude] source = "mavlink"`` and that output exists; else None. (A separate
+    connection for the attitude is refused by ``config.check_whole``.)"""
+    if cfg.attitude.source.strip() != "mavlink" or cfg.output.mavlink is None:
+        return None
+    from .attitude import autopilot_attitude_from_config
+
+    return autopilot_attitude_from_config(cfg)
 
 
 class Service:
@@ -119,6 +131,9 @@ class Service:
 
     ``outputs``: builds the outputs with the pipeline's budget and hooks (base.OutputFactory;
     default ``open_outputs`` for ``cfg``); the service closes them when it stops.
+    With ``[attitude] source = "mavlink"`` and an ``[output.mavlink]``, one live attitude
+    (``live_attitude``, ``self.attitude``) is fed by the default MAVLink output and asked by the
+    default processor; a ``processor`` or ``outputs`` given by the caller is used as it is.
     """
 
     def __init__(self, cfg: Config, *, source: Optional[FrameSource] = None,
@@ -132,12 +147,13 @@ class Service:
             from .capture import open_source
 
             source = open_source(cfg.camera, cfg)
+        self.attitude = live_attitude(cfg) if processor is None and outputs is None else None
         if processor is None:
-            processor = build_processor(cfg)
+            processor = build_processor(cfg, attitude_source=self.attitude)
         if outputs is None:
             from .outputs import open_outputs
 
-            outputs = functools.partial(open_outputs, cfg)
+            outputs = functools.partial(open_outputs, cfg, attitude=self.attitude)
         self.idle_collector = IdleCollector()
         tap = None
         if cfg.preview is not None:

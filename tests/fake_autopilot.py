@@ -23,7 +23,13 @@ PX4 (mavlink_receiver.cpp, mavlink_timesync, EKF2):
 - TIMESYNC requests every ``timesync_s``; once answered, a pose's ``time_usec`` is mapped onto
   its clock, before that the arrival time stands in (``stamped_by``).
 - LOCAL_POSITION_NED and ATTITUDE at the rate MAV_CMD_SET_MESSAGE_INTERVAL asks for, from
-  ``vehicle_state(t_s) -> (p_ned_m, (roll, pitch, yaw))``.
+  ``vehicle_state(t_s) -> (p_ned_m, (roll, pitch, yaw))``, stamped ``time_boot_ms`` on a boot
+  clock that started ``boot_age_s`` before the fake.
+Both:
+- TIMESYNC requests (tc1 = 0) answered with tc1 = the boot clock in ns, ts1 echoed.
+- ``message_interval=False`` is an older ArduPilot: MAV_CMD_SET_MESSAGE_INTERVAL is
+  MAV_RESULT_UNSUPPORTED and REQUEST_DATA_STREAM sets the rates (MAV_DATA_STREAM_EXTRA1 =
+  ATTITUDE, MAV_DATA_STREAM_POSITION = LOCAL_POSITION_NED; rate 0 or start_stop 0 stops it).
 - INT32 parameters sent bytewise in PARAM_VALUE's float (PX4's MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE).
 """
 
@@ -91,7 +97,8 @@ class FakeAutopilot:
     def __init__(self, kind: str = "ardupilot", *, system: int = 1, ekf_start_s: float = 4.0,
                  ekf_bootstrap_s: float = 1.0, timesync_s: float = 10.0, heartbeat_s: float = 1.0,
                  params: Optional[Dict[str, float]] = None,
-                 vehicle_state: Optional[Callable[[float], Tuple[Any, Any]]] = None) -> None:
+                 vehicle_state: Optional[Callable[[float], Tuple[Any, Any]]] = None,
+                 message_interval: bool = True, boot_age_s: float = 5.0) -> None:
         # ArduPilot's dialect (common.xml and EKF_STATUS_REPORT); PX4 uses only common messages.
         from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
@@ -114,6 +121,10 @@ class FakeAutopilot:
         self.timesync_s = timesync_s
         self.heartbeat_s = heartbeat_s
         self.vehicle_state = vehicle_state
+        self.message_interval = message_interval
+        self._t_boot = time.monotonic() - boot_age_s
+        self.attitudes_sent = 0
+        self.data_stream_requests: List[Tuple[int, int, int]] = []   # (stream id, rate Hz, start_stop)
         self.tally = Tally()
         self.origin: Optional[Tuple[int, int, int]] = None
         self.home: Optional[Tuple[int, int, int]] = None
@@ -211,11 +222,12 @@ class FakeAutopilot:
                 self.mav.estimator_status_send(int(now * 1e6), flags, 0, 0, 0, 0, 0, 0, 0, 0)
         if self.vehicle_state is not None:
             p, (roll, pitch, yaw) = self.vehicle_state(now)
-            boot_ms = int((now - (self._t_first_heartbeat or now)) * 1e3)
+            boot_ms = int((now - self._t_boot) * 1e3)
             if 32 in self.intervals_us and self._every("lpn", self.intervals_us[32] / 1e6, now):
                 self.mav.local_position_ned_send(boot_ms, float(p[0]), float(p[1]), float(p[2]), 0.0, 0.0, 0.0)
             if 30 in self.intervals_us and self._every("att", self.intervals_us[30] / 1e6, now):
                 self.mav.attitude_send(boot_ms, float(roll), float(pitch), float(yaw), 0.0, 0.0, 0.0)
+                self.attitudes_sent += 1
 
     def _fusing(self, now: float) -> bool:
         return self._ext_nav_t is not None and now - self._ext_nav_t < 0.3
@@ -244,8 +256,18 @@ class FakeAutopilot:
             self._pose(msg, now)
         elif kind == "LANDING_TARGET":
             self._landing_target(msg)
+        elif kind == "REQUEST_DATA_STREAM":
+            self.data_stream_requests.append((msg.req_stream_id, msg.req_message_rate, msg.start_stop))
+            msg_id = {10: 30, 6: 32}.get(msg.req_stream_id)   # EXTRA1: ATTITUDE, POSITION: LOCAL_POSITION_NED
+            if msg_id is not None:
+                if msg.start_stop and msg.req_message_rate > 0:
+                    self.intervals_us[msg_id] = int(1e6 / msg.req_message_rate)
+                else:
+                    self.intervals_us.pop(msg_id, None)
         elif kind == "TIMESYNC":
-            if msg.tc1 != 0:
+            if msg.tc1 == 0:
+                self.mav.timesync_send(time.monotonic_ns() - int(self._t_boot * 1e9), msg.ts1)
+            else:
                 self.tally.timesync_answers.append((msg.tc1, msg.ts1, time.monotonic_ns()))
                 rtt_ns = time.monotonic_ns() - msg.ts1
                 if 0 <= rtt_ns < 50_000_000:
@@ -263,7 +285,7 @@ class FakeAutopilot:
                 self.mav.gps_global_origin_send(*self.origin, int(now * 1e6))
             elif wanted == 242 and self.home is not None:
                 self.mav.home_position_send(*self.home, 0, 0, 0, [1, 0, 0, 0], 0, 0, 0, int(now * 1e6))
-        elif cmd == 511:  # MAV_CMD_SET_MESSAGE_INTERVAL
+        elif cmd == 511 and self.message_interval:  # MAV_CMD_SET_MESSAGE_INTERVAL
             self.intervals_us[int(msg.param1)] = int(msg.param2)
             result = 0
         elif cmd == 179:  # MAV_CMD_DO_SET_HOME

@@ -138,3 +138,30 @@ def test_px4_takes_the_landing_target_in_local_ned_and_syncs_time():
     assert fc.tally.stamped_by.get("timesync", 0) > 0
     report = check(fc.tally.received, autopilot="px4")
     assert report.ok, str(report)
+
+
+def test_live_attitude_from_an_older_ardupilot_through_request_data_stream():
+    """``attach_attitude``: an ArduPilot without MAV_CMD_SET_MESSAGE_INTERVAL refuses the
+    command; the output falls back to REQUEST_DATA_STREAM (EXTRA1 at 50 Hz), feeds the
+    ATTITUDE stream to the AutopilotAttitude and maps the autopilot's boot clock by TIMESYNC."""
+    from pose_daemon.attitude import AutopilotAttitude
+
+    roll, pitch, yaw = math.radians(7.0), math.radians(-4.0), math.radians(50.0)
+    fc = FakeAutopilot("ardupilot", heartbeat_s=0.2, timesync_s=0.0, message_interval=False,
+                       vehicle_state=lambda t: ((0.0, 0.0, -1.5), (roll, pitch, yaw)))
+    att = AutopilotAttitude()
+    out = mavlink_output(fc.connection, DOWN, queue_size=0)
+    out.attach_attitude(att)
+    try:
+        assert wait_for(lambda: att.samples >= 20 and att.clock.synced, 15.0), (att.samples, fc.data_stream_requests)
+        now = time.monotonic()
+        a = att.attitude_at(now - 0.05, now)
+    finally:
+        out.close()
+        fc.close()
+    asks = [m for m in of_type(fc.tally.received, "COMMAND_LONG") if m.command == 511]
+    assert asks and all(int(m.param1) == 30 and m.param2 == 20_000 for m in asks)
+    assert (10, 50, 1) in fc.data_stream_requests and fc.intervals_us.get(30) == 20_000
+    assert a is not None and a.rpy_rad == pytest.approx((roll, pitch, yaw), abs=1e-4)
+    assert att.freshness(time.monotonic())["sync"] == "timesync"
+    assert out.stats()["data_stream_requested"] >= 1

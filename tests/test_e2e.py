@@ -358,3 +358,132 @@ path = "{tmp_path / 'poses.jsonl'}"
         assert_close_to_truth((m.x, m.y, m.z), _R_from_q(m.q), want, float(np.linalg.norm(tv)))
     report = check(msgs)
     assert report.ok, str(report)
+
+
+class LiveRenderingSource:
+    """Frames rendered at read time from the vehicle's true motion at each frame's slot in the
+    schedule (monotonic clock), so that the image and the fake autopilot's ATTITUDE stream
+    (both functions of that clock) show the same vehicle. ``open`` waits (generously) for
+    ``ready()``: the daemon has heard the autopilot's attitude and mapped its clock."""
+
+    def __init__(self, camera, marker, frames: g.VehicleFrames, motion, n_frames: int, fps: float) -> None:
+        self.camera, self.marker, self.frames, self.motion = camera, marker, frames, motion
+        self.n_frames, self.period_s = n_frames, 1.0 / fps
+        self.ready = lambda: True
+        self.truth: dict = {}   # seq -> (t_capture_s, VehiclePose)
+
+    def open(self) -> None:
+        from mavlink_helpers import wait_for
+
+        assert wait_for(self.ready, 20.0), "the daemon never got the autopilot's attitude"
+        self._i = 0
+        self._next = time.monotonic()
+
+    def read(self) -> Frame:
+        if self._i >= self.n_frames:
+            raise EndOfStream("end of recording")
+        t = self._next
+        self._next += self.period_s
+        vehicle = self.motion(t)
+        R_cm, tvec = self.frames.camera_pose(vehicle)
+        image = render.render_marker(self.camera, self.marker, g.rvec_from_R(R_cm), tvec,
+                                     rng=np.random.default_rng(self._i)).image
+        time.sleep(max(0.0, t - time.monotonic()))
+        self.truth[self._i] = (t, vehicle)
+        frame = Frame(image=image, t_capture_s=t, seq=self._i)
+        self._i += 1
+        return frame
+
+    def close(self) -> None:
+        pass
+
+
+def test_service_takes_the_live_attitude_from_the_autopilot_and_resolves_flips_with_it():
+    """`[attitude] source = "mavlink"`: the service's MAVLink output asks the (fake) autopilot for
+    ATTITUDE with SET_MESSAGE_INTERVAL, maps its boot clock by TIMESYNC over real UDP, and the
+    processor takes the autopilot's attitude at each frame's capture time: it is the truth
+    within interpolation, and it picks the planar solution of small markers whose mirror
+    solution fits the corners too."""
+    from fake_autopilot import FakeAutopilot
+
+    from pose_daemon.service import Service
+
+    n_frames, fps = 40, 10.0
+    t0 = time.monotonic()
+
+    def rpy(t: float):
+        # Tilted and wobbling, heading slowly swinging: a hover 2.4 m up, ~0.9 m to the side of
+        # the marker (seen ~20 deg off its normal, ~23 px across).
+        s = t - t0
+        return (np.radians(9.0 + 4.0 * np.sin(2 * np.pi * s / 3.0)), np.radians(-6.0 + 3.0 * np.cos(2 * np.pi * s / 4.0)),
+                np.radians(30.0 + 5.0 * np.sin(2 * np.pi * s / 6.0)))
+
+    def motion(t: float) -> g.VehiclePose:
+        s = t - t0
+        p = np.array([0.15 * np.sin(2 * np.pi * s / 5.0), 0.9 + 0.15 * np.cos(2 * np.pi * s / 7.0), -2.4])
+        return g.VehiclePose(p, g.R_from_euler_rpy(*rpy(t)))
+
+    fake = FakeAutopilot("ardupilot", vehicle_state=lambda t: (motion(t).p_local_body_m, rpy(t)),
+                         timesync_s=0.0)
+    try:
+        cfg = config("floor", "down", (0.0, 0.0, 0.0), f"""
+[output.mavlink]
+connection = "{fake.connection}"
+messages = ["ODOMETRY"]
+""")
+        assert cfg.attitude.source == "mavlink"
+        camera, marker = cfg.camera.model(), cfg.marker.model()
+        frames = g.VehicleFrames.from_config(cfg.mount, cfg.marker.placement)
+        source = LiveRenderingSource(camera, marker, frames, motion, n_frames, fps)
+        service = Service(cfg, source=source)
+        att = service.attitude
+        assert att is not None and service.pipeline.processor.attitude_source is att
+        source.ready = lambda: att.clock.synced and att.samples >= 20
+        results = []
+        service.pipeline.frame_observer = lambda frame, result: results.append(result)
+        assert service.run() == 0
+        status = service.pipeline.processor.status()
+    finally:
+        fake.close()
+
+    # The output asked for ATTITUDE (id 30) at 50 Hz and answered nothing else for it.
+    asks = [m for m in of_type(fake.tally.received, "COMMAND_LONG") if m.command == 511 and int(m.param1) == 30]
+    assert asks and all(m.param2 == 20000 for m in asks)
+    assert fake.attitudes_sent >= 20 and att.reboots == 0
+    assert att.freshness(0.0)["sync"] == "timesync"
+    assert status is not None and status.startswith("attitude ") and "sync timesync" in status, status
+
+    assert len(results) >= 0.8 * n_frames, len(results)
+    with_attitude = [r for r in results if r.attitude is not None]
+    assert len(with_attitude) >= 0.9 * len(results), (len(with_attitude), len(results))
+    for r in with_attitude:
+        t, vehicle = source.truth[r.seq]
+        assert r.t_capture_s == t
+        # The autopilot's attitude at the capture time (its stream is 50 Hz samples of the
+        # same motion; interpolation and clock mapping cost far less than this bound).
+        assert float(g.rotation_angle_deg(r.attitude.R_local_body, vehicle.R_local_body)) < 0.5, r.seq
+
+    def normal_error_deg(R_cam_marker, R_true) -> float:
+        # The planar ambiguity tilts the marker's normal (a plain square's labels may also turn
+        # by quarter turns about it, which is not a flip).
+        c = float(np.clip(np.asarray(R_cam_marker)[:, 2] @ np.asarray(R_true)[:, 2], -1.0, 1.0))
+        return float(np.degrees(np.arccos(c)))
+
+    posed = [r for r in with_attitude if r.pose is not None]
+    assert len(posed) >= 0.8 * len(with_attitude)
+    ambiguous = []
+    for r in posed:
+        t, vehicle = source.truth[r.seq]
+        R_cam, tvec = frames.camera_pose(vehicle)
+        err = normal_error_deg(r.pose.R, R_cam)
+        assert err < 5.0, (r.seq, err, r.choice)
+        assert float(np.linalg.norm(np.asarray(r.pose.tvec) - tvec)) < 0.1 * float(np.linalg.norm(tvec))
+        alt = r.pose.alternative
+        if alt is not None and normal_error_deg(alt.R, R_cam) > 10.0 and alt.reprojection_error_px < 1.0:
+            ambiguous.append(r)
+    # Marker ~25 px across: the mirror solution fits the corners as well as the true one in
+    # many frames; there the attitude made the choice.
+    assert len(ambiguous) >= 5, (len(ambiguous), len(posed))
+    assert all(r.choice.resolved_by == "attitude" for r in ambiguous), [r.choice.resolved_by for r in ambiguous]
+    # And the poses reached the autopilot.
+    assert fake.tally.fused.get("ODOMETRY", 0) >= 1

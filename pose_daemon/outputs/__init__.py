@@ -16,7 +16,7 @@ bytes-written latency with it.
 
 from __future__ import annotations
 
-from typing import List, Optional
+from typing import Any, List, Optional
 
 from .base import ClosedHook, Output, OutputFactory, WrittenHook
 from .jsonl import JsonlOutput
@@ -30,13 +30,14 @@ __all__ = ["Output", "OutputFactory", "WrittenHook", "ClosedHook", "QueuedOutput
 
 def open_outputs(cfg, *, max_age_s: Optional[float] = None, on_written: Optional[WrittenHook] = None,
                  on_closed: Optional[ClosedHook] = None, start: bool = True,
-                 queue_size: Optional[int] = None) -> List[QueuedOutput]:
+                 queue_size: Optional[int] = None, attitude: Any = None) -> List[QueuedOutput]:
     """The outputs ``cfg.output`` asks for, started (links open in their own threads, so a link
     that is down now does not stop the daemon: it is retried with a doubling pause).
 
     ``max_age_s``, ``on_written``, ``on_closed``: given to each output (base.py; the Pipeline
     passes its latency budget and hooks). ``queue_size``: results each output queues
     (default ``cfg.pipeline.output_buffer``); 0 = direct writes in the caller's thread.
+    ``attitude``: an attitude.AutopilotAttitude the MAVLink output feeds (``attach_attitude``).
 
     The connection string was checked when the config was read (``config.check_whole``).
     """
@@ -47,7 +48,10 @@ def open_outputs(cfg, *, max_age_s: Optional[float] = None, on_written: Optional
     outputs: List[QueuedOutput] = []
     m = cfg.output.mavlink
     if m is not None:
-        outputs.append(MavlinkOutput.from_config(cfg, **common))
+        mavlink = MavlinkOutput.from_config(cfg, **common)
+        if attitude is not None:
+            mavlink.attach_attitude(attitude)
+        outputs.append(mavlink)
     if cfg.output.serial is not None:
         outputs.append(PlainSerialOutput.from_config(cfg, **common))
     if cfg.output.jsonl is not None:

@@ -28,6 +28,11 @@ The rules it keeps (shared/autopilot-rules.md, checked by tests/fc_acceptance.py
 - TIMESYNC requests (tc1 = 0) are answered with tc1 = now in ns on the clock of ``time_usec``
   (PX4 maps ``time_usec`` only after TIMESYNC converged); ``attach_timesync`` lets the
   attitude side send its own requests over this link and see every TIMESYNC received.
+- The live attitude (``attach_attitude``): the autopilot's ATTITUDE and ATTITUDE_QUATERNION go to
+  attitude.AutopilotAttitude with their arrival time on the output's clock; ATTITUDE is asked for
+  at 50 Hz with MAV_CMD_SET_MESSAGE_INTERVAL, again every STATE_REQUEST_S while none arrives, and
+  with REQUEST_DATA_STREAM (MAV_DATA_STREAM_EXTRA1, older ArduPilot) when the command is not
+  ACCEPTED or nothing came of it.
 - VISION_POSITION_ESTIMATE has no quality field: ArduPilot takes 0, so any VISO_QUAL_MIN > 0
   (and PX4's EKF2_EV_QMIN > 0) drops every one. Where the autopilot says so (PARAM_VALUE of
   VISO_QUAL_MIN read at start), a WARNING log line and STATUSTEXT say it.
@@ -107,10 +112,19 @@ ORIGIN_STALE_S = 3.5
 # used at a capture time only within STATE_MAX_GAP_S of a sample on each side (or past the
 # newest by at most STATE_MAX_EXTRAPOLATION_S).
 STATE_INTERVAL_US = 20_000
+STATE_RATE_HZ = 50
 STATE_REQUEST_S = 2.0
 STATE_MAX_GAP_S = 0.1
 STATE_MAX_EXTRAPOLATION_S = 0.03
 TIMESYNC_REQUEST_S = 1.0
+# After our TIMESYNC request the reply is waited for (and read) this long at most, instead of a
+# tick later: the wait would count in its round trip (a 50 ms tick is past the mapper's bound)
+# and move the offset by half of it. Once a second, so poses wait at most this long for it.
+TIMESYNC_WAIT_S = 0.02
+# With the live attitude the link is read this often (not every tick_s = 50 ms): a frame is
+# processed within milliseconds of its capture, and may only be that little past the newest
+# ATTITUDE received (``[attitude] max_extrapolation_s``, 50 ms by default).
+ATTITUDE_TICK_S = 0.01
 WRITE_TIMEOUT_S = 0.25
 # Reading what comes back is bounded per tick, so that no amount of incoming data (a flood of
 # junk datagrams) holds up the poses: at most this many reads, bytes and seconds of parsing.
@@ -134,6 +148,8 @@ MAV_CMD_DO_SET_HOME = 179
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MAV_CMD_REQUEST_MESSAGE = 512
 MAV_RESULT_ACCEPTED = 0
+MAV_DATA_STREAM_POSITION = 6
+MAV_DATA_STREAM_EXTRA1 = 10
 MSG_ID_ATTITUDE = 30
 MSG_ID_LOCAL_POSITION_NED = 32
 MSG_ID_GPS_GLOBAL_ORIGIN = 49
@@ -193,10 +209,6 @@ class VehicleStateHistory:
         R = R_from_euler_rpy(float(roll_rad), float(pitch_rad), float(yaw_rad))
         if np.all(np.isfinite(R)):
             self.attitudes.append((float(t_s), R))
-
-    def fresh(self, t_s: float) -> bool:
-        return bool(self.positions and self.attitudes and t_s - self.positions[-1][0] < STATE_REQUEST_S
-                    and t_s - self.attitudes[-1][0] < STATE_REQUEST_S)
 
     @staticmethod
     def _bracket(samples: Deque[Tuple[float, Any]], t_s: float) -> Optional[Tuple[Any, Any, float]]:
@@ -416,6 +428,15 @@ class _MavlinkLink:
                 break
         return out
 
+    def wait_readable(self, timeout_s: float) -> bool:
+        """True once bytes are waiting to be read, False after ``timeout_s`` without."""
+        port = self.conn.port
+        try:
+            fd = port.fd if self.kind == "serial" else port.fileno()
+            return bool(select.select([fd], [], [], max(0.0, timeout_s))[0])
+        except (OSError, ValueError, AttributeError):
+            return False
+
     def _read_some(self, budget: int) -> Optional[Tuple[bytes, Any]]:
         """(bytes, sender) of one read of at most ``budget`` bytes; (b"", None) for a datagram
         dropped unparsed; None when nothing is waiting."""
@@ -512,8 +533,12 @@ class MavlinkOutput(QueuedOutput):
         self._home_acked = False
         self._state = VehicleStateHistory()
         self._state_request_t = -1e18
+        self._state_requests = 0          # request rounds since the wanted messages were last fresh
+        self._state_heard_t: Dict[int, float] = {}   # message id -> arrival (output's clock)
+        self._attitude_sink: Any = None   # attitude.AutopilotAttitude, once attach_attitude()
         self._timesync_peer: Optional[TimesyncPeer] = None
         self._timesync_request_t = -1e18
+        self._timesync_pending: Optional[int] = None   # ts1 of our request awaiting its reply
         self._qual_min_asked = self._qual_min_warned = False
         # What is done with each received message, by type (the one dispatch point, _on_message);
         # a type not listed is ignored. More handlers: one line here, or subscribe().
@@ -591,6 +616,7 @@ class MavlinkOutput(QueuedOutput):
         self._last_heartbeat_t = -1e18
         self._origin_next_t = -1e18
         self._state_request_t = -1e18
+        self._state_requests = 0
         self._qual_min_asked = False
         self._send_heartbeat(self._clock())
         if self.cfg.statustext:
@@ -612,7 +638,7 @@ class MavlinkOutput(QueuedOutput):
             return
         if self.origin is not None:
             self._keep_origin(now)
-        if self.autopilot_kind == "px4" and "LANDING_TARGET" in self.messages:
+        if self._wanted_state():
             self._request_vehicle_state(now)
         if "VISION_POSITION_ESTIMATE" in self.messages and not self._qual_min_asked:
             self._qual_min_asked = True
@@ -622,7 +648,22 @@ class MavlinkOutput(QueuedOutput):
         if peer is not None and now - self._timesync_request_t >= TIMESYNC_REQUEST_S:
             self._timesync_request_t = now
             ts1 = int(peer.timesync_request(self._now_ns()))
+            self._timesync_pending = ts1
             self._link.mav.timesync_send(0, ts1)
+            self._await_timesync_reply()
+
+    def _await_timesync_reply(self) -> None:
+        """Read (and handle) what arrives until our request's reply is handled or
+        TIMESYNC_WAIT_S has passed (see TIMESYNC_WAIT_S)."""
+        assert self._link is not None
+        end = self._clock() + TIMESYNC_WAIT_S
+        while self._timesync_pending is not None:
+            left = end - self._clock()
+            if left <= 0 or not self._link.wait_readable(left):
+                break
+            for msg in self._link.read_messages():
+                self._on_message(msg, self._clock())
+        self._timesync_pending = None
 
     def _now_ns(self) -> int:
         """Now in integer ns on the output's clock: the clock of every ``time_usec`` sent."""
@@ -659,6 +700,28 @@ class MavlinkOutput(QueuedOutput):
         with self._io_lock:
             self._timesync_peer = peer
 
+    def attach_attitude(self, attitude: Any) -> None:
+        """Feed the live attitude (attitude.AutopilotAttitude) from this link: its TIMESYNC
+        exchanges (``attach_timesync``), the autopilot's ATTITUDE and ATTITUDE_QUATERNION with
+        their arrival time on the output's clock, and ATTITUDE asked for at 50 Hz (module
+        docstring); the link is read every ATTITUDE_TICK_S from then on. Messages from other systems (a ground station, another vehicle) are not used."""
+        self.attach_timesync(attitude)
+
+        def on_attitude(msg: Any, now: float) -> None:
+            if self._from_autopilot(msg):
+                attitude.on_attitude(msg.time_boot_ms, msg.roll, msg.pitch, msg.yaw, self._clock())
+
+        def on_quaternion(msg: Any, now: float) -> None:
+            if self._from_autopilot(msg):
+                attitude.on_attitude_quaternion(msg.time_boot_ms, (msg.q1, msg.q2, msg.q3, msg.q4), self._clock())
+                self._state_heard_t[MSG_ID_ATTITUDE] = self._clock()
+
+        self.listen("ATTITUDE", on_attitude)
+        self.listen("ATTITUDE_QUATERNION", on_quaternion)
+        with self._io_lock:
+            self._attitude_sink = attitude
+            self.tick_s = min(self.tick_s, ATTITUDE_TICK_S)
+
     def _on_message(self, msg: Any, now: float) -> None:
         kind = msg.get_type()
         handler = self._handlers.get(kind)
@@ -687,6 +750,8 @@ class MavlinkOutput(QueuedOutput):
             self._count("timesync_answered")
         peer = self._timesync_peer
         if peer is not None:
+            if msg.tc1 != 0 and msg.ts1 == self._timesync_pending:
+                self._timesync_pending = None
             peer.on_timesync(int(msg.tc1), int(msg.ts1), t_ns)
 
     def _on_heartbeat(self, msg: Any, now: float) -> None:
@@ -774,6 +839,11 @@ class MavlinkOutput(QueuedOutput):
             self._origin_next_t = now + ORIGIN_RETRY_S if not ours else -1e18
 
     def _on_command_ack(self, msg: Any, now: float) -> None:
+        if (self._from_autopilot(msg) and msg.command == MAV_CMD_SET_MESSAGE_INTERVAL and self._for_us(msg)
+                and msg.result != MAV_RESULT_ACCEPTED):
+            # An older ArduPilot (or a refusal): the stream rates are its SRx_ parameters,
+            # which REQUEST_DATA_STREAM sets.
+            self._request_data_streams()
         if self._from_autopilot(msg) and msg.command == MAV_CMD_DO_SET_HOME and self._for_us(msg):
             self._home_acked = msg.result == MAV_RESULT_ACCEPTED
             if not self._home_acked:
@@ -788,10 +858,12 @@ class MavlinkOutput(QueuedOutput):
     def _on_local_position_ned(self, msg: Any, now: float) -> None:
         if self._from_autopilot(msg):
             self._state.add_position(self._clock(), (msg.x, msg.y, msg.z))
+            self._state_heard_t[MSG_ID_LOCAL_POSITION_NED] = self._clock()
 
     def _on_attitude(self, msg: Any, now: float) -> None:
         if self._from_autopilot(msg):
             self._state.add_attitude(self._clock(), msg.roll, msg.pitch, msg.yaw)
+            self._state_heard_t[MSG_ID_ATTITUDE] = self._clock()
 
     def _on_param_value(self, msg: Any, now: float) -> None:
         name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode("ascii", "replace")
@@ -805,17 +877,52 @@ class MavlinkOutput(QueuedOutput):
             if self.cfg.statustext:
                 self._send_text(MAV_SEVERITY_WARNING, text)
 
+    def _wanted_state(self) -> Tuple[int, ...]:
+        """The autopilot's messages this output needs streamed: PX4's LANDING_TARGET needs the
+        vehicle's own position and attitude, the live attitude (``attach_attitude``) ATTITUDE."""
+        wanted: Tuple[int, ...] = ()
+        if self.autopilot_kind == "px4" and "LANDING_TARGET" in self.messages:
+            wanted = (MSG_ID_LOCAL_POSITION_NED, MSG_ID_ATTITUDE)
+        elif self._attitude_sink is not None:
+            wanted = (MSG_ID_ATTITUDE,)
+        return wanted
+
+    def _missing_state(self, now_s: float) -> List[int]:
+        return [m for m in self._wanted_state()
+                if now_s - self._state_heard_t.get(m, -1e18) >= STATE_REQUEST_S]
+
     def _request_vehicle_state(self, now: float) -> None:
-        """PX4's LANDING_TARGET needs the vehicle's own position and attitude: ask for them at
-        50 Hz (again every STATE_REQUEST_S while they do not come)."""
+        """Ask for the wanted messages (``_wanted_state``) that have not arrived for
+        STATE_REQUEST_S at 50 Hz with MAV_CMD_SET_MESSAGE_INTERVAL, again every STATE_REQUEST_S
+        while they do not come; from the second round on also with REQUEST_DATA_STREAM (older
+        ArduPilot has no SET_MESSAGE_INTERVAL; a refusing COMMAND_ACK sends it at once)."""
         assert self._link is not None
-        if self._state.fresh(self._clock()) or now - self._state_request_t < STATE_REQUEST_S:
+        missing = self._missing_state(self._clock())
+        if not missing:
+            self._state_requests = 0
+            return
+        if now - self._state_request_t < STATE_REQUEST_S:
             return
         self._state_request_t = now
-        for msg_id in (MSG_ID_LOCAL_POSITION_NED, MSG_ID_ATTITUDE):
+        for msg_id in missing:
             self._link.mav.command_long_send(self.autopilot_system or 0, self._autopilot_component,
                                              MAV_CMD_SET_MESSAGE_INTERVAL, 0, float(msg_id),
                                              float(STATE_INTERVAL_US), 0.0, 0.0, 0.0, 0.0, 0.0)
+            self._count("state_requested")
+        if self._state_requests > 0:
+            self._request_data_streams()
+        self._state_requests += 1
+
+    def _request_data_streams(self) -> None:
+        """REQUEST_DATA_STREAM at 50 Hz for the wanted messages still missing (ArduPilot's
+        streams: MAV_DATA_STREAM_EXTRA1 carries ATTITUDE, MAV_DATA_STREAM_POSITION
+        LOCAL_POSITION_NED)."""
+        assert self._link is not None
+        streams = {MSG_ID_ATTITUDE: MAV_DATA_STREAM_EXTRA1, MSG_ID_LOCAL_POSITION_NED: MAV_DATA_STREAM_POSITION}
+        for msg_id in self._missing_state(self._clock()):
+            self._link.mav.request_data_stream_send(self.autopilot_system or 0, self._autopilot_component,
+                                                    streams[msg_id], STATE_RATE_HZ, 1)
+            self._count("data_stream_requested")
 
     # ------------------------------------------------------------------ poses
 
