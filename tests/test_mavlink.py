@@ -518,3 +518,33 @@ def test_origin_sent_again_when_the_autopilot_stops_reporting_it(monkeypatch):
         fc.close()
     assert fc.origin == (-353632610, 1491652300, 584000)
     assert out.stats()["origin_forgotten"] == 1
+
+
+def test_odometry_quality_leaves_out_the_flip_risk_only_when_the_attitude_chose():
+    """A near-tie between two planar solutions 40 deg apart: the ODOMETRY the output sends
+    carries pose_quality(flip_resolved=True) when the result's choice was the attitude's, and
+    the risk-weighted quality for any other choice."""
+    import dataclasses
+
+    from pose_daemon.pose.prior import Choice
+    from pose_daemon.result import FrameResult
+
+    R = g.R_from_euler_rpy(0.0, math.radians(20.0), 0.0) @ np.diag([1.0, -1.0, -1.0])
+    R_alt = g.R_from_euler_rpy(0.0, math.radians(-20.0), 0.0) @ np.diag([1.0, -1.0, -1.0])
+    base = camera_pose(R, [0, 0, 1.0], 0.1)
+    pose = dataclasses.replace(base, alternative=camera_pose(R_alt, base.tvec, 0.1), ambiguity_ratio=0.95)
+    resolved = pose_quality(pose, 500.0, 0.2, flip_resolved=True)
+    at_risk = pose_quality(pose, 500.0, 0.2)
+    assert resolved > at_risk
+    peer = UdpPeer()
+    out = mavlink_output(f"udpout:127.0.0.1:{peer.port}", WALL, wait_heartbeat=False, messages=("ODOMETRY",),
+                         queue_size=0)
+    try:
+        t0 = time.monotonic()
+        for k, by in enumerate(("attitude", "continuity", "clear", "attitude")):
+            out.submit(FrameResult(seq=k, t_capture_s=t0 + 0.05 * k, pose=pose, choice=Choice(pose, by)))
+        msgs = peer.collect(5.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 4)
+    finally:
+        out.close()
+        peer.close()
+    assert [m.quality for m in of_type(msgs, "ODOMETRY")] == [resolved, at_risk, at_risk, resolved]

@@ -972,7 +972,9 @@ class MavlinkOutput(QueuedOutput):
         inputs = PoseMessageInputs.from_pose(time_usec_from_s(t), pose, self.frames, vehicle=vehicle,
                                              fx_px=self.fx_px, marker_width_m=self.marker_width_m,
                                              marker_height_m=self.marker_height_m,
-                                             reset_counter=self.reset_counter, target_local_ned_m=target_ned)
+                                             reset_counter=self.reset_counter, target_local_ned_m=target_ned,
+                                             flip_resolved=(result.choice is not None
+                                                            and result.choice.resolved_by == "attitude"))
         n = self._send_pose(inputs)
         self._last_sent_t = t
         self._last_sent_pose = (p, R)
@@ -1023,9 +1025,11 @@ class PoseMessageInputs:
     def from_pose(cls, t_us: int, pose: Pose, frames: VehicleFrames, *, fx_px: float, marker_width_m: float,
                   marker_height_m: Optional[float] = None, reset_counter: int = 0,
                   vehicle: Optional[VehiclePose] = None,
-                  target_local_ned_m: Optional[np.ndarray] = None) -> PoseMessageInputs:
+                  target_local_ned_m: Optional[np.ndarray] = None,
+                  flip_resolved: bool = False) -> PoseMessageInputs:
         """From the camera's pose (``pose``: R_cam_marker, tvec) and the mounting; ``vehicle``:
-        ``frames.vehicle_pose`` of the same pose when the caller has it already."""
+        ``frames.vehicle_pose`` of the same pose when the caller has it already;
+        ``flip_resolved``: the vehicle's attitude chose the planar solution (quality.pose_quality)."""
         if vehicle is None:
             vehicle = frames.vehicle_pose(pose.R, pose.tvec)
         t_cam = np.asarray(pose.tvec, dtype=np.float64)
@@ -1036,7 +1040,7 @@ class PoseMessageInputs:
                    R_local_body=np.asarray(vehicle.R_local_body, dtype=np.float64),
                    covariance=pose_covariance_local(pose, frames, fx_px, width_m, u=u),
                    reset_counter=int(reset_counter),
-                   quality=pose_quality(pose, fx_px, width_m, u=u),
+                   quality=pose_quality(pose, fx_px, width_m, u=u, flip_resolved=flip_resolved),
                    p_marker_cam_m=t_cam, p_marker_body_m=np.asarray(frames.marker_in_body(t_cam)),
                    R_body_marker=frames.R_body_cam @ np.asarray(pose.R), marker_size_m=(width_m, height_m),
                    target_local_ned_m=target_local_ned_m)
