@@ -17,7 +17,7 @@ import numpy as np
 
 from .camera import Camera, Marker
 from .capture.base import Frame
-from .config import DetectorConfig, EstimatorConfig
+from .config import Config, DetectorConfig, EstimatorConfig
 from .detect import MarkerDetector
 from .pose.continuity import Track
 from .pose.estimator import estimate_pose
@@ -60,7 +60,7 @@ class FrameProcessor:
                                            min_side_px=detector.min_side_px, camera=camera))
 
     @classmethod
-    def from_config(cls, cfg) -> FrameProcessor:
+    def from_config(cls, cfg: Config) -> FrameProcessor:
         """The processor a Config asks for: its camera, marker, estimator and detector keys."""
         return cls.from_models(cfg.camera.model(), cfg.marker.model(), cfg.estimator, cfg.detector)
 

@@ -49,7 +49,7 @@ from .quality import pose_covariance_local, pose_quality
 from .worker import LinkBusy, LinkError, QueuedOutput
 
 if TYPE_CHECKING:  # config.py may import this module's choices: no import back at run time
-    from ..config import MavlinkOutputConfig
+    from ..config import Config, MavlinkOutputConfig
 
 MESSAGES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
 # ArduPilot's AP_VISUALODOM_TIMEOUT_MS: a longer silence makes the feed unhealthy, so the next
@@ -262,7 +262,7 @@ class MavlinkOutput(QueuedOutput):
                          clock=clock, start=start)
 
     @classmethod
-    def from_config(cls, cfg, **kwargs) -> MavlinkOutput:
+    def from_config(cls, cfg: Config, **kwargs: Any) -> MavlinkOutput:
         """The output of a whole Config's ``[output.mavlink]``; ``kwargs`` as ``__init__``."""
         return cls(cfg.output.mavlink, VehicleFrames.from_config(cfg.mount, cfg.marker.placement),
                    camera=cfg.camera.model(), marker=cfg.marker.model(), **kwargs)
