@@ -292,16 +292,16 @@ def test_picamera2_stalled_camera_is_a_source_error_not_a_hang(fake_picamera2) -
 
 
 def test_picamera2_stall_in_the_pipeline_becomes_a_reopen(fake_picamera2, caplog) -> None:
-    from pipeline_fakes import FakeOutput, FakeProcessor
+    from pipeline_fakes import FakeOutput, FakeProcessor, outputs_of
 
     from pose_daemon.pipeline import Pipeline
 
     fake_picamera2.stall_after = {0: 3}   # the first camera stalls; the reopened one works
     source = Picamera2Source(64, 48, fps=30.0, read_timeout_s=0.05)
-    out = FakeOutput()
     # The fake's sensor time stamps start at 5 s: no latency budget applies here.
-    pipeline = Pipeline(source, FakeProcessor(), [out], latency_budget_s=1e9, source_retry_s=0.01,
-                        source_retry_max_s=0.01)
+    pipeline = Pipeline(source, FakeProcessor(), outputs_of(FakeOutput), latency_budget_s=1e9,
+                        source_retry_s=0.01, source_retry_max_s=0.01)
+    out = pipeline.outputs[0]
     caplog.set_level("WARNING", logger="pose_daemon.pipeline")
     pipeline.start()
     try:
