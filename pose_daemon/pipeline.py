@@ -225,14 +225,18 @@ class Pipeline:
     ``on_idle``: called once in each gap between frames (``IDLE_AFTER_S`` without a new frame
     after a processed one), in the processing thread: the daemon collects garbage there
     (service.IdleCollector), out of the frames' capture -> output time.
+    ``frame_observer(frame, result)``: called in the processing thread after every processed
+    frame (the live preview's handoff); it must take O(1) time and never raise.
     """
 
     def __init__(self, source: FrameSource, processor: Processor, outputs: OutputFactory, *,
                  latency_budget_s: float = 0.1, source_retry_s: float = 0.5, source_retry_max_s: float = 5.0,
                  clock: Callable[[], float] = time.monotonic,
                  on_written: Optional[WrittenHook] = None,
-                 on_idle: Optional[Callable[[], None]] = None) -> None:
+                 on_idle: Optional[Callable[[], None]] = None,
+                 frame_observer: Optional[Callable[[Frame, FrameResult], None]] = None) -> None:
         self.source = source
+        self.frame_observer = frame_observer
         self.processor = processor
         self.latency_budget_s = float(latency_budget_s)
         self.source_retry_s = float(source_retry_s)
@@ -307,9 +311,9 @@ class Pipeline:
             self._source_state = state
 
     def status_line(self, reset: bool = True) -> str:
-        return self.stats.status_line(self.source_state, [self._output_state(o) for o in self.outputs], reset)
+        return self.stats.status_line(self.source_state, [self.output_state(o) for o in self.outputs], reset)
 
-    def _output_state(self, output: Output) -> str:
+    def output_state(self, output: Output) -> str:
         """"name N sent (...)": results written, with the output's own ``status()`` text."""
         try:
             text = str(output.status())
@@ -344,9 +348,13 @@ class Pipeline:
                         opened = True
                         self._set_source_state("ok")
                     frame = self.source.read()
-                except EndOfStream:
-                    self.end_reason = "end of stream"
-                    self._set_source_state("ended")
+                except EndOfStream as exc:
+                    # Frames the source could not deliver (a damaged video) are said, not hidden.
+                    lost = f" ({exc.lost})" if exc.lost else ""
+                    if lost:
+                        log.warning("source: %s", exc.lost)
+                    self.end_reason = "end of stream" + lost
+                    self._set_source_state("ended" + lost)
                     break
                 except (SourceError, OSError) as exc:
                     reason = " ".join(str(exc).split()) or type(exc).__name__
@@ -417,6 +425,8 @@ class Pipeline:
                         stages[stage] = result.stage_s[stage]
                 result.stage_s.update({"capture": stages["capture"], "queue": stages["queue"]})
                 self.stats.processed_frame(result, stages)
+                if self.frame_observer is not None:
+                    self.frame_observer(frame, result)
                 if not self.first_frame.is_set():
                     self.first_frame.set()
                 # Handed over as is: each output drops it as late if its write would come after

@@ -2,8 +2,9 @@
 
 systemd (Type=notify) hears READY=1 after the first frame, WATCHDOG=1 only while results
 really reach the outputs (a stalled camera gets the service restarted), STATUS= lines and
-STOPPING=1. SIGTERM/SIGINT stop cleanly (exit 0), SIGUSR1 logs a status line. The daemon's
-process-wide garbage-collection policy (IdleCollector) lives here too.
+STOPPING=1. SIGTERM/SIGINT/SIGHUP stop cleanly (exit 0), SIGUSR1 logs a status line; before
+the service installs its handlers, ``startup`` holds the stop signals (``pose-daemon run``).
+The daemon's process-wide garbage-collection policy (IdleCollector) lives here too.
 """
 
 from __future__ import annotations
@@ -13,17 +14,20 @@ import gc
 import logging
 import os
 import signal
-import socket
 import sys
 import threading
 import time
 from typing import Callable, Dict, List, Mapping, Optional
 
+from . import startup
 from .capture.base import FrameSource
 from .config import Config
 from .errors import PoseDaemonError, UserError
 from .outputs.base import Output, OutputFactory
 from .pipeline import Pipeline
+from .sdnotify import SdNotifier
+
+__all__ = ["SdNotifier", "Service", "run_daemon", "watchdog_interval_s"]
 
 log = logging.getLogger("pose_daemon.service")
 
@@ -33,44 +37,6 @@ GIL_SWITCH_INTERVAL_S = 0.001
 
 # Longest a clean stop may take (systemd and users expect SIGTERM -> exit within 2 s).
 STOP_TIMEOUT_S = 1.5
-
-
-class SdNotifier:
-    """sd_notify(3) over $NOTIFY_SOCKET with the socket module; silent when not under systemd."""
-
-    def __init__(self, address: Optional[str] = None) -> None:
-        if address is None:
-            address = os.environ.get("NOTIFY_SOCKET")
-        self.address: Optional[str] = None
-        if address:
-            # "@name" is a socket in the abstract namespace.
-            self.address = "\0" + address[1:] if address.startswith("@") else address
-        self._sock: Optional[socket.socket] = None
-        self.failed = False
-
-    @property
-    def enabled(self) -> bool:
-        return self.address is not None
-
-    def notify(self, *lines: str) -> bool:
-        """Send "KEY=value" lines as one datagram; False (never an exception) when it failed."""
-        if self.address is None or not lines:
-            return False
-        try:
-            if self._sock is None:
-                self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
-            self._sock.sendto("\n".join(lines).encode("utf-8", "replace"), self.address)
-            return True
-        except OSError as exc:
-            if not self.failed:
-                log.warning("sd_notify to %r failed: %s", self.address, exc)
-            self.failed = True
-            return False
-
-    def close(self) -> None:
-        if self._sock is not None:
-            self._sock.close()
-            self._sock = None
 
 
 def watchdog_interval_s(env: Optional[Mapping[str, str]] = None) -> Optional[float]:
@@ -173,15 +139,33 @@ class Service:
 
             outputs = functools.partial(open_outputs, cfg)
         self.idle_collector = IdleCollector()
+        tap = None
+        if cfg.preview is not None:
+            from .preview import FrameTap
+
+            tap = FrameTap(processor)
         self.pipeline = Pipeline.from_config(cfg, source, processor, outputs, clock=clock,
-                                             on_idle=self.idle_collector.run)
+                                             on_idle=self.idle_collector.run, frame_observer=tap)
         self.outputs: List[Output] = self.pipeline.outputs
+        self.preview = self._open_preview(tap) if tap is not None else None
         self.notifier = notifier if notifier is not None else SdNotifier()
         self.watchdog_s = watchdog_interval_s(env)
         self._stop = threading.Event()
         self._status_requested = threading.Event()
         self.stop_reason: Optional[str] = None
         self.watchdog_pings = 0
+
+    def _open_preview(self, tap):
+        """The [preview] web server, or None (logged) when it cannot listen: the pose feed
+        matters more than the page, so a taken port does not stop the daemon."""
+        from .preview import PreviewError, PreviewServer
+
+        try:
+            return PreviewServer(self.cfg, self.pipeline, tap, clock=self.clock)
+        except PreviewError as exc:
+            log.error("%s; running without the preview", exc)
+            self.pipeline.frame_observer = None
+            return None
 
     # Signal handlers only set flags; the main loop acts on them.
     def request_stop(self, reason: str = "stop requested") -> None:
@@ -193,7 +177,10 @@ class Service:
         self._status_requested.set()
 
     def install_signal_handlers(self) -> Dict[int, object]:
-        """SIGTERM/SIGINT -> clean stop, SIGUSR1 -> status line; returns the previous handlers."""
+        """SIGTERM/SIGINT/SIGHUP -> clean stop, SIGUSR1 -> status line; returns the previous handlers.
+
+        SIGHUP (a terminal that hung up, or ``kill -HUP``) stops like SIGTERM: re-reading the
+        config is ``systemctl restart``, whose ExecStartPre checks the new one first."""
         previous: Dict[int, object] = {}
 
         def on_stop(signum, _frame):
@@ -203,7 +190,7 @@ class Service:
             self.request_status()
 
         for signum, handler in ((signal.SIGTERM, on_stop), (signal.SIGINT, on_stop),
-                                (signal.SIGUSR1, on_status)):
+                                (signal.SIGHUP, on_stop), (signal.SIGUSR1, on_status)):
             previous[signum] = signal.signal(signum, handler)
         return previous
 
@@ -213,6 +200,8 @@ class Service:
         wd_s = self.watchdog_s
         ping_every_s = wd_s / 2.0 if wd_s else None
         self.pipeline.start()
+        if self.preview is not None:
+            self.preview.start()
         log.info("started: source %s, outputs %s, latency budget %.0f ms", self.cfg.camera.source,
                  ", ".join(o.name for o in self.outputs) or "none",
                  self.cfg.pipeline.latency_budget_s * 1e3)
@@ -250,6 +239,8 @@ class Service:
         finally:
             self.notifier.notify("STOPPING=1", f"STATUS=stopping: {self.stop_reason or 'stop'}")
             log.info("stopping: %s", self.stop_reason or "stop")
+            if self.preview is not None:
+                self.preview.stop()
             clean = self.pipeline.stop(STOP_TIMEOUT_S)
             if not clean:
                 log.warning("a thread did not end within %.1f s (a camera read stuck?)", STOP_TIMEOUT_S)
@@ -280,7 +271,7 @@ class Service:
 
 
 def run_daemon(cfg: Config) -> int:
-    """``pose-daemon run``: the service in the main thread until SIGTERM/SIGINT; exit status."""
+    """``pose-daemon run``: the service in the main thread until SIGTERM/SIGINT/SIGHUP; exit status."""
     setup_logging(cfg.logging.level)
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     try:
@@ -292,6 +283,7 @@ def run_daemon(cfg: Config) -> int:
         log.error("cannot start: %s", " ".join(str(exc).split()) or type(exc).__name__)
         return 1
     previous = service.install_signal_handlers()
+    startup.handed_over()
     try:
         return service.run()
     finally:

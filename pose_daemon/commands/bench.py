@@ -44,6 +44,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                help="rate at which the source hands out frames (default 100)")
     p["pipeline"].add_argument("--distinct", type=int, default=48, help="distinct rendered frames, cycled (default 48)")
     p["pipeline"].add_argument("--seed", type=int, default=0, help="trajectory and noise seed")
+    p["pipeline"].add_argument("--preview", choices=("off", "idle", "watch"), default="off",
+                               help="live preview: off (default), idle (served, nobody watching), "
+                                    "watch (one viewer reading /stream.mjpg)")
     p["outputs"].add_argument("--poses", type=int, default=3000, help="poses per output (default 3000)")
     for parser in p.values():
         parser.set_defaults(func=run)
@@ -67,7 +70,7 @@ def run(a: argparse.Namespace) -> int:
         report = bench.run_bench(a.frames, a.empty, a.seed, a.repeat)
     elif a.bench == "pipeline":
         _check(a.frames >= 1 and a.fps > 0 and a.distinct >= 1, "--frames and --distinct must be >= 1 and --fps > 0")
-        report = bench.run_bench(a.frames, a.fps, a.distinct, a.seed)
+        report = bench.run_bench(a.frames, a.fps, a.distinct, a.seed, preview=a.preview)
     else:
         _check(a.poses >= 1, f"--poses must be at least 1, got {a.poses}")
         report = bench.run_bench(a.poses)
