@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence, Tuple
+from typing import Any, Sequence, Tuple, Union
 
 import cv2
 import numpy as np
@@ -146,7 +146,7 @@ def quaternion_from_R(R: np.ndarray) -> np.ndarray:
     return np.where(q[..., :1] < 0, -q, q)
 
 
-def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
+def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> Union[np.float64, np.ndarray]:
     """Angle of the rotation R_a^T R_b in degrees (the usual rotation error), stacks allowed;
     a float for two single matrices."""
     Ra, Rb = np.asarray(R_a, dtype=np.float64), np.asarray(R_b, dtype=np.float64)
@@ -187,7 +187,7 @@ def R_from_rvec_f(x: float, y: float, z: float) -> Tuple[float, ...]:
             bxz - ay, byz + ax, 1.0 + b * (z * z - t2))
 
 
-def matmul_f(A: Sequence[float], B: Sequence[float]) -> Tuple[float, ...]:
+def matmul_f(A: Sequence[Any], B: Sequence[Any]) -> Tuple[Any, ...]:
     """A @ B for row-major 9-tuples (the entries may also be arrays of one shape)."""
     a00, a01, a02, a10, a11, a12, a20, a21, a22 = A
     b00, b01, b02, b10, b11, b12, b20, b21, b22 = B

@@ -15,7 +15,7 @@ import collections
 import logging
 import threading
 import time
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import TYPE_CHECKING, Callable, Dict, List, Optional, Protocol, Sequence, Tuple
 
 import numpy as np
 
@@ -23,6 +23,9 @@ from .capture.base import Frame, FrameSource
 from .errors import EndOfStream, SourceError
 from .outputs.base import Output, OutputFactory, WrittenHook
 from .result import FrameResult
+
+if TYPE_CHECKING:  # config.py sits below the pipeline; the annotation needs no import at run time
+    from .config import Config
 
 log = logging.getLogger("pose_daemon.pipeline")
 
@@ -202,6 +205,15 @@ class PipelineStats:
         return "; ".join(parts)
 
 
+class Processor(Protocol):
+    """What the processing thread calls: FrameProcessor (processing.py) is the one in use."""
+
+    def process(self, frame: Frame) -> FrameResult: ...
+
+    def reset(self) -> None:
+        """Forget the track: the next frame starts afresh (the source was reopened)."""
+
+
 class Pipeline:
     """Runs a source through a processor to outputs on three kinds of threads.
 
@@ -219,7 +231,7 @@ class Pipeline:
     frame (the live preview's handoff); it must take O(1) time and never raise.
     """
 
-    def __init__(self, source: FrameSource, processor, outputs: OutputFactory, *,
+    def __init__(self, source: FrameSource, processor: Processor, outputs: OutputFactory, *,
                  latency_budget_s: float = 0.1, source_retry_s: float = 0.5, source_retry_max_s: float = 5.0,
                  clock: Callable[[], float] = time.monotonic,
                  on_written: Optional[WrittenHook] = None,
@@ -250,7 +262,7 @@ class Pipeline:
         self._process_thread = threading.Thread(target=self._process, name="process", daemon=True)
 
     @classmethod
-    def from_config(cls, cfg, source: FrameSource, processor, outputs: OutputFactory,
+    def from_config(cls, cfg: Config, source: FrameSource, processor: Processor, outputs: OutputFactory,
                     **kwargs) -> Pipeline:
         p = cfg.pipeline
         return cls(source, processor, outputs, latency_budget_s=p.latency_budget_s,

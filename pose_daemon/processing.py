@@ -18,7 +18,7 @@ import numpy as np
 
 from .camera import Camera, Marker
 from .capture.base import Frame
-from .config import DetectorConfig, EstimatorConfig
+from .config import Config, DetectorConfig, EstimatorConfig
 from .detect import MarkerDetector
 from .geometry import VehicleFrames
 from .pose.continuity import Track, choose_by_continuity
@@ -80,7 +80,7 @@ class FrameProcessor:
                    frames=frames, prior=prior, attitude_source=attitude_source)
 
     @classmethod
-    def from_config(cls, cfg) -> FrameProcessor:
+    def from_config(cls, cfg: Config) -> FrameProcessor:
         """The processor a Config asks for: its camera, marker, estimator, detector, mount,
         [attitude] and [gate] keys."""
         return cls.from_models(cfg.camera.model(), cfg.marker.model(), cfg.estimator, cfg.detector,

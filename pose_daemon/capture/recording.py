@@ -148,7 +148,7 @@ def read_index(path: Union[str, Path]) -> List[Dict[str, Any]]:
     The exception is an unfinished last line (no line end): a recording cut off by a power
     loss ends that way, and the frames before it are still good, so that line is skipped."""
     index_path = Path(path) / INDEX_FILE
-    entries = []
+    entries: List[Dict[str, Any]] = []
     try:
         text = index_path.read_text()
     except (OSError, UnicodeDecodeError) as exc:

@@ -12,14 +12,14 @@ import json
 import os
 import sys
 import time
-from typing import TYPE_CHECKING, Callable, Optional, TextIO
+from typing import TYPE_CHECKING, Any, Callable, Optional, TextIO
 
 from ..result import FrameResult
 from .base import ClosedHook, WrittenHook
 from .worker import LinkClosed, LinkError, QueuedOutput
 
 if TYPE_CHECKING:
-    from ..config import JsonlOutputConfig
+    from ..config import Config, JsonlOutputConfig
 
 
 def json_line(result: FrameResult) -> str:
@@ -51,7 +51,7 @@ class JsonlOutput(QueuedOutput):
                          start=start)
 
     @classmethod
-    def from_config(cls, cfg, **kwargs) -> JsonlOutput:
+    def from_config(cls, cfg: Config, **kwargs: Any) -> JsonlOutput:
         return cls(cfg.output.jsonl, **kwargs)
 
     def _open(self) -> None:

@@ -91,7 +91,7 @@ from .worker import (
 )
 
 if TYPE_CHECKING:  # config.py may import this module's choices: no import back at run time
-    from ..config import MavlinkOutputConfig
+    from ..config import Config, MavlinkOutputConfig
 
 MESSAGES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
 AUTOPILOTS = ("auto", "ardupilot", "px4")
@@ -541,7 +541,7 @@ class MavlinkOutput(QueuedOutput):
                          clock=clock, start=start)
 
     @classmethod
-    def from_config(cls, cfg, **kwargs) -> MavlinkOutput:
+    def from_config(cls, cfg: Config, **kwargs: Any) -> MavlinkOutput:
         """The output of a whole Config's ``[output.mavlink]``; ``kwargs`` as ``__init__``."""
         return cls(cfg.output.mavlink, VehicleFrames.from_config(cfg.mount, cfg.marker.placement),
                    camera=cfg.camera.model(), marker=cfg.marker.model(), **kwargs)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import TYPE_CHECKING, Callable, Optional
+from typing import TYPE_CHECKING, Any, Callable, Optional
 
 import numpy as np
 
@@ -37,7 +37,7 @@ from .worker import (
 )
 
 if TYPE_CHECKING:
-    from ..config import SerialOutputConfig
+    from ..config import Config, SerialOutputConfig
 
 WRITE_TIMEOUT_S = 0.25
 
@@ -118,7 +118,7 @@ class PlainSerialOutput(QueuedOutput):
                          clock=clock, start=start)
 
     @classmethod
-    def from_config(cls, cfg, **kwargs) -> PlainSerialOutput:
+    def from_config(cls, cfg: Config, **kwargs: Any) -> PlainSerialOutput:
         """The output of a whole Config's ``[output.serial]``; ``kwargs`` as ``__init__``."""
         return cls(cfg.output.serial, VehicleFrames.from_config(cfg.mount, cfg.marker.placement),
                    fx_px=cfg.camera.fx, marker_width_m=cfg.marker.width, **kwargs)

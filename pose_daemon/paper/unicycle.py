@@ -171,7 +171,8 @@ def simulate(setup: UnicycleSetup, *, feedback: str = "estimated") -> UnicycleRu
                 continue
         else:
             xe[k], ze[k], the[k] = last
-        fx, fz, fth = (x, z, theta) if feedback == "true" else last
+        # last is None here only with true feedback (estimated feedback waited above).
+        fx, fz, fth = (x, z, theta) if feedback == "true" or last is None else last
         distance = math.hypot(fx - setup.goal[0], fz - setup.goal[1])
         if t_arrived is None and distance < setup.goal_radius:
             t_arrived = float(t[k])

@@ -95,10 +95,10 @@ def _zmin_batch(R: np.ndarray, t: np.ndarray, obj) -> np.ndarray:
     """The smallest corner depth (n,) of poses R (n, 3, 3), t (n, 3): _residuals_batch's
     zmin without the projections."""
     r20, r21, t2 = R[:, 2, 0], R[:, 2, 1], t[:, 2]
-    zmin = None
-    for X, Y in obj:
-        pz = r20 * X + r21 * Y + t2
-        zmin = pz if zmin is None else np.minimum(zmin, pz)
+    (X0, Y0), rest = obj[0], obj[1:]
+    zmin = r20 * X0 + r21 * Y0 + t2
+    for X, Y in rest:
+        zmin = np.minimum(zmin, r20 * X + r21 * Y + t2)
     return zmin
 
 
@@ -435,12 +435,12 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
         # weak-perspective poses (fronto-parallel if none is usable).
         with np.errstate(all="ignore"):
             (Ra, ta), (Rb, tb) = _weak_perspective_pair_batch(xs, ys, marker.width, marker.height)
-            costs = []
+            start_costs = []
             for R0, t0 in ((R, t), (Ra, ta), (Rb, tb)):
                 _, c0, z0 = _residuals_batch(R0, t0, obj, list(xs.T), list(ys.T), wx, wy, False)
                 fin0 = np.all(np.isfinite(R0), axis=(1, 2)) & np.all(np.isfinite(t0), axis=1)
-                costs.append(np.where(fin0 & (z0 > 0.0) & np.isfinite(c0), c0, np.inf))
-        costs = np.stack(costs)
+                start_costs.append(np.where(fin0 & (z0 > 0.0) & np.isfinite(c0), c0, np.inf))
+        costs = np.stack(start_costs)
         pick = np.argmin(costs, axis=0)
         R = np.where((pick == 1)[:, None, None], Ra, np.where((pick == 2)[:, None, None], Rb, R))
         t = np.where((pick == 1)[:, None], ta, np.where((pick == 2)[:, None], tb, t))

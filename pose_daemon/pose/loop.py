@@ -217,7 +217,8 @@ def _loop_core(xs, ys, f: float, area: float, method: str, iterations: int, m: _
         _rot_cols(R, 1, 2, c, s)
         if rows is not None:
             rows.append((i, zeta, g, b, a, [list(r) for r in R], _position(xs, ys, f, ff, m)))
-        if tol_rad > 0.0 and abs(g) < tol_rad and abs(b) < tol_rad and abs(a) < tol_rad:
+        # g, b and a are None only when tol_rad is 0 (and no rows are kept).
+        if tol_rad > 0.0 and abs(g) < tol_rad and abs(b) < tol_rad and abs(a) < tol_rad:  # type: ignore[arg-type]
             break
     return R, xs, ys, i
 

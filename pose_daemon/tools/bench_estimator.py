@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import sys
 import time
-from typing import Callable, Dict, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -26,10 +26,12 @@ FLIP_DEG = 10.0
 
 
 def random_poses(n: int, camera: Camera, marker: Marker, rng: np.random.Generator,
-                 d_range=(0.5, 4.0), tilt_max_deg: float = 60.0) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 d_range: Tuple[float, float] = (0.5, 4.0), tilt_max_deg: float = 60.0) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """n poses (R_cam_marker (n,3,3), tvec (n,3)) with every corner inside the image, and the
     exact corner pixels (n,4,2)."""
-    Rs, ts, imgs = [], [], []
+    Rs: List[np.ndarray] = []
+    ts: List[np.ndarray] = []
+    imgs: List[np.ndarray] = []
     while len(Rs) < n:
         m = 2 * (n - len(Rs)) + 16
         d = rng.uniform(*d_range, m)
@@ -54,7 +56,9 @@ def random_poses(n: int, camera: Camera, marker: Marker, rng: np.random.Generato
         img = camera.project(pts.reshape(-1, 3)).reshape(m, 4, 2)
         inside = np.all((img >= 0) & (img <= [camera.width - 1, camera.height - 1]), axis=(1, 2))
         inside &= np.all(pts[..., 2] > 0, axis=1)
-        Rs.extend(R[inside]), ts.extend(t[inside]), imgs.extend(img[inside])
+        Rs.extend(R[inside])
+        ts.extend(t[inside])
+        imgs.extend(img[inside])
     return np.array(Rs[:n]), np.array(ts[:n]), np.array(imgs[:n])
 
 
@@ -70,7 +74,8 @@ def _ippe(camera: Camera, marker: Marker, refine: bool) -> Callable:
 
     def solve(corners: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         _, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, corners, K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
-        best, best_err = None, math.inf
+        best: Optional[Tuple[np.ndarray, np.ndarray]] = None
+        best_err = math.inf
         for rv, tv in zip(rvecs, tvecs):
             if refine:
                 rv, tv = cv2.solvePnPRefineLM(obj, corners, K, dist, rv.copy(), tv.copy())
@@ -78,6 +83,7 @@ def _ippe(camera: Camera, marker: Marker, refine: bool) -> Callable:
             e = float(np.sum((proj.reshape(4, 2) - corners) ** 2))
             if e < best_err:
                 best, best_err = (rv, tv), e
+        assert best is not None  # IPPE_SQUARE solves every corner set random_poses makes
         return cv2.Rodrigues(best[0])[0], best[1].ravel()
 
     return solve
@@ -96,7 +102,7 @@ def _time_calls(fn: Callable, corners: np.ndarray) -> float:
     return float(np.median(times) * 1e6)
 
 
-def run_bench(n: int, timing_n: int, seed: int, progress: bool = True) -> Dict[str, object]:
+def run_bench(n: int, timing_n: int, seed: int, progress: bool = True) -> Dict[str, Any]:
     camera = Camera(fx=600.0, fy=600.0, cx=319.5, cy=239.5, width=640, height=480)
     marker = Marker(0.2, 0.2)
     rng = np.random.default_rng(seed)
@@ -112,7 +118,7 @@ def run_bench(n: int, timing_n: int, seed: int, progress: bool = True) -> Dict[s
     for noise in NOISE_PX:
         corners = exact + rng.normal(scale=noise, size=exact.shape) if noise > 0 else exact.copy()
         dist = np.linalg.norm(t_true, axis=-1)
-        row: Dict[str, object] = {"noise_px": noise}
+        row: Dict[str, Any] = {"noise_px": noise}
         for name, (method, refine) in ours.items():
             # Accuracy through the batch form (tested equal to estimate_pose row by row).
             b = estimate_pose_batch(corners, camera, marker, method=method, refine=refine)
@@ -125,7 +131,7 @@ def run_bench(n: int, timing_n: int, seed: int, progress: bool = True) -> Dict[s
             row[name]["failures"] = int((~b.ok).sum())
         for name, solve in opencv.items():
             Rs, ts = zip(*(solve(c) for c in corners))
-            rot = geometry.rotation_angle_deg(np.array(Rs), R_true)
+            rot = np.asarray(geometry.rotation_angle_deg(np.array(Rs), R_true))
             row[name] = _stats(rot, 100.0 * np.linalg.norm(np.array(ts) - t_true, axis=-1) / dist)
             row[name]["failures"] = 0
         anchor = row["IPPE_SQUARE+LM"]
@@ -161,18 +167,20 @@ def run_bench(n: int, timing_n: int, seed: int, progress: bool = True) -> Dict[s
             "opencv": cv2.__version__, "numpy": np.__version__}
 
 
-def print_report(res: Dict[str, object]) -> None:
+def print_report(res: Dict[str, Any]) -> None:
     print(f"estimator accuracy: {res['n']} random poses, {res['camera']}, {res['marker_m']} m square, "
           f"{res['distance_m'][0]}-{res['distance_m'][1]} m, tilt <= {res['tilt_max_deg']:g} deg "
           f"(OpenCV {res['opencv']}, numpy {res['numpy']})")
     names = ["paper", "paper+polish", "iterative", "iterative+polish", "IPPE_SQUARE", "IPPE_SQUARE+LM"]
     for row in res["levels"]:
         print(f"\nnoise {row['noise_px']} px")
-        print(f"  {'method':<18}{'rot med deg':>13}{'rot p95 deg':>13}{'t med %':>11}{'t p95 %':>11}{'flips':>9}{'failed':>8}")
+        print(f"  {'method':<18}{'rot med deg':>13}{'rot p95 deg':>13}{'t med %':>11}"
+              f"{'t p95 %':>11}{'flips':>9}{'failed':>8}")
         for name in names:
             s = row[name]
             print(f"  {name:<18}{s['rot_median_deg']:>13.3g}{s['rot_p95_deg']:>13.3g}"
-                  f"{s['trans_median_pct']:>11.3g}{s['trans_p95_pct']:>11.3g}{100 * s['flip_rate']:>8.2f}%{s['failures']:>8d}")
+                  f"{s['trans_median_pct']:>11.3g}{s['trans_p95_pct']:>11.3g}"
+                  f"{100 * s['flip_rate']:>8.2f}%{s['failures']:>8d}")
         r = row["default_vs_ml"]
         print(f"  default (iterative+polish) / IPPE_SQUARE+LM: median x{r['rot_median_ratio']:.4f}, "
               f"p95 x{r['rot_p95_ratio']:.4f}")

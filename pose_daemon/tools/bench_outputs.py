@@ -59,7 +59,7 @@ def run_bench(poses: int = 3000) -> Dict[str, Any]:
     os.set_blocking(master, False)
     tmp = tempfile.TemporaryDirectory(prefix="pose-daemon-bench-")
     udp = f"udpout:127.0.0.1:{sink.getsockname()[1]}"
-    common = dict(camera=Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5), marker=Marker(width=0.2), queue_size=0)
+    common: Dict[str, Any] = dict(camera=Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5), marker=Marker(width=0.2), queue_size=0)
     all_three = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
     rows = []
     try:

@@ -24,7 +24,7 @@ from typing import Any, Callable, Dict, List, Optional
 import numpy as np
 
 from ..capture.base import Frame
-from ..config import parse_config
+from ..config import Config, parse_config
 from ..errors import EndOfStream
 
 # A Raspberry Pi 2 (900 MHz Cortex-A7) runs this Python/OpenCV path about this many times slower
@@ -81,7 +81,7 @@ def rss_bytes() -> int:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
-def render_frames(cfg, n: int, seed: int) -> List[np.ndarray]:
+def render_frames(cfg: Config, n: int, seed: int) -> List[np.ndarray]:
     from ..render import Effects, render_marker, trajectory
 
     camera, marker = cfg.camera.model(), cfg.marker.model()

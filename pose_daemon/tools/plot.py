@@ -11,7 +11,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Mapping, Optional, Tuple
 
 import numpy as np
 
@@ -90,11 +90,13 @@ def _parse_line(obj: Any) -> Tuple[Optional[float], bool, List[float], List[floa
     nan3 = [math.nan] * 3
     position, angles = nan3, nan3
     if ok:
-        position = _finite_vector(obj, "camera_position", 3)
-        if position is None:
+        found = _finite_vector(obj, "camera_position", 3)
+        if found is None:
             raise ValueError('"ok": true without a "camera_position" of 3 numbers')
-        angles = [_number(obj.get(k)) for k in ANGLE_KEYS]
-        if any(a is None for a in angles):
+        position = found
+        numbers = [_number(obj.get(k)) for k in ANGLE_KEYS]
+        angles = [a for a in numbers if a is not None]
+        if len(angles) != len(ANGLE_KEYS):
             raise ValueError('"ok": true without numeric ' + ", ".join(ANGLE_KEYS))
     latency = _number(obj.get("latency_ms"))
     return t, ok, position, angles, (math.nan if latency is None else latency)
@@ -135,8 +137,8 @@ def read_poses(path: Path) -> PoseSeries:
     if not rows:
         if not skipped:
             raise UserError(f"{name}: is empty, expected per-frame JSON lines from replay or the daemon")
-        line, why = skipped[0]
-        raise UserError(f"{name}: no per-frame JSON object in {len(skipped)} line(s) (line {line}: {why})")
+        line_no, why = skipped[0]
+        raise UserError(f"{name}: no per-frame JSON object in {len(skipped)} line(s) (line {line_no}: {why})")
     has_time = all(r[0] is not None for r in rows)
     t = np.array([r[0] for r in rows] if has_time else np.arange(len(rows)), dtype=np.float64)
     return PoseSeries(
@@ -190,7 +192,8 @@ def summarise(series: PoseSeries) -> Dict[str, Optional[float]]:
     return out
 
 
-def summary_line(series: PoseSeries, stats: Dict[str, Optional[float]]) -> str:
+def summary_line(series: PoseSeries, stats: Mapping[str, Any]) -> str:
+    """One line from ``summarise``'s dict: its counts are numbers, only the latencies may be None."""
     unit = "s" if series.has_time else "frames"
     line = (f"{int(stats['frames'])} frames over {stats['duration_s']:.2f} {unit}, pose in "
             f"{int(stats['detected'])} ({100.0 * stats['detection_rate']:.1f} %), {int(stats['gaps'])} "

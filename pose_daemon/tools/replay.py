@@ -54,10 +54,13 @@ def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = No
     if config:
         # The recording's own camera and marker are what its frames were taken with; say so
         # when --config names others, so that new intrinsics are not thought to be in use.
-        ignored = [name for name, rec, conf, to_dict in (
-            ("[camera]", rec_camera, cfg.camera.model(), recording.camera_to_dict),
-            ("[marker]", rec_marker, cfg.marker.model(), recording.marker_to_dict))
-            if rec is not None and to_dict(rec) != to_dict(conf)]
+        ignored = []
+        if rec_camera is not None and (recording.camera_to_dict(rec_camera)
+                                       != recording.camera_to_dict(cfg.camera.model())):
+            ignored.append("[camera]")
+        if rec_marker is not None and (recording.marker_to_dict(rec_marker)
+                                       != recording.marker_to_dict(cfg.marker.model())):
+            ignored.append("[marker]")
         if ignored:
             print(f"pose-daemon: note: {path} has its own {' and '.join(ignored)}, used instead of "
                   f"those of {config}", file=sys.stderr)
