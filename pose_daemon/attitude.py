@@ -24,7 +24,7 @@ import collections
 import math
 import threading
 from dataclasses import dataclass
-from typing import Deque, List, Optional, Sequence, Tuple
+from typing import Deque, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -59,7 +59,7 @@ class Attitude:
         return R_from_euler_rpy(*self.rpy_rad)
 
     @classmethod
-    def from_quaternion(cls, q_wxyz: Sequence[float], sigma_rad: Optional[float] = None) -> Attitude:
+    def from_quaternion(cls, q_wxyz: Union[Sequence[float], np.ndarray], sigma_rad: Optional[float] = None) -> Attitude:
         r, p, y = euler_rpy_from_R(_R_from_quaternion(np.asarray(q_wxyz, dtype=np.float64)))
         return cls((float(r), float(p), float(y)), sigma_rad)
 

@@ -188,4 +188,5 @@ def attitude_from_entry(entry: Dict[str, Any]) -> Optional[Attitude]:
         raise ValueError(f"{ATTITUDE_KEY} must be [roll, pitch, yaw] in radians, got {rpy!r}")
     if sigma is not None and (isinstance(sigma, bool) or not isinstance(sigma, (int, float))):
         raise ValueError(f"{ATTITUDE_SIGMA_KEY} must be a number of radians, got {sigma!r}")
-    return Attitude(tuple(float(v) for v in rpy), None if sigma is None else float(sigma))
+    roll, pitch, yaw = (float(v) for v in rpy)
+    return Attitude((roll, pitch, yaw), None if sigma is None else float(sigma))

@@ -147,7 +147,7 @@ def _flip_risk(pose: Pose, attitude_std_rad: float) -> float:
     if not (np.all(np.isfinite(alt.R)) and np.all(np.isfinite(pose.R))):
         return min(r, 1.0)
     bound_deg = max(AGREE_DEG, 3.0 * math.degrees(attitude_std_rad))
-    apart_deg = rotation_angle_deg_3x3(pose.R, alt.R)
+    apart_deg = float(rotation_angle_deg_3x3(pose.R, alt.R))
     weight = min(max((apart_deg - bound_deg) / bound_deg, 0.0), 1.0)
     return weight * min(r, 1.0)
 

@@ -331,7 +331,7 @@ def choose_solution(pose: Pose, frames: VehicleFrames, *, attitude: Optional[Att
         choice = _choose(_swap(pose), False, frames, attitude, settings, bound_px, by_continuity,
                          corners_px, camera, marker, heading, corner_sigma_px)
         return dataclasses.replace(choice, flipped=choice.pose is not None)
-    two = alt_ok and alt is not None and rotation_angle_deg_3x3(pose.R, alt.R) >= SAME_POSE_DEG
+    two = bool(alt_ok and alt is not None and rotation_angle_deg_3x3(pose.R, alt.R) >= SAME_POSE_DEG)
     return _choose(pose, two, frames, attitude, settings, bound_px, by_continuity, corners_px, camera,
                    marker, heading, corner_sigma_px)
 

@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -188,7 +188,7 @@ def _attitudes(flight: Flight, noise_deg: float, lag_s: float, seed: int) -> Lis
     sigma = math.radians(noise_deg)
     noisy = lagged + rng.normal(0.0, sigma, lagged.shape)
     noisy[:, 2] += YAW_REFERENCE_OFFSET_RAD
-    return [Attitude(tuple(float(v) for v in r), sigma) for r in noisy]
+    return [Attitude((float(r[0]), float(r[1]), float(r[2])), sigma) for r in noisy]
 
 
 def run_strategy(flight: Flight, name: str, prior: Optional[PriorSettings],
@@ -298,7 +298,8 @@ def run_clutter(n_frames: int, seed: int) -> Dict[str, int]:
         R_cm, tvec = frames.camera_pose(VehiclePose(p, R_from_euler_rpy(*rpy)))
         rvec = cv2.Rodrigues(R_cm)[0].reshape(3)
         image = render_plane(CAMERA, tex, (0.8, 0.6), rvec, tvec, effects=effects, rng=rng, background=background)
-        att = Attitude(tuple(float(v) + math.radians(rng.normal(0, 0.5)) for v in rpy), math.radians(0.5))
+        roll, pitch, yaw = (float(v) + math.radians(rng.normal(0, 0.5)) for v in rpy)
+        att = Attitude((roll, pitch, yaw), math.radians(0.5))
         counts["frames"] += 1
         for name, proc in procs.items():
             proc.reset()
@@ -333,12 +334,12 @@ def _f(value: Optional[float], spec: str) -> str:
     return "-" if value is None else format(value, spec)
 
 
-def format_tables(result: Dict[str, object]) -> str:
+def format_tables(result: Dict[str, Any]) -> str:
     """The figures as Markdown tables (the README's form)."""
     lines = ["| flight | marker | corner noise | strategy | sent/detected | withheld | flips | rot med / p95 deg "
              "| trans med / p95 mm | rot med both right (estimator) | estimate+choice ms |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for flight in result["flights"]:  # type: ignore[union-attr]
+    for flight in result["flights"]:
         extra = flight["extra_corner_noise_px"]
         noise = f"+{extra:g} px" if extra else "renderer"
         for r in flight["rows"]:

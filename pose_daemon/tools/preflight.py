@@ -17,6 +17,7 @@ the feed, 1 when not; a config or link that cannot be used is a UserError (exit 
 
 from __future__ import annotations
 
+import functools
 import math
 import statistics
 import struct
@@ -372,8 +373,7 @@ def run_preflight(cfg, *, seconds: float = 8.0, apply: bool = False, emit: Calla
                 if time.monotonic() - asked_t >= 1.0:   # GPS_GLOBAL_ORIGIN and HOME_POSITION, once a second
                     asked_t = time.monotonic()
                     for msg_id in (49, 242):
-                        out.send(lambda mav, i=msg_id: mav.command_long_send(
-                            obs.system, obs.component, 512, 0, float(i), 0, 0, 0, 0, 0, 0))
+                        out.send(functools.partial(_request_message, obs.system, obs.component, msg_id))
                 result = processor.process(source.read())
                 if result.pose is not None:
                     obs.qualities.append(pose_quality(result.pose, cfg.camera.fx, cfg.marker.width))
@@ -405,11 +405,17 @@ def run_preflight(cfg, *, seconds: float = 8.0, apply: bool = False, emit: Calla
         out.close()
 
 
+def _request_message(system: int, component: int, msg_id: int, mav: Any) -> None:
+    """MAV_CMD_REQUEST_MESSAGE (512) for ``msg_id`` (GPS_GLOBAL_ORIGIN 49, HOME_POSITION 242)."""
+    mav.command_long_send(system, component, 512, 0, float(msg_id), 0, 0, 0, 0, 0, 0)
+
+
 def _apply(out, watcher: _Watcher, fixes: Sequence[Finding], emit: Callable[[str], None]) -> bool:
     obs = watcher.obs
     for f in fixes:
+        assert f.param is not None and f.value is not None  # a FIX names its parameter and value
         name, value = f.param, float(f.value)
-        _, ptype = obs.params.get(name, (None, MAV_PARAM_TYPE_REAL32))
+        _, ptype = obs.params.get(name, (0.0, MAV_PARAM_TYPE_REAL32))
         wire = param_wire(value, ptype, obs.autopilot)
         with watcher.lock:
             obs.params.pop(name, None)
@@ -418,6 +424,7 @@ def _apply(out, watcher: _Watcher, fixes: Sequence[Finding], emit: Callable[[str
     end = time.monotonic() + PARAM_TIMEOUT_S * 2
     ok = True
     for f in fixes:
+        assert f.param is not None and f.value is not None
         while time.monotonic() < end and f.param not in obs.params:
             time.sleep(0.02)
         got = obs.params.get(f.param)
