@@ -18,6 +18,7 @@ OUTLINE_COLOUR = (0, 255, 0)        # the detected quadrilateral (BGR)
 AXIS_COLOURS = ((0, 0, 255), (0, 255, 0), (255, 0, 0))                  # x red, y green, z blue
 REJECTED_COLOUR = (255, 0, 255)     # the other planar solution's axes: magenta
 WARNING_COLOUR = (0, 165, 255)      # warning text: orange
+SEARCH_COLOUR = (255, 255, 0)       # the detector's search regions: cyan
 
 
 def to_bgr(image: np.ndarray) -> np.ndarray:
@@ -112,11 +113,17 @@ def marker_label(marker: Marker) -> str:
 
 
 def annotate_live(image: np.ndarray, result, camera: Camera, marker: Marker, *,
-                  detector_step: Optional[str] = None, warnings: Sequence[str] = ()) -> np.ndarray:
+                  detector_step: Optional[str] = None, search=None,
+                  warnings: Sequence[str] = ()) -> np.ndarray:
     """The live preview's frame: ``annotate`` plus the rejected planar solution's axes (thin,
     magenta, with its ambiguity ratio), the marker's id at its centre, the detector step that
-    found it (follow / roi / full) and the warnings (orange) at the bottom."""
+    found it (follow / roi / full), where the detector searched (``search``, a SearchRecord:
+    a thin cyan rectangle per region labelled by step, and a cyan note at the top right when
+    the whole frame was searched or its search deferred by the time cap) and the warnings
+    (orange) at the bottom."""
     out = annotate(image, result, camera, marker)
+    if search is not None:
+        draw_search(out, search)
     length = 0.5 * min(marker.width, marker.height)
     pose = result.pose
     if pose is not None and pose.alternative is not None:
@@ -139,3 +146,23 @@ def annotate_live(image: np.ndarray, result, camera: Camera, marker: Marker, *,
         draw_text(out, [text], origin_px=(8, y), colour=colour)
         y += 19
     return out
+
+
+def draw_search(image: np.ndarray, search) -> np.ndarray:
+    """The detector's search regions (a SearchRecord) in place on a BGR image: a 1 px cyan
+    rectangle per region (its outline on the region's outermost pixels), labelled by step,
+    and "full search" / "full search deferred (time cap)" at the top right."""
+    h, w = image.shape[:2]
+    for step, (x0, y0, x1, y1) in search.regions:
+        x0, y0 = max(0, x0), max(0, y0)
+        x1, y1 = min(w, x1) - 1, min(h, y1) - 1
+        if x1 < x0 or y1 < y0:
+            continue
+        cv2.rectangle(image, (x0, y0), (x1, y1), SEARCH_COLOUR, 1)
+        y_text = y0 - 3 if y0 >= 12 else min(h - 2, y1 + 12)
+        cv2.putText(image, step, (x0 + 2, y_text), cv2.FONT_HERSHEY_SIMPLEX, 0.35, SEARCH_COLOUR, 1, cv2.LINE_AA)
+    if search.full is not None:
+        text = "full search" if search.full == "done" else "full search deferred (time cap)"
+        (tw, _), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.45, 1)
+        draw_text(image, [text], origin_px=(max(8, w - tw - 8), 18), colour=SEARCH_COLOUR)
+    return image

@@ -179,6 +179,45 @@ def test_tracked_frames_follow_and_jumps_fall_back_to_a_search() -> None:
     assert detector.last_stage == "roi" and rms(corners, truth) < 0.15
 
 
+def _inside(points: np.ndarray, region) -> bool:
+    x0, y0, x1, y1 = region
+    return bool(((points >= [x0, y0]) & (points <= [x1 - 1, y1 - 1])).all())
+
+
+def test_last_search_records_the_steps_and_regions_searched() -> None:
+    detector = MarkerDetector(SQUARE)
+    assert detector.last_search is None
+    image, truth = render(SQUARE, *facing_pose(5, 1.0, 20), seed=70)
+    detector.detect(image)
+    # No track: the whole frame, no regions.
+    first = detector.last_search
+    assert (first.stage, first.steps, first.regions, first.full) == ("full", ("full",), (), "done")
+    image, truth = render(SQUARE, *facing_pose(6, 1.01, 20, shift_m=(0.003, 0.0)), seed=71)
+    detector.detect(image)
+    tracked = detector.last_search
+    assert tracked.stage == "follow" and tracked.steps == ("follow",) and tracked.full is None
+    (step, box), = tracked.regions
+    x0, y0, x1, y1 = box
+    assert step == "follow" and _inside(truth, box)
+    # Tight: the bounding box of the corners plus the edge profiles' reach, not more.
+    assert x0 >= truth[:, 0].min() - 8 and x1 <= truth[:, 0].max() + 8
+    assert y0 >= truth[:, 1].min() - 8 and y1 <= truth[:, 1].max() + 8
+    # The marker jumps across the image: the regions around the track miss it, the whole
+    # frame finds it.
+    image, truth = render(SQUARE, *facing_pose(6, 1.0, 20, shift_m=(-0.35, 0.2)), seed=72)
+    detector.detect(image)
+    jumped = detector.last_search
+    assert (jumped.stage, jumped.full) == ("full", "done") and jumped.steps[-1] == "full"
+    assert jumped.regions and not any(_inside(truth, box) for _, box in jumped.regions)
+    # A moderate move: the region search around the prediction finds it (the jump's velocity
+    # predicts corners off the image, so the follow step did not run).
+    image, truth = render(SQUARE, *facing_pose(6, 1.0, 20, shift_m=(-0.30, 0.2)), seed=73)
+    detector.detect(image)
+    moved = detector.last_search
+    assert moved.stage == "roi" and moved.steps == ("roi",) and moved.full is None
+    assert moved.predicted_px is None and _inside(truth, dict(moved.regions)["roi"])
+
+
 @pytest.mark.parametrize("marker", [SQUARE, ARUCO], ids=["square", "aruco"])
 def test_wall_trajectory_is_followed_frame_to_frame(marker: Marker) -> None:
     detector = MarkerDetector(marker)

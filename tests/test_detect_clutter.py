@@ -58,6 +58,7 @@ def test_time_cap_leaves_the_rest_of_the_search_to_the_next_frame() -> None:
         if found is not None:
             break
         assert capped.last_search_deferred and capped.last_stage is None
+        assert capped.last_search.full == "deferred" and capped.last_search.stage is None
     assert results[-1] is not None and float(np.abs(results[-1] - truth).max()) < 0.5
     assert capped.search_deferrals == len(results) - 1 >= 2
     assert not capped.last_search_deferred

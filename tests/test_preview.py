@@ -461,3 +461,42 @@ def test_a_request_naming_another_host_is_refused(served):
     reply = s.makefile("rb").read()
     s.close()
     assert reply.split()[1] == b"403" and b"unexpected Host" in reply
+
+
+def test_the_annotated_frame_outlines_the_detector_search_regions(processed):
+    from pose_daemon.detect.detector import MarkerDetector
+    from pose_daemon.draw import SEARCH_COLOUR, annotate_live
+
+    cfg = parse_config("[camera]\nsource = \"synthetic\"\n", "c.toml")
+    camera, marker = cfg.camera.model(), cfg.marker.model()
+    detector = MarkerDetector(marker, camera=camera)
+    (frame0, result0), (frame1, result1) = processed[0], processed[1]
+    detector.detect(frame0.image)
+    whole = detector.last_search
+    detector.detect(frame1.image)
+    tracked = detector.last_search
+    assert whole.full == "done" and tracked.stage == "follow"
+    (step, (x0, y0, x1, y1)), = tracked.regions
+
+    def is_search(pixels):
+        return np.all(pixels == SEARCH_COLOUR, axis=-1)
+    plain = annotate_live(frame1.image, result1, camera, marker)
+    live = annotate_live(frame1.image, result1, camera, marker, search=tracked)
+    outline = np.concatenate([live[y0, x0:x1], live[y1 - 1, x0:x1], live[y0:y1, x0], live[y0:y1, x1 - 1]])
+    assert is_search(outline).mean() > 0.9   # the corner rings may cross it here and there
+    assert not is_search(plain).any()
+    inside = live[y0 + 1:y1 - 1, x0 + 1:x1 - 1]
+    assert is_search(inside).mean() < 0.05   # an outline, not a filled box
+    # A whole-frame search is named at the top right; the processing thread's record reaches
+    # the preview through the tap.
+    full = annotate_live(frame0.image, result0, camera, marker, search=whole)
+    w = full.shape[1]
+
+    def near(image):   # anti-aliased text: near the colour
+        return int(np.count_nonzero(np.all(np.abs(image.astype(int) - SEARCH_COLOUR) < 40, axis=2)))
+    assert near(full[:30, w // 2:]) > 50 and not is_search(full[30:]).any()
+    assert near(annotate_live(frame0.image, result0, camera, marker)[:30, w // 2:]) == 0
+    processor = FrameProcessor.from_config(cfg)
+    tap = FrameTap(processor)
+    tap(frame0, processor.process(frame0))
+    assert tap.latest.search is processor.detector.last_search and tap.latest.search.full == "done"

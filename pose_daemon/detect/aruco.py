@@ -15,6 +15,7 @@ from . import aruco_compat
 from .quads import Roi, inside_any
 from .refine import SEARCH_CONVERGED_PX, SEARCH_ITERATIONS, EdgeFit, signed_area
 from .square import (
+    MAX_REACH_PX,
     Candidate,
     OutlineFinder,
     SquareOptions,
@@ -99,7 +100,7 @@ class ArucoFinder(OutlineFinder):
         side = min(side_lengths(corners).tolist())
         cell = side / (self.n_bits + 2)
         # Inside, stay within the one-cell black border; outside, within the quiet zone.
-        return clamp(0.6 * cell, 1.0, 3.0), clamp(0.15 * side, 1.5, 3.0)
+        return clamp(0.6 * cell, 1.0, 3.0), clamp(0.15 * side, 1.5, MAX_REACH_PX)
 
     def orientation(self, gray: np.ndarray, fit: EdgeFit) -> Optional[int]:
         """k such that the corners rolled by k start at the marker's top-left, or None if

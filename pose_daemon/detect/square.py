@@ -74,6 +74,10 @@ _N_GRID = len(_GRID)
 _LEVELS = np.arange(256, dtype=np.float64)
 
 
+#: The farthest any edge profile reaches outside a tracked outline (``reach_px``'s cap), pixels.
+MAX_REACH_PX = 3.0
+
+
 def clamp(value: float, lo: float, hi: float) -> float:
     return min(max(float(value), lo), hi)
 
@@ -244,7 +248,7 @@ class SquareFinder(OutlineFinder):
     def reach_px(self, corners: np.ndarray):
         """(inside, outside) reach of the edge profiles for an outline of this size."""
         side = min(side_lengths(corners).tolist())
-        return clamp(0.2 * side, 1.5, 3.0), clamp(0.15 * side, 1.5, 3.0)
+        return clamp(0.2 * side, 1.5, 3.0), clamp(0.15 * side, 1.5, MAX_REACH_PX)
 
     def shape_ok(self, corners: np.ndarray) -> bool:
         if side_lengths(corners).min() < self.options.min_side_px:

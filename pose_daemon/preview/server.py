@@ -164,7 +164,8 @@ class PreviewServer:
 
         texts = [w.text for w in self.warnings()]
         image = annotate_live(item.frame.image, item.result, self.camera, self.marker,
-                              detector_step=item.detector_step, warnings=texts)
+                              detector_step=item.detector_step, search=item.search,
+                              warnings=texts)
         h, w = image.shape[:2]
         if w > self.pcfg.max_width:
             scale = self.pcfg.max_width / w
