@@ -134,7 +134,9 @@ def test_px4_takes_the_landing_target_in_local_ned_and_syncs_time():
     for m in located:
         assert (m.x, m.y, m.z) == pytest.approx((4.7, 2.2, 0.0), abs=1e-3)
     assert fc.tally.timesync_answers and fc.timesync_offset_ns is not None
-    assert abs(fc.timesync_offset_ns) < 20_000_000   # the same monotonic clock, in ns
+    # The same monotonic clock, in ns: each answer's tc1 lies between the request and its reply
+    # (a bound on the offset itself would depend on how long a loaded machine takes to answer).
+    assert all(ts1 <= tc1 <= t_got for tc1, ts1, t_got in fc.tally.timesync_answers)
     assert fc.tally.stamped_by.get("timesync", 0) > 0
     report = check(fc.tally.received, autopilot="px4")
     assert report.ok, str(report)
