@@ -73,8 +73,13 @@ class FrameProcessor:
 
     @classmethod
     def from_config(cls, cfg) -> FrameProcessor:
-        """The processor a Config asks for: its camera, marker, estimator and detector keys."""
+        """The processor a Config asks for: its camera, marker (or map), estimator and detector keys."""
         from .detect import MarkerDetector
+
+        if getattr(cfg, "map", None) is not None:
+            from .map_processing import MapFrameProcessor
+
+            return MapFrameProcessor.from_config(cfg)
 
         camera, marker = cfg.camera.model(), cfg.marker.model()
         detector = MarkerDetector(marker, max_misses=cfg.detector.max_misses,

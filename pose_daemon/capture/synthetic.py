@@ -4,7 +4,7 @@ frame rate; every frame's metadata carries its true pose and corners."""
 from __future__ import annotations
 
 import time
-from typing import Callable, Optional
+from typing import Callable, Optional, Tuple
 
 import numpy as np
 
@@ -32,11 +32,20 @@ class SyntheticSource:
     def __init__(self, camera: Camera, marker: Marker, *, trajectory: str = "wall", seed: int = 0,
                  fps: float = 30.0, frames: int = 0, effects: Optional[Effects] = None,
                  realtime: bool = True, clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep) -> None:
+                 sleep: Callable[[float], None] = time.sleep, marker_map=None,
+                 height_m: Optional[Tuple[float, float]] = None) -> None:
         if fps <= 0:
             raise SourceError(f"synthetic source: fps must be positive, got {fps}")
         self.camera, self.marker = camera, marker
-        self.path = Trajectory(trajectory, seed, camera, marker)
+        #: A MarkerMap: the whole map is rendered and the trajectory flies over it (render_map);
+        #: the truth is then the map's pose and ``true_marker_corners`` {id: (4, 2)}.
+        self.marker_map = marker_map
+        if marker_map is not None:
+            from ..render_map import MapTrajectory
+
+            self.path = MapTrajectory(trajectory, marker_map, seed, height_m or (0.8, 2.5))
+        else:
+            self.path = Trajectory(trajectory, seed, camera, marker)
         self.seed, self.fps, self.frames = seed, float(fps), int(frames)
         self.effects = effects if effects is not None else Effects()
         self.realtime = realtime
@@ -72,6 +81,10 @@ class SyntheticSource:
                 t_capture = now
                 self.restarts += 1
         truth = self.path.at(t_traj)
+        if self.marker_map is not None:
+            frame = self._map_frame(truth, t_capture, t_traj)
+            self._seq += 1
+            return frame
         rendered = render_marker(self.camera, self.marker, truth.rvec, truth.tvec,
                                  effects=self.effects, rng=self._rng, background=self._background)
         frame = Frame(image=rendered.image, t_capture_s=t_capture, seq=self._seq,
@@ -80,6 +93,17 @@ class SyntheticSource:
                                 "trajectory_t_s": t_traj})
         self._seq += 1
         return frame
+
+    def _map_frame(self, truth, t_capture: float, t_traj: float) -> Frame:
+        from ..render_map import render_map
+
+        rendered = render_map(self.camera, self.marker_map, truth.rvec, truth.tvec, effects=self.effects,
+                              rng=self._rng, background=self._background)
+        return Frame(image=rendered.image, t_capture_s=t_capture, seq=self._seq,
+                     metadata={"true_rvec": truth.rvec, "true_tvec": truth.tvec,
+                               "true_marker_corners": rendered.corners_px,
+                               "visible_ids": rendered.visible, "visible": bool(rendered.visible),
+                               "trajectory_t_s": t_traj})
 
     def close(self) -> None:
         self._rng = None

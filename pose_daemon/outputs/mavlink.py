@@ -260,9 +260,9 @@ class MavlinkOutput(QueuedOutput):
     @classmethod
     def from_config(cls, cfg, **kwargs) -> MavlinkOutput:
         m = cfg.output.mavlink
-        return cls(m.connection, VehicleFrames.from_config(cfg.mount, cfg.marker.placement),
-                   fx_px=cfg.camera.fx, marker_width_m=cfg.marker.width,
-                   marker_height_m=cfg.marker.height, baud=m.baud, messages=m.messages,
+        return cls(m.connection, VehicleFrames.from_config(cfg.mount, cfg.placement),
+                   fx_px=cfg.camera.fx, marker_width_m=cfg.target_size_m[0],
+                   marker_height_m=cfg.target_size_m[1], baud=m.baud, messages=m.messages,
                    source_system=m.source_system, source_component=m.source_component,
                    wait_heartbeat=m.wait_heartbeat, min_interval_s=m.min_interval_s,
                    lost_timeout_s=m.lost_timeout_s, jump_m=m.jump_m, jump_deg=m.jump_deg,

@@ -99,7 +99,7 @@ class PlainSerialOutput(QueuedOutput):
     @classmethod
     def from_config(cls, cfg, **kwargs) -> PlainSerialOutput:
         s = cfg.output.serial
-        return cls(s.port, VehicleFrames.from_config(cfg.mount, cfg.marker.placement), baud=s.baud,
+        return cls(s.port, VehicleFrames.from_config(cfg.mount, cfg.placement), baud=s.baud,
                    min_interval_s=s.min_interval_s, send_lost=s.send_lost,
                    retry_s=s.retry_s, retry_max_s=s.retry_max_s, **kwargs)
 

@@ -44,6 +44,9 @@ def _inflation(ambiguity_ratio: float) -> float:
 
 def position_covariance_cam(pose: Pose, fx_px: float, marker_width_m: float) -> np.ndarray:
     """3x3 covariance of the camera position (m^2), in the camera frame."""
+    solved = getattr(pose, "camera_position_covariance_cam", None)
+    if solved is not None:  # a map pose carries the covariance of its own solve
+        return solved
     t = np.asarray(pose.tvec, dtype=np.float64)
     d = float(np.linalg.norm(t))
     e = max(float(pose.reprojection_error_px), MIN_CORNER_ERROR_PX)
@@ -56,6 +59,9 @@ def position_covariance_cam(pose: Pose, fx_px: float, marker_width_m: float) -> 
 
 def attitude_std_rad(pose: Pose, fx_px: float, marker_width_m: float) -> float:
     """Standard deviation of each attitude angle (rad): corner error over the marker's size in pixels."""
+    solved = getattr(pose, "attitude_std_rad", None)
+    if solved is not None:
+        return float(solved)
     d = float(np.linalg.norm(pose.tvec))
     e = max(float(pose.reprojection_error_px), MIN_CORNER_ERROR_PX)
     side_px = max(fx_px * marker_width_m / max(d, 1e-6), 1.0)

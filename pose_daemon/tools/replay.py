@@ -67,6 +67,15 @@ def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = No
     processor = FrameProcessor(camera, marker, method=cfg.estimator.method,
                                iterations=cfg.estimator.iterations, refine=cfg.estimator.refine,
                                detector=detector)
+    if cfg.map is not None:  # a map names its own markers: the recording's [marker] is not used
+        from ..detect.multi import MapDetector
+        from ..map_processing import MapFrameProcessor
+
+        processor = MapFrameProcessor(camera, cfg.map.model(), method=cfg.estimator.method,
+                                      iterations=cfg.estimator.iterations,
+                                      detector=MapDetector(cfg.map.model(), camera=camera,
+                                                           max_misses=cfg.detector.max_misses,
+                                                           min_side_px=cfg.detector.min_side_px))
     annotate_dir: Optional[Path] = None
     if annotate:
         annotate_dir = Path(annotate)
