@@ -120,7 +120,7 @@ class MarkerMap:
         R, p = self.T_map_marker(marker_id)
         h = m.size_m / 2.0
         for other in self.markers:
-            if other.id == m.id:
+            if other.id == m.id or other.size_m >= m.size_m:
                 continue
             local = R.T @ (np.asarray(other.position_m) - p)
             if abs(local[2]) < 1e-6 and abs(local[0]) < h and abs(local[1]) < h:

@@ -34,6 +34,10 @@ __all__ = ["GravityPrior", "MapPose", "solve_map_pose", "refine_pose", "map_corn
 OUTLIER_PX = 3.0
 #: Robust cap of the start selection: a corner off by more than this counts as this much.
 ROBUST_CAP_PX = 6.0
+#: Under the chosen start, markers within this RMS (pixels) take part in the first solve.
+START_INLIER_PX = 12.0
+#: Distinct starts solved at most when markers are left out.
+MAX_STARTS = 4
 #: Corner noise assumed when whitening residuals against a prior, and the floor of the
 #: covariance's residual scale (a tiny residual does not prove a tiny error).
 CORNER_SIGMA_PX = 0.3
@@ -234,24 +238,56 @@ def solve_map_pose(observed: Dict[int, np.ndarray], camera: Camera, marker_map: 
     starts = _starts(camera, marker_map, obs, estimate, previous)
     if not starts:
         raise EstimationError("no marker of the map gives a pose")
-    ids = sorted(obs)
-    outliers: List[int] = []
-    while True:
-        obj = np.vstack([marker_map.corners_map(i) for i in ids])
-        img = np.vstack([obs[i] for i in ids])
-        costs = [_robust_cost(camera, obj, img, R, t) for R, t, _ in starts]
-        order = np.argsort(costs)
-        if not math.isfinite(costs[order[0]]):
-            raise EstimationError("no start puts the map in front of the camera")
-        R, t, sse, JtJ = refine_pose(camera, obj, img, starts[order[0]][0], starts[order[0]][1], prior=prior)
-        rms = _marker_rms(camera, obj, img, R, t, len(ids))
-        worst = int(np.argmax(rms))
-        others = np.delete(rms, worst)
-        limit = max(outlier_px, 4.0 * float(np.median(others))) if len(others) else math.inf
-        if len(ids) > 1 and rms[worst] > limit:
-            outliers.append(ids.pop(worst))
+    all_ids = sorted(obs)
+    obj_all = np.vstack([marker_map.corners_map(i) for i in all_ids])
+    img_all = np.vstack([obs[i] for i in all_ids])
+    costs = [_robust_cost(camera, obj_all, img_all, R, t) for R, t, _ in starts]
+    order = np.argsort(costs)
+    if not math.isfinite(costs[order[0]]):
+        raise EstimationError("no start puts the map in front of the camera")
+
+    def solve_from(R, t):
+        # Inliers under the start (generous: a start from one marker is only roughly right
+        # for the others), then under each solve, until the set stays the same.
+        rms_all = _marker_rms(camera, obj_all, img_all, R, t, len(all_ids))
+        keep = rms_all < max(START_INLIER_PX, float(np.min(rms_all)) * 4.0)
+        for _ in range(4):
+            obj = obj_all[np.repeat(keep, 4)]
+            img = img_all[np.repeat(keep, 4)]
+            R, t, sse, JtJ = refine_pose(camera, obj, img, R, t, prior=prior)
+            rms_all = _marker_rms(camera, obj_all, img_all, R, t, len(all_ids))
+            limit = max(outlier_px, 4.0 * float(np.median(rms_all[keep])))
+            new_keep = rms_all <= limit
+            if not new_keep.any():
+                new_keep = rms_all <= float(rms_all.min())
+            if np.array_equal(new_keep, keep):
+                break
+            keep = new_keep
+        return R, t, sse, JtJ, keep, rms_all
+
+    # The best start first; while its solve leaves markers out, the next distinct starts too
+    # (a start on the wrong planar branch of one marker can make the others look like outliers).
+    best = None
+    tried: List[np.ndarray] = []
+    for k in order[:MAX_STARTS]:
+        if not math.isfinite(costs[k]):
+            break
+        R0 = starts[k][0]
+        if any(float(np.abs(R0 - Rt).max()) < 0.02 for Rt in tried):
             continue
-        break
+        tried.append(R0)
+        sol = solve_from(R0, starts[k][1])
+        key = (-int(sol[4].sum()), sol[2])
+        if best is None or key < best[0]:
+            best = (key, sol)
+        if best[1][4].all():
+            break
+    R, t, sse, JtJ, keep, rms_all = best[1]
+    ids = [i for i, k in zip(all_ids, keep) if k]
+    outliers = [i for i, k in zip(all_ids, keep) if not k]
+    obj = np.vstack([marker_map.corners_map(i) for i in ids])
+    img = np.vstack([obs[i] for i in ids])
+    rms = rms_all[keep]
     # The other planar branch, for the ambiguity ratio: the best start on the far side.
     n_img = img.shape[0]
     err = math.sqrt(sse / n_img)
