@@ -27,10 +27,14 @@ __all__ = [
 
 def __getattr__(name: str) -> Any:
     # Imported on first use so that `pose-daemon --help` and tools stay light.
-    if name in ("estimate_pose", "estimate_pose_batch"):
-        from .pose import estimator
+    if name == "estimate_pose":
+        from .pose.estimator import estimate_pose
 
-        return getattr(estimator, name)
+        return estimate_pose
+    if name == "estimate_pose_batch":
+        from .pose.batch import estimate_pose_batch
+
+        return estimate_pose_batch
     if name == "MarkerDetector":
         from .detect import MarkerDetector
 

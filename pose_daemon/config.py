@@ -493,13 +493,13 @@ class Config:
         """How the pose's frame (the [map], else the [marker]) sits in the room."""
         return self.map.placement if self.map is not None else self.marker.placement
 
-    @property
-    def target_size_m(self) -> Tuple[float, float]:
-        """(width, height) of the [marker], or of the largest [map] marker (LANDING_TARGET's size)."""
+    def target_marker(self) -> Marker:
+        """The [marker], or for a [map] a square as large as its largest marker (the size
+        LANDING_TARGET reports; the map's pose is that of its origin)."""
         if self.map is not None:
             size = max(m.size_m for m in self.map.markers)
-            return size, size
-        return self.marker.width, self.marker.height
+            return Marker(width=size, height=size)
+        return self.marker.model()
 
     @classmethod
     def default(cls) -> Config:

@@ -13,14 +13,15 @@ R_est = Rz(g1) Ry(b1) Rx(a1) Rz(g2) ..., and a ray seen by the unrotated camera 
 the real camera as d_cam = R_est d_unrot, i.e. R_est = R_cam_unrot. Eqs 13-16 read the
 angles off R_cam_unrot = Rz(gamma) Ry(beta) Rx(alpha).
 
-All functions accept a single angle/matrix or a stack (..., 3, 3) for the batch estimator.
+All functions accept a single angle/matrix or a stack (..., 3, 3) for the batch estimator; the
+"float forms" (names ending in _f) are the same on plain floats for the per-frame path.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Tuple
+from typing import Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -122,8 +123,14 @@ def rvec_from_R(R: np.ndarray) -> np.ndarray:
 
 
 def quaternion_from_R(R: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) -> unit quaternions (..., 4) as (w, x, y, z)."""
+    """Rotation matrices (..., 3, 3) -> unit quaternions (..., 4) as (w, x, y, z), w >= 0.
+
+    Shepperd's method: divide by the largest of the four candidates (stable for every angle).
+    One matrix goes through the float form (about 20x faster than the stack machinery, for
+    the per-frame output path)."""
     R = np.asarray(R, dtype=np.float64)
+    if R.shape == (3, 3):
+        return np.array(quaternion_from_R_f(R.ravel().tolist()))
     m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
     tr = m00 + m11 + m22
     cands = np.stack([
@@ -140,11 +147,93 @@ def quaternion_from_R(R: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
-    """Angle of the rotation R_a^T R_b in degrees (the usual rotation error), stacks allowed."""
+    """Angle of the rotation R_a^T R_b in degrees (the usual rotation error), stacks allowed;
+    a float for two single matrices."""
     Ra, Rb = np.asarray(R_a, dtype=np.float64), np.asarray(R_b, dtype=np.float64)
     # Through the quaternion, not arccos of the trace: exact near zero (errors of 1e-9 deg).
+    if Ra.shape == (3, 3) and Rb.shape == (3, 3):
+        _w, x, y, z = quaternion_from_R_f((Ra.T @ Rb).ravel().tolist())
+        return np.float64(math.degrees(2.0 * math.atan2(math.sqrt(x * x + y * y + z * z), abs(_w))))
     q = quaternion_from_R(np.swapaxes(Ra, -1, -2) @ Rb)
     return np.degrees(2.0 * np.arctan2(np.linalg.norm(q[..., 1:], axis=-1), np.abs(q[..., 0])))
+
+
+# The names the output path imported when one matrix had its own copy of the code.
+quaternion_from_R_3x3 = quaternion_from_R
+rotation_angle_deg_3x3 = rotation_angle_deg
+
+
+# ---------------------------------------------------------------------------------------------
+# Float forms: one rotation on plain floats, R a row-major 9-tuple. The per-frame estimator
+# works on four points, where every numpy or cv2 call costs more than the arithmetic it saves.
+# ---------------------------------------------------------------------------------------------
+
+def R_from_rvec_f(x: float, y: float, z: float) -> Tuple[float, ...]:
+    """R_from_rvec for one vector (x, y, z) radians (Rodrigues' formula), a row-major 9-tuple.
+    A NaN or infinite vector gives a NaN matrix, never an exception."""
+    t2 = x * x + y * y + z * z
+    if t2 < 1e-24:
+        a, b = 1.0, 0.5
+    elif t2 < math.inf:
+        th = math.sqrt(t2)
+        h = math.sin(0.5 * th)
+        a, b = math.sin(th) / th, 2.0 * h * h / t2  # 1 - cos = 2 sin^2(th / 2): no cancellation
+    else:
+        a = b = math.nan
+    bxy, bxz, byz = b * x * y, b * x * z, b * y * z
+    ax, ay, az = a * x, a * y, a * z
+    return (1.0 + b * (x * x - t2), bxy - az, bxz + ay,
+            bxy + az, 1.0 + b * (y * y - t2), byz - ax,
+            bxz - ay, byz + ax, 1.0 + b * (z * z - t2))
+
+
+def matmul_f(A: Sequence[float], B: Sequence[float]) -> Tuple[float, ...]:
+    """A @ B for row-major 9-tuples (the entries may also be arrays of one shape)."""
+    a00, a01, a02, a10, a11, a12, a20, a21, a22 = A
+    b00, b01, b02, b10, b11, b12, b20, b21, b22 = B
+    return (a00 * b00 + a01 * b10 + a02 * b20, a00 * b01 + a01 * b11 + a02 * b21,
+            a00 * b02 + a01 * b12 + a02 * b22,
+            a10 * b00 + a11 * b10 + a12 * b20, a10 * b01 + a11 * b11 + a12 * b21,
+            a10 * b02 + a11 * b12 + a12 * b22,
+            a20 * b00 + a21 * b10 + a22 * b20, a20 * b01 + a21 * b11 + a22 * b21,
+            a20 * b02 + a21 * b12 + a22 * b22)
+
+
+def pose_from_unrot_f(R_cam_unrot, p_unrot) -> Tuple[Tuple[float, ...], Tuple[float, float, float]]:
+    """The loop's R_cam_unrot (3x3 nested lists) and marker centre p in the unrotated frame as
+    (R_cam_marker 9-tuple, tvec): R_cam_marker = R_cam_unrot R_UNROT_MARKER, i.e. its last two
+    columns negated, and tvec = R_cam_unrot p."""
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = R_cam_unrot
+    px, py, pz = p_unrot
+    return ((a00, -a01, -a02, a10, -a11, -a12, a20, -a21, -a22),
+            (a00 * px + a01 * py + a02 * pz, a10 * px + a11 * py + a12 * pz,
+             a20 * px + a21 * py + a22 * pz))
+
+
+def paper_angles_deg_from_R_cam_marker_f(R: Sequence[float]) -> Tuple[float, float, float]:
+    """paper_angles_deg_from_R_cam_marker on a 9-tuple: R_cam_unrot = R_cam_marker
+    diag(1, -1, -1), so its (2,0), (1,0), (0,0) entries are R's and (2,1), (2,2) are negated."""
+    beta = math.asin(min(1.0, max(-1.0, R[6])))
+    return (math.degrees(math.atan2(-R[7], -R[8])), math.degrees(beta),
+            math.degrees(math.atan2(R[3], R[0])))
+
+
+def quaternion_from_R_f(R: Sequence[float]) -> Tuple[float, float, float, float]:
+    """quaternion_from_R for a row-major 9-tuple: (w, x, y, z), w >= 0."""
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = R
+    tr = m00 + m11 + m22
+    if tr >= m00 and tr >= m11 and tr >= m22:
+        q = (1.0 + tr, m21 - m12, m02 - m20, m10 - m01)
+    elif m00 >= m11 and m00 >= m22:
+        q = (m21 - m12, 1.0 + m00 - m11 - m22, m01 + m10, m02 + m20)
+    elif m11 >= m22:
+        q = (m02 - m20, m01 + m10, 1.0 - m00 + m11 - m22, m12 + m21)
+    else:
+        q = (m10 - m01, m02 + m20, m12 + m21, 1.0 - m00 - m11 + m22)
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if q[0] < 0:
+        n = -n
+    return q[0] / n, q[1] / n, q[2] / n, q[3] / n
 
 
 # ---------------------------------------------------------------------------------------------
@@ -199,33 +288,6 @@ def euler_rpy_from_R(R: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]
     return roll, pitch, yaw
 
 
-def quaternion_from_R_3x3(R: np.ndarray) -> np.ndarray:
-    """One rotation matrix -> unit quaternion (w, x, y, z), w >= 0: quaternion_from_R without the
-    stack machinery (about 20x faster for the per-frame output path)."""
-    m = np.asarray(R, dtype=np.float64)
-    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = m.tolist()
-    tr = m00 + m11 + m22
-    # Shepperd's method: divide by the largest of the four candidates (stable for every angle).
-    if tr >= m00 and tr >= m11 and tr >= m22:
-        q = (1.0 + tr, m21 - m12, m02 - m20, m10 - m01)
-    elif m00 >= m11 and m00 >= m22:
-        q = (m21 - m12, 1.0 + m00 - m11 - m22, m01 + m10, m02 + m20)
-    elif m11 >= m22:
-        q = (m02 - m20, m01 + m10, 1.0 - m00 + m11 - m22, m12 + m21)
-    else:
-        q = (m10 - m01, m02 + m20, m12 + m21, 1.0 - m00 - m11 + m22)
-    n = math.sqrt(sum(c * c for c in q))
-    if q[0] < 0:
-        n = -n
-    return np.array([c / n for c in q])
-
-
-def rotation_angle_deg_3x3(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """Angle of R_a^T R_b in degrees for single matrices (rotation_angle_deg without stacks)."""
-    q = quaternion_from_R_3x3(np.asarray(R_a, dtype=np.float64).T @ np.asarray(R_b, dtype=np.float64))
-    return math.degrees(2.0 * math.atan2(math.sqrt(q[1] ** 2 + q[2] ** 2 + q[3] ** 2), abs(q[0])))
-
-
 def R_body_cam_for_mount(preset: str, rotation_deg=(0.0, 0.0, 0.0)) -> np.ndarray:
     """Camera axes in the body FRD frame (3, 3) for a mount preset plus a (roll, pitch, yaw) turn."""
     if preset not in _R_BODY_CAM_PRESET:
@@ -257,7 +319,7 @@ class VehiclePose:
     @property
     def quaternion(self) -> np.ndarray:
         """(w, x, y, z) of R_local_body, w >= 0 (MAVLink's ODOMETRY.q)."""
-        return quaternion_from_R_3x3(self.R_local_body)
+        return quaternion_from_R(self.R_local_body)
 
     @property
     def rpy_rad(self) -> Tuple[float, float, float]:

@@ -39,14 +39,18 @@ class MapFrameProcessor:
         self.prior: Optional[GravityPrior] = None
 
     @classmethod
-    def from_config(cls, cfg) -> MapFrameProcessor:
+    def from_models(cls, camera: Camera, marker_map: MarkerMap, estimator, detector) -> MapFrameProcessor:
+        """The processor for a camera and a map with a Config's [estimator] and [detector] keys."""
         from .detect.multi import MapDetector
 
-        camera, marker_map = cfg.camera.model(), cfg.map.model()
-        detector = MapDetector(marker_map, camera=camera, max_misses=cfg.detector.max_misses,
-                               min_side_px=cfg.detector.min_side_px)
-        return cls(camera, marker_map, method=cfg.estimator.method, iterations=cfg.estimator.iterations,
-                   detector=detector)
+        return cls(camera, marker_map, method=estimator.method, iterations=estimator.iterations,
+                   detector=MapDetector(marker_map, camera=camera, max_misses=detector.max_misses,
+                                        min_side_px=detector.min_side_px))
+
+    @classmethod
+    def from_config(cls, cfg) -> MapFrameProcessor:
+        """The processor of a Config with a [map]."""
+        return cls.from_models(cfg.camera.model(), cfg.map.model(), cfg.estimator, cfg.detector)
 
     def reset(self) -> None:
         self.detector.reset()

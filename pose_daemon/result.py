@@ -21,7 +21,11 @@ class FrameResult:
     error: Optional[str] = None
     # Per-stage times in seconds (capture, detect, estimate, ...), filled by the pipeline.
     stage_s: Dict[str, float] = field(default_factory=dict)
+    # Capture -> handed to the outputs (the daemon) or the processing time (replay): the JSON's
+    # latency_ms.
     latency_s: Optional[float] = None
+    # Monotonic time the pipeline handed the result to the outputs (None outside a pipeline).
+    t_dispatch_s: Optional[float] = None
 
     @property
     def ok(self) -> bool:
@@ -38,3 +42,9 @@ class FrameResult:
         if self.latency_s is not None:
             out["latency_ms"] = round(self.latency_s * 1e3, 3)
         return out
+
+
+def time_usec_from_s(t_s: float) -> int:
+    """Seconds -> integer microseconds as a Python int (no 32-bit intermediate): every wire's
+    time stamp (MAVLink ``time_usec``, the ``$POSE`` line's ``t_us``) goes through this."""
+    return int(round(float(t_s) * 1e6))

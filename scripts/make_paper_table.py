@@ -10,7 +10,8 @@ import json
 import sys
 from pathlib import Path
 
-from pose_daemon.pose.paper_table import TABLE_FILE, build_table
+from pose_daemon.paper.table_build import build_table
+from pose_daemon.pose.paper_table import TABLE_FILE
 
 
 def main() -> int:

@@ -3,6 +3,7 @@ and a pseudo-terminal serial port that can vanish and come back."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import socket
 import time
@@ -11,8 +12,24 @@ from typing import Callable, List, Optional, Tuple
 import numpy as np
 
 from pose_daemon import geometry as g
+from pose_daemon.camera import Camera, Marker
+from pose_daemon.config import MavlinkOutputConfig
+from pose_daemon.outputs.mavlink import MavlinkOutput
 from pose_daemon.pose.types import Pose
 from pose_daemon.result import FrameResult
+
+# The camera and marker the MAVLink tests assume: fx 500 px, a 0.20 m square.
+CAMERA = Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5)
+MARKER = Marker(width=0.2)
+_MAVLINK_KEYS = {f.name for f in dataclasses.fields(MavlinkOutputConfig)}
+
+
+def mavlink_output(connection: str, frames: g.VehicleFrames, **kw) -> MavlinkOutput:
+    """A MavlinkOutput for CAMERA and MARKER: ``[output.mavlink]`` keys in ``kw`` go into its
+    MavlinkOutputConfig, the rest (queue_size, clock, start, ...) to the constructor."""
+    keys = {k: kw.pop(k) for k in list(kw) if k in _MAVLINK_KEYS}
+    return MavlinkOutput(MavlinkOutputConfig(connection=connection, **keys), frames, camera=CAMERA,
+                         marker=MARKER, **kw)
 
 
 def camera_pose(R_cam_marker: np.ndarray, tvec, err_px: float = 0.2, ambiguity: float = 0.05) -> Pose:

@@ -10,6 +10,8 @@ import numpy as np
 
 from pose_daemon.capture.base import Frame
 from pose_daemon.errors import EndOfStream, SourceError
+from pose_daemon.outputs.base import Output, OutputFactory
+from pose_daemon.outputs.worker import QueuedOutput
 from pose_daemon.pose.types import Pose
 from pose_daemon.result import FrameResult
 
@@ -112,67 +114,49 @@ class FakeProcessor:
         return result
 
 
-class FakeOutput:
-    """Records (seq, t_capture_s, latency_s, ok); ``block`` makes publish wait for it."""
+class FakeOutput(QueuedOutput):
+    """An output of the one output layer (QueuedOutput: its queue, thread, age check and hooks)
+    that records (seq, t_capture_s, latency_s, ok) of each result it writes. ``block``: each
+    write waits for it; ``fail(seq)``: that write raises; ``write_s``: each write takes this
+    long; ``only_ok``: like MAVLink, nothing is written without a pose."""
 
     def __init__(self, name: str = "fake", *, block: Optional[threading.Event] = None,
-                 fail: Callable[[int], bool] = lambda s: False) -> None:
+                 fail: Callable[[int], bool] = lambda s: False, write_s: float = 0.0,
+                 only_ok: bool = False, **kwargs) -> None:
         self.name = name
         self.block = block
         self.fail = fail
+        self.write_s = write_s
+        self.only_ok = only_ok
         self.got: List[tuple] = []
         self.closed = False
+        super().__init__(**kwargs)
 
-    def publish(self, result: FrameResult) -> None:
+    def _open(self) -> None:
+        self.closed = False
+
+    def _close_link(self) -> None:
+        self.closed = True
+
+    def _write(self, result: FrameResult) -> int:
+        if self.only_ok and not result.ok:
+            self._drop("no_pose")
+            return 0
         if self.block is not None:
             self.block.wait()
         if self.fail(result.seq):
             raise OSError(f"write failed at frame {result.seq}")
-        self.got.append((result.seq, result.t_capture_s, result.latency_s, result.ok))
-
-    def close(self) -> None:
-        self.closed = True
-
-
-class FakeQueuedOutput:
-    """An output that queues in ``publish`` and writes ``write_s`` later in its own thread,
-    reporting through ``on_written`` as pose_daemon.outputs do."""
-
-    def __init__(self, name: str = "queued", write_s: float = 0.02, only_ok: bool = False) -> None:
-        self.name = name
-        self.write_s = write_s
-        self.only_ok = only_ok  # like MAVLink: nothing is written while the marker is lost
-        self.on_written = None
-        self.max_age_s = None
-        self.got: List[tuple] = []
-        self._items: List = []
-        self._cond = threading.Condition()
-        self._stop = False
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def publish(self, result: FrameResult) -> None:
-        with self._cond:
-            self._items.append(result)
-            self._cond.notify()
-
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while not self._items and not self._stop:
-                    self._cond.wait()
-                if not self._items:
-                    return
-                item = self._items.pop(0)
-            if self.only_ok and not item.ok:
-                continue
+        if self.write_s:
             time.sleep(self.write_s)
-            self.got.append((item.seq, item.t_capture_s))
-            if self.on_written is not None:
-                self.on_written(item, time.monotonic())
+        self.got.append((result.seq, result.t_capture_s, result.latency_s, result.ok))
+        return 1
 
-    def close(self) -> None:
-        with self._cond:
-            self._stop = True
-            self._cond.notify()
-        self._thread.join(2.0)
+
+def outputs_of(*make: Callable[..., Output]) -> OutputFactory:
+    """The OutputFactory for Pipeline/Service: each ``make(**hooks)`` builds one output, e.g.
+    ``outputs_of(FakeOutput, functools.partial(FakeOutput, "slow", block=event))``."""
+
+    def build(**hooks) -> List[Output]:
+        return [m(**hooks) for m in make]
+
+    return build

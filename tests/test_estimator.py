@@ -16,6 +16,8 @@ from pose_daemon import (
     estimate_pose_batch,
     geometry,
 )
+from pose_daemon.pose import polish
+from pose_daemon.pose.ambiguity import mirror_pose, weak_perspective_pair
 
 DISTORTED = Camera(fx=610.0, fy=590.0, cx=322.0, cy=236.0, dist=(-0.28, 0.09, 0.001, -0.0015, -0.012))
 
@@ -138,20 +140,40 @@ def test_noisy_corners_match_opencv_maximum_likelihood(camera, marker, rng):
             abs(pose.reprojection_error_px - best[0]) < 1e-6
 
 
-@pytest.mark.pi
-def test_batch_equals_scalar(camera, marker, rng):
-    cases = _cases(rng, camera, marker, 40)
-    imgs = np.array([img for _, _, img in cases]) + rng.normal(scale=0.4, size=(40, 4, 2))
-    batch = estimate_pose_batch(imgs, camera, marker)
-    assert batch.ok.all() and len(batch) == 40
-    for i in range(40):
-        pose = estimate_pose(imgs[i], camera, marker)
+def _assert_batch_equals_estimate_pose(imgs, camera, marker, **opts):
+    """estimate_pose_batch's one contract: estimate_pose row by row (poses, errors, reasons)."""
+    batch = estimate_pose_batch(imgs, camera, marker, **opts)
+    assert len(batch) == len(imgs) and batch.method == opts.get("method", "iterative")
+    for i, img in enumerate(imgs):
+        try:
+            pose = estimate_pose(img, camera, marker, **opts)
+        except EstimationError as exc:
+            assert not batch.ok[i] and batch.errors[i] == str(exc)
+            assert np.isnan(batch.tvec[i]).all() and np.isnan(batch.R[i]).all()
+            continue
+        assert batch.ok[i] and batch.errors[i] is None
         assert geometry.rotation_angle_deg(pose.R, batch.R[i]) < 1e-5
         assert np.allclose(pose.tvec, batch.tvec[i], rtol=1e-6, atol=1e-9)
         assert np.allclose(pose.rvec, batch.rvec[i], atol=1e-6)
         assert pose.reprojection_error_px == pytest.approx(batch.reprojection_error_px[i], rel=1e-5, abs=1e-9)
         assert pose.ambiguity_ratio == pytest.approx(batch.ambiguity_ratio[i], rel=1e-4, abs=1e-9)
-        assert pose.alpha_deg == pytest.approx(batch.alpha_deg[i], abs=1e-5)
+        assert (pose.alpha_deg, pose.beta_deg, pose.gamma_deg) == pytest.approx(
+            (batch.alpha_deg[i], batch.beta_deg[i], batch.gamma_deg[i]), abs=1e-5)
+        if pose.alternative is not None:
+            assert pose.alternative.reprojection_error_px == pytest.approx(
+                batch.alternative_error_px[i], rel=1e-4, abs=1e-9)
+    return batch
+
+
+@pytest.mark.pi
+def test_batch_equals_scalar(camera, marker, rng):
+    cases = _cases(rng, camera, marker, 40)
+    imgs = np.array([img for _, _, img in cases]) + rng.normal(scale=0.4, size=(40, 4, 2))
+    batch = _assert_batch_equals_estimate_pose(imgs, camera, marker)
+    assert batch.ok.all()
+    # Without the polish too, and with the paper's table.
+    _assert_batch_equals_estimate_pose(imgs[:15], camera, marker, refine=False)
+    _assert_batch_equals_estimate_pose(imgs[15:30], camera, marker, method="paper", iterations=3)
 
 
 def test_batch_with_distortion_paper_method_and_bad_rows(marker, rng):
@@ -159,11 +181,9 @@ def test_batch_with_distortion_paper_method_and_bad_rows(marker, rng):
     imgs = np.array([img for _, _, img in cases])
     imgs[2, 1] = np.nan
     imgs[4] = imgs[4][[0, 2, 1, 3]]  # crossed
-    batch = estimate_pose_batch(imgs, DISTORTED, marker, method="paper")
+    batch = _assert_batch_equals_estimate_pose(imgs, DISTORTED, marker, method="paper")
     assert batch.ok.tolist() == [True, True, False, True, False, True]
     assert "NaN" in batch.errors[2] and "bow-tie" in batch.errors[4]
-    assert batch.errors[0] is None
-    assert np.isnan(batch.tvec[2]).all()
     for i in (0, 1, 3, 5):
         assert geometry.rotation_angle_deg(batch.R[i], cases[i][0]) < 1e-4
         assert np.all(np.isfinite(batch.rvec[i]))
@@ -228,14 +248,12 @@ def test_corners_nearly_edge_on_never_give_nan(camera, marker, rng):
 
 
 def test_weak_perspective_pair_brackets_the_planar_ambiguity(camera, marker, rng):
-    from pose_daemon.pose.estimator import _weak_perspective_pair_floats, weak_perspective_pair
-
     for R, t, img in _cases(rng, camera, marker, 10):
         n = camera.undistort_normalized(img)
-        pair = weak_perspective_pair(n[:, 0], n[:, 1], marker.width, marker.height)
-        floats = _weak_perspective_pair_floats(n[:, 0].tolist(), n[:, 1].tolist(), marker.width, marker.height)
-        for (Ra, ta), (Rb, tb) in zip(pair, floats):
-            assert np.abs(Ra - Rb).max() < 1e-12 and np.abs(ta - tb).max() < 1e-12
+        pair = [(np.reshape(Rw, (3, 3)), np.array(tw))
+                for Rw, tw in weak_perspective_pair(n[:, 0].tolist(), n[:, 1].tolist(),
+                                                    marker.width, marker.height)]
+        for Ra, _ in pair:
             assert np.allclose(Ra.T @ Ra, np.eye(3), atol=1e-12) and np.linalg.det(Ra) > 0
         # One of the two is a fair first guess of the true pose (the affine model's error).
         best = min(float(geometry.rotation_angle_deg(Rw, R)) for Rw, _ in pair)
@@ -248,75 +266,25 @@ def test_weak_perspective_pair_brackets_the_planar_ambiguity(camera, marker, rng
 
 
 def test_mirror_pose_reflects_the_normal_about_the_line_of_sight(camera, marker):
-    from pose_daemon.pose.estimator import mirror_pose
-
     R = geometry.R_cam_marker_from_R_cam_unrot(geometry.R_cam_unrot_from_paper_angles(0.4, 0.0, 0.2))
     t = np.array([0.0, 0.0, 2.0])
-    R_m, t_m = mirror_pose(R, t)
-    assert np.allclose(t_m, t)
+    R9, t3 = mirror_pose(R.ravel().tolist(), t.tolist())
+    R_m, t_m = np.reshape(R9, (3, 3)), np.array(t3)
+    assert np.array_equal(t_m, t)
+    assert np.allclose(R_m.T @ R_m, np.eye(3), atol=1e-12) and np.linalg.det(R_m) > 0
     assert np.allclose(R_m[:, 2], R[:, 2] * [-1.0, -1.0, 1.0], atol=1e-12)
     # Corners stay roughly in place (same image up to the perspective terms).
     a = camera.project(marker.object_points @ R.T + t)
     b = camera.project(marker.object_points @ R_m.T + t_m)
     assert np.abs(a - b).max() < 15.0
-
-
-def test_vectorised_rotation_update_matches_geometry(rng):
-    from pose_daemon.pose.estimator import _rotate_batch
-
-    R = geometry.R_from_rvec(rng.normal(size=(50, 3)))
-    for scale in (0.0, 1e-9, 1e-3, 0.5, 3.0):
-        w = rng.normal(scale=scale, size=(50, 3)) if scale else np.zeros((50, 3))
-        assert np.abs(_rotate_batch(w, R) - geometry.R_from_rvec(w) @ R).max() < 1e-12
-
-
-def test_float_rotation_helpers_match_geometry(rng):
-    from pose_daemon.pose.estimator import (
-        _exp_f,
-        _matmul_f,
-        _mirror_f,
-        _paper_angles_deg_f,
-        _unrot_to_marker_f,
-        mirror_pose,
-    )
-
-    for scale in (0.0, 1e-13, 1e-9, 1e-3, 0.5, 3.0):
-        for _ in range(20):
-            w = rng.normal(scale=scale, size=3) if scale else np.zeros(3)
-            E = np.reshape(_exp_f(*w.tolist()), (3, 3))
-            assert np.abs(E - geometry.R_from_rvec(w)).max() < 1e-12
-    # A NaN or infinite step gives a NaN matrix (refused by its cost), never an exception.
-    assert all(math.isnan(v) for v in _exp_f(math.inf, 0.0, 0.0))
-    assert all(math.isnan(v) for v in _exp_f(math.nan, 0.0, 0.0))
-    for _ in range(20):
-        A, B = geometry.R_from_rvec(rng.normal(size=(2, 3)))
-        AB = _matmul_f(A.ravel().tolist(), B.ravel().tolist())
-        assert np.abs(np.reshape(AB, (3, 3)) - A @ B).max() < 1e-15
-        p = rng.normal(size=3)
-        R9, t3 = _unrot_to_marker_f(A.tolist(), p.tolist())
-        assert np.array_equal(np.reshape(R9, (3, 3)), geometry.R_cam_marker_from_R_cam_unrot(A))
-        assert np.abs(np.array(t3) - A @ p).max() < 1e-15
-        # Angles over the whole sphere, beta beyond +-90 deg included.
-        assert _paper_angles_deg_f(R9) == pytest.approx(
-            geometry.paper_angles_deg_from_R_cam_marker(np.reshape(R9, (3, 3))), abs=1e-12)
-        t = np.array([*rng.normal(scale=0.5, size=2), rng.uniform(0.5, 4.0)])
-        R_m, t_m = _mirror_f(R9, t.tolist())
-        R_ref, t_ref = mirror_pose(np.reshape(R9, (3, 3)), t)
-        assert np.abs(np.reshape(R_m, (3, 3)) - R_ref).max() < 1e-12
-        assert np.array_equal(np.array(t_m), t_ref)
-
-
-def test_column_signs_are_the_geometry_frame_conversions(rng):
-    from pose_daemon.pose.estimator import _UNROT_MARKER_COLUMNS
-
-    R = geometry.R_from_rvec(rng.normal(size=(100, 3)))
-    assert np.array_equal(R * _UNROT_MARKER_COLUMNS, geometry.R_cam_marker_from_R_cam_unrot(R))
-    assert np.array_equal(R * _UNROT_MARKER_COLUMNS, geometry.R_cam_unrot_from_R_cam_marker(R))
+    # Off the optical axis: the normal is reflected about the line of sight.
+    t = np.array([0.3, -0.2, 1.5])
+    R_m = np.reshape(mirror_pose(R.ravel().tolist(), t.tolist())[0], (3, 3))
+    v = t / np.linalg.norm(t)
+    assert np.allclose(R_m[:, 2], 2.0 * (R[:, 2] @ v) * v - R[:, 2], atol=1e-12)
 
 
 def test_float_normal_equations_and_cholesky_solve(camera, marker, rng):
-    from pose_daemon.pose.estimator import _cost_f, _normal_f, _solve6
-
     obj = [(float(p[0]), float(p[1])) for p in marker.object_points]
     wx, wy = camera.fx, camera.fy
 
@@ -330,7 +298,7 @@ def test_float_normal_equations_and_cholesky_solve(camera, marker, rng):
         # Evaluated a little off the true pose: a non-zero gradient.
         R0 = geometry.R_from_rvec(rng.normal(scale=0.05, size=3)) @ R
         t0 = t + rng.normal(scale=0.02, size=3)
-        A, g, cost, zmin = _normal_f(R0.ravel().tolist(), t0.tolist(), obj, us, vs, wx, wy)
+        A, g, cost, zmin = polish.normal_equations(R0.ravel().tolist(), t0.tolist(), obj, us, vs, wx, wy)
         r = residuals(R0, t0, n[:, 0], n[:, 1])
         # J by central differences on R <- exp(omega) R, t <- t + dt.
         J = np.empty((8, 6))
@@ -347,15 +315,15 @@ def test_float_normal_equations_and_cholesky_solve(camera, marker, rng):
         assert np.allclose(g, J.T @ r, rtol=1e-6, atol=1e-6 * np.abs(J.T @ r).max())
         assert cost == pytest.approx(float(r @ r), rel=1e-12)
         assert zmin == pytest.approx(float((marker.object_points @ R0.T + t0)[:, 2].min()), rel=1e-12)
-        assert _cost_f(R0.ravel().tolist(), t0.tolist(), obj, us, vs, wx, wy) == (cost, zmin)
+        assert polish.reprojection_cost(R0.ravel().tolist(), t0.tolist(), obj, us, vs, wx, wy) == (cost, zmin)
     # The solve against numpy, damped and undamped; not positive definite gives None.
     for lam in (0.0, 1e-3, 10.0):
         M = rng.normal(size=(9, 6))
         M = M.T @ M
         b = rng.normal(size=6)
-        x = _solve6([M[i, j] for i in range(6) for j in range(i, 6)], b.tolist(), lam)
+        x = polish.solve6([M[i, j] for i in range(6) for j in range(i, 6)], b.tolist(), lam)
         ref = np.linalg.solve(M + np.diag(lam * np.diag(M)), -b)
         assert np.allclose(x, ref, rtol=1e-9, atol=1e-12)
     singular = np.ones((6, 6))
-    assert _solve6([singular[i, j] for i in range(6) for j in range(i, 6)], [1.0] * 6, 0.0) is None
-    assert _solve6([math.nan] * 21, [1.0] * 6, 0.0) is None
+    assert polish.solve6([singular[i, j] for i in range(6) for j in range(i, 6)], [1.0] * 6, 0.0) is None
+    assert polish.solve6([math.nan] * 21, [1.0] * 6, 0.0) is None

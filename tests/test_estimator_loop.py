@@ -8,61 +8,82 @@ import numpy as np
 import pytest
 
 from pose_daemon import geometry
+from pose_daemon.paper.table_build import build_table
 from pose_daemon.pose import loop
-from pose_daemon.pose.paper_table import build_table, load_table
+from pose_daemon.pose.paper_table import load_table
 
 
 def _image(R_cam_unrot, pos=(0.0, 0.0, 5.0), w=1.0, h=1.0, f=1.0):
     return loop.project_unrot(np.asarray(R_cam_unrot), np.asarray(pos, float), w, h, f)
 
 
+def _loop_one(img, area=1.0, method="iterative", iterations=1, **kw):
+    R, p, used = loop.loop_one(img[:, 0].tolist(), img[:, 1].tolist(), area, method, iterations, **kw)
+    return np.array(R), np.array(p), used
+
+
+ROTATIONS = [(geometry.rot_z, "gamma_step_rad"), (geometry.rot_y, "beta_step_rad"),
+             (geometry.rot_x, "alpha_step_rad")]
+
+
 @pytest.mark.parametrize("f", [1.0, 600.0])
-def test_corrections_undo_exact_camera_rotations(f):
-    pos = (0.3, -0.2, 4.0)
-    ideal = _image(np.eye(3), pos, f=f)
-    for k, (rot, correct) in enumerate([(geometry.rot_z, loop.correct_roll),
-                                        (geometry.rot_y, loop.correct_yaw),
-                                        (geometry.rot_x, loop.correct_pitch)]):
-        angle = np.array([-0.6, 0.35, 0.9])
-        img = _image(rot(angle), np.broadcast_to(pos, (3, 3)), f=f)
+def test_one_pass_undoes_a_pure_camera_rotation_exactly(f):
+    # A marker centred on the optical axis: a pure roll, yaw or pitch of the camera is found
+    # by its own step and the two other steps find nothing; the loop's R is geometry's.
+    angles = np.array([-0.6, 0.35, 0.9])
+    pos = np.broadcast_to((0.0, 0.0, 4.0), (3, 3))
+    ideal = _image(np.eye(3), (0.0, 0.0, 4.0), f=f)
+    for rot, step in ROTATIONS:
+        img = _image(rot(angles), pos, f=f)
         assert np.abs(img - ideal).max() > 1e-2 * f  # the rotation did move the image
-        back = correct(img, angle) if k == 0 else correct(img, angle, f)
-        assert np.abs(back - ideal).max() < 1e-12 * f
+        res = loop.correction_loop(img, f, 1.0, iterations=1, trace=True)
+        assert np.abs(res.R_cam_unrot - rot(angles)).max() < 1e-12
+        assert np.abs(res.corrected - ideal).max() < 1e-12 * f
+        assert np.abs(getattr(res.trace[0], step) - angles).max() < 1e-12
+        for other in {"gamma_step_rad", "beta_step_rad", "alpha_step_rad"} - {step}:
+            assert np.abs(getattr(res.trace[0], other)).max() < 1e-12
+        for k, angle in enumerate(angles):
+            R, p, used = _loop_one(img[k] / f)
+            assert used == 1 and np.abs(R - rot(angle)).max() < 1e-12
+            assert np.abs(p - (0.0, 0.0, 4.0)).max() < 1e-12
 
 
-def test_column_update_equals_geometry_products():
-    R = [[float(v) for v in row] for row in geometry.R_from_rvec(np.array([0.2, -0.4, 0.7]))]
-    R0 = np.array(R)
-    g = 0.37
-    for (i, j), rot in [((0, 1), geometry.rot_z), ((0, 2), geometry.rot_y), ((1, 2), geometry.rot_x)]:
-        Rl = [list(r) for r in R]
-        loop._rot_cols(Rl, i, j, math.cos(g), math.sin(g))
-        assert np.abs(np.array(Rl) - R0 @ rot(g)).max() < 1e-15
+def test_off_axis_rotations_converge_to_geometry_in_both_loops():
+    # Off the optical axis every step sees some of the others; the passes converge to
+    # rounding, and the per-frame loop's inlined column updates give geometry's products.
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        angles = rng.uniform(-0.7, 0.7, 3)
+        R_true = geometry.R_cam_unrot_from_paper_angles(*angles)
+        pos = (*rng.uniform(-0.3, 0.3, 2), rng.uniform(2.0, 5.0))
+        img = _image(R_true, pos)
+        R, p, used = _loop_one(img, iterations=25, tol_rad=1e-12)
+        assert np.abs(R - R_true).max() < 1e-12 and np.abs(p - pos).max() < 1e-11
+        assert used < 25
+        res = loop.correction_loop(img, 1.0, 1.0, iterations=25)
+        assert np.abs(res.R_cam_unrot - R_true).max() < 1e-12
 
 
 def test_depth_from_area_is_exact_fronto_parallel_for_rectangles():
     img = _image(np.eye(3), (0.4, 0.1, 7.5), w=0.3, h=0.2, f=600.0)
-    assert loop.depth_from_area(img, 600.0, 0.3 * 0.2) == pytest.approx(7.5, rel=1e-12)
+    res = loop.correction_loop(img, 600.0, 0.3 * 0.2, iterations=1)
+    assert np.allclose(res.position_unrot, (0.4, 0.1, 7.5), rtol=1e-12)
     # A quarter of the area = twice the distance.
-    assert loop.depth_from_area(img * 0.5, 600.0, 0.06) == pytest.approx(15.0, rel=1e-12)
+    res = loop.correction_loop(img * 0.5, 600.0, 0.06, iterations=1)
+    assert float(res.position_unrot[2]) == pytest.approx(15.0, rel=1e-12)
+    _, p, _ = _loop_one(img / 600.0, 0.06, aspect=1.5)
+    assert np.allclose(p, (0.4, 0.1, 7.5), rtol=1e-12)
 
 
 @pytest.mark.parametrize("gamma_deg", [0.0, 30.0, 89.0, 135.0, 179.0, -179.0, -100.0, -45.0, 270.5])
 def test_roll_from_labelled_edges_in_every_quadrant(gamma_deg):
     g = math.radians(gamma_deg)
     img = _image(geometry.rot_z(g), (0.1, 0.2, 3.0))
-    est = float(loop.roll_from_edges(img))
+    est = float(loop.correction_loop(img, 1.0, 1.0, iterations=1, trace=True).trace[0].gamma_step_rad)
     diff = (est - g + math.pi) % (2 * math.pi) - math.pi
     assert abs(diff) < 1e-12
-
-
-def test_vanishing_point_steps_are_exact_for_pure_yaw_and_pitch():
-    for b in (-0.8, -0.1, 0.5):
-        img = _image(geometry.rot_y(b), (0.2, -0.3, 2.0))
-        assert float(loop.yaw_from_vanishing_point(img, 1.0)) == pytest.approx(b, abs=1e-12)
-    for a in (-0.7, 0.05, 0.6):
-        img = _image(geometry.rot_x(a), (0.2, -0.3, 2.0))
-        assert float(loop.pitch_from_vanishing_point(img, 1.0)) == pytest.approx(a, abs=1e-12)
+    R, _, _ = _loop_one(img)
+    assert np.abs(R - geometry.rot_z(g)).max() < 1e-12
 
 
 def test_paper_error_signs_are_consistent_with_the_table():

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
+import pytest
 
 from pose_daemon import geometry as g
 
@@ -53,3 +56,46 @@ def test_undistortion_inverts_projection_with_strong_distortion():
     # OpenCV 4.6 has no undistortPointsIter: its fixed 5 iterations leave ~6e-5 px here.
     tol = 1e-9 if hasattr(cv2, "undistortPointsIter") else 2e-4
     assert np.abs(back - px).max() < tol
+
+
+def test_float_forms_match_the_array_forms(rng):
+    for scale in (0.0, 1e-13, 1e-9, 1e-3, 0.5, 3.0):
+        for _ in range(20):
+            w = rng.normal(scale=scale, size=3) if scale else np.zeros(3)
+            E = np.reshape(g.R_from_rvec_f(*w.tolist()), (3, 3))
+            assert np.abs(E - g.R_from_rvec(w)).max() < 1e-12
+    # A NaN or infinite vector gives a NaN matrix (refused by its cost), never an exception.
+    assert all(math.isnan(v) for v in g.R_from_rvec_f(math.inf, 0.0, 0.0))
+    assert all(math.isnan(v) for v in g.R_from_rvec_f(math.nan, 0.0, 0.0))
+    for _ in range(20):
+        A, B = g.R_from_rvec(rng.normal(size=(2, 3)))
+        AB = g.matmul_f(A.ravel().tolist(), B.ravel().tolist())
+        assert np.abs(np.reshape(AB, (3, 3)) - A @ B).max() < 1e-15
+        p = rng.normal(size=3)
+        R9, t3 = g.pose_from_unrot_f(A.tolist(), p.tolist())
+        assert np.array_equal(np.reshape(R9, (3, 3)), g.R_cam_marker_from_R_cam_unrot(A))
+        assert np.abs(np.array(t3) - A @ p).max() < 1e-15
+        # Angles over the whole sphere, beta beyond +-90 deg included.
+        assert g.paper_angles_deg_from_R_cam_marker_f(R9) == pytest.approx(
+            g.paper_angles_deg_from_R_cam_marker(np.reshape(R9, (3, 3))), abs=1e-12)
+
+
+def test_one_matrix_and_stacks_give_the_same_quaternions_and_angles(rng):
+    R = g.R_from_rvec(rng.normal(scale=2.0, size=(200, 3)))
+    # Near-identity and half-turns exercise every branch of Shepperd's method.
+    R[:4] = [np.eye(3), g.rot_x(math.pi), g.rot_y(math.pi), g.rot_z(math.pi)]
+    q = g.quaternion_from_R(R)
+    assert np.all(q[:, 0] >= 0.0) and np.allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-15)
+    angle = g.rotation_angle_deg(R[:-1], R[1:])
+    for i in range(len(R)):
+        assert np.abs(g.quaternion_from_R(R[i]) - q[i]).max() < 1e-12
+        assert np.allclose(np.array(g.quaternion_from_R_f(R[i].ravel().tolist())), q[i], atol=1e-12)
+        if i:
+            single = g.rotation_angle_deg(R[i - 1], R[i])
+            assert isinstance(single, float) and abs(single - angle[i - 1]) < 1e-9
+    # The quaternion's rotation is R itself.
+    w, x, y, z = q[5]
+    Rq = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                   [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    assert np.abs(Rq - R[5]).max() < 1e-12

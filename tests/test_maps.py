@@ -4,6 +4,7 @@ and the end-to-end path to a flight controller over real UDP."""
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from pathlib import Path
@@ -357,8 +358,9 @@ path = "{tmp_path / 'poses.jsonl'}"
     rng = np.random.default_rng(0)
     images = [render_map(cfg.camera.model(), pad, rv, tv, rng=rng).image for rv, tv in poses]
     source = RecordingSource(images, fps=10.0)  # slow enough for a loaded 2-core machine
-    outputs = open_outputs(cfg)
-    pipeline = Pipeline.from_config(cfg, source, FrameProcessor.from_config(cfg), outputs)
+    pipeline = Pipeline.from_config(cfg, source, FrameProcessor.from_config(cfg),
+                                    functools.partial(open_outputs, cfg))
+    outputs = pipeline.outputs
     pipeline.start()
     assert pipeline.wait(60.0)
     pipeline.stop()

@@ -17,6 +17,7 @@ from mavlink_helpers import (
     autopilot_heartbeat,
     camera_pose,
     lost_result,
+    mavlink_output,
     of_type,
     parser,
     vehicle_result,
@@ -27,7 +28,8 @@ from pose_daemon import geometry as g
 from pose_daemon.config import parse_config
 from pose_daemon.errors import ConfigError
 from pose_daemon.outputs import MavlinkOutput
-from pose_daemon.outputs.mavlink import encode_pose_messages, parse_connection, time_usec_from_s
+from pose_daemon.outputs.mavlink import PoseMessageInputs, encode_pose_messages, parse_connection
+from pose_daemon.result import time_usec_from_s
 
 ALL = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
 WALL = g.VehicleFrames.from_settings("forward", placement="wall")
@@ -36,7 +38,7 @@ WALL = g.VehicleFrames.from_settings("forward", placement="wall")
 def output(connection: str, **kw) -> MavlinkOutput:
     kw.setdefault("wait_heartbeat", False)
     kw.setdefault("queue_size", 0)
-    return MavlinkOutput(connection, kw.pop("frames", WALL), fx_px=500.0, marker_width_m=0.2, **kw)
+    return mavlink_output(connection, kw.pop("frames", WALL), **kw)
 
 
 @pytest.mark.pi
@@ -50,8 +52,8 @@ def test_encoding_round_trip_with_time_usec_beyond_32_bits():
     for t_s in (np.float64(2 ** 31 / 1e6 + 0.000001), 2 ** 32 / 1e6 + 0.123457, 1.0e9 + 0.25):
         t_us = time_usec_from_s(t_s)
         assert type(t_us) is int and t_us == int(round(float(t_s) * 1e6))
-        wire = b"".join(m.pack(mav) for m in encode_pose_messages(
-            mav, ALL, t_us, pose, WALL, fx_px=500.0, marker_width_m=0.2, reset_counter=7))
+        inputs = PoseMessageInputs.from_pose(t_us, pose, WALL, fx_px=500.0, marker_width_m=0.2, reset_counter=7)
+        wire = b"".join(m.pack(mav) for m in encode_pose_messages(mav, ALL, inputs))
         assert wire[0] == 0xFD  # MAVLink 2
         odo, vpe, lt = parser().parse_buffer(wire)
         assert (odo.time_usec, vpe.usec, lt.time_usec) == (t_us, t_us, t_us)
@@ -79,8 +81,8 @@ def test_quality_and_covariance_follow_residual_and_ambiguity():
     R = np.diag([1.0, -1.0, -1.0])
 
     def odo(t, err, amb):
-        (m,) = encode_pose_messages(mav, ["ODOMETRY"], 1, camera_pose(R, t, err, amb), WALL,
-                                    fx_px=500.0, marker_width_m=0.2)
+        inputs = PoseMessageInputs.from_pose(1, camera_pose(R, t, err, amb), WALL, fx_px=500.0, marker_width_m=0.2)
+        (m,) = encode_pose_messages(mav, ["ODOMETRY"], inputs)
         return m
 
     clear, noisy, ambiguous = odo([0, 0, 2.0], 0.1, 0.0), odo([0, 0, 2.0], 2.0, 0.0), odo([0, 0, 2.0], 0.1, 0.9)
@@ -92,6 +94,31 @@ def test_quality_and_covariance_follow_residual_and_ambiguity():
     assert ambiguous.pose_covariance[0] > 50 * clear.pose_covariance[0]
     far = odo([0, 0, 4.0], 0.1, 0.0)
     assert far.pose_covariance[0] == pytest.approx(16 * clear.pose_covariance[0], rel=1e-3)
+
+
+class _CountingFrames(g.VehicleFrames):
+    """WALL, counting the camera -> vehicle conversions."""
+
+    def vehicle_pose(self, R_cam_marker, tvec_m):
+        self.calls.append(1)
+        return super().vehicle_pose(R_cam_marker, tvec_m)
+
+
+def test_each_pose_is_converted_to_the_vehicle_once_for_all_its_messages():
+    frames = _CountingFrames(R_body_cam=WALL.R_body_cam, p_body_cam_m=WALL.p_body_cam_m,
+                             R_local_marker=WALL.R_local_marker)
+    object.__setattr__(frames, "calls", [])
+    peer = UdpPeer()
+    out = output(f"udpout:127.0.0.1:{peer.port}", frames=frames, messages=ALL)
+    try:
+        for k in range(3):
+            out.submit(vehicle_result(WALL, k, 40.0 + k / 30, (-2.0, 0.0, 0.0)))
+        msgs = peer.collect(2.0, until=lambda ms: len(of_type(ms, "LANDING_TARGET")) >= 3)
+    finally:
+        out.close()
+        peer.close()
+    assert [len(of_type(msgs, kind)) for kind in ALL] == [3, 3, 3]
+    assert len(frames.calls) == 3
 
 
 def test_stream_over_udp_keeps_every_autopilot_rule():
@@ -124,7 +151,7 @@ def test_stream_over_udp_keeps_every_autopilot_rule():
     t += 1 / 30
     pose_at(t + 0.4, -0.7)                    # a 0.4 s gap (frames dropped upstream)
     for r in script:
-        out.publish(r)
+        out.submit(r)
     msgs = peer.collect(3.0, until=lambda ms: len(of_type(ms, "LANDING_TARGET")) >= 20)
     out.close()
     peer.close()
@@ -188,7 +215,7 @@ def test_waits_for_the_autopilot_then_sends_origin_and_home():
                  set_home=True)
     frames_t = iter(10.0 + k / 30 for k in range(1000))
     for _ in range(5):
-        out.publish(vehicle_result(WALL, 0, next(frames_t), (-2.0, 0.0, 0.0)))
+        out.submit(vehicle_result(WALL, 0, next(frames_t), (-2.0, 0.0, 0.0)))
     msgs = peer.collect(0.3, until=lambda ms: bool(of_type(ms, "HEARTBEAT")))
     assert of_type(msgs, "HEARTBEAT") and not of_type(msgs, "ODOMETRY")
     assert "waiting for the autopilot" in out.status()
@@ -198,7 +225,7 @@ def test_waits_for_the_autopilot_then_sends_origin_and_home():
     peer.send(autopilot_heartbeat(system=3))
     assert wait_for(lambda: out.autopilot_system == 3, 2.0)
     for _ in range(5):
-        out.publish(vehicle_result(WALL, 0, next(frames_t), (-2.0, 0.0, 0.0)))
+        out.submit(vehicle_result(WALL, 0, next(frames_t), (-2.0, 0.0, 0.0)))
     msgs = peer.collect(2.5)  # also long enough for the 1 Hz heartbeat
     out.close()
     peer.close()
@@ -217,12 +244,31 @@ def test_waits_for_the_autopilot_then_sends_origin_and_home():
     assert (hb.type, hb.autopilot, hb.get_srcComponent(), hb.get_srcSystem()) == (18, 8, 197, 1)
 
 
+def test_received_messages_go_to_the_handler_of_their_type():
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    peer = UdpPeer()
+    out = output(f"udpout:127.0.0.1:{peer.port}")
+    got = []
+    out.subscribe("SYSTEM_TIME", lambda msg, now_s: got.append((msg.time_unix_usec, msg.time_boot_ms, now_s)))
+    try:
+        assert peer.collect(2.0, until=lambda ms: bool(of_type(ms, "HEARTBEAT")))  # the peer's address
+        ap = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+        peer.send(ap.system_time_encode(1_700_000_000_000_000, 1234).pack(ap) + autopilot_heartbeat(system=1))
+        assert wait_for(lambda: bool(got) and out.autopilot_system == 1, 2.0)
+    finally:
+        out.close()
+        peer.close()
+    assert [g[:2] for g in got] == [(1_700_000_000_000_000, 1234)] and got[0][2] > 0
+    assert out.autopilot_system == 1  # HEARTBEAT keeps its own handler
+
+
 def test_signed_stream_verifies_only_with_the_key():
     key = hashlib.sha256(b"correct horse battery staple").digest()
     peer = UdpPeer(signing_key=key)
     out = output(f"udpout:127.0.0.1:{peer.port}", signing_key="correct horse battery staple")
     for k in range(3):
-        out.publish(vehicle_result(WALL, k, 20.0 + k / 30, (-2.0, 0.0, 0.0)))
+        out.submit(vehicle_result(WALL, k, 20.0 + k / 30, (-2.0, 0.0, 0.0)))
     msgs = peer.collect(1.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 3)
     out.close()
     assert len(of_type(msgs, "ODOMETRY")) == 3 and all(m._signed for m in msgs)
@@ -238,7 +284,7 @@ def test_signed_stream_verifies_only_with_the_key():
     assert [m.get_type() for m in parser(signing_key=key).parse_buffer(data)] == ["HEARTBEAT"]
     # A 64-hex-digit key is taken as the key itself.
     out = output(f"udpout:127.0.0.1:{peer.port}", signing_key=key.hex())
-    out.publish(vehicle_result(WALL, 0, 30.0, (-2.0, 0.0, 0.0)))
+    out.submit(vehicle_result(WALL, 0, 30.0, (-2.0, 0.0, 0.0)))
     msgs = peer.collect(1.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 4)
     out.close()
     peer.close()
@@ -253,7 +299,7 @@ def test_serial_link_over_a_pty_vanishes_and_comes_back(tmp_path):
     def send(n):
         for _ in range(n):
             t[0] += 1 / 30
-            out.publish(vehicle_result(WALL, 0, t[0], (-2.0, 0.1, 0.0)))
+            out.submit(vehicle_result(WALL, 0, t[0], (-2.0, 0.1, 0.0)))
 
     try:
         send(5)
@@ -298,7 +344,7 @@ def test_tcp_link_reconnects_after_the_peer_closes():
             chunk = conn2.recv(4096)
             assert chunk, "connection closed again"
             data += chunk
-        out.publish(vehicle_result(WALL, 0, 50.0, (-2.0, 0.0, 0.0)))
+        out.submit(vehicle_result(WALL, 0, 50.0, (-2.0, 0.0, 0.0)))
         while True:
             msgs = parser().parse_buffer(data) or []
             if of_type(msgs, "ODOMETRY"):
@@ -353,7 +399,7 @@ def test_mavproxy_ground_station_receives_the_stream(tmp_path):
         # Stream at 30 Hz until MAVProxy has detected us (it answers with its own HEARTBEAT).
         end = time.monotonic() + 20.0
         while time.monotonic() < end and not (out.stats().get("opens") and _gcs_heard(out)):
-            out.publish(vehicle_result(WALL, 0, time.monotonic(), (-2.0, 0.0, 0.0)))
+            out.submit(vehicle_result(WALL, 0, time.monotonic(), (-2.0, 0.0, 0.0)))
             time.sleep(1 / 30)
         if proc.poll() is not None:
             pytest.skip(f"MAVProxy could not start here: {proc.stdout.read().decode(errors='replace')[-300:]}")
@@ -361,7 +407,7 @@ def test_mavproxy_ground_station_receives_the_stream(tmp_path):
         for k in range(70):  # 1.5 s tracked, 0.5 s without the marker, then found again
             t = time.monotonic()
             lost = 45 <= k < 60
-            out.publish(lost_result(k, t) if lost else vehicle_result(WALL, k, t, (-2.0, 0.0, 0.0)))
+            out.submit(lost_result(k, t) if lost else vehicle_result(WALL, k, t, (-2.0, 0.0, 0.0)))
             time.sleep(1 / 30)
         time.sleep(0.5)
     finally:
@@ -388,19 +434,19 @@ def _gcs_heard(out: MavlinkOutput) -> bool:
     return out.stats().get("gcs_heard", 0) > 0
 
 
-def test_udp_output_writes_in_publish_when_its_thread_is_idle():
+def test_udp_output_writes_in_submit_when_its_thread_is_idle():
     """Datagrams cannot block: a queued UDP output sends at once instead of waking its thread."""
     peer = UdpPeer()
     out = output(f"udpout:127.0.0.1:{peer.port}", queue_size=4)
     try:
         for k in range(5):
-            out.publish(vehicle_result(WALL, k, 60.0 + k / 30, (-2.0, 0.0, 0.0)))
+            out.submit(vehicle_result(WALL, k, 60.0 + k / 30, (-2.0, 0.0, 0.0)))
         msgs = peer.collect(1.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 5)
     finally:
         out.close()
         peer.close()
     assert [m.time_usec for m in of_type(msgs, "ODOMETRY")] == [time_usec_from_s(60.0 + k / 30) for k in range(5)]
-    # Written by publish itself, except when the thread held the link at that moment (a tick).
+    # Written by submit itself, except when the thread held the link at that moment (a tick).
     assert out.stats()["written_inline"] >= 3
 
 
@@ -412,7 +458,7 @@ def test_acceptance_checker_command_line(tmp_path, capsys):
     peer = UdpPeer()
     out = output(f"udpout:127.0.0.1:{peer.port}")
     for k in range(10):
-        out.publish(vehicle_result(WALL, k, 70.0 + k / 30, (-2.0, 0.0, 0.0)))
+        out.submit(vehicle_result(WALL, k, 70.0 + k / 30, (-2.0, 0.0, 0.0)))
     msgs = peer.collect(1.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 10)
     out.close()
     peer.close()

@@ -9,10 +9,10 @@ import threading
 import time
 
 import numpy as np
-from mavlink_helpers import VanishingPty, lost_result, vehicle_result, wait_for
+from mavlink_helpers import VanishingPty, lost_result, mavlink_output, vehicle_result, wait_for
 
 from pose_daemon import geometry as g
-from pose_daemon.config import parse_config
+from pose_daemon.config import JsonlOutputConfig, SerialOutputConfig, parse_config
 from pose_daemon.outputs import JsonlOutput, MavlinkOutput, Output, PlainSerialOutput, open_outputs
 
 WALL = g.VehicleFrames.from_settings("forward", placement="wall")
@@ -21,11 +21,11 @@ WALL = g.VehicleFrames.from_settings("forward", placement="wall")
 def test_jsonl_appends_one_flushed_object_per_line(tmp_path):
     path = tmp_path / "poses.jsonl"
     path.write_text('{"frame": -1}\n')
-    out = JsonlOutput(str(path), queue_size=0)
-    out.publish(vehicle_result(WALL, 0, 12.5, (-2.0, 0.0, 0.0)))
+    out = JsonlOutput(JsonlOutputConfig(path=str(path)), queue_size=0)
+    out.submit(vehicle_result(WALL, 0, 12.5, (-2.0, 0.0, 0.0)))
     # Flushed at once: readable before close.
     assert len(path.read_text().splitlines()) == 2
-    out.publish(lost_result(1, 12.6))
+    out.submit(lost_result(1, 12.6))
     out.close()
     lines = [json.loads(s) for s in path.read_text().splitlines()]
     assert lines[0] == {"frame": -1}
@@ -57,10 +57,13 @@ path = "{tmp_path / 'p.jsonl'}"
     try:
         assert [type(o) for o in outs] == [MavlinkOutput, PlainSerialOutput, JsonlOutput]
         assert all(isinstance(o, Output) for o in outs)
-        m, s, _ = outs
-        assert m.messages == ("LANDING_TARGET", "ODOMETRY") and m.jump_m == 0.8 and s.baud == 57600
+        m, s, j = outs
+        # Each output holds its own config table (no copy of each key).
+        assert m.cfg is cfg.output.mavlink and s.cfg is cfg.output.serial and j.cfg is cfg.output.jsonl
+        assert m.messages == ("LANDING_TARGET", "ODOMETRY") and m.cfg.jump_m == 0.8 and s.cfg.baud == 57600
+        assert m.fx_px == cfg.camera.fx and m.marker_width_m == m.marker_height_m == cfg.marker.width
         assert m.frames.marker_in_body([0.0, 0.0, 1.5]).tolist() == [0.1, 0.0, 1.55]
-        assert all(o.link_up for o in outs)   # quick links are open before the first publish
+        assert all(o.link_up for o in outs)   # quick links are open before the first submit
     finally:
         for o in outs:
             o.close()
@@ -84,15 +87,15 @@ class _StuckStream(io.StringIO):
 
 def test_queued_mode_never_blocks_and_counts_drops():
     stream = _StuckStream()
-    out = JsonlOutput("-", queue_size=4, stream=stream)
     written = []
-    out.on_written = lambda result, t: written.append((result.seq, t))
-    out.publish(vehicle_result(WALL, 0, time.monotonic(), (-2.0, 0.0, 0.0)))
+    out = JsonlOutput(JsonlOutputConfig(path="-"), queue_size=4, stream=stream,
+                      on_written=lambda name, result, t: written.append((result.seq, t)))
+    out.submit(vehicle_result(WALL, 0, time.monotonic(), (-2.0, 0.0, 0.0)))
     assert stream.entered.wait(2)          # the writer thread is now stuck in write()
     for k in range(1, 51):                  # these return although nothing can be written
-        out.publish(vehicle_result(WALL, k, time.monotonic(), (-2.0, 0.0, 0.0)))
+        out.submit(vehicle_result(WALL, k, time.monotonic(), (-2.0, 0.0, 0.0)))
     s = out.stats()
-    assert s["published"] == 51 and s["queued"] == 4 and s["dropped"] == {"queue_full": 46}
+    assert s["submitted"] == 51 and s["written"] == 0 and s["queued"] == 4 and s["dropped"] == {"queue_full": 46}
     stream.release.set()
     out.close()
     # The oldest were dropped: the newest four follow the one that was stuck.
@@ -103,16 +106,16 @@ def test_queued_mode_never_blocks_and_counts_drops():
 
 def test_direct_mode_drops_while_the_link_is_down_and_reports_it(tmp_path):
     missing = tmp_path / "no-such-dir" / "p.jsonl"
-    out = JsonlOutput(str(missing), queue_size=0, retry_s=0.05, retry_max_s=0.1)
+    out = JsonlOutput(JsonlOutputConfig(path=str(missing)), queue_size=0, retry_s=0.05, retry_max_s=0.1)
     try:
         for k in range(3):
-            out.publish(lost_result(k, float(k)))
+            out.submit(lost_result(k, float(k)))
         s = out.stats()
         assert s["dropped"] == {"link_down": 3} and not s["link_up"]
         assert out.status().startswith("link down: cannot open: [Errno 2]")
         missing.parent.mkdir()
         assert wait_for(lambda: out.link_up, 2.0)
-        out.publish(lost_result(3, 3.0))
+        out.submit(lost_result(3, 3.0))
     finally:
         out.close()
     assert json.loads(missing.read_text())["frame"] == 3
@@ -121,11 +124,10 @@ def test_direct_mode_drops_while_the_link_is_down_and_reports_it(tmp_path):
 
 def test_results_older_than_max_age_are_dropped_not_sent_late(tmp_path):
     path = tmp_path / "p.jsonl"
-    out = JsonlOutput(str(path), queue_size=4)
-    out.max_age_s = 0.1   # the pipeline sets its latency budget here
+    out = JsonlOutput(JsonlOutputConfig(path=str(path)), queue_size=4, max_age_s=0.1)  # the latency budget
     now = time.monotonic()
-    out.publish(lost_result(0, now - 0.5))   # captured half a second ago: too late
-    out.publish(lost_result(1, now))
+    out.submit(lost_result(0, now - 0.5))   # captured half a second ago: too late
+    out.submit(lost_result(1, now))
     out.close()
     assert [json.loads(s)["frame"] for s in path.read_text().splitlines()] == [1]
     assert out.stats()["dropped"] == {"late": 1}
@@ -140,14 +142,13 @@ def test_a_pose_with_nan_is_never_sent(tmp_path):
     good = vehicle_result(WALL, 1, 5.1, (-2.0, 0.0, 0.0))
     peer = UdpPeer()
     pty = VanishingPty(str(tmp_path / "tty"))
-    outs = [MavlinkOutput(f"udpout:127.0.0.1:{peer.port}", WALL, fx_px=500.0, marker_width_m=0.2,
-                          wait_heartbeat=False, queue_size=0),
-            PlainSerialOutput(pty.path, WALL, queue_size=0),
-            JsonlOutput(str(tmp_path / "p.jsonl"), queue_size=0)]
+    outs = [mavlink_output(f"udpout:127.0.0.1:{peer.port}", WALL, wait_heartbeat=False, queue_size=0),
+            PlainSerialOutput(SerialOutputConfig(port=pty.path), WALL, queue_size=0),
+            JsonlOutput(JsonlOutputConfig(path=str(tmp_path / "p.jsonl")), queue_size=0)]
     try:
         for o in outs:
-            o.publish(bad)
-            o.publish(good)
+            o.submit(bad)
+            o.submit(good)
         msgs = peer.collect(1.0, until=lambda ms: bool(of_type(ms, "ODOMETRY")))
         serial_text = pty.read(0.5, until=lambda b: b.endswith(b"\r\n")).decode()
     finally:
@@ -180,11 +181,11 @@ class _TickRecordingJsonl(JsonlOutput):
 
 def test_the_output_thread_writes_a_result_before_its_periodic_work():
     stream = io.StringIO()
-    out = _TickRecordingJsonl("-", queue_size=4, stream=stream)
+    out = _TickRecordingJsonl(JsonlOutputConfig(path="-"), queue_size=4, stream=stream)
     try:
-        out.publish(lost_result(0, time.monotonic()))
+        out.submit(lost_result(0, time.monotonic()))
         assert wait_for(lambda: len(out.events) >= 2, 2.0)
-        out.publish(lost_result(1, time.monotonic()))
+        out.submit(lost_result(1, time.monotonic()))
         assert wait_for(lambda: "write 1" in out.events, 2.0)
     finally:
         out.close()

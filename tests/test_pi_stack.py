@@ -19,11 +19,11 @@ from pose_daemon.capture.base import Frame
 from pose_daemon.capture.recording import RecordingWriter
 from pose_daemon.capture.replay import ReplaySource
 from pose_daemon.errors import EndOfStream
-from pose_daemon.outputs.mavlink import encode_pose_messages, time_usec_from_s
+from pose_daemon.outputs.mavlink import PoseMessageInputs, encode_pose_messages
 from pose_daemon.outputs.plain_serial import parse_pose_line, pose_line
 from pose_daemon.processing import FrameProcessor
 from pose_daemon.render import Effects, render_marker
-from pose_daemon.result import FrameResult
+from pose_daemon.result import FrameResult, time_usec_from_s
 
 WALL = g.VehicleFrames.from_settings("forward", placement="wall")
 # Small frames keep the test cheap under emulation.
@@ -80,8 +80,9 @@ def test_capture_time_and_frame_number_past_32_bits_reach_every_output() -> None
     assert parse_pose_line(line)["t_us"] == t_us
 
     mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
-    msgs = encode_pose_messages(mav, ("ODOMETRY", "VISION_POSITION_ESTIMATE"), time_usec_from_s(result.t_capture_s),
-                                result.pose, WALL, fx_px=CAM.fx, marker_width_m=SQUARE.width, reset_counter=0)
+    inputs = PoseMessageInputs.from_pose(time_usec_from_s(result.t_capture_s), result.pose, WALL, fx_px=CAM.fx,
+                                         marker_width_m=SQUARE.width, reset_counter=0)
+    msgs = encode_pose_messages(mav, ("ODOMETRY", "VISION_POSITION_ESTIMATE"), inputs)
     wire = b"".join(m.pack(mav) for m in msgs)
     rx = mavlink2.MAVLink(None)
     decoded = rx.parse_buffer(wire)

@@ -2,20 +2,26 @@
 
 from __future__ import annotations
 
+import functools
 import gc
 import threading
 import time
 
 import pytest
-from pipeline_fakes import FakeOutput, FakeProcessor, FakeQueuedOutput, FakeSource
+from pipeline_fakes import FakeOutput, FakeProcessor, FakeSource, outputs_of
 
 from pose_daemon.pipeline import LatencyWindow, NewestSlot, Pipeline
+from pose_daemon.service import IdleCollector
 
 
 def _run(pipeline: Pipeline, timeout_s: float = 10.0) -> None:
+    """Start, wait for the end of the stream, stop, and close the outputs (they write what
+    they queued)."""
     pipeline.start()
     assert pipeline.wait(timeout_s), "pipeline did not finish"
     pipeline.stop()
+    for output in pipeline.outputs:
+        output.close()
 
 
 @pytest.mark.pi
@@ -48,8 +54,8 @@ def test_latency_window_percentiles_and_bounded_size():
 def test_newest_frame_wins_and_every_replaced_frame_is_counted():
     source = FakeSource(frames=150, period_s=0.0005)
     proc = FakeProcessor(delay=lambda s: 0.006)
-    out = FakeOutput()
-    p = Pipeline(source, proc, [out], latency_budget_s=5.0)
+    p = Pipeline(source, proc, outputs_of(FakeOutput), latency_budget_s=5.0)
+    (out,) = p.outputs
     _run(p)
     snap = p.stats.snapshot()
     assert snap["captured"] == 150
@@ -67,26 +73,33 @@ def test_budget_drops_late_frames_before_and_after_processing():
     slow = {5, 9}  # processing takes longer than the budget
     source = FakeSource(frames=15, old_seqs=old, gate=gate)
     proc = FakeProcessor(delay=lambda s: 0.15 if s in slow else 0.0, gate=gate)
-    out = FakeOutput()
-    p = Pipeline(source, proc, [out], latency_budget_s=0.1)
+    p = Pipeline(source, proc, outputs_of(FakeOutput), latency_budget_s=0.1)
+    (out,) = p.outputs
+    assert out.max_age_s == 0.1  # the output is built with the pipeline's budget
     _run(p)
     snap = p.stats.snapshot()
-    assert snap["drops"] == {"late": 5}
+    # Old frames are dropped before processing; the results of slow frames by the output,
+    # whose age check is the last step before the bytes are written.
+    assert snap["drops"] == {"late": 3}
+    assert out.stats()["dropped"] == {"late": 2}
     assert sorted(proc.seen) == sorted(set(range(15)) - old)
     assert [g[0] for g in out.got] == sorted(set(range(15)) - old - slow)
-    # Nothing left later than the budget: latency_s is the time of writing after capture.
+    # Nothing left later than the budget: latency_s is capture -> handed to the outputs.
     assert all(0.0 <= g[2] <= 0.1 for g in out.got)
     line = p.status_line()
-    assert "frames 12, drops late 5;" in line
+    assert "frames 12, drops late 3;" in line
+    assert "fake 10 sent (link closed, dropped late=2)" in line
 
 
 def test_slow_output_never_blocks_capture_processing_or_other_outputs():
     release = threading.Event()
-    fast, slow = FakeOutput("fast"), FakeOutput("slow", block=release)
     source = FakeSource(frames=200, period_s=0.001)
     proc = FakeProcessor()
-    # A buffer deep enough that the fast output keeps up on a loaded machine.
-    p = Pipeline(source, proc, [fast, slow], latency_budget_s=5.0, output_buffer=32)
+    # A queue deep enough that the fast output keeps up on a loaded machine.
+    p = Pipeline(source, proc, outputs_of(functools.partial(FakeOutput, "fast", queue_size=32),
+                                          functools.partial(FakeOutput, "slow", block=release, queue_size=32)),
+                 latency_budget_s=5.0)
+    fast, slow = p.outputs
     p.start()
     deadline = time.monotonic() + 10
     while p.stats.snapshot()["processed"] + p.stats.snapshot()["drops"].get("replaced", 0) < 200:
@@ -97,35 +110,65 @@ def test_slow_output_never_blocks_capture_processing_or_other_outputs():
     processed = snap["processed"]
     assert len(fast.got) == processed
     assert slow.got == []
-    # One result is stuck in the blocked publish, 32 wait in the buffer, the rest were dropped.
-    assert snap["drops"]["full[slow]"] == processed - 1 - 32
+    # One result is stuck in the blocked write, 32 wait in the queue, the rest were dropped.
+    assert slow.stats()["dropped"] == {"queue_full": processed - 1 - 32}
+    assert snap["drops"].get("replaced", 0) + processed == 200 and set(snap["drops"]) <= {"replaced"}
     release.set()
     assert p.wait(5.0)
     p.stop()
+    slow.close()
+    fast.close()
     assert len(slow.got) == 33
     assert p.stats.snapshot()["written"] == {"fast": processed, "slow": 33}
 
 
 def test_failing_output_is_counted_and_the_others_go_on():
-    bad = FakeOutput("bad", fail=lambda s: s % 2 == 0)
-    good = FakeOutput("good")
     gate = threading.Semaphore(0)
-    p = Pipeline(FakeSource(frames=10, gate=gate), FakeProcessor(gate=gate), [bad, good],
-                 latency_budget_s=5.0, output_buffer=16)
+    p = Pipeline(FakeSource(frames=10, gate=gate), FakeProcessor(gate=gate),
+                 outputs_of(functools.partial(FakeOutput, "bad", fail=lambda s: s % 2 == 0, queue_size=16),
+                            functools.partial(FakeOutput, "good", queue_size=16)),
+                 latency_budget_s=5.0)
+    bad, good = p.outputs
+    _run(p)
+    assert [g[0] for g in good.got] == list(range(10))
+    assert [g[0] for g in bad.got] == [1, 3, 5, 7, 9]
+    assert p.stats.snapshot()["drops"] == {}
+    assert bad.stats()["dropped"] == {"error": 5}
+    line = p.status_line()
+    assert "bad 5 sent (link closed, dropped error=5, errors 5 (last: OSError: write failed at frame 8))" in line
+    assert "good 10 sent (link closed)" in line
+
+
+class _RaisingOutput(FakeOutput):
+    """Breaks the Output promise: ``submit`` raises for even frames."""
+
+    def submit(self, result) -> None:
+        if result.seq % 2 == 0:
+            raise RuntimeError(f"bug at frame {result.seq}")
+        super().submit(result)
+
+
+def test_an_output_whose_submit_raises_is_counted_and_the_others_go_on():
+    gate = threading.Semaphore(0)
+    p = Pipeline(FakeSource(frames=10, gate=gate), FakeProcessor(gate=gate),
+                 outputs_of(functools.partial(_RaisingOutput, "bad", queue_size=16),
+                            functools.partial(FakeOutput, "good", queue_size=16)),
+                 latency_budget_s=5.0)
+    bad, good = p.outputs
     _run(p)
     assert [g[0] for g in good.got] == list(range(10))
     assert [g[0] for g in bad.got] == [1, 3, 5, 7, 9]
     assert p.stats.snapshot()["drops"] == {"failed[bad]": 5}
-    assert "last error: write failed at frame 8" in p.status_line()
+    assert "drops failed[bad] 5;" in p.status_line()
 
 
 def test_source_failure_mid_run_reopens_with_backoff_and_resets_the_track():
     gate = threading.Semaphore(0)
     source = FakeSource(frames=20, gate=gate, fail_at={6, 7})
     proc = FakeProcessor(gate=gate)
-    out = FakeOutput()
-    p = Pipeline(source, proc, [out], latency_budget_s=5.0, output_buffer=16, source_retry_s=0.2,
-                 source_retry_max_s=0.3)
+    p = Pipeline(source, proc, outputs_of(functools.partial(FakeOutput, queue_size=16)), latency_budget_s=5.0,
+                 source_retry_s=0.2, source_retry_max_s=0.3)
+    (out,) = p.outputs
     t0 = time.monotonic()
     p.start()
     states = set()
@@ -134,6 +177,7 @@ def test_source_failure_mid_run_reopens_with_backoff_and_resets_the_track():
         time.sleep(0.01)
     elapsed = time.monotonic() - t0
     p.stop()
+    out.close()
     assert [g[0] for g in out.got] == list(range(20))
     assert source.opens == 3 and source.closes == 3
     assert p.stats.snapshot()["source_failures"] == 2
@@ -149,8 +193,9 @@ def test_status_line_counts():
     gate = threading.Semaphore(0)
     source = FakeSource(frames=10, gate=gate)
     proc = FakeProcessor(detect=lambda s: s % 2 == 0, gate=gate)
-    out = FakeOutput("jsonl")
-    p = Pipeline(source, proc, [out], latency_budget_s=5.0, output_buffer=16)
+    p = Pipeline(source, proc, outputs_of(functools.partial(FakeOutput, "jsonl", queue_size=16)),
+                 latency_budget_s=5.0)
+    (out,) = p.outputs
     _run(p)
     line = p.status_line()
     assert "detected 50% (5/10)" in line
@@ -167,33 +212,35 @@ def test_status_line_counts():
 def test_stop_is_prompt_even_with_a_blocked_output():
     block = threading.Event()
     p = Pipeline(FakeSource(frames=10**6, period_s=0.001), FakeProcessor(),
-                 [FakeOutput("stuck", block=block)], latency_budget_s=5.0)
+                 outputs_of(functools.partial(FakeOutput, "stuck", block=block)), latency_budget_s=5.0)
+    (stuck,) = p.outputs
     p.start()
     assert p.first_frame.wait(5.0)
-    time.sleep(0.05)  # the output is now stuck in publish
+    time.sleep(0.05)  # the output is now stuck in a write
     t0 = time.monotonic()
     clean = p.stop(timeout_s=0.5)
     assert time.monotonic() - t0 < 0.7
-    assert not clean  # the stuck output's thread is left behind, as a daemon thread
+    assert clean  # capture and processing never wait on an output
+    t0 = time.monotonic()
+    stuck.close(timeout_s=0.3)  # the stuck output's thread is left behind, as a daemon thread
+    assert time.monotonic() - t0 < 0.5
+    assert stuck.stats()["link"] != "closed"
     block.set()
 
 
 def test_outputs_that_write_in_their_own_thread_report_bytes_written_latency():
     gate = threading.Semaphore(0)
-    out = FakeQueuedOutput(write_s=0.02)
     written = []
-    p = Pipeline(FakeSource(frames=5, gate=gate), FakeProcessor(gate=gate), [out],
+    p = Pipeline(FakeSource(frames=5, gate=gate), FakeProcessor(gate=gate),
+                 outputs_of(functools.partial(FakeOutput, "queued", write_s=0.02)),
                  latency_budget_s=0.5, on_written=lambda name, r, t: written.append((name, r.seq, t)))
-    assert out.max_age_s == 0.5  # the output learns the budget
+    (out,) = p.outputs
+    assert out.max_age_s == 0.5  # the output is built with the budget
     _run(p)
-    deadline = time.monotonic() + 5
-    while len(written) < 5 and time.monotonic() < deadline:
-        time.sleep(0.01)
-    out.close()
     assert [w[1] for w in written] == [0, 1, 2, 3, 4] and {w[0] for w in written} == {"queued"}
     assert p.stats.snapshot()["written"] == {"queued": 5}
     # Latency runs to the moment the output wrote, not to the hand-over.
-    for (_, seq, t_written), (seq2, t_capture) in zip(written, out.got):
+    for (_, seq, t_written), (seq2, t_capture, _, _) in zip(written, out.got):
         assert seq == seq2 and t_written - t_capture >= 0.02
     p50, _, _ = p.stats.window.summary_ms("output")
     assert p50 >= 20.0
@@ -202,8 +249,8 @@ def test_outputs_that_write_in_their_own_thread_report_bytes_written_latency():
 class _GarbageProcessor(FakeProcessor):
     """Makes 60 reference cycles per frame and records collections that run inside ``process``."""
 
-    def __init__(self) -> None:
-        super().__init__()
+    def __init__(self, gate: threading.Semaphore) -> None:
+        super().__init__(gate=gate)
         self.inside = False
         self.collections_inside = 0
 
@@ -219,7 +266,11 @@ class _GarbageProcessor(FakeProcessor):
 
 
 def _garbage_run(collect_when_idle: bool):
-    proc = _GarbageProcessor()
+    # The gate: the source makes frame k + 1 only once frame k was processed, so that a slow
+    # first collection on a loaded machine cannot get a frame replaced (newest wins).
+    gate = threading.Semaphore(0)
+    proc = _GarbageProcessor(gate)
+    collector = IdleCollector() if collect_when_idle else None
 
     def note(phase, info):
         if phase == "start" and proc.inside:
@@ -231,26 +282,27 @@ def _garbage_run(collect_when_idle: bool):
     gc.set_threshold(400, 10, 10)
     gc.callbacks.append(note)
     try:
-        p = Pipeline(FakeSource(frames=30, period_s=0.01), proc, [FakeOutput()], latency_budget_s=5.0,
-                     collect_when_idle=collect_when_idle)
+        p = Pipeline(FakeSource(frames=30, period_s=0.01, gate=gate), proc, outputs_of(FakeOutput),
+                     latency_budget_s=5.0, on_idle=collector.run if collector is not None else None)
+        (out,) = p.outputs
         _run(p)
         frozen = gc.get_freeze_count() - frozen_before
     finally:
         gc.callbacks.remove(note)
         gc.set_threshold(*threshold)
         gc.unfreeze()
-    assert p.stats.snapshot()["processed"] == 30 and len(p.workers[0].output.got) == 30
-    return p, proc, frozen
+    assert p.stats.snapshot()["processed"] == 30 and len(out.got) == 30
+    return collector, proc, frozen
 
 
 def test_garbage_is_collected_between_frames_not_inside_them():
-    p, proc, frozen = _garbage_run(collect_when_idle=True)
-    assert p.idle_collector.frozen and frozen > 1000   # start-up objects frozen after frame 0
-    assert sum(p.idle_collector.collections) >= 3      # 60+ new objects a frame, collected from 200
+    collector, proc, frozen = _garbage_run(collect_when_idle=True)
+    assert collector.frozen and frozen > 1000   # start-up objects frozen after frame 0
+    assert sum(collector.collections) >= 3      # 60+ new objects a frame, collected from 200
     assert proc.collections_inside == 0
     # Without it, the automatic collector runs at 400 objects, often in the middle of a frame.
-    p, proc, frozen = _garbage_run(collect_when_idle=False)
-    assert p.idle_collector is None and frozen == 0
+    collector, proc, frozen = _garbage_run(collect_when_idle=False)
+    assert collector is None and frozen == 0
     assert proc.collections_inside > 0
 
 

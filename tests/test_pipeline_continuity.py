@@ -9,7 +9,8 @@ import pytest
 from pose_daemon import Camera, Marker
 from pose_daemon.capture.base import Frame
 from pose_daemon.geometry import R_from_rvec, rotation_angle_deg, rvec_from_R
-from pose_daemon.processing import FrameProcessor, choose_by_continuity
+from pose_daemon.pose.continuity import choose_by_continuity
+from pose_daemon.processing import FrameProcessor
 
 CAMERA = Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5)
 # A small square far away, seen about 20 deg off its normal: the classic planar ambiguity.
@@ -73,7 +74,7 @@ def test_lost_marker_resets_the_track():
     proc = FrameProcessor(CAMERA, MARKER, detector=ScriptedDetector(corners))
     results = [proc.process(Frame(IMAGE, i / 30.0, i)) for i in range(40)]
     assert results[20].pose is None and results[20].error == "no marker"
-    assert proc._normal_ref is not None  # re-acquired after the loss
+    assert proc.track.normal_ref is not None  # re-acquired after the loss
     # Right after the loss there is no track: the estimator's own pick is kept.
     from pose_daemon import estimate_pose
 

@@ -14,6 +14,7 @@ import pytest
 
 from pose_daemon import Camera, Marker, estimate_pose
 from pose_daemon.cli import main
+from pose_daemon.config import JsonlOutputConfig
 from pose_daemon.errors import UserError
 from pose_daemon.outputs.jsonl import JsonlOutput
 from pose_daemon.result import FrameResult
@@ -44,7 +45,7 @@ def daemon_log(tmp_path_factory) -> Path:
     marker = Marker(width=0.2, height=0.2)
     R = np.diag([1.0, -1.0, -1.0])  # camera facing the wall marker, upright
     path = tmp_path_factory.mktemp("plot") / "daemon.jsonl"
-    out = JsonlOutput(str(path), queue_size=0)
+    out = JsonlOutput(JsonlOutputConfig(path=str(path)), queue_size=0)
     for i, (c, lat) in enumerate(zip(_true_positions(), _latencies_ms())):
         t = T0 + i / FPS
         if i in LOST:
@@ -53,7 +54,7 @@ def daemon_log(tmp_path_factory) -> Path:
             corners = camera.project(marker.object_points @ R.T - R @ c)
             result = FrameResult(seq=i, t_capture_s=t, corners=corners,
                                  pose=estimate_pose(corners, camera, marker), latency_s=lat / 1e3)
-        out.publish(result)
+        out.submit(result)
     out.close()
     return path
 

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 
+from pose_daemon.config import JsonlOutputConfig
 from pose_daemon.outputs.jsonl import JsonlOutput
 from pose_daemon.result import FrameResult
 
@@ -63,7 +64,7 @@ def test_a_link_that_opens_but_fails_at_once_is_reopened_after_a_doubling_pause(
     5, 5 s with retry_s 0.5, retry_max_s 5), not stay at retry_s because the open worked."""
     clock = [100.0]
     stream = FailingFile()
-    out = JsonlOutput("disk.jsonl", queue_size=0, retry_s=0.5, retry_max_s=5.0,
+    out = JsonlOutput(JsonlOutputConfig(path="disk.jsonl"), queue_size=0, retry_s=0.5, retry_max_s=5.0,
                       clock=lambda: clock[0], start=False, stream=stream)
     out._try_open(clock[0])
     reopen_at = []

@@ -10,6 +10,7 @@ import pytest
 from mavlink_helpers import VanishingPty, camera_pose, lost_result, vehicle_result, wait_for
 
 from pose_daemon import geometry as g
+from pose_daemon.config import SerialOutputConfig
 from pose_daemon.outputs import PlainSerialOutput
 from pose_daemon.outputs.plain_serial import nmea_checksum, parse_pose_line, pose_line
 from pose_daemon.result import FrameResult
@@ -55,13 +56,14 @@ def _lines(data: bytes):
 
 def test_lines_over_a_pty_port_that_vanishes_and_comes_back(tmp_path):
     port = VanishingPty(str(tmp_path / "ttyMCU"))
-    out = PlainSerialOutput(port.path, WALL, baud=115200, queue_size=0, retry_s=0.05, retry_max_s=0.2)
+    out = PlainSerialOutput(SerialOutputConfig(port=port.path, baud=115200, retry_s=0.05, retry_max_s=0.2), WALL,
+                            queue_size=0)
     t = [100.0]
 
     def send(n, lost=False):
         for k in range(n):
             t[0] += 1 / 30
-            out.publish(lost_result(k, t[0]) if lost else vehicle_result(WALL, k, t[0], (-2.0, 0.1 * k, 0.0)))
+            out.submit(lost_result(k, t[0]) if lost else vehicle_result(WALL, k, t[0], (-2.0, 0.1 * k, 0.0)))
 
     try:
         send(4)
@@ -88,11 +90,11 @@ def test_lines_over_a_pty_port_that_vanishes_and_comes_back(tmp_path):
 
 def test_rate_limit_and_lost_lines_option(tmp_path):
     port = VanishingPty(str(tmp_path / "ttyMCU"))
-    out = PlainSerialOutput(port.path, WALL, min_interval_s=0.1, send_lost=False, queue_size=0)
+    out = PlainSerialOutput(SerialOutputConfig(port=port.path, min_interval_s=0.1, send_lost=False), WALL, queue_size=0)
     try:
         for k in range(30):  # 1 s at 30 Hz, the marker missing in frames 10..14
             t = 200.0 + k / 30
-            out.publish(lost_result(k, t) if 10 <= k < 15 else vehicle_result(WALL, k, t, (-2.0, 0.0, 0.0)))
+            out.submit(lost_result(k, t) if 10 <= k < 15 else vehicle_result(WALL, k, t, (-2.0, 0.0, 0.0)))
         lines = _lines(port.read(1.0, until=lambda b: b.count(b"\r\n") >= 9))
     finally:
         out.close()

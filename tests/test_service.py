@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import gc
 import os
 import signal
@@ -10,7 +11,7 @@ import threading
 import time
 
 import pytest
-from pipeline_fakes import FakeOutput, FakeProcessor, FakeQueuedOutput, FakeSource
+from pipeline_fakes import FakeOutput, FakeProcessor, FakeSource, outputs_of
 
 from pose_daemon.config import parse_config
 from pose_daemon.service import SdNotifier, Service, watchdog_interval_s
@@ -89,9 +90,9 @@ def test_ready_watchdog_only_while_frames_flow_status_and_stopping(listener):
     path, lst = listener
     # 30 frames at 10 ms, a 1.2 s stall (camera stuck), 30 more frames, end of stream.
     source = FakeSource(frames=60, period_s=0.01, stall=(30, 1.2))
-    out = FakeOutput()
-    svc = Service(_cfg(), source=source, outputs=[out], processor=FakeProcessor(),
+    svc = Service(_cfg(), source=source, outputs=outputs_of(FakeOutput), processor=FakeProcessor(),
                   notifier=SdNotifier(path), env={"WATCHDOG_USEC": "200000"})
+    (out,) = svc.outputs
     # The daemon's first idle-time collection walks the whole process heap; in a daemon that
     # is small, in this test process it holds what every earlier test left, and walking it
     # can outlast a 10 ms frame period. Start from a heap like the daemon's.
@@ -128,7 +129,7 @@ def test_ready_watchdog_only_while_frames_flow_status_and_stopping(listener):
 
 def test_no_watchdog_without_watchdog_usec(listener):
     path, lst = listener
-    svc = Service(_cfg(), source=FakeSource(frames=20, period_s=0.005), outputs=[FakeOutput()],
+    svc = Service(_cfg(), source=FakeSource(frames=20, period_s=0.005), outputs=outputs_of(FakeOutput),
                   processor=FakeProcessor(), notifier=SdNotifier(path), env={})
     assert svc.run() == 0
     time.sleep(0.05)
@@ -140,7 +141,7 @@ def test_sigterm_stops_cleanly_and_sigusr1_logs_status(listener, caplog):
     path, _ = listener
     caplog.set_level("INFO", logger="pose_daemon")
     svc = Service(_cfg(interval_s=100.0), source=FakeSource(frames=10**6, period_s=0.002),
-                  outputs=[FakeOutput()], processor=FakeProcessor(), notifier=SdNotifier(path), env={})
+                  outputs=outputs_of(FakeOutput), processor=FakeProcessor(), notifier=SdNotifier(path), env={})
     previous = svc.install_signal_handlers()
     try:
         def send():
@@ -170,7 +171,7 @@ def test_crashing_source_exits_1(listener):
         def read(self):
             raise ZeroDivisionError("bug")
 
-    svc = Service(_cfg(), source=Broken(frames=5), outputs=[FakeOutput()], processor=FakeProcessor(),
+    svc = Service(_cfg(), source=Broken(frames=5), outputs=outputs_of(FakeOutput), processor=FakeProcessor(),
                   notifier=SdNotifier(path), env={})
     assert svc.run() == 1
     assert svc.stop_reason == "source crashed: ZeroDivisionError: bug"
@@ -178,13 +179,12 @@ def test_crashing_source_exits_1(listener):
 
 def test_watchdog_keeps_pinging_while_the_marker_is_out_of_view(listener):
     path, lst = listener
-    out = FakeQueuedOutput(write_s=0.0, only_ok=True)  # writes nothing without a pose
-    svc = Service(_cfg(), source=FakeSource(frames=100, period_s=0.01), outputs=[out],
+    svc = Service(_cfg(), source=FakeSource(frames=100, period_s=0.01),
+                  outputs=outputs_of(functools.partial(FakeOutput, only_ok=True)),  # nothing without a pose
                   processor=FakeProcessor(detect=lambda s: False), notifier=SdNotifier(path),
                   env={"WATCHDOG_USEC": "200000"})
+    (out,) = svc.outputs
     assert svc.run() == 0
-    time.sleep(0.05)
-    out.close()
-    assert out.got == []
+    assert out.got == [] and out.stats()["dropped"]["no_pose"] >= 90
     assert svc.watchdog_pings >= 4  # ~1 s of frames, a ping every 0.1 s
     assert [line for _, line in lst.lines()].count("WATCHDOG=1") == svc.watchdog_pings

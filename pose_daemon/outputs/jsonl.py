@@ -6,10 +6,14 @@ import json
 import os
 import sys
 import time
-from typing import Callable, Optional, TextIO
+from typing import TYPE_CHECKING, Callable, Optional, TextIO
 
 from ..result import FrameResult
+from .base import ClosedHook, WrittenHook
 from .worker import LinkClosed, LinkError, QueuedOutput
+
+if TYPE_CHECKING:
+    from ..config import JsonlOutputConfig
 
 
 def json_line(result: FrameResult) -> str:
@@ -23,18 +27,24 @@ class JsonlOutput(QueuedOutput):
 
     name = "jsonl"
 
-    def __init__(self, path: str, *, queue_size: int = 4, retry_s: float = 0.5, retry_max_s: float = 5.0,
+    def __init__(self, cfg: JsonlOutputConfig, *, queue_size: int = 4, max_age_s: Optional[float] = None,
+                 on_written: Optional[WrittenHook] = None, on_closed: Optional[ClosedHook] = None,
+                 retry_s: float = 0.5, retry_max_s: float = 5.0,
                  clock: Callable[[], float] = time.monotonic, start: bool = True,
                  stream: Optional[TextIO] = None) -> None:
-        self.path = path
+        """``cfg``: the ``[output.jsonl]`` table (``path``); ``stream``: write there instead
+        (tests); the rest as QueuedOutput."""
+        self.cfg = cfg
+        self.path = cfg.path
         self._given_stream = stream
         self._stream: Optional[TextIO] = None
-        super().__init__(queue_size=queue_size, retry_s=retry_s, retry_max_s=retry_max_s, clock=clock,
+        super().__init__(queue_size=queue_size, max_age_s=max_age_s, on_written=on_written,
+                         on_closed=on_closed, retry_s=retry_s, retry_max_s=retry_max_s, clock=clock,
                          start=start)
 
     @classmethod
     def from_config(cls, cfg, **kwargs) -> JsonlOutput:
-        return cls(cfg.output.jsonl.path, **kwargs)
+        return cls(cfg.output.jsonl, **kwargs)
 
     def _open(self) -> None:
         if self._given_stream is not None:

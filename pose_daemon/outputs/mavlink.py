@@ -18,7 +18,8 @@ The rules it keeps (shared/autopilot-rules.md, checked by tests/fc_acceptance.py
 The link is one pymavlink connection string (udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT,
 /dev/ttyX[:BAUD]) opened through ``mavutil.mavlink_connection``; this module does the reads
 and writes itself so that a failure is seen (pymavlink would print and carry on), and reopens
-the link with a doubling pause.
+the link with a doubling pause. Each received message goes to the handler of its type
+(``MavlinkOutput._handlers``, ``subscribe``; today HEARTBEAT), in the output's thread.
 """
 
 from __future__ import annotations
@@ -28,20 +29,27 @@ import hashlib
 import math
 import select
 import time
-from typing import Any, Callable, List, Optional, Sequence, Tuple
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from ..camera import Camera, Marker
 from ..geometry import (
     VehicleFrames,
+    VehiclePose,
     euler_rpy_from_R,
     quaternion_from_R_3x3,
     rotation_angle_deg_3x3,
 )
 from ..pose.types import Pose
-from ..result import FrameResult
+from ..result import FrameResult, time_usec_from_s
+from .base import ClosedHook, WrittenHook
 from .quality import pose_covariance_local, pose_quality
 from .worker import LinkBusy, LinkError, QueuedOutput
+
+if TYPE_CHECKING:  # config.py may import this module's choices: no import back at run time
+    from ..config import MavlinkOutputConfig
 
 MESSAGES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
 # ArduPilot's AP_VISUALODOM_TIMEOUT_MS: a longer silence makes the feed unhealthy, so the next
@@ -65,10 +73,9 @@ MAV_SEVERITY_INFO = 6
 LANDING_TARGET_TYPE_VISION_FIDUCIAL = 2
 _SIGNING_EPOCH_S = 1420070400  # MAVLink 2 signing time stamps count from 2015-01-01
 
-
-def time_usec_from_s(t_s: float) -> int:
-    """Seconds -> integer microseconds as a Python int (no 32-bit intermediate)."""
-    return int(round(float(t_s) * 1e6))
+# Handles one received message of its type: (pymavlink message, now_s on the output's clock).
+# Called in the output's thread with the link held, so it may send (self._link.mav).
+MessageHandler = Callable[[Any, float], None]
 
 
 def signing_key_bytes(key: str) -> bytes:
@@ -211,41 +218,37 @@ class MavlinkOutput(QueuedOutput):
     name = "mavlink"
     tick_s = 0.05  # how often incoming bytes are read and the heartbeat is checked
 
-    def __init__(self, connection: str, frames: VehicleFrames, *, fx_px: float, marker_width_m: float,
-                 marker_height_m: Optional[float] = None, baud: int = 921600,
-                 messages: Sequence[str] = ("ODOMETRY",), source_system: int = 1, source_component: int = 197, wait_heartbeat: bool = True, min_interval_s: float = 0.02,
-                 lost_timeout_s: float = 0.3, jump_m: float = 0.5, jump_deg: float = 30.0,
-                 statustext: bool = True, origin: Optional[Sequence[float]] = None, set_home: bool = False,
-                 signing_key: Optional[str] = None, queue_size: int = 4, retry_s: float = 0.5,
-                 retry_max_s: float = 5.0, clock: Callable[[], float] = time.monotonic,
-                 start: bool = True) -> None:
-        self.kind, self.device, self.baud = parse_connection(connection, baud)
-        bad = [m for m in messages if m not in MESSAGES]
-        if bad or not messages:
-            raise ValueError(f"messages must be some of {', '.join(MESSAGES)}, got {list(messages)}")
-        self.connection = connection
+    def __init__(self, cfg: MavlinkOutputConfig, frames: VehicleFrames, *, camera: Camera, marker: Marker,
+                 queue_size: int = 4, max_age_s: Optional[float] = None,
+                 on_written: Optional[WrittenHook] = None, on_closed: Optional[ClosedHook] = None,
+                 clock: Callable[[], float] = time.monotonic, start: bool = True) -> None:
+        """``cfg``: the ``[output.mavlink]`` table (its keys are read where they apply, as
+        ``self.cfg.KEY``); ``frames``: mount and marker placement; ``camera``/``marker``: the
+        focal length and marker size behind the covariance and LANDING_TARGET. The rest as
+        QueuedOutput. ValueError for a connection string or message list that cannot work."""
+        self.kind, self.device, self.baud = parse_connection(cfg.connection, cfg.baud)
+        bad = [m for m in cfg.messages if m not in MESSAGES]
+        if bad or not cfg.messages:
+            raise ValueError(f"messages must be some of {', '.join(MESSAGES)}, got {list(cfg.messages)}")
+        self.cfg = cfg
         self.frames = frames
-        self.fx_px = float(fx_px)
-        self.marker_width_m = float(marker_width_m)
-        self.marker_height_m = float(marker_height_m) if marker_height_m is not None else self.marker_width_m
-        self.messages = tuple(messages)
-        self.source_system = int(source_system)
-        self.source_component = int(source_component)
-        self.wait_heartbeat = bool(wait_heartbeat)
-        self.min_interval_s = float(min_interval_s)
-        self.lost_timeout_s = float(lost_timeout_s)
-        self.jump_m = float(jump_m)
-        self.jump_deg = float(jump_deg)
-        self.statustext = bool(statustext)
-        self.origin = tuple(float(v) for v in origin) if origin is not None else None
-        self.set_home = bool(set_home)
-        self._signing_key = signing_key_bytes(signing_key) if signing_key else None
+        self.fx_px = float(camera.fx)
+        self.marker_width_m = float(marker.width)
+        self.marker_height_m = float(marker.height) if marker.height is not None else self.marker_width_m
+        self.messages = tuple(cfg.messages)
+        self.origin = tuple(float(v) for v in cfg.origin) if cfg.origin is not None else None
+        self._signing_key = signing_key_bytes(cfg.signing_key) if cfg.signing_key else None
         self._link: Optional[_MavlinkLink] = None
         self._last_heartbeat_t = -1e18
         self.autopilot_system: Optional[int] = None
         self._autopilot_heard_t: Optional[float] = None
         self._origin_sent = False
         self._started_text_sent = False
+        # What is done with each received message, by type (the one dispatch point, _on_message);
+        # a type not listed is ignored. More handlers: one line here, or subscribe().
+        self._handlers: Dict[str, MessageHandler] = {
+            "HEARTBEAT": self._on_heartbeat,
+        }
         # Track state: touched only with the link held (the io lock of QueuedOutput).
         self.reset_counter = 0
         self._last_sent_t: Optional[float] = None
@@ -254,27 +257,21 @@ class MavlinkOutput(QueuedOutput):
         self._tracked = False
         self._lost = False
         self._new_track = False
-        super().__init__(queue_size=queue_size, retry_s=retry_s, retry_max_s=retry_max_s, clock=clock,
-                         start=start)
+        super().__init__(queue_size=queue_size, max_age_s=max_age_s, on_written=on_written,
+                         on_closed=on_closed, retry_s=cfg.retry_s, retry_max_s=cfg.retry_max_s,
+                         clock=clock, start=start)
 
     @classmethod
     def from_config(cls, cfg, **kwargs) -> MavlinkOutput:
-        m = cfg.output.mavlink
-        return cls(m.connection, VehicleFrames.from_config(cfg.mount, cfg.placement),
-                   fx_px=cfg.camera.fx, marker_width_m=cfg.target_size_m[0],
-                   marker_height_m=cfg.target_size_m[1], baud=m.baud, messages=m.messages,
-                   source_system=m.source_system, source_component=m.source_component,
-                   wait_heartbeat=m.wait_heartbeat, min_interval_s=m.min_interval_s,
-                   lost_timeout_s=m.lost_timeout_s, jump_m=m.jump_m, jump_deg=m.jump_deg,
-                   statustext=m.statustext, origin=m.origin, set_home=m.set_home, signing_key=m.signing_key,
-                   retry_s=m.retry_s, retry_max_s=m.retry_max_s,
-                   **kwargs)
+        """The output of a whole Config's ``[output.mavlink]``; ``kwargs`` as ``__init__``."""
+        return cls(cfg.output.mavlink, VehicleFrames.from_config(cfg.mount, cfg.placement),
+                   camera=cfg.camera.model(), marker=cfg.target_marker(), **kwargs)
 
     def stats(self) -> dict:
         s = super().stats()
         s["reset_counter"] = self.reset_counter
         s["autopilot"] = self.autopilot_system
-        if s["link_up"] and self.wait_heartbeat and self.autopilot_system is None:
+        if s["link_up"] and self.cfg.wait_heartbeat and self.autopilot_system is None:
             s["link"] = "up, waiting for the autopilot's HEARTBEAT"
         return s
 
@@ -287,8 +284,8 @@ class MavlinkOutput(QueuedOutput):
         return self.kind in ("udpout", "udpin") and self._link_up
 
     def _open(self) -> None:
-        self._link = _MavlinkLink(self.kind, self.device, self.baud, self.source_system,
-                                  self.source_component, self._signing_key)
+        self._link = _MavlinkLink(self.kind, self.device, self.baud, self.cfg.source_system,
+                                  self.cfg.source_component, self._signing_key)
 
     def _close_link(self) -> None:
         link, self._link = self._link, None
@@ -301,14 +298,14 @@ class MavlinkOutput(QueuedOutput):
         self._last_heartbeat_t = -1e18
         self._origin_sent = False
         self._send_heartbeat(self._clock())
-        if self.statustext:
+        if self.cfg.statustext:
             text = "pose-daemon started" if not self._started_text_sent else "pose-daemon link reopened"
             self._started_text_sent = True
             self._send_text(MAV_SEVERITY_INFO, text)
 
     def _tick_before_write(self) -> bool:
         # A pose waiting for the autopilot: read its HEARTBEAT first rather than drop the pose.
-        return self.wait_heartbeat and self.autopilot_system is None
+        return self.cfg.wait_heartbeat and self.autopilot_system is None
 
     def _tick(self, now: float) -> None:
         assert self._link is not None
@@ -317,9 +314,20 @@ class MavlinkOutput(QueuedOutput):
         if now - self._last_heartbeat_t >= HEARTBEAT_S:
             self._send_heartbeat(now)
 
+    def subscribe(self, msg_type: str, handler: MessageHandler) -> None:
+        """Call ``handler(msg, now_s)`` for every received message of ``msg_type`` (pymavlink's
+        name, e.g. "TIMESYNC"), in place of the handler it had."""
+        with self._io_lock:
+            self._handlers[msg_type] = handler
+
     def _on_message(self, msg: Any, now: float) -> None:
-        if msg.get_type() != "HEARTBEAT":
-            return
+        handler = self._handlers.get(msg.get_type())
+        if handler is not None:
+            handler(msg, now)
+
+    def _on_heartbeat(self, msg: Any, now: float) -> None:
+        """Notes the autopilot (not a ground station or another companion) and when it was
+        heard; sends the GPS origin to a new or rebooted one."""
         if msg.type == MAV_TYPE_GCS:
             self._count("gcs_heard")
         if msg.autopilot == MAV_AUTOPILOT_INVALID or msg.type in (MAV_TYPE_GCS, MAV_TYPE_ONBOARD_CONTROLLER):
@@ -353,7 +361,7 @@ class MavlinkOutput(QueuedOutput):
         target = self.autopilot_system or 0
         t_us = time_usec_from_s(now)
         self._link.mav.set_gps_global_origin_send(target, lat_e7, lon_e7, alt_mm, t_us)
-        if self.set_home:
+        if self.cfg.set_home:
             self._link.mav.set_home_position_send(target, lat_e7, lon_e7, alt_mm, 0.0, 0.0, 0.0,
                                                   [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, t_us)
         self._origin_sent = True
@@ -366,22 +374,22 @@ class MavlinkOutput(QueuedOutput):
         t = float(result.t_capture_s)
         pose = result.pose
         if pose is None:
-            if self._tracked and self._last_pose_t is not None and t - self._last_pose_t >= self.lost_timeout_s:
+            if self._tracked and self._last_pose_t is not None and t - self._last_pose_t >= self.cfg.lost_timeout_s:
                 self._tracked = False
                 self._lost = True
-                if self.statustext:
+                if self.cfg.statustext:
                     self._send_text(MAV_SEVERITY_WARNING, "pose-daemon: marker lost")
             self._drop("no_pose")
             return 0
         self._last_pose_t = t
-        if self.wait_heartbeat and self.autopilot_system is None:
+        if self.cfg.wait_heartbeat and self.autopilot_system is None:
             self._drop("no_autopilot")
             return 0
         if self._last_sent_t is not None:
             if t <= self._last_sent_t:
                 self._drop("out_of_order")
                 return 0
-            if t - self._last_sent_t < self.min_interval_s - 1e-9:
+            if t - self._last_sent_t < self.cfg.min_interval_s - 1e-9:
                 self._drop("rate")
                 return 0
         vehicle = self.frames.vehicle_pose(pose.R, pose.tvec)
@@ -394,11 +402,15 @@ class MavlinkOutput(QueuedOutput):
                                               or self._jumped(p, R)):
             self.reset_counter = (self.reset_counter + 1) % 256
         self._new_track = False
-        if found_again and self.statustext:
+        if found_again and self.cfg.statustext:
             self._send_text(MAV_SEVERITY_INFO, "pose-daemon: marker found")
         self._lost = False
         self._tracked = True
-        n = self._send_pose(time_usec_from_s(t), pose)
+        inputs = PoseMessageInputs.from_pose(time_usec_from_s(t), pose, self.frames, vehicle=vehicle,
+                                             fx_px=self.fx_px, marker_width_m=self.marker_width_m,
+                                             marker_height_m=self.marker_height_m,
+                                             reset_counter=self.reset_counter)
+        n = self._send_pose(inputs)
         self._last_sent_t = t
         self._last_sent_pose = (p, R)
         return n
@@ -407,60 +419,94 @@ class MavlinkOutput(QueuedOutput):
         if self._last_sent_pose is None:
             return False
         p0, R0 = self._last_sent_pose
-        return (float(np.linalg.norm(p - p0)) > self.jump_m
-                or rotation_angle_deg_3x3(R0, R) > self.jump_deg)
+        return (float(np.linalg.norm(p - p0)) > self.cfg.jump_m
+                or rotation_angle_deg_3x3(R0, R) > self.cfg.jump_deg)
 
-    def _send_pose(self, t_us: int, pose: Pose) -> int:
+    def _send_pose(self, inputs: PoseMessageInputs) -> int:
         assert self._link is not None
-        msgs = encode_pose_messages(self._link.mav, self.messages, t_us, pose, self.frames,
-                                    fx_px=self.fx_px, marker_width_m=self.marker_width_m,
-                                    marker_height_m=self.marker_height_m, reset_counter=self.reset_counter)
+        msgs = encode_pose_messages(self._link.mav, self.messages, inputs)
         for msg in msgs:
             self._link.mav.send(msg)
         return len(msgs)
 
 
-def encode_pose_messages(mav: Any, messages: Sequence[str], t_us: int, pose: Pose, frames: VehicleFrames, *,
-                         fx_px: float, marker_width_m: float, marker_height_m: Optional[float] = None,
-                         reset_counter: int = 0) -> List[Any]:
-    """The MAVLink messages (pymavlink objects, not yet packed) for one pose, in ``messages`` order.
+@dataclass(frozen=True)
+class PoseMessageInputs:
+    """What one pose's MAVLink messages carry, worked out once per pose (``from_pose``).
 
-    ``t_us``: capture time, integer microseconds. Positions in the local FRD frame of
-    ``frames`` (metres, radians); LANDING_TARGET in the body FRD frame.
+    ``p_local_m``/``R_local_body``: the vehicle in the local FRD frame (metres; rotation
+    body -> local). ``covariance``: MAVLink's 21-element upper triangle for (x, y, z, roll,
+    pitch, yaw), m^2 and rad^2. ``quality``: 1-100. ``p_marker_cam_m``: the marker centre in
+    the camera frame (LANDING_TARGET's angles and distance), ``p_marker_body_m`` in the body
+    FRD frame, ``R_body_marker`` its orientation; ``marker_size_m``: (width, height).
     """
-    t_us = int(t_us)
-    vehicle = frames.vehicle_pose(pose.R, pose.tvec)
-    R = vehicle.R_local_body
-    x, y, z = (float(v) for v in vehicle.p_local_body_m)
-    quality = pose_quality(pose.reprojection_error_px, pose.ambiguity_ratio)
-    cov = pose_covariance_local(pose, frames, fx_px, marker_width_m)
+
+    t_us: int
+    p_local_m: np.ndarray
+    R_local_body: np.ndarray
+    covariance: List[float]
+    reset_counter: int
+    quality: int
+    p_marker_cam_m: np.ndarray
+    p_marker_body_m: np.ndarray
+    R_body_marker: np.ndarray
+    marker_size_m: Tuple[float, float]
+
+    @classmethod
+    def from_pose(cls, t_us: int, pose: Pose, frames: VehicleFrames, *, fx_px: float, marker_width_m: float,
+                  marker_height_m: Optional[float] = None, reset_counter: int = 0,
+                  vehicle: Optional[VehiclePose] = None) -> PoseMessageInputs:
+        """From the camera's pose (``pose``: R_cam_marker, tvec) and the mounting; ``vehicle``:
+        ``frames.vehicle_pose`` of the same pose when the caller has it already."""
+        if vehicle is None:
+            vehicle = frames.vehicle_pose(pose.R, pose.tvec)
+        t_cam = np.asarray(pose.tvec, dtype=np.float64)
+        width_m = float(marker_width_m)
+        height_m = float(marker_height_m) if marker_height_m is not None else width_m
+        return cls(t_us=int(t_us), p_local_m=np.asarray(vehicle.p_local_body_m, dtype=np.float64),
+                   R_local_body=np.asarray(vehicle.R_local_body, dtype=np.float64),
+                   covariance=pose_covariance_local(pose, frames, fx_px, width_m),
+                   reset_counter=int(reset_counter),
+                   quality=pose_quality(pose.reprojection_error_px, pose.ambiguity_ratio),
+                   p_marker_cam_m=t_cam, p_marker_body_m=np.asarray(frames.marker_in_body(t_cam)),
+                   R_body_marker=frames.R_body_cam @ np.asarray(pose.R), marker_size_m=(width_m, height_m))
+
+
+def encode_pose_messages(mav: Any, messages: Sequence[str], inputs: PoseMessageInputs) -> List[Any]:
+    """The MAVLink messages (pymavlink objects, not yet packed) for one pose, in ``messages`` order:
+    ODOMETRY and VISION_POSITION_ESTIMATE in the local FRD frame, LANDING_TARGET in the body
+    FRD frame."""
+    t_us = inputs.t_us
+    x, y, z = (float(v) for v in inputs.p_local_m)
+    cov = inputs.covariance
     out: List[Any] = []
     for name in messages:
         if name == "ODOMETRY":
-            q = [float(v) for v in quaternion_from_R_3x3(R)]
+            q = [float(v) for v in quaternion_from_R_3x3(inputs.R_local_body)]
             out.append(mav.odometry_encode(t_us, MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD, x, y, z, q,
                                            NAN, NAN, NAN, NAN, NAN, NAN, cov, [NAN] * 21,
-                                           int(reset_counter), MAV_ESTIMATOR_TYPE_VISION, quality))
+                                           inputs.reset_counter, MAV_ESTIMATOR_TYPE_VISION, inputs.quality))
         elif name == "VISION_POSITION_ESTIMATE":
-            roll, pitch, yaw = (float(v) for v in euler_rpy_from_R(R))
-            out.append(mav.vision_position_estimate_encode(t_us, x, y, z, roll, pitch, yaw, cov, int(reset_counter)))
+            roll, pitch, yaw = (float(v) for v in euler_rpy_from_R(inputs.R_local_body))
+            out.append(mav.vision_position_estimate_encode(t_us, x, y, z, roll, pitch, yaw, cov,
+                                                           inputs.reset_counter))
         elif name == "LANDING_TARGET":
-            out.append(_landing_target(mav, t_us, pose, frames, marker_width_m,
-                                       marker_height_m if marker_height_m is not None else marker_width_m))
+            out.append(_landing_target(mav, inputs))
         else:
             raise ValueError(f"unknown pose message {name!r}")
     return out
 
 
-def _landing_target(mav: Any, t_us: int, pose: Pose, frames: VehicleFrames, width_m: float, height_m: float) -> Any:
-    t = np.asarray(pose.tvec, dtype=np.float64)
+def _landing_target(mav: Any, inputs: PoseMessageInputs) -> Any:
+    t = inputs.p_marker_cam_m
     distance = float(np.linalg.norm(t))
     # Angles of the marker centre off the optical axis (image x right, image y down), radians.
     angle_x = math.atan2(float(t[0]), float(t[2]))
     angle_y = math.atan2(float(t[1]), float(t[2]))
+    width_m, height_m = inputs.marker_size_m
     size_x = 2.0 * math.atan2(width_m / 2.0, distance)
     size_y = 2.0 * math.atan2(height_m / 2.0, distance)
-    xb, yb, zb = (float(v) for v in frames.marker_in_body(t))
-    q = [float(v) for v in quaternion_from_R_3x3(frames.R_body_cam @ np.asarray(pose.R))]
-    return mav.landing_target_encode(t_us, 0, MAV_FRAME_BODY_FRD, angle_x, angle_y, distance, size_x, size_y,
+    xb, yb, zb = (float(v) for v in inputs.p_marker_body_m)
+    q = [float(v) for v in quaternion_from_R_3x3(inputs.R_body_marker)]
+    return mav.landing_target_encode(inputs.t_us, 0, MAV_FRAME_BODY_FRD, angle_x, angle_y, distance, size_x, size_y,
                                      xb, yb, zb, q, LANDING_TARGET_TYPE_VISION_FIDUCIAL, 1)

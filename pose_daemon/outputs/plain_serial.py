@@ -17,15 +17,18 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Callable, Optional
+from typing import TYPE_CHECKING, Callable, Optional
 
 import numpy as np
 
 from ..geometry import VehicleFrames
-from ..result import FrameResult
-from .mavlink import time_usec_from_s
+from ..result import FrameResult, time_usec_from_s
+from .base import ClosedHook, WrittenHook
 from .quality import LOST_QUALITY, pose_quality
 from .worker import LinkBusy, LinkError, QueuedOutput
+
+if TYPE_CHECKING:
+    from ..config import SerialOutputConfig
 
 WRITE_TIMEOUT_S = 0.25
 
@@ -83,30 +86,29 @@ class PlainSerialOutput(QueuedOutput):
 
     name = "serial"
 
-    def __init__(self, port: str, frames: VehicleFrames, *, baud: int = 115200, min_interval_s: float = 0.0,
-                 send_lost: bool = True, queue_size: int = 4, retry_s: float = 0.5, retry_max_s: float = 5.0,
-                 clock: Callable[[], float] = time.monotonic, start: bool = True) -> None:
-        self.port = port
-        self.baud = int(baud)
+    def __init__(self, cfg: SerialOutputConfig, frames: VehicleFrames, *, queue_size: int = 4,
+                 max_age_s: Optional[float] = None, on_written: Optional[WrittenHook] = None,
+                 on_closed: Optional[ClosedHook] = None, clock: Callable[[], float] = time.monotonic,
+                 start: bool = True) -> None:
+        """``cfg``: the ``[output.serial]`` table; ``frames``: mount and marker placement; the
+        rest as QueuedOutput."""
+        self.cfg = cfg
         self.frames = frames
-        self.min_interval_s = float(min_interval_s)
-        self.send_lost = bool(send_lost)
         self._serial = None
         self._last_sent_t: Optional[float] = None
-        super().__init__(queue_size=queue_size, retry_s=retry_s, retry_max_s=retry_max_s, clock=clock,
-                         start=start)
+        super().__init__(queue_size=queue_size, max_age_s=max_age_s, on_written=on_written,
+                         on_closed=on_closed, retry_s=cfg.retry_s, retry_max_s=cfg.retry_max_s,
+                         clock=clock, start=start)
 
     @classmethod
     def from_config(cls, cfg, **kwargs) -> PlainSerialOutput:
-        s = cfg.output.serial
-        return cls(s.port, VehicleFrames.from_config(cfg.mount, cfg.placement), baud=s.baud,
-                   min_interval_s=s.min_interval_s, send_lost=s.send_lost,
-                   retry_s=s.retry_s, retry_max_s=s.retry_max_s, **kwargs)
+        """The output of a whole Config's ``[output.serial]``; ``kwargs`` as ``__init__``."""
+        return cls(cfg.output.serial, VehicleFrames.from_config(cfg.mount, cfg.placement), **kwargs)
 
     def _open(self) -> None:
         import serial
 
-        self._serial = serial.serial_for_url(self.port, baudrate=self.baud, timeout=0,
+        self._serial = serial.serial_for_url(self.cfg.port, baudrate=self.cfg.baud, timeout=0,
                                              write_timeout=WRITE_TIMEOUT_S)
 
     def _close_link(self) -> None:
@@ -118,10 +120,10 @@ class PlainSerialOutput(QueuedOutput):
         import serial
 
         t = float(result.t_capture_s)
-        if result.pose is None and not self.send_lost:
+        if result.pose is None and not self.cfg.send_lost:
             self._drop("no_pose")
             return 0
-        if self._last_sent_t is not None and t - self._last_sent_t < self.min_interval_s - 1e-9:
+        if self._last_sent_t is not None and t - self._last_sent_t < self.cfg.min_interval_s - 1e-9:
             self._drop("rate")
             return 0
         line = pose_line(result, self.frames)

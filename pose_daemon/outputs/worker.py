@@ -1,27 +1,33 @@
-"""The machinery every output shares: the link's own thread, reopen with backoff, counters, and
-either a bounded queue or a direct write.
+"""The one output layer: the output's own thread, its bounded queue, the age check, reopen with
+backoff, and counters. Every output (MAVLink, serial, JSON lines, the tests' fakes) is a
+``QueuedOutput``; it implements ``Output`` (base.py).
+
+Everything from outside is given at construction: ``queue_size``, ``max_age_s`` (the
+pipeline's latency budget), ``on_written`` and ``on_closed`` (base.py's hooks).
 
 Two ways to feed an output, both safe for the caller:
-- queued (``queue_size`` > 0, what ``open_outputs`` gives the daemon): ``publish`` only appends
-  to a small queue (the oldest waiting result is dropped and counted when it is full) and
-  the output's thread writes, so processing never waits on a link. A result older than
-  ``max_age_s`` (the pipeline sets its latency budget) when its turn comes is dropped as
-  "late", never sent late.
-- direct (``queue_size`` = 0): ``publish`` writes in the caller's thread and returns once the
-  bytes are written; for a caller with a thread of its own per output. It never waits on a
-  link being opened: a link that is down or busy drops the result (counted); every write
-  has a 0.25 s timeout.
-Either way the output's thread opens the link, reopens it after a failure with a doubling
-pause, and does the periodic work (MAVLink heartbeats, reading the autopilot) every ``tick_s``,
-after writing the result at hand so that work never delays it. The pause doubles at each
-failure, also for a link that opens but fails at once (stdout, a file on a full disk), and
-starts again from ``retry_s`` once a link stayed up ``retry_max_s``. A link that cannot come
-back (LinkClosed) is not reopened: ``on_closed(why)`` is called once.
+- queued (``queue_size`` > 0, what ``open_outputs`` gives the daemon): ``submit`` only appends
+  to a small queue (the oldest waiting result is dropped and counted as ``queue_full`` when it
+  is full) and the output's thread writes, so processing never waits on a link.
+- direct (``queue_size`` = 0): ``submit`` writes in the caller's thread and returns once the
+  bytes are written. It never waits on a link being opened: a link that is down or busy
+  drops the result (counted); every write has a 0.25 s timeout.
+Either way a result older than ``max_age_s`` (after capture) at the moment it is written is
+dropped as ``late``, never sent late: that check is the last step before ``_write``. This is
+the only place where results are dropped for age.
 
-After each write ``on_written(result, t_written_s)`` is called if set (``time.monotonic()``,
+The output's thread opens the link, reopens it after a failure with a doubling pause, and
+does the periodic work (MAVLink heartbeats, reading the autopilot) every ``tick_s``, after
+writing the result at hand so that work never delays it. The pause doubles at each failure,
+also for a link that opens but fails at once (stdout, a file on a full disk), and starts
+again from ``retry_s`` once a link stayed up ``retry_max_s``. A link that cannot come back
+(LinkClosed) is not reopened: ``on_closed(reason)`` is called once.
+
+After each write ``on_written(name, result, t_written_s)`` is called (``time.monotonic()``,
 the clock of ``Frame.t_capture_s``): the pipeline's hook for capture -> bytes-written
-latency. The last such latency is also in ``stats()["last_latency_s"]``, and ``status()``
-gives a short text for the status line.
+latency. ``stats()`` has the counters (``written`` results, ``sent`` messages or lines,
+``dropped`` by cause, errors, link state, the last latency) and ``status()`` a short text
+for the status line.
 """
 
 from __future__ import annotations
@@ -33,8 +39,7 @@ import time
 from typing import Callable, Deque, Dict, Optional
 
 from ..result import FrameResult
-
-WrittenCallback = Callable[[FrameResult, float], None]
+from .base import ClosedHook, WrittenHook
 
 
 class LinkError(Exception):
@@ -43,7 +48,7 @@ class LinkError(Exception):
 
 class LinkClosed(LinkError):
     """The link's reader went away for good (the pipe behind stdout closed, as `head` does):
-    reopening cannot help. The output stops and calls ``on_closed(why)``, with which the
+    reopening cannot help. The output stops and calls ``on_closed(reason)``, with which the
     pipeline ends the run, as SIGPIPE ends `yes | head`."""
 
 
@@ -53,14 +58,20 @@ class LinkBusy(Exception):
 
 class QueuedOutput:
     """Base of the outputs: subclasses implement ``_open``, ``_close_link``, ``_write`` and may
-    override ``_tick`` (periodic work while the link is up, e.g. heartbeats and reading)."""
+    override ``_tick`` (periodic work while the link is up, e.g. heartbeats and reading).
+
+    ``max_age_s``: results older than this (seconds after capture) when their write comes are
+    dropped as ``late`` (None: no limit). ``on_written``/``on_closed``: base.py's hooks.
+    """
 
     name = "output"
     tick_s = 0.25
-    # Longest a direct publish waits for the link (held by a reopen or a tick).
+    # Longest a direct submit waits for the link (held by a reopen or a tick).
     lock_timeout_s = 0.25
 
-    def __init__(self, *, queue_size: int = 4, retry_s: float = 0.5, retry_max_s: float = 5.0,
+    def __init__(self, *, queue_size: int = 4, max_age_s: Optional[float] = None,
+                 on_written: Optional[WrittenHook] = None, on_closed: Optional[ClosedHook] = None,
+                 retry_s: float = 0.5, retry_max_s: float = 5.0,
                  clock: Callable[[], float] = time.monotonic, start: bool = True) -> None:
         self._queue: Deque[FrameResult] = collections.deque()
         self._queue_size = max(0, int(queue_size))
@@ -78,13 +89,11 @@ class QueuedOutput:
         self._link_state = "not opened"
         self._t_up = 0.0
         self._gone = False
-        self.on_written: Optional[WrittenCallback] = None
-        # Called once (from the output's thread) when the link closed for good (LinkClosed).
-        self.on_closed: Optional[Callable[[str], None]] = None
-        # Results older than this (seconds after capture) when written are dropped as "late".
-        self.max_age_s: Optional[float] = None
+        self._on_written = on_written
+        self._on_closed = on_closed  # called once, from the output's thread
+        self._max_age_s = float(max_age_s) if max_age_s is not None else None
         self.log = logging.getLogger(f"pose_daemon.outputs.{self.name}")
-        self._counts: Dict[str, int] = {"published": 0, "sent": 0, "errors": 0, "opens": 0, "link_failures": 0}
+        self._counts: Dict[str, int] = {"submitted": 0, "written": 0, "sent": 0, "errors": 0, "opens": 0, "link_failures": 0}
         self._dropped: Dict[str, int] = collections.defaultdict(int)
         self._last_error = ""
         self._last_latency_s: Optional[float] = None
@@ -103,10 +112,15 @@ class QueuedOutput:
             self._thread = threading.Thread(target=self._run, name=f"output-{self.name}", daemon=True)
             self._thread.start()
 
-    def publish(self, result: FrameResult) -> None:
+    @property
+    def max_age_s(self) -> Optional[float]:
+        """The latency budget given at construction (None: no limit)."""
+        return self._max_age_s
+
+    def submit(self, result: FrameResult) -> None:
         """Queue one result (queued mode) or write it now (direct mode); never waits on a link."""
         with self._cond:
-            self._counts["published"] += 1
+            self._counts["submitted"] += 1
             inline = self._direct or (not self._queue and self._writes_never_block())
             if not inline:
                 self._enqueue(result)
@@ -150,7 +164,8 @@ class QueuedOutput:
         self._set_state("closed")
 
     def stats(self) -> dict:
-        """Counters for the status line: sent, dropped by cause, errors, link state, last latency."""
+        """Counters: results ``written``, messages or lines ``sent``, ``dropped`` by cause,
+        errors, link state, last capture -> written latency."""
         with self._cond:
             return {
                 "name": self.name,
@@ -193,7 +208,7 @@ class QueuedOutput:
         raise NotImplementedError
 
     def _writes_never_block(self) -> bool:
-        """True when a write cannot wait (non-blocking datagrams): publish may then write at once
+        """True when a write cannot wait (non-blocking datagrams): submit may then write at once
         instead of waking the output's thread (saves the thread hand-over, ~0.3 ms)."""
         return False
 
@@ -213,6 +228,7 @@ class QueuedOutput:
         """Called after each successful (re)open, with the link held."""
 
     def _drop(self, cause: str) -> None:
+        """Count one result not written, by cause (the status line shows each cause)."""
         with self._cond:
             self._dropped[cause] += 1
 
@@ -264,7 +280,7 @@ class QueuedOutput:
         if not self._link_up:
             self._drop("link_closed" if self._gone else "link_down")
             return
-        max_age = self.max_age_s
+        max_age = self._max_age_s
         if max_age is not None and self._clock() - float(item.t_capture_s) > max_age:
             self._drop("late")
             return
@@ -289,12 +305,13 @@ class QueuedOutput:
         if n:
             t_written = self._clock()
             with self._cond:
+                self._counts["written"] += 1
                 self._counts["sent"] += n
                 self._last_latency_s = t_written - float(item.t_capture_s)
-            cb = self.on_written
+            cb = self._on_written
             if cb is not None:
                 try:
-                    cb(item, t_written)
+                    cb(self.name, item, t_written)
                 except Exception as exc:
                     self._error(f"on_written: {type(exc).__name__}: {exc}")
 
@@ -344,12 +361,12 @@ class QueuedOutput:
         with self._cond:
             self._last_error = why
             self._link_state = f"closed: {' '.join(why.split())}"
-        cb = self.on_closed
+        cb = self._on_closed
         if cb is None:
             self.log.warning("%s output stopped: %s", self.name, why)
             return
         try:
-            cb(why)
+            cb(f"{self.name} output closed: {why}")
         except Exception as exc:
             self._error(f"on_closed: {type(exc).__name__}: {exc}")
 

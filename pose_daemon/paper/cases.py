@@ -13,6 +13,7 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 
 from .. import geometry
+from ..pose.loop import correction_loop, project_unrot
 
 # The paper publishes neither its focal length nor its square's side. The corrections are
 # pure ray rotations, so every angle and position below depends only on side / distance;
@@ -92,8 +93,6 @@ class CaseResult:
 
 def case_image(case: PaperCase, *, focal_px: float = FOCAL_PX, side: float = SIDE) -> np.ndarray:
     """The (4, 2) image, in pixels from the principal point, that the case's camera sees."""
-    from ..pose.loop import project_unrot
-
     R = geometry.R_cam_unrot_from_paper_angles(
         np.radians(case.alpha_deg), np.radians(case.beta_deg), np.radians(case.gamma_deg))
     return np.asarray(project_unrot(R, np.asarray(case.position, dtype=np.float64),
@@ -103,8 +102,6 @@ def case_image(case: PaperCase, *, focal_px: float = FOCAL_PX, side: float = SID
 def run_case(case: PaperCase, *, method: str = "paper", iterations: int = 5,
              focal_px: float = FOCAL_PX, side: float = SIDE) -> CaseResult:
     """Trace the loop on one case: a row per iteration and the final pose (eqs 13-16)."""
-    from ..pose.loop import correction_loop
-
     points = case_image(case, focal_px=focal_px, side=side)
     result = correction_loop(points, focal_px, side * side, method=method,
                              iterations=iterations, trace=True)

@@ -15,6 +15,7 @@ from typing import Callable, Optional, Tuple
 import numpy as np
 
 from .. import geometry
+from ..pose.loop import correction_loop, project_unrot
 from .cases import FOCAL_PX, SIDE
 
 DISTANCE = 100.0
@@ -117,8 +118,6 @@ def run_sweep(*, method: str = "paper", iterations: int = 10, step_deg: float = 
     the image corrected by R_est is the image of R_est^T R_true), to show how fast it falls.
     The final e_image is always the loop's own corrected image against the ideal one.
     """
-    from ..pose.loop import correction_loop, project_unrot
-
     angles = angle_grid(step_deg)
     n = angles.size
     total = n ** 3 if limit is None else min(int(limit), n ** 3)

@@ -26,7 +26,8 @@ import numpy as np
 
 from .. import geometry
 from ..camera import Camera, Marker
-from ..pose.types import Pose
+from ..pose.estimator import estimate_pose
+from ..pose.types import EstimationError, Pose
 
 # A wide-angle Raspberry Pi camera (Camera Module 3 Wide: 102 deg horizontal field of view)
 # at 640x480, lens distortion already calibrated out. The wide lens matters: the robot
@@ -133,9 +134,6 @@ def simulate(setup: UnicycleSetup, *, feedback: str = "estimated") -> UnicycleRu
     """Run the closed loop for ``setup.duration_s`` with true or camera-estimated feedback."""
     if feedback not in ("true", "estimated"):
         raise ValueError(f"feedback must be 'true' or 'estimated', got {feedback!r}")
-    from ..pose.estimator import estimate_pose
-    from ..pose.types import EstimationError
-
     marker = Marker(width=setup.window_side, height=setup.window_side)
     camera = setup.camera
     rng = np.random.default_rng(setup.seed)

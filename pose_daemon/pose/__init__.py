@@ -1,5 +1,7 @@
-"""The estimator: the paper's iterative image correction, its table, the table-free step,
-the final reprojection polish, the second planar solution and the batch form."""
+"""The estimator: the paper's iterative image correction (loop.py) with its table
+(paper_table.py), input checks (checks.py), the final reprojection polish (polish.py), the
+second planar solution (ambiguity.py), the track's choice between the two (continuity.py),
+``estimate_pose`` orchestrating them (estimator.py) and the batch form (batch.py)."""
 
 from .types import EstimationError, Pose
 

@@ -15,6 +15,8 @@ from typing import List, Optional
 
 import numpy as np
 
+from .paper_table import load_table
+
 METHODS = ("iterative", "paper")
 
 
@@ -50,17 +52,6 @@ class LoopResult:
     trace: Optional[List[IterationTrace]] = None
 
 
-def quad_area(points: np.ndarray) -> np.ndarray:
-    """Signed shoelace area (..., ) of (..., 4, 2) points; positive for TL, TR, BR, BL with y down."""
-    x, y = points[..., 0], points[..., 1]
-    return 0.5 * np.sum(x * np.roll(y, -1, axis=-1) - np.roll(x, -1, axis=-1) * y, axis=-1)
-
-
-def depth_from_area(points: np.ndarray, f: float, area: float) -> np.ndarray:
-    """Eq. (1): z = sqrt(f^2 s^2 / Area), s^2 = W*H; exact for a fronto-parallel image."""
-    return np.sqrt(f * f * area / np.abs(quad_area(points)))
-
-
 def _split(points: np.ndarray):
     pts = np.asarray(points, dtype=np.float64)
     return [pts[..., j, 0] for j in range(4)], [pts[..., j, 1] for j in range(4)]
@@ -72,54 +63,6 @@ def internal_angles(points: np.ndarray) -> np.ndarray:
     return np.stack(np.broadcast_arrays(*_angles(xs, ys, NUMPY_OPS)), -1)
 
 
-def roll_from_edges(points: np.ndarray) -> np.ndarray:
-    """Eqs. (2)-(3) done right: edge j -> j+1 points at 0, 90, 180, 270 deg (image angles, y
-    down) for an unrotated camera, so each edge gives the roll modulo 360; circular mean.
-    Valid at every quadrant, (..., ) radians."""
-    xs, ys = _split(points)
-    return _roll(xs, ys, NUMPY_OPS)
-
-
-def correct_roll(points: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """Eq. (8): x' = x cos g + y sin g, y' = -x sin g + y cos g (rays d' = Rz(g)^T d)."""
-    c, s = np.cos(g)[..., None], np.sin(g)[..., None]
-    x, y = points[..., 0], points[..., 1]
-    return np.stack([x * c + y * s, -x * s + y * c], axis=-1)
-
-
-def correct_yaw(points: np.ndarray, b: np.ndarray, f: float) -> np.ndarray:
-    """Eqs. (9)-(10): x' = f (x cos b + f sin b) / den, y' = f y / den, den = f cos b - x sin b."""
-    c, s = np.cos(b)[..., None], np.sin(b)[..., None]
-    x, y = points[..., 0], points[..., 1]
-    k = f / (f * c - x * s)
-    return np.stack([(x * c + f * s) * k, y * k], axis=-1)
-
-
-def correct_pitch(points: np.ndarray, a: np.ndarray, f: float) -> np.ndarray:
-    """Eqs. (11)-(12): y' = f (y cos a + f sin a) / den, x' = f x / den, den = f cos a - y sin a."""
-    c, s = np.cos(a)[..., None], np.sin(a)[..., None]
-    x, y = points[..., 0], points[..., 1]
-    k = f / (f * c - y * s)
-    return np.stack([x * k, (y * c + f * s) * k], axis=-1)
-
-
-def yaw_from_vanishing_point(points: np.ndarray, f: float) -> np.ndarray:
-    """Table-free yaw: the top and bottom edges meet at v ~ R e_x; Ry(b)^T sends v to the
-    image plane's horizon at infinity when tan b = v_z / v_x. Exact for a pure yaw. (..., ) rad."""
-    xs, ys = _split(points)
-    vx, _, vz = _vanish(xs, ys, float(f), 0, 1, 3, 2)
-    sg = np.copysign(1.0, vx)
-    return np.arctan2(vz * sg, vx * sg)
-
-
-def pitch_from_vanishing_point(points: np.ndarray, f: float) -> np.ndarray:
-    """Table-free pitch: the left and right edges meet at v ~ R e_y; tan a = v_z / v_y."""
-    xs, ys = _split(points)
-    _, vy, vz = _vanish(xs, ys, float(f), 0, 3, 1, 2)
-    sg = np.copysign(1.0, vy)
-    return np.arctan2(vz * sg, vy * sg)
-
-
 def e_beta(zeta: np.ndarray) -> np.ndarray:
     """Eq. (4): left-side angles minus right-side ones, zeta1 + zeta4 - zeta2 - zeta3."""
     return zeta[..., 0] + zeta[..., 3] - zeta[..., 1] - zeta[..., 2]
@@ -128,13 +71,6 @@ def e_beta(zeta: np.ndarray) -> np.ndarray:
 def e_alpha(zeta: np.ndarray) -> np.ndarray:
     """Eq. (5): bottom angles minus top ones, zeta3 + zeta4 - zeta1 - zeta2."""
     return zeta[..., 2] + zeta[..., 3] - zeta[..., 0] - zeta[..., 1]
-
-
-def position_from_image(points: np.ndarray, f: float, area: float) -> np.ndarray:
-    """Eqs. (1), (6)-(7): (x, y, z) (..., 3) of the marker centre from a corrected image."""
-    z = depth_from_area(points, f, area)
-    c = np.mean(points, axis=-2)
-    return np.stack([c[..., 0] * z / f, c[..., 1] * z / f, z], axis=-1)
 
 
 def _cos_sin_atan2(y: float, x: float):
@@ -189,11 +125,6 @@ def _area(xs, ys):
                   + (xs[2] * ys[3] - xs[3] * ys[2]) + (xs[3] * ys[0] - xs[0] * ys[3]))
 
 
-def _roll(xs, ys, m: _Ops):
-    sx, sy = _roll_vector(xs, ys, m)
-    return m.atan2(sy, sx)
-
-
 def _roll_vector(xs, ys, m: _Ops):
     # Edge j -> j+1 of an unrotated image points at j * 90 deg (y down); rotating each edge
     # direction back by that and averaging the unit vectors gives the roll in every quadrant.
@@ -225,7 +156,7 @@ def _rot_cols(R, i: int, j: int, c, s) -> None:
     """R <- R @ G for the paper's plane rotations, in place on a 3x3 list of entries:
     new column i = c col_i + s col_j, new column j = -s col_i + c col_j. Equals
     geometry.rot_z(g) for (i, j) = (0, 1), rot_y(b) for (0, 2), rot_x(a) for (1, 2)
-    (checked by the tests); done by columns because stacked 3x3 matmuls are slow."""
+    (the tests check the loop's R against geometry); done by columns because stacked 3x3 matmuls are slow."""
     for r in range(3):
         ri, rj = R[r][i], R[r][j]
         R[r][i] = c * ri + s * rj
@@ -323,8 +254,6 @@ def correction_loop(points: np.ndarray, f: float, area: float, *, method: str = 
     batch = pts.shape[:-2]
     table = None
     if method == "paper":
-        from .paper_table import load_table
-
         table = load_table()
     xs = [np.array(pts[..., j, 0]) for j in range(4)]
     ys = [np.array(pts[..., j, 1]) for j in range(4)]
@@ -369,8 +298,6 @@ def loop_one(us: List[float], vs: List[float], area: float, method: str, iterati
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
     table = None
     if method == "paper":
-        from .paper_table import load_table
-
         table = load_table()
         scale_yaw, scale_pitch = math.sqrt(area / aspect), math.sqrt(area * aspect)
     i = 0

@@ -6,7 +6,8 @@ a e^3 + b e^2 + c e + d is fitted at each depth. Depth is the dimensionless
 z_rel = z / sqrt(W*H) (z a length, from eq. 1; equivalently z / (f sqrt(W*H)) with z in image
 units): image angles do not depend on f, so one table holds for every camera and marker size.
 A W x H rectangle looks yaw up at z / H and pitch at z / W (see loop.py).
-``scripts/make_paper_table.py`` writes the shipped table ``pose_daemon/data/paper_table.json``.
+``scripts/make_paper_table.py`` writes the shipped table ``pose_daemon/data/paper_table.json``
+with ``pose_daemon.paper.table_build.build_table``; this module only looks it up.
 """
 
 from __future__ import annotations
@@ -19,43 +20,9 @@ from typing import Dict, Optional
 
 import numpy as np
 
-from .. import geometry
-from .loop import e_alpha, e_beta, internal_angles, project_unrot
-
 TABLE_FILE = "paper_table.json"
-# Depth grid (z_rel) and angle range of the simulation.
-Z_REL_MIN, Z_REL_MAX, Z_REL_COUNT = 1.0, 500.0, 80
-ANGLE_MAX_DEG, ANGLE_COUNT = 60.0, 241
 # Corrections are clamped to this: beyond it the marker is seen edge-on.
 STEP_LIMIT_RAD = math.radians(80.0)
-STEP_LIMIT = STEP_LIMIT_RAD
-
-
-def build_table() -> Dict[str, object]:
-    """Simulate and fit; returns the JSON-ready table (coefficients a, b, c, d per z_rel)."""
-    z_rel = np.geomspace(Z_REL_MIN, Z_REL_MAX, Z_REL_COUNT)
-    angles = np.radians(np.linspace(-ANGLE_MAX_DEG, ANGLE_MAX_DEG, ANGLE_COUNT))
-    out: Dict[str, object] = {
-        "description": "cubic angle = a e^3 + b e^2 + c e + d (radians) per z_rel = z / sqrt(W*H); "
-                       "simulated square on the optical axis, pure yaw (beta) or pitch (alpha)",
-        "angle_max_deg": ANGLE_MAX_DEG,
-        "z_rel": [float(v) for v in z_rel],
-    }
-    for name, rot, err in (("beta", geometry.rot_y, e_beta), ("alpha", geometry.rot_x, e_alpha)):
-        coeffs, e_max = [], []
-        for zr in z_rel:
-            R = rot(angles)
-            pos = np.broadcast_to(np.array([0.0, 0.0, zr]), angles.shape + (3,))
-            img = project_unrot(R, pos, 1.0, 1.0, 1.0)
-            e = err(internal_angles(img))
-            # Fit in u = e * z_rel (well scaled at every depth), convert back to e.
-            A, B, C, D = np.polyfit(e * zr, angles, 3)
-            coeffs.append([float(A * zr ** 3), float(B * zr ** 2), float(C * zr), float(D)])
-            e_max.append(float(np.abs(e).max()))
-        out[name] = coeffs
-        # The fit's range of |e|: a cubic must not be extrapolated beyond it.
-        out[name + "_e_max"] = e_max
-    return out
 
 
 class PaperTable:
@@ -109,7 +76,7 @@ class PaperTable:
             um = u_max[k - 1] + w * (u_max[k] - u_max[k - 1])
         u = min(max(e * z_rel, -um), um)
         out = ((coeffs[0] * u + coeffs[1]) * u + coeffs[2]) * u + coeffs[3]
-        return min(max(out, -STEP_LIMIT), STEP_LIMIT)
+        return min(max(out, -STEP_LIMIT_RAD), STEP_LIMIT_RAD)
 
     def yaw(self, e_beta_rad: np.ndarray, z_rel: np.ndarray) -> np.ndarray:
         """beta (radians) from e_beta (radians) at depth z_rel = z / sqrt(W*H)."""

@@ -17,6 +17,9 @@ import numpy as np
 
 from .. import geometry
 from ..camera import Camera, Marker
+from ..pose.batch import estimate_pose_batch
+from ..pose.estimator import estimate_pose
+from ..pose.types import EstimationError
 
 NOISE_PX = (0.0, 0.25, 0.5, 1.0)
 FLIP_DEG = 10.0
@@ -82,8 +85,6 @@ def _ippe(camera: Camera, marker: Marker, refine: bool) -> Callable:
 
 def _time_calls(fn: Callable, corners: np.ndarray) -> float:
     """Median microseconds of one call over the corner sets (a refused set counts too)."""
-    from ..pose.types import EstimationError
-
     times = np.empty(len(corners))
     for i, c in enumerate(corners):
         t0 = time.perf_counter()
@@ -96,8 +97,6 @@ def _time_calls(fn: Callable, corners: np.ndarray) -> float:
 
 
 def run_bench(n: int, timing_n: int, seed: int, progress: bool = True) -> Dict[str, object]:
-    from ..pose.estimator import estimate_pose, estimate_pose_batch
-
     camera = Camera(fx=600.0, fy=600.0, cx=319.5, cy=239.5, width=640, height=480)
     marker = Marker(0.2, 0.2)
     rng = np.random.default_rng(seed)

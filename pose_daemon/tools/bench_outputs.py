@@ -17,6 +17,8 @@ from typing import Any, Dict, List
 
 import numpy as np
 
+from ..camera import Camera, Marker
+from ..config import JsonlOutputConfig, MavlinkOutputConfig, SerialOutputConfig
 from ..geometry import (
     R_from_euler_rpy,
     VehicleFrames,
@@ -57,23 +59,27 @@ def run_bench(poses: int = 3000) -> Dict[str, Any]:
     os.set_blocking(master, False)
     tmp = tempfile.TemporaryDirectory(prefix="pose-daemon-bench-")
     udp = f"udpout:127.0.0.1:{sink.getsockname()[1]}"
-    common = dict(fx_px=500.0, marker_width_m=0.2, wait_heartbeat=False, queue_size=0)
+    common = dict(camera=Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5), marker=Marker(width=0.2), queue_size=0)
+    all_three = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
     rows = []
     try:
         outputs = [
-            ("mavlink ODOMETRY, UDP", lambda: MavlinkOutput(udp, frames, **common)),
+            ("mavlink ODOMETRY, UDP",
+             lambda: MavlinkOutput(MavlinkOutputConfig(connection=udp, wait_heartbeat=False), frames, **common)),
             ("mavlink ODOMETRY+VPE+LANDING_TARGET, UDP",
-             lambda: MavlinkOutput(udp, frames, messages=("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET"),
-                                   **common)),
-            ("plain $POSE, pty", lambda: PlainSerialOutput(os.ttyname(slave), frames, queue_size=0)),
-            ("jsonl, file", lambda: JsonlOutput(os.path.join(tmp.name, "poses.jsonl"), queue_size=0)),
+             lambda: MavlinkOutput(MavlinkOutputConfig(connection=udp, wait_heartbeat=False, messages=all_three),
+                                   frames, **common)),
+            ("plain $POSE, pty",
+             lambda: PlainSerialOutput(SerialOutputConfig(port=os.ttyname(slave)), frames, queue_size=0)),
+            ("jsonl, file",
+             lambda: JsonlOutput(JsonlOutputConfig(path=os.path.join(tmp.name, "poses.jsonl")), queue_size=0)),
         ]
         for name, make in outputs:
             out = make()
             times = np.empty(len(results))
             for i, r in enumerate(results):
                 t0 = time.perf_counter()
-                out.publish(r)
+                out.submit(r)
                 times[i] = time.perf_counter() - t0
                 _drain(sink, master)
             out.close()

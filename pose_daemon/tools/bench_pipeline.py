@@ -8,6 +8,7 @@ are played forth and back, so the camera moves continuously (and turns round) as
 
 from __future__ import annotations
 
+import functools
 import os
 import socket
 import sys
@@ -162,10 +163,6 @@ def _run(n_frames: int, fps: float, distinct: int, seed: int, progress: Callable
     images = render_frames(cfg, distinct, seed)
     source = PacedSource(images, n_frames, fps)
     processor = FrameProcessor.from_config(cfg)
-    outputs = open_outputs(cfg)
-
-    totals = {o.name: np.zeros(n_frames) for o in outputs}
-    counts = dict.fromkeys(totals, 0)
     rss_warm: List[Optional[int]] = [None]
     warm_at = min(1000, max(1, n_frames // 10))
 
@@ -178,8 +175,13 @@ def _run(n_frames: int, fps: float, distinct: int, seed: int, progress: Callable
             rss_warm[0] = rss_bytes()
 
     # Garbage collection between frames, as `pose-daemon run` does.
-    pipeline = Pipeline.from_config(cfg, source, processor, outputs, on_written=on_written,
-                                    collect_when_idle=True)
+    from ..service import IdleCollector
+
+    pipeline = Pipeline.from_config(cfg, source, processor, functools.partial(open_outputs, cfg),
+                                    on_written=on_written, on_idle=IdleCollector().run)
+    outputs = pipeline.outputs
+    totals = {o.name: np.zeros(n_frames) for o in outputs}  # filled by on_written once started
+    counts = dict.fromkeys(totals, 0)
     rss_start = rss_bytes()
     t0 = time.monotonic()
     progress(f"running {n_frames} frames at {fps:g} fps through detect -> estimate -> "

@@ -34,7 +34,6 @@ def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = No
     to ``out_path`` (stdout without one), annotated images into the folder ``annotate``; the
     camera and marker are the recording's own when it has them, else ``config``'s. Returns
     the exit status; UserError when nothing could be read."""
-    from ..detect import MarkerDetector
 
     source = ReplaySource(path, realtime=False)
     try:
@@ -60,22 +59,11 @@ def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = No
         if ignored:
             print(f"pose-daemon: note: {path} has its own {' and '.join(ignored)}, used instead of "
                   f"those of {config}", file=sys.stderr)
-    # FrameProcessor.from_config takes the config's camera and marker, not the recording's:
-    # built here until processing.py has a constructor from models (from_models).
-    detector = MarkerDetector(marker, max_misses=cfg.detector.max_misses,
-                              min_side_px=cfg.detector.min_side_px, camera=camera)
-    processor = FrameProcessor(camera, marker, method=cfg.estimator.method,
-                               iterations=cfg.estimator.iterations, refine=cfg.estimator.refine,
-                               detector=detector)
+    processor = FrameProcessor.from_models(camera, marker, cfg.estimator, cfg.detector)
     if cfg.map is not None:  # a map names its own markers: the recording's [marker] is not used
-        from ..detect.multi import MapDetector
         from ..map_processing import MapFrameProcessor
 
-        processor = MapFrameProcessor(camera, cfg.map.model(), method=cfg.estimator.method,
-                                      iterations=cfg.estimator.iterations,
-                                      detector=MapDetector(cfg.map.model(), camera=camera,
-                                                           max_misses=cfg.detector.max_misses,
-                                                           min_side_px=cfg.detector.min_side_px))
+        processor = MapFrameProcessor.from_models(camera, cfg.map.model(), cfg.estimator, cfg.detector)
     annotate_dir: Optional[Path] = None
     if annotate:
         annotate_dir = Path(annotate)
