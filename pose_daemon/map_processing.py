@@ -9,7 +9,7 @@ and is a start of the next solve (continuity on the planar branch).
 from __future__ import annotations
 
 import time
-from typing import Optional, Tuple
+from typing import Dict, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -35,6 +35,8 @@ class MapFrameProcessor:
         self.iterations = iterations
         self.detector = detector if detector is not None else MapDetector(marker_map, camera=camera)
         self._last: Optional[Tuple[np.ndarray, np.ndarray]] = None
+        #: The corners found in the last frame, by id (outliers included).
+        self.last_found: Dict[int, np.ndarray] = {}
         #: An attitude prior for the next frame (set by whoever knows the attitude), or None.
         self.prior: Optional[GravityPrior] = None
 
@@ -71,6 +73,7 @@ class MapFrameProcessor:
             return result
         t1 = time.perf_counter()
         result.stage_s["detect"] = t1 - t0
+        self.last_found = found
         if not found:
             result.error = "no marker"
             self._last = None

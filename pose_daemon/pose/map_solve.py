@@ -235,16 +235,9 @@ def solve_map_pose(observed: Dict[int, np.ndarray], camera: Camera, marker_map: 
     def estimate(corners, cam, marker):
         return estimate_pose(corners, cam, marker, method=method, iterations=iterations)
 
-    starts = _starts(camera, marker_map, obs, estimate, previous)
-    if not starts:
-        raise EstimationError("no marker of the map gives a pose")
     all_ids = sorted(obs)
     obj_all = np.vstack([marker_map.corners_map(i) for i in all_ids])
     img_all = np.vstack([obs[i] for i in all_ids])
-    costs = [_robust_cost(camera, obj_all, img_all, R, t) for R, t, _ in starts]
-    order = np.argsort(costs)
-    if not math.isfinite(costs[order[0]]):
-        raise EstimationError("no start puts the map in front of the camera")
 
     def solve_from(R, t):
         # Inliers under the start (generous: a start from one marker is only roughly right
@@ -265,51 +258,75 @@ def solve_map_pose(observed: Dict[int, np.ndarray], camera: Camera, marker_map: 
             keep = new_keep
         return R, t, sse, JtJ, keep, rms_all
 
-    # The best start first; while its solve leaves markers out, the next distinct starts too
-    # (a start on the wrong planar branch of one marker can make the others look like outliers).
     best = None
-    tried: List[np.ndarray] = []
-    for k in order[:MAX_STARTS]:
-        if not math.isfinite(costs[k]):
-            break
-        R0 = starts[k][0]
-        if any(float(np.abs(R0 - Rt).max()) < 0.02 for Rt in tried):
-            continue
-        tried.append(R0)
-        sol = solve_from(R0, starts[k][1])
-        key = (-int(sol[4].sum()), sol[2])
-        if best is None or key < best[0]:
-            best = (key, sol)
-        if best[1][4].all():
-            break
+    if previous is not None:
+        # Tracking: the last pose is the start; every marker fitting it means no search.
+        R0, t0 = np.asarray(previous[0], dtype=np.float64), np.asarray(previous[1], dtype=np.float64)
+        if np.all((obj_all @ R0.T + t0)[:, 2] > 1e-6):
+            sol = solve_from(R0, t0)
+            if sol[4].all():
+                best = ((0, sol[2]), sol)
+    if best is None:
+        starts = _starts(camera, marker_map, obs, estimate, previous)
+        if not starts:
+            raise EstimationError("no marker of the map gives a pose")
+        costs = [_robust_cost(camera, obj_all, img_all, R, t) for R, t, _ in starts]
+        order = np.argsort(costs)
+        if not math.isfinite(costs[order[0]]):
+            raise EstimationError("no start puts the map in front of the camera")
+        # The best start first; while its solve leaves markers out, the next distinct starts
+        # too (a start on one marker's wrong planar branch makes the others look like outliers).
+        tried: List[np.ndarray] = []
+        for k in order[:MAX_STARTS]:
+            if not math.isfinite(costs[k]):
+                break
+            R0 = starts[k][0]
+            if any(float(np.abs(R0 - Rt).max()) < 0.02 for Rt in tried):
+                continue
+            tried.append(R0)
+            sol = solve_from(R0, starts[k][1])
+            key = (-int(sol[4].sum()), sol[2])
+            if best is None or key < best[0]:
+                best = (key, sol)
+            if best[1][4].all():
+                break
     R, t, sse, JtJ, keep, rms_all = best[1]
     ids = [i for i, k in zip(all_ids, keep) if k]
     outliers = [i for i, k in zip(all_ids, keep) if not k]
     obj = np.vstack([marker_map.corners_map(i) for i in ids])
     img = np.vstack([obs[i] for i in ids])
     rms = rms_all[keep]
-    # The other planar branch, for the ambiguity ratio: the best start on the far side.
+    # The other planar branch, for the ambiguity ratio: the mirror pose of the largest marker
+    # used, carried into the map and solved over every inlier corner.
     n_img = img.shape[0]
     err = math.sqrt(sse / n_img)
     ambiguity = 0.0
-    normal = R @ marker_map.down_map()
-    for k in order[1:]:
-        R_alt, t_alt, _ = starts[k]
-        if float((R_alt @ marker_map.down_map()) @ normal) > math.cos(math.radians(5.0)):
-            continue
-        if not math.isfinite(costs[k]):
-            break
-        R_a, t_a, sse_a, _ = refine_pose(camera, obj, img, R_alt, t_alt, prior=prior, max_iter=6)
-        if float((R_a @ marker_map.down_map()) @ normal) > math.cos(math.radians(2.0)):
-            break  # it came back to the same minimum
-        err_alt = math.sqrt(sse_a / n_img)
-        ambiguity = 1.0 if err_alt <= 0.0 else min(1.0, err / err_alt)
-        if err_alt < err:  # the far branch fits better: take it
-            R, t, sse, JtJ = refine_pose(camera, obj, img, R_a, t_a, prior=prior)
-            err = math.sqrt(sse / n_img)
-            ambiguity = min(1.0, err / max(err_alt, 1e-12)) if err_alt > 0 else 1.0
-            rms = _marker_rms(camera, obj, img, R, t, len(ids))
-        break
+    down = marker_map.down_map()
+    normal = R @ down
+    largest = max(ids, key=lambda i: float(np.ptp(obs[i], axis=0).sum()))
+    far = []
+    try:
+        single = estimate(obs[largest], camera, marker_map.single(largest))
+    except EstimationError:
+        single = None
+    if single is not None:
+        R_mm, p_mm = marker_map.T_map_marker(largest)
+        for cand in (single, single.alternative):
+            if cand is None:
+                continue
+            R_c = cand.R @ R_mm.T
+            if float((R_c @ down) @ normal) < math.cos(math.radians(5.0)):
+                far.append((R_c, cand.tvec - R_c @ p_mm))
+    if far:
+        R_a, t_a, sse_a, _ = refine_pose(camera, obj, img, far[0][0], far[0][1], prior=prior, max_iter=6)
+        if float((R_a @ down) @ normal) < math.cos(math.radians(2.0)):  # not back at the same minimum
+            err_alt = math.sqrt(sse_a / n_img)
+            ambiguity = 1.0 if err_alt <= 0.0 else min(1.0, err / err_alt)
+            if err_alt < err:  # the far branch fits better: take it
+                R, t, sse, JtJ = refine_pose(camera, obj, img, R_a, t_a, prior=prior)
+                err = math.sqrt(sse / n_img)
+                ambiguity = min(1.0, err / max(err_alt, 1e-12)) if err_alt > 0 else 1.0
+                rms = _marker_rms(camera, obj, img, R, t, len(ids))
     dof = max(2 * n_img - 6, 1)
     s2 = max(sse / dof, CORNER_SIGMA_PX ** 2) / CORNER_SIGMA_PX ** 2
     try:
