@@ -66,6 +66,7 @@ class MarkerMap:
     placement: str = "floor"
     _by_id: Dict[int, MapMarker] = field(init=False, repr=False, compare=False)
     _corners: Dict[int, np.ndarray] = field(init=False, repr=False, compare=False)
+    _T: Dict[int, Tuple[np.ndarray, np.ndarray]] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.placement not in MARKER_PLACEMENTS:
@@ -85,6 +86,13 @@ class MarkerMap:
         for c in corners.values():
             c.setflags(write=False)
         object.__setattr__(self, "_corners", corners)
+        T = {}
+        for m in self.markers:
+            R, p = m.R_map_marker, np.asarray(m.position_m, dtype=np.float64)
+            R.setflags(write=False)
+            p.setflags(write=False)
+            T[m.id] = (R, p)
+        object.__setattr__(self, "_T", T)
 
     @property
     def ids(self) -> Tuple[int, ...]:
@@ -106,9 +114,8 @@ class MarkerMap:
         return Marker(width=m.size_m, height=m.size_m, type="aruco", dictionary=self.dictionary, id=m.id)
 
     def T_map_marker(self, marker_id: int) -> Tuple[np.ndarray, np.ndarray]:
-        """(R_map_marker, p_map_marker): X_map = R X_marker + p."""
-        m = self._by_id[int(marker_id)]
-        return m.R_map_marker, np.asarray(m.position_m, dtype=np.float64)
+        """(R_map_marker, p_map_marker): X_map = R X_marker + p (read-only arrays)."""
+        return self._T[int(marker_id)]
 
     def down_map(self) -> np.ndarray:
         """Gravity (down) in the map frame for its placement: -z on a floor, -y on a wall."""

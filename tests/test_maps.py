@@ -387,3 +387,21 @@ path = "{tmp_path / 'poses.jsonl'}"
     assert report.ok, str(report)
     records = [json.loads(s) for s in Path(tmp_path / "poses.jsonl").read_text().splitlines()]
     assert {tuple(r["marker_ids"]) for r in records if r["ok"]} >= {(pad.ids[0],), (pad.ids[1],)}
+
+
+def test_bench_map_reports_every_figure_and_its_command_refuses_bad_arguments(capsys):
+    from pose_daemon.cli import main
+    from pose_daemon.tools import bench_map
+
+    report = bench_map.run_bench(frames=20, descent_frames=12, repeat=2, seed=1)
+    assert [f["markers"] for f in report["flights"]] == [9, 16]
+    for f in report["flights"]:
+        assert f["pose_rate"] is None or 0.0 <= f["pose_rate"] <= 1.0
+    assert report["descent"]["pose_rate"] == 1.0 and report["descent"]["landing_error_rel"]["max"] < 0.01
+    assert [r["markers_in_view"] for r in report["cost"]] == [1, 4, 9]
+    assert [r["markers_used"] for r in report["cost"]] == [1, 4, 9]
+    bench_map.print_report(report)
+    out = capsys.readouterr().out
+    assert "nested pad" in out and "markers in view" in out
+    assert main(["bench", "map", "--frames", "1"]) == 2
+    assert "--frames" in capsys.readouterr().err
