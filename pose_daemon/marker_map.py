@@ -241,7 +241,7 @@ def landing_pad(dictionary: str = "DICT_4X4_50", outer_m: float = 0.6, inner_m: 
     cells = n + 2
     cell_m = outer_m / cells
     if inner_m is None:
-        inner_m = 0.6 * cell_m  # leaves the outer marker's cell centres white
+        inner_m = round(0.6 * cell_m, 6)  # leaves the outer marker's cell centres white
     if not inner_m <= 0.6 * cell_m + 1e-12:
         raise ValueError(f"the inner marker must be at most 0.6 of an outer cell ({0.6 * cell_m:.3f} m)")
     c0, c1 = n // 2 - 1, n // 2 + 1

@@ -344,7 +344,7 @@ cy = 239.5
 preset = "down"
 offset_m = [0.05, 0.0, 0.03]
 [pipeline]
-latency_budget_s = 0.5
+latency_budget_s = 2.0
 [output.mavlink]
 connection = "udpout:127.0.0.1:{peer.port}"
 messages = ["ODOMETRY", "LANDING_TARGET"]
@@ -357,7 +357,7 @@ path = "{tmp_path / 'poses.jsonl'}"
     poses = [map_pose_looking_down(0.1 + 0.02 * h, -0.05, h, 0.3, 0.02, 0.0) for h in heights]
     rng = np.random.default_rng(0)
     images = [render_map(cfg.camera.model(), pad, rv, tv, rng=rng).image for rv, tv in poses]
-    source = RecordingSource(images, fps=10.0)  # slow enough for a loaded 2-core machine
+    source = RecordingSource(images, fps=5.0)  # slow enough for a loaded 2-core machine
     pipeline = Pipeline.from_config(cfg, source, FrameProcessor.from_config(cfg),
                                     functools.partial(open_outputs, cfg))
     outputs = pipeline.outputs
@@ -405,3 +405,26 @@ def test_bench_map_reports_every_figure_and_its_command_refuses_bad_arguments(ca
     assert "nested pad" in out and "markers in view" in out
     assert main(["bench", "map", "--frames", "1"]) == 2
     assert "--frames" in capsys.readouterr().err
+
+
+def test_marker_pad_sheet_holds_both_markers_and_prints_its_map(tmp_path, capsys):
+    from pose_daemon.cli import main
+    from pose_daemon.detect.multi import MapDetector
+    from pose_daemon.tools.marker_sheet import pad_layout, to_image
+
+    sheet = pad_layout(0.15)
+    page = to_image(sheet, 150.0)
+    pad = landing_pad(outer_m=0.15)
+    # The printed page itself, read by the map detector: both markers, one centre.
+    found = MapDetector(pad).detect(page)
+    assert sorted(found) == sorted(pad.ids)
+    centres = [found[i].mean(axis=0) for i in pad.ids]
+    assert np.linalg.norm(centres[0] - centres[1]) < 1.0
+    assert parse_config("\n".join(sheet.config), "pad.toml").map.model() == pad
+    assert main(["marker", "--pad", "--size", "0.15", "--out", str(tmp_path / "pad.pdf")]) == 0
+    out = capsys.readouterr().out
+    assert parse_config(out, "stdout").map.model() == pad
+    assert main(["marker", "--pad", "--size", "0.6", "--out", str(tmp_path / "big.pdf")]) == 2
+    assert "does not fit on a4" in capsys.readouterr().err
+    assert main(["marker", "--pad", "--size", "0.15", "--id", "1", "--out", str(tmp_path / "x.pdf")]) == 2
+    assert "centre bits white" in capsys.readouterr().err
