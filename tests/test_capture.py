@@ -292,16 +292,18 @@ def test_picamera2_stalled_camera_is_a_source_error_not_a_hang(fake_picamera2) -
 
 
 def test_picamera2_stall_in_the_pipeline_becomes_a_reopen(fake_picamera2, caplog) -> None:
-    from pipeline_fakes import FakeOutput, FakeProcessor
+    from pipeline_fakes import FakeOutput, FakeProcessor, outputs_of
 
     from pose_daemon.pipeline import Pipeline
 
     fake_picamera2.stall_after = {0: 3}   # the first camera stalls; the reopened one works
-    source = Picamera2Source(64, 48, fps=30.0, read_timeout_s=0.05)
-    out = FakeOutput()
+    # The timeout is far above what a loaded machine takes to hand over a frame, so only the
+    # stalled camera times out.
+    source = Picamera2Source(64, 48, fps=30.0, read_timeout_s=0.5)
     # The fake's sensor time stamps start at 5 s: no latency budget applies here.
-    pipeline = Pipeline(source, FakeProcessor(), [out], latency_budget_s=1e9, source_retry_s=0.01,
-                        source_retry_max_s=0.01)
+    pipeline = Pipeline(source, FakeProcessor(), outputs_of(FakeOutput), latency_budget_s=1e9,
+                        source_retry_s=0.01, source_retry_max_s=0.01)
+    (out,) = pipeline.outputs
     caplog.set_level("WARNING", logger="pose_daemon.pipeline")
     pipeline.start()
     try:
@@ -317,7 +319,7 @@ def test_picamera2_stall_in_the_pipeline_becomes_a_reopen(fake_picamera2, caplog
     assert first.closed and first.flushes == 1 and second.frame >= 1
     assert pipeline.stats.snapshot()["source_failures"] == 1
     assert [r.getMessage() for r in caplog.records if r.name == "pose_daemon.pipeline"] == [
-        "source failed: source picamera2: no frame from camera 0 within 0.05 s (camera stalled); "
+        "source failed: source picamera2: no frame from camera 0 within 0.5 s (camera stalled); "
         "reopening in 0.0 s"]
     assert len(out.got) > 3 and len(fake_picamera2.instances) == 2
 
