@@ -157,6 +157,9 @@ def refine_pose(camera: Camera, obj: np.ndarray, img: np.ndarray, R0: np.ndarray
                 continue
             R_new = R_from_rvec(step[:3]) @ R
             t_new = t + step[3:]
+            if float(np.abs(step).max()) < 1e-9:
+                step = None  # nothing left to gain: converged
+                break
             r_new, _, P_new = evaluate(R_new, t_new, False)
             if np.all((P_new[:, 2] + t_new[2]) > 0) and float(r_new @ r_new) < cost:
                 break
@@ -167,7 +170,8 @@ def refine_pose(camera: Camera, obj: np.ndarray, img: np.ndarray, R0: np.ndarray
         R, t = R_new, t_new
         r, J, P = evaluate(R, t, True)
         new_cost = float(r @ r)
-        done = cost - new_cost < 1e-10 * max(cost, 1e-12) or float(np.abs(step).max()) < 1e-10
+        # Converged when a step gains less than a millionth of the cost (far below noise).
+        done = cost - new_cost < 1e-6 * max(cost, 1e-12) or float(np.abs(step).max()) < 1e-9
         cost = new_cost
         lam = max(lam / 10.0, 1e-9)
         if done:
