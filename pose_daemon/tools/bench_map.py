@@ -9,8 +9,9 @@
   frames where it did not.
 - A descent from 10 m to 0.2 m over the nested pad: frames with a pose and the landing-point
   error (the pad centre in the camera frame) relative to the height.
-- Per-frame cost (detect + solve, tracked, the same frame over and over) with 1, 4 and 9
-  markers in view, next to the single-marker FrameProcessor on the same 1-marker frame.
+- Per-frame cost (detect + solve, tracked, the same frame over and over, the fastest of 3 runs
+  per frame) with 1, 4 and 9 markers in view, next to the single-marker FrameProcessor on the
+  same 1-marker frame.
 """
 
 from __future__ import annotations
@@ -36,6 +37,8 @@ CAMERA = Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
 FPS = 30.0
 #: Pi 2 estimate: the factor the README's other benchmarks use (x86-64 dev machine -> Pi 2).
 PI2_FACTOR = 20.0
+#: Timed runs per frame in the cost rows; the fastest is kept.
+BEST_OF = 3
 
 
 def _grid(n_side: int) -> MarkerMap:
@@ -161,15 +164,17 @@ def cost(repeat: int, seed: int, camera: Camera = CAMERA) -> List[Dict[str, Any]
         single = FrameProcessor(camera, m.single(m.ids[0])) if n_side == 1 else None
         t_map, t_det, t_single, used = [], [], [], 0
         for k in range(repeat + 5):
-            res = proc.process(Frame(image=image, t_capture_s=k / FPS, seq=k))
+            # Each frame processed BEST_OF times (the same tracked state), the fastest kept: a
+            # loaded machine's preemptions would otherwise be most of the figure.
+            runs = [proc.process(Frame(image=image, t_capture_s=k / FPS, seq=k)) for _ in range(BEST_OF)]
             if k >= 5:
-                t_map.append(sum(res.stage_s.values()))
-                t_det.append(res.stage_s.get("detect", 0.0))
-                used = len(res.pose.marker_ids) if res.ok else 0
+                t_map.append(min(sum(r.stage_s.values()) for r in runs))
+                t_det.append(min(r.stage_s.get("detect", 0.0) for r in runs))
+                used = len(runs[-1].pose.marker_ids) if runs[-1].ok else 0
             if single is not None:
-                r1 = single.process(Frame(image=image, t_capture_s=k / FPS, seq=k))
+                r1 = [single.process(Frame(image=image, t_capture_s=k / FPS, seq=k)) for _ in range(BEST_OF)]
                 if k >= 5:
-                    t_single.append(sum(r1.stage_s.values()))
+                    t_single.append(min(sum(r.stage_s.values()) for r in r1))
         rows.append({"markers_in_view": n_side * n_side, "markers_used": used,
                      "median_ms": 1e3 * float(np.median(t_map)), "detect_median_ms": 1e3 * float(np.median(t_det)),
                      "single_marker_processor_ms": 1e3 * float(np.median(t_single)) if t_single else None})
