@@ -6,10 +6,11 @@ EstimationError, Pose, MarkerDetector.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from .camera import Camera, Marker
-from .pose.types import EstimationError, Pose
+if TYPE_CHECKING:  # pragma: no cover
+    from .camera import Camera, Marker
+    from .pose.types import EstimationError, Pose
 
 __version__ = "0.1.0"
 
@@ -26,7 +27,16 @@ __all__ = [
 
 
 def __getattr__(name: str) -> Any:
-    # Imported on first use so that `pose-daemon --help` and tools stay light.
+    # Imported on first use so that `pose-daemon --help` and tools stay light, and so that
+    # `pose-daemon run` holds its stop signals before numpy and OpenCV load (startup.py).
+    if name in ("Camera", "Marker"):
+        from . import camera
+
+        return getattr(camera, name)
+    if name in ("EstimationError", "Pose"):
+        from .pose import types
+
+        return getattr(types, name)
     if name == "estimate_pose":
         from .pose.estimator import estimate_pose
 

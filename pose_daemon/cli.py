@@ -18,7 +18,7 @@ import importlib
 import sys
 from typing import List, Optional
 
-from . import __version__
+from . import __version__, startup
 from .errors import UserError
 
 # Order = order in --help.
@@ -56,21 +56,33 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if not getattr(args, "func", None):
-        parser.print_help(sys.stderr)
-        return 2
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # The daemon holds its stop signals before anything heavy loads (numpy, OpenCV: seconds on
+    # a Pi 2), so a SIGTERM/SIGINT/SIGHUP while it starts is a clean stop, not a traceback.
+    daemon = next((a for a in argv if not a.startswith("-")), None) == "run"
+    if daemon:
+        startup.hold()
     try:
-        return int(args.func(args) or 0)
-    except UserError as exc:
-        print(f"pose-daemon: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
-    except BrokenPipeError:
-        # Output piped into `head` and the like: not an error of ours.
-        return 0
+        try:
+            parser = build_parser()
+            args = parser.parse_args(argv)
+            if not getattr(args, "func", None):
+                parser.print_help(sys.stderr)
+                return 2
+            return int(args.func(args) or 0)
+        except UserError as exc:
+            print(f"pose-daemon: error: {exc}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            return 130
+        except BrokenPipeError:
+            # Output piped into `head` and the like: not an error of ours.
+            return 0
+    except startup.StartupStop as stop:
+        return startup.finish(stop)
+    finally:
+        if daemon:
+            startup.handed_over()
 
 
 if __name__ == "__main__":

@@ -24,4 +24,9 @@ class SourceError(PoseDaemonError):
 
 
 class EndOfStream(PoseDaemonError):
-    """A finite frame source (recording, video, folder) has no more frames."""
+    """A finite frame source (recording, video, folder) has no more frames. ``lost`` says
+    which frames it could not deliver on the way (a damaged video), "" when none."""
+
+    def __init__(self, message: str = "end of stream", *, lost: str = "") -> None:
+        super().__init__(message)
+        self.lost = lost

@@ -332,9 +332,13 @@ class Pipeline:
                         opened = True
                         self._set_source_state("ok")
                     frame = self.source.read()
-                except EndOfStream:
-                    self.end_reason = "end of stream"
-                    self._set_source_state("ended")
+                except EndOfStream as exc:
+                    # Frames the source could not deliver (a damaged video) are said, not hidden.
+                    lost = f" ({exc.lost})" if exc.lost else ""
+                    if lost:
+                        log.warning("source: %s", exc.lost)
+                    self.end_reason = "end of stream" + lost
+                    self._set_source_state("ended" + lost)
                     break
                 except (SourceError, OSError) as exc:
                     reason = " ".join(str(exc).split()) or type(exc).__name__

@@ -2,8 +2,9 @@
 
 systemd (Type=notify) hears READY=1 after the first frame, WATCHDOG=1 only while results
 really reach the outputs (a stalled camera gets the service restarted), STATUS= lines and
-STOPPING=1. SIGTERM/SIGINT stop cleanly (exit 0), SIGUSR1 logs a status line. The daemon's
-process-wide garbage-collection policy (IdleCollector) lives here too.
+STOPPING=1. SIGTERM/SIGINT/SIGHUP stop cleanly (exit 0), SIGUSR1 logs a status line; before
+the service installs its handlers, ``startup`` holds the stop signals (``pose-daemon run``).
+The daemon's process-wide garbage-collection policy (IdleCollector) lives here too.
 """
 
 from __future__ import annotations
@@ -13,17 +14,20 @@ import gc
 import logging
 import os
 import signal
-import socket
 import sys
 import threading
 import time
 from typing import Callable, Dict, List, Mapping, Optional
 
+from . import startup
 from .capture.base import FrameSource
 from .config import Config
 from .errors import PoseDaemonError, UserError
 from .outputs.base import Output, OutputFactory
 from .pipeline import Pipeline
+from .sdnotify import SdNotifier
+
+__all__ = ["SdNotifier", "Service", "run_daemon", "watchdog_interval_s"]
 
 log = logging.getLogger("pose_daemon.service")
 
@@ -33,44 +37,6 @@ GIL_SWITCH_INTERVAL_S = 0.001
 
 # Longest a clean stop may take (systemd and users expect SIGTERM -> exit within 2 s).
 STOP_TIMEOUT_S = 1.5
-
-
-class SdNotifier:
-    """sd_notify(3) over $NOTIFY_SOCKET with the socket module; silent when not under systemd."""
-
-    def __init__(self, address: Optional[str] = None) -> None:
-        if address is None:
-            address = os.environ.get("NOTIFY_SOCKET")
-        self.address: Optional[str] = None
-        if address:
-            # "@name" is a socket in the abstract namespace.
-            self.address = "\0" + address[1:] if address.startswith("@") else address
-        self._sock: Optional[socket.socket] = None
-        self.failed = False
-
-    @property
-    def enabled(self) -> bool:
-        return self.address is not None
-
-    def notify(self, *lines: str) -> bool:
-        """Send "KEY=value" lines as one datagram; False (never an exception) when it failed."""
-        if self.address is None or not lines:
-            return False
-        try:
-            if self._sock is None:
-                self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
-            self._sock.sendto("\n".join(lines).encode("utf-8", "replace"), self.address)
-            return True
-        except OSError as exc:
-            if not self.failed:
-                log.warning("sd_notify to %r failed: %s", self.address, exc)
-            self.failed = True
-            return False
-
-    def close(self) -> None:
-        if self._sock is not None:
-            self._sock.close()
-            self._sock = None
 
 
 def watchdog_interval_s(env: Optional[Mapping[str, str]] = None) -> Optional[float]:
@@ -193,7 +159,10 @@ class Service:
         self._status_requested.set()
 
     def install_signal_handlers(self) -> Dict[int, object]:
-        """SIGTERM/SIGINT -> clean stop, SIGUSR1 -> status line; returns the previous handlers."""
+        """SIGTERM/SIGINT/SIGHUP -> clean stop, SIGUSR1 -> status line; returns the previous handlers.
+
+        SIGHUP (a terminal that hung up, or ``kill -HUP``) stops like SIGTERM: re-reading the
+        config is ``systemctl restart``, whose ExecStartPre checks the new one first."""
         previous: Dict[int, object] = {}
 
         def on_stop(signum, _frame):
@@ -203,7 +172,7 @@ class Service:
             self.request_status()
 
         for signum, handler in ((signal.SIGTERM, on_stop), (signal.SIGINT, on_stop),
-                                (signal.SIGUSR1, on_status)):
+                                (signal.SIGHUP, on_stop), (signal.SIGUSR1, on_status)):
             previous[signum] = signal.signal(signum, handler)
         return previous
 
@@ -280,7 +249,7 @@ class Service:
 
 
 def run_daemon(cfg: Config) -> int:
-    """``pose-daemon run``: the service in the main thread until SIGTERM/SIGINT; exit status."""
+    """``pose-daemon run``: the service in the main thread until SIGTERM/SIGINT/SIGHUP; exit status."""
     setup_logging(cfg.logging.level)
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     try:
@@ -292,6 +261,7 @@ def run_daemon(cfg: Config) -> int:
         log.error("cannot start: %s", " ".join(str(exc).split()) or type(exc).__name__)
         return 1
     previous = service.install_signal_handlers()
+    startup.handed_over()
     try:
         return service.run()
     finally:

@@ -4,7 +4,8 @@
 # - apt: python3-picamera2, python3-opencv, python3-numpy, python3-serial (+ venv, pip, lxml)
 # - a venv with --system-site-packages (apt's OpenCV, numpy and picamera2 are used as they are;
 #   pip cannot see apt's OpenCV as opencv-python-headless, hence pip install --no-deps)
-# - the system user pose-daemon (groups video, dialout), config in /etc/pose-daemon/,
+# - the system user pose-daemon (groups video, dialout), config in /etc/pose-daemon/ (0640
+#   root:pose-daemon: it may hold the signing key),
 #   the unit in /etc/systemd/system/, enabled and (re)started
 # - the serial console freed so the flight controller link can use /dev/serial0
 # Idempotent: run it again after a `git pull` to update. --dry-run prints what it would do.
@@ -98,12 +99,17 @@ run "$venv/bin/python" -m pip install --disable-pip-version-check --no-deps --up
 run "$venv/bin/pose-daemon" --version
 
 # --- 4. the configuration
-say "== configuration $etc/pose-daemon.toml"
-run install -d -m 0755 "$etc"
+# The config may hold secrets (a MAVLink signing_key): readable by root and the service's
+# group only, in a folder others cannot list.
+say "== configuration $etc/pose-daemon.toml (0640 root:$user, folder 0750)"
+run install -d -m 0750 -o root -g "$user" "$etc"
 if [ -e "$etc/pose-daemon.toml" ]; then
   say "keeping the existing $etc/pose-daemon.toml (the new default is $repo/config/pose-daemon.toml)"
+  # An older install left it 0644: close it, keeping the user's edits.
+  run chown root:"$user" "$etc/pose-daemon.toml"
+  run chmod 0640 "$etc/pose-daemon.toml"
 else
-  run install -m 0644 "$repo/config/pose-daemon.toml" "$etc/pose-daemon.toml"
+  run install -m 0640 -o root -g "$user" "$repo/config/pose-daemon.toml" "$etc/pose-daemon.toml"
 fi
 
 # --- 5. the serial console off, the UART on

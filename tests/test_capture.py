@@ -515,3 +515,101 @@ def test_a_float_image_in_a_replay_folder_is_skipped_by_name(tmp_path: Path) -> 
         source.read()
     assert [(Path(f).name, why) for f, why in source.skipped] == [
         ("001.tiff", "image must be uint8 (or uint16) grey levels, got dtype float32")]
+
+
+def _recording(path: Path, times_s):
+    from pose_daemon.capture.base import Frame
+    from pose_daemon.capture.recording import RecordingWriter
+
+    with RecordingWriter(path, Camera(fx=500.0, fy=500.0, cx=159.5, cy=119.5, width=320, height=240)) as w:
+        for i, (img, t) in enumerate(zip(_frames(len(times_s)), times_s)):
+            w.write(Frame(image=cv2.resize(img, (320, 240)), t_capture_s=t, seq=i))
+    return path
+
+
+def test_replay_cuts_an_absurd_step_of_the_index_and_says_so(tmp_path: Path, caplog) -> None:
+    from pose_daemon.capture.replay import MAX_GAP_S
+
+    # An index that jumps 1e6 s forward (11 days of sleep) and, later, 50.3 s backwards.
+    times = [10.0, 10.1, 1e6 + 10.2, 1e6 + 10.3, 1e6 - 40.0, 1e6 - 39.9]
+    rec = _recording(tmp_path / "rec", times)
+    clock = FakeClock(50.0)
+    source = ReplaySource(rec, realtime=True, clock=clock, sleep=clock.sleep)
+    source.open()
+    with caplog.at_level("WARNING"):
+        frames = [source.read() for _ in times]
+    period = 1.0 / source.fps
+    assert clock.sleeps == pytest.approx([0.1, period, 0.1, period, 0.1])
+    assert max(clock.sleeps) <= MAX_GAP_S
+    # On this run's clock the frames keep their recorded spacing around the cut steps.
+    assert [f.t_capture_s for f in frames] == pytest.approx(
+        [50.0, 50.1, 50.1 + period, 50.2 + period, 50.2 + 2 * period, 50.3 + 2 * period])
+    assert [f.metadata["t_recorded_s"] for f in frames] == pytest.approx(times)
+    assert source.gaps_cut == 2
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 2
+    assert "frame 2 is recorded 1e+06 s after the previous one" in warnings[0]
+    assert "frame 4 is recorded -50.3 s after the previous one" in warnings[1]
+
+
+@pytest.mark.parametrize("file", ["../outside.png", "frames/../../outside.png", "/tmp/outside.png"])
+def test_index_entry_outside_the_recording_folder_is_refused(tmp_path: Path, file: str) -> None:
+    from pose_daemon.capture.recording import INDEX_FILE, read_index
+
+    rec = _recording(tmp_path / "rec", [0.0, 0.1, 0.2])
+    cv2.imwrite(str(tmp_path / "outside.png"), _frames(1)[0])
+    index = rec / INDEX_FILE
+    lines = index.read_text().splitlines(keepends=True)
+    lines[1] = lines[1].replace('"frames/000001.png"', f'"{file}"')
+    index.write_text("".join(lines))
+    with pytest.raises(SourceError) as err:
+        read_index(rec)
+    assert str(err.value) == (f'{index}:2: frame file "{file}" lies outside the recording folder '
+                              "(absolute, or with ..)")
+    with pytest.raises(SourceError, match="lies outside"):
+        ReplaySource(rec).open()
+
+
+def _damaged_video(path: Path, n: int = 90) -> Path:
+    # MPEG-4 part 2 in MP4, 20% of the bytes in the middle overwritten: the decoder stops there.
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (320, 240), False)
+    assert writer.isOpened()
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        img = np.full((240, 320), 200, np.uint8)
+        cv2.rectangle(img, (60 + i, 60), (160 + i, 160), 30, -1)
+        writer.write((img + rng.integers(0, 5, img.shape)).astype(np.uint8))
+    writer.release()
+    data = bytearray(path.read_bytes())
+    a, b = int(len(data) * 0.4), int(len(data) * 0.6)
+    data[a:b] = rng.integers(0, 256, b - a, dtype=np.uint8).tobytes()
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_damaged_video_counts_and_reports_the_lost_frames(tmp_path: Path) -> None:
+    path = _damaged_video(tmp_path / "damaged.mp4")
+    source = OpenCVSource(str(path), "video")
+    source.open()
+    got = []
+    with pytest.raises(EndOfStream) as end:
+        while True:
+            got.append(source.read())
+    source.close()
+    assert source.frame_count == 90 and 0 < len(got) < 90
+    assert source.lost == 90 - len(got)
+    assert end.value.lost == f"{source.lost} of 90 frames of {path} could not be decoded: a damaged video"
+    # The frames that came keep their places on the video's time line.
+    assert [f.t_capture_s for f in got] == pytest.approx([f.seq / 30.0 for f in got])
+    # An undamaged video loses nothing and says nothing.
+    clean = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(clean), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (320, 240), False)
+    for img in _frames(5):
+        writer.write(cv2.resize(img, (320, 240)))
+    writer.release()
+    source = OpenCVSource(str(clean), "video")
+    source.open()
+    assert [source.read().seq for _ in range(5)] == [0, 1, 2, 3, 4]
+    with pytest.raises(EndOfStream) as end:
+        source.read()
+    assert end.value.lost == "" and source.lost == 0

@@ -44,6 +44,9 @@ def test_unit_is_notify_with_watchdog_restart_and_unprivileged_user():
         assert u[("Service", key)] == ["yes"], key
     assert u[("Service", "ProtectSystem")] == ["strict"]
     assert u[("Service", "DevicePolicy")] == ["closed"]
+    # The config folder (with the signing key's file in it) is not world-listable.
+    assert u[("Service", "ConfigurationDirectory")] == ["pose-daemon"]
+    assert u[("Service", "ConfigurationDirectoryMode")] == ["0750"]
     allowed = u[("Service", "DeviceAllow")]
     assert "char-video4linux rw" in allowed and "char-ttyAMA rw" in allowed and "char-ttyUSB rw" in allowed
     assert "AF_PACKET" not in u[("Service", "RestrictAddressFamilies")][0]
@@ -95,7 +98,8 @@ def test_install_dry_run_lists_every_step_and_changes_nothing(tmp_path):
     assert pips[0].endswith(" pymavlink") and pips[1].endswith(f" {ROOT}")
     assert any(c.startswith("useradd --system --user-group") and c.endswith(" pose-daemon") for c in cmds)
     assert "usermod -a -G video\\,dialout pose-daemon" in cmds
-    assert f"install -m 0644 {ROOT}/config/pose-daemon.toml {tmp_path}/etc/pose-daemon/pose-daemon.toml" in cmds
+    assert (f"install -m 0640 -o root -g pose-daemon {ROOT}/config/pose-daemon.toml "
+            f"{tmp_path}/etc/pose-daemon/pose-daemon.toml") in cmds
     assert (f"install -m 0644 {ROOT}/systemd/pose-daemon.service "
             f"{tmp_path}/etc/systemd/system/pose-daemon.service") in cmds
     assert cmds[-3:] == ["systemctl daemon-reload", "systemctl enable pose-daemon.service",
@@ -126,6 +130,50 @@ def test_install_frees_the_serial_console_and_is_idempotent(tmp_path):
     assert f"no serial console in {cmdline}" in again and "UART already enabled" in again
     assert not [c for c in _commands(_dry_run("--root", str(tmp_path), "--no-serial"))
                 if c.startswith("sed")]
+
+
+def _service_group() -> None:
+    """The installer's group pose-daemon, as useradd --user-group makes it (kept afterwards:
+    removing it could pull it from under a test running beside this one)."""
+    subprocess.run(["groupadd", "-f", "--system", "pose-daemon"], check=True, capture_output=True)
+
+
+@pytest.mark.skipif(os.geteuid() != 0 or shutil.which("groupadd") is None,
+                    reason="sets file owners: needs root (CI has it) and groupadd")
+def test_installed_config_is_readable_by_the_service_group_only(tmp_path):
+    # The config may hold the MAVLink signing key: 0640 root:pose-daemon in a 0750 folder.
+    import grp
+    import stat
+
+    _service_group()
+    gid = grp.getgrnam("pose-daemon").gr_gid
+    etc = tmp_path / "etc" / "pose-daemon"
+    config = etc / "pose-daemon.toml"
+
+    def install_config_as_printed() -> str:
+        out = _dry_run("--root", str(tmp_path), "--no-serial", "--no-start")
+        cmds = [c for c in _commands(out) if str(etc) in c]
+        assert cmds, out
+        for c in cmds:  # the printed commands are exact: run them as printed
+            subprocess.run(["bash", "-c", c], check=True)
+        return out
+
+    install_config_as_printed()
+    for path, mode in ((etc, 0o750), (config, 0o640)):
+        st = path.stat()
+        assert (stat.S_IMODE(st.st_mode), st.st_uid, st.st_gid) == (mode, 0, gid), path
+    assert config.read_text() == (ROOT / "config" / "pose-daemon.toml").read_text()
+    # An older install left both world-readable: running the installer again closes them
+    # and keeps the user's edits.
+    config.write_text("# edited by the user\n")
+    os.chmod(config, 0o644)
+    os.chown(config, 0, 0)
+    os.chmod(etc, 0o755)
+    assert "keeping the existing" in install_config_as_printed()
+    for path, mode in ((etc, 0o750), (config, 0o640)):
+        st = path.stat()
+        assert (stat.S_IMODE(st.st_mode), st.st_uid, st.st_gid) == (mode, 0, gid), path
+    assert config.read_text() == "# edited by the user\n"
 
 
 def test_install_needs_root_or_dry_run():

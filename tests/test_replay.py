@@ -135,3 +135,53 @@ def test_replay_says_when_the_recording_overrides_the_config(recording: Path, tm
     same.write_text("[camera]\nfx = 500.0\n")   # what the recording holds: nothing to say
     assert main(["replay", str(recording), "--config", str(same), "--out", str(tmp_path / "b.jsonl")]) == 0
     assert "note:" not in capsys.readouterr().err
+
+
+def _cli(*args: str):
+    import os
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "pose_daemon", *args], capture_output=True, text=True,
+                          timeout=120, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+
+
+def test_unplayable_video_is_one_line_without_ffmpegs_own(tmp_path: Path) -> None:
+    # FFmpeg writes "[mov,mp4,m4a,3gp,3g2,mj2 @ 0x...] moov atom not found" to fd 2 itself.
+    junk = tmp_path / "junk.mp4"
+    junk.write_bytes(np.random.default_rng(0).integers(0, 256, 20000, dtype=np.uint8).tobytes())
+    res = _cli("replay", str(junk))
+    assert res.returncode == 2
+    assert res.stderr == f"pose-daemon: error: cannot open video {junk}\n"
+
+
+def test_replay_of_a_damaged_video_says_how_many_frames_were_lost(tmp_path: Path) -> None:
+    from test_capture import _damaged_video
+
+    path = _damaged_video(tmp_path / "damaged.mp4")
+    res = _cli("replay", str(path), "--out", str(tmp_path / "poses.jsonl"))
+    rows = (tmp_path / "poses.jsonl").read_text().splitlines()
+    assert res.returncode == 0 and 0 < len(rows) < 90
+    # One line saying what was lost, and none of FFmpeg's per-packet complaints.
+    assert res.stderr == (f"pose-daemon: {90 - len(rows)} of 90 frames of {path} could not be "
+                          "decoded: a damaged video\n")
+
+
+def test_replay_refuses_an_index_entry_outside_the_recording(recording: Path, tmp_path: Path) -> None:
+    import shutil
+
+    from pose_daemon.capture.recording import INDEX_FILE
+
+    rec = tmp_path / "rec"
+    shutil.copytree(recording, rec)
+    (tmp_path / "secret.png").write_bytes((recording / "frames" / "000000.png").read_bytes())
+    index = rec / INDEX_FILE
+    lines = index.read_text().splitlines(keepends=True)
+    lines[2] = lines[2].replace('"frames/000002.png"', '"../secret.png"')
+    index.write_text("".join(lines))
+    ann = tmp_path / "ann"
+    res = _cli("replay", str(rec), "--annotate", str(ann))
+    assert res.returncode == 2 and res.stdout == ""
+    assert res.stderr == (f'pose-daemon: error: {index}:3: frame file "../secret.png" lies outside the '
+                          "recording folder (absolute, or with ..)\n")
+    assert not ann.exists() or list(ann.iterdir()) == []

@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from pathlib import Path
+from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any, Dict, List, Optional, Union
 
 import cv2
@@ -124,8 +124,17 @@ def marker_from_meta(meta: Dict[str, Any]) -> Optional[Marker]:
         raise SourceError(f"recording marker is invalid: {exc}") from exc
 
 
+def _outside(file: str) -> bool:
+    """True for an index entry's file that is not inside the recording folder: an absolute path
+    or one climbing out with "..". A recording's frames are its own files; an index must not
+    make replay read (and ``--annotate`` copy out) any other file."""
+    p = PurePosixPath(file.replace("\\", "/"))
+    return p.is_absolute() or PureWindowsPath(file).drive != "" or ".." in p.parts
+
+
 def read_index(path: Union[str, Path]) -> List[Dict[str, Any]]:
-    """The index entries; a line that cannot be parsed is a SourceError naming its number.
+    """The index entries; a line that cannot be parsed is a SourceError naming its number, as is
+    one whose file lies outside the recording folder.
 
     The exception is an unfinished last line (no line end): a recording cut off by a power
     loss ends that way, and the frames before it are still good, so that line is skipped."""
@@ -142,6 +151,9 @@ def read_index(path: Union[str, Path]) -> List[Dict[str, Any]]:
         try:
             entry = json.loads(line)
             entry["file"] = str(entry["file"])
+            if _outside(entry["file"]):
+                raise SourceError(f"{index_path}:{n}: frame file {json.dumps(entry['file'])} lies outside "
+                                  "the recording folder (absolute, or with ..)")
             entry["t_capture_s"] = float(entry["t_capture_s"])
             entry["seq"] = int(entry.get("seq", len(entries)))
         except (ValueError, KeyError, TypeError) as exc:

@@ -13,12 +13,19 @@ import numpy as np
 from ..errors import EndOfStream, SourceError
 from . import recording
 from .base import Frame, as_gray
-from .opencv import OpenCVSource
+from .opencv import OpenCVSource, quiet_opencv
 
 log = logging.getLogger(__name__)
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".h264", ".mjpeg", ".mjpg")
+
+# Paced replay sleeps until each frame's recorded time; a recorded step longer than this (or
+# backwards) is not a pause of the camera worth replaying but a broken or edited index (a jump
+# of 1e6 s would sleep for 11 days with the status saying "source ok"): the frame comes one
+# frame period after the previous one instead, and a warning says so. 5 s is the longest
+# pause the daemon itself leaves between reopening a failed camera.
+MAX_GAP_S = 5.0
 
 
 def replay_kind(path: Union[str, Path]) -> str:
@@ -44,7 +51,9 @@ class ReplaySource:
     ``realtime``: frames are delivered at their recorded spacing, and ``t_capture_s`` is
     moved onto this run's monotonic clock (the recorded time stays in metadata
     ``t_recorded_s``); otherwise as fast as they are read, with the recorded times.
-    Folders and videos have no recorded times: frame i is at i / ``fps``.
+    Folders and videos have no recorded times: frame i is at i / ``fps``. A step between
+    recorded times over ``MAX_GAP_S`` or backwards is replayed as one frame period, with a
+    warning, and counted in ``gaps_cut``.
     A frame that cannot be read is logged, listed in ``skipped`` and passed over.
     """
 
@@ -62,7 +71,9 @@ class ReplaySource:
         self._video: Optional[OpenCVSource] = None
         self._pos = 0
         self._t_first: Optional[float] = None
+        self._t_last: Optional[float] = None
         self._t0 = 0.0
+        self.gaps_cut = 0
 
     @property
     def has_truth(self) -> bool:
@@ -78,6 +89,8 @@ class ReplaySource:
         self.skipped = []
         self._pos = 0
         self._t_first = None
+        self._t_last = None
+        self.gaps_cut = 0
         if self.kind == "recording":
             self.meta = recording.read_meta(self.path)
             self._entries = recording.read_index(self.path)
@@ -101,7 +114,8 @@ class ReplaySource:
             entry = self._entries[self._pos]
             self._pos += 1
             file = self.path / entry["file"]
-            image = cv2.imread(str(file), cv2.IMREAD_UNCHANGED)
+            with quiet_opencv():  # our warning below says what went wrong
+                image = cv2.imread(str(file), cv2.IMREAD_UNCHANGED)
             if image is None or image.size == 0:
                 reason = "missing" if not file.exists() else "unreadable or corrupt image"
                 log.warning("skipping frame %d (%s): %s", entry["seq"], file, reason)
@@ -127,9 +141,19 @@ class ReplaySource:
             raise SourceError(f"replay {self.path}: read() before open()")
         frame = self._next_frame()
         if self.realtime:
+            t_rec = frame.t_capture_s
             if self._t_first is None:
-                self._t_first = frame.t_capture_s
-            t_run = self._t0 + (frame.t_capture_s - self._t_first)
+                self._t_first = t_rec
+            elif not 0.0 <= t_rec - self._t_last <= MAX_GAP_S:  # type: ignore[operator]
+                step_s = 1.0 / self.fps
+                log.warning("%s: frame %d is recorded %.6g s after the previous one; replayed "
+                            "%.3f s after it (steps over %.0f s or backwards are cut)", self.path,
+                            frame.seq, t_rec - self._t_last, step_s, MAX_GAP_S)  # type: ignore[operator]
+                # Move the time base so that the frames after it keep their recorded spacing.
+                self._t_first += (t_rec - self._t_last) - step_s  # type: ignore[operator]
+                self.gaps_cut += 1
+            self._t_last = t_rec
+            t_run = self._t0 + (t_rec - self._t_first)
             wait = t_run - self._clock()
             if wait > 0:
                 self._sleep(wait)

@@ -69,6 +69,9 @@ class JsonlOutput(QueuedOutput):
         except ValueError:  # a NaN or infinity: never written
             self._drop("not_finite")
             return 0
+        if self._stream is None:
+            # Started with fd 1 closed (`>&-`): Python then sets sys.stdout to None.
+            raise LinkClosed("stdout is closed")
         try:
             self._stream.write(line + "\n")
             self._stream.flush()

@@ -79,11 +79,13 @@ def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = No
         raise UserError(f"cannot write --out {out_path}: {exc.strerror or exc}") from None
     accuracy = Accuracy()
     count = 0
+    lost = ""
     try:
         while True:
             try:
                 frame = source.read()
-            except EndOfStream:
+            except EndOfStream as exc:
+                lost = exc.lost
                 break
             except SourceError as exc:  # a video that cannot decode on: the rest is lost
                 print(f"pose-daemon: {exc}; stopping", file=sys.stderr)
@@ -110,6 +112,8 @@ def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = No
     if source.skipped:
         print(f"pose-daemon: skipped {len(source.skipped)} unreadable frame(s): "
               + ", ".join(Path(f).name for f, _ in source.skipped[:10]), file=sys.stderr)
+    if lost:
+        print(f"pose-daemon: {lost}", file=sys.stderr)
     if accuracy.frames:
         print(accuracy.report(), file=sys.stderr)
     if count == 0:
