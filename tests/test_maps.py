@@ -300,6 +300,16 @@ def test_nested_pad_descent_from_10_m_to_0_2_m_has_a_pose_every_frame_and_no_jum
     assert max(steps) < 0.005
 
 
+def test_a_far_off_previous_pose_is_not_kept_when_the_view_changed_completely():
+    """10 m over the pad, then at once 0.2 m (a gap in the track): the last pose is a start only,
+    and a start that leaves the corners pixels away falls back to the markers' own poses."""
+    pad = landing_pad(outer_m=0.6)
+    poses = [map_pose_looking_down(0.0, 0.0, 10.0, 0.4), map_pose_looking_down(0.0, 0.0, 0.2, 1.4)]
+    results = _fly(pad, poses)
+    for (res, _rvec, tvec, _), h in zip(results, (10.0, 0.2)):
+        assert res.ok and float(np.linalg.norm(res.pose.tvec - tvec)) < 0.01 * h
+
+
 # --------------------------------------------------------------------------- daemon and outputs
 
 

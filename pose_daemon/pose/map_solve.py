@@ -268,7 +268,9 @@ def solve_map_pose(observed: Dict[int, np.ndarray], camera: Camera, marker_map: 
         R0, t0 = np.asarray(previous[0], dtype=np.float64), np.asarray(previous[1], dtype=np.float64)
         if np.all((obj_all @ R0.T + t0)[:, 2] > 1e-6):
             sol = solve_from(R0, t0)
-            if sol[4].all():
+            # Every marker kept and each one fitting in absolute terms: with one marker the
+            # relative outlier test cannot see a start that was far off (a jump in the track).
+            if sol[4].all() and float(sol[5].max()) <= outlier_px:
                 best = ((0, sol[2]), sol)
     if best is None:
         starts = _starts(camera, marker_map, obs, estimate, previous)
