@@ -28,6 +28,7 @@ COMMANDS = (
     "estimate",
     "record",
     "check_config",
+    "preflight",
     "calibrate",
     "marker",
     "plot",

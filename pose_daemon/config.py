@@ -25,8 +25,8 @@ from .camera import MARKER_TYPES, Camera, Marker
 from .capture.sources import SOURCE_FORMS, parse_source
 from .errors import ConfigError
 from .geometry import MARKER_PLACEMENTS, MOUNT_PRESETS
+from .outputs.mavlink import AUTOPILOTS, parse_connection
 from .outputs.mavlink import MESSAGES as MAVLINK_MESSAGES
-from .outputs.mavlink import parse_connection
 from .pose.loop import METHODS
 
 __all__ = [
@@ -44,6 +44,7 @@ __all__ = [
     "OutputConfig",
     "LoggingConfig",
     "MapConfig",
+    "PreviewConfig",
     "ConfigError",
     "DEFAULT_CONFIG_FILE",
     "check_whole",
@@ -323,6 +324,8 @@ class EstimatorConfig:
 class DetectorConfig:
     max_misses: int = _key(5, Rule("int", lo=0, hi=10_000), "frames a track survives without the marker")
     min_side_px: float = _key(10.0, Rule("float", lo=1, hi=10_000), "shortest accepted marker side, pixels")
+    gamma: float = _key(1.0, Rule("float", lo=0.2, hi=5), "camera response exponent: edges located in linear light "
+                        "(1.0 linear, about 2.2 for sRGB/Rec. 709 cameras)")
 
 
 @dataclass(frozen=True)
@@ -384,7 +387,9 @@ class MavlinkOutputConfig:
     origin: Optional[Tuple[float, ...]] = _key(None, Rule("floats", lengths=(3,)),
                                                "latitude deg, longitude deg, altitude m: SET_GPS_GLOBAL_ORIGIN "
                                                "sent to the autopilot (flying without GPS)")
-    set_home: bool = _key(False, Rule("bool"), "also SET_HOME_POSITION at the origin")
+    set_home: bool = _key(False, Rule("bool"), "also MAV_CMD_DO_SET_HOME at the origin once it holds")
+    autopilot: str = _key("auto", Rule("str", choices=AUTOPILOTS),
+                          "auto (from its HEARTBEAT), ardupilot or px4: the messages' frames it takes")
     signing_key: Optional[str] = _key(None, Rule("str", nonempty=True),
                                       "MAVLink 2 signing: 64 hex digits, or a passphrase (SHA-256, as MAVProxy)")
     retry_s: float = _key(0.5, Rule("float", lo=0.01, hi=60), "first pause before reopening a failed link")
@@ -455,6 +460,34 @@ class MapConfig:
         return MarkerMap(str(self.dictionary), tuple(self.markers), self.placement)
 
 
+@dataclass(frozen=True)
+class PreviewConfig:
+    """The live preview web page (pose_daemon.preview); None unless the table is present."""
+
+    listen: str = _key("127.0.0.1:8080", Rule("str", nonempty=True),
+                       'HOST:PORT the page is served on (port 0 = any free port); another host than '
+                       '127.0.0.1 opens it to the network')
+    max_fps: float = _key(5.0, Rule("float", lo=0, hi=30, lo_open=True), "most annotated frames per second a viewer gets")
+    max_width: int = _key(640, Rule("int", lo=64, hi=4096), "annotated frames wider than this are scaled down, pixels")
+    data_dir: str = _key(".", Rule("str", nonempty=True),
+                         "folder for the page's snapshots and recordings (relative: to the working "
+                         "directory, /var/lib/pose-daemon under systemd)")
+
+    def check(self) -> None:
+        host, port = self.address
+        if not host or port is None:
+            raise _Invalid("listen", '"HOST:PORT" with a port in [0, 65535], e.g. "127.0.0.1:8080"', self.listen)
+
+    @property
+    def address(self) -> Tuple[str, Optional[int]]:
+        """(host, port) of ``listen`` ("[::1]:8080" -> ("::1", 8080)); port None if unusable."""
+        host, _, port = self.listen.strip().rpartition(":")
+        host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+        if not port.isdigit() or not 0 <= int(port) <= 65535:
+            return host, None
+        return host, int(port)
+
+
 SECTIONS: Dict[str, type] = {
     "camera": CameraConfig,
     "marker": MarkerConfig,
@@ -464,6 +497,10 @@ SECTIONS: Dict[str, type] = {
     "pipeline": PipelineConfig,
     "mount": MountConfig,
     "logging": LoggingConfig,
+}
+# Sections that are None unless present (enabled by their table, like the outputs).
+OPTIONAL_SECTIONS: Dict[str, type] = {
+    "preview": PreviewConfig,
 }
 OUTPUTS: Dict[str, type] = {
     "mavlink": MavlinkOutputConfig,
@@ -486,6 +523,7 @@ class Config:
     output: OutputConfig = field(default_factory=OutputConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
     map: Optional[MapConfig] = None
+    preview: Optional[PreviewConfig] = None
     name: str = "<default config>"
 
     @property
@@ -513,6 +551,9 @@ class Config:
             if name == "marker" and self.map is not None:
                 continue  # exclusive with [map]
             out[name] = _plain(asdict(getattr(self, name)))
+        for name in OPTIONAL_SECTIONS:
+            if getattr(self, name) is not None:
+                out[name] = _plain(asdict(getattr(self, name)))
         outputs = {k: _plain(asdict(v)) for k, v in asdict_shallow(self.output).items() if v is not None}
         out["output"] = outputs
         if self.map is not None:
@@ -606,8 +647,10 @@ def config_from_dict(data: Dict[str, Any], name: str = "<config>") -> Config:
         if "marker" in data:
             raise ConfigError(f"{name}: [map]: [map] and [marker] are exclusive (a map names its markers; "
                               "remove one of the two)")
+    known_sections = {**SECTIONS, **OPTIONAL_SECTIONS}
+    allowed = ", ".join(list(known_sections) + ["output"])
     for section, table in data.items():
-        if section not in SECTIONS and section != "output":
+        if section not in known_sections and section != "output":
             raise ConfigError(f"{name}: [{section}]: unknown section (expected one of {allowed})")
         if not isinstance(table, dict):
             raise ConfigError(f"{name}: {section}: expected a table [{section}], got {_show(table)}")
@@ -627,7 +670,7 @@ def config_from_dict(data: Dict[str, Any], name: str = "<config>") -> Config:
             continue
         where = f"[{section}]"
         try:
-            sections[section] = _build(SECTIONS[section], table, where)
+            sections[section] = _build(known_sections[section], table, where)
         except _Invalid as err:
             raise ConfigError(_message(name, where, err)) from None
     synthetic_table = data.get("synthetic", {})
@@ -801,6 +844,7 @@ def reference() -> List[Tuple[str, str, str, str, str]]:
     """(section, key, default, expectation, meaning) for every key: the README's config reference."""
     rows: List[Tuple[str, str, str, str, str]] = []
     tables: Sequence[Tuple[str, type]] = (list((f"[{k}]", v) for k, v in SECTIONS.items())
+                                          + list((f"[{k}]", v) for k, v in OPTIONAL_SECTIONS.items())
                                           + list((f"[output.{k}]", v) for k, v in OUTPUTS.items()))
     for where, cls in tables:
         for f in fields(cls):

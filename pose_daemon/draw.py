@@ -1,4 +1,5 @@
-"""Drawing helpers for annotated frames: detected corners, the marker's axes, the pose as text."""
+"""Drawing helpers for annotated frames: detected corners, the marker's axes, the pose as text,
+and for the live preview the rejected planar solution, the marker's id and why there is no pose."""
 
 from __future__ import annotations
 
@@ -13,6 +14,10 @@ from .geometry import R_from_rvec
 _SHIFT = 4          # sub-pixel drawing: coordinates in 1/16 px
 _ONE = 1 << _SHIFT
 CORNER_COLOURS = ((0, 0, 255), (0, 255, 0), (255, 0, 0), (0, 255, 255))   # TL TR BR BL (BGR)
+OUTLINE_COLOUR = (0, 255, 0)        # the detected quadrilateral (BGR)
+AXIS_COLOURS = ((0, 0, 255), (0, 255, 0), (255, 0, 0))                  # x red, y green, z blue
+REJECTED_COLOUR = (255, 0, 255)     # the other planar solution's axes: magenta
+WARNING_COLOUR = (0, 165, 255)      # warning text: orange
 
 
 def to_bgr(image: np.ndarray) -> np.ndarray:
@@ -42,9 +47,11 @@ def draw_corners(image: np.ndarray, corners_px: np.ndarray, colour=(0, 255, 0), 
     return image
 
 
-def draw_axes(image: np.ndarray, camera: Camera, rvec, tvec, length_m: float) -> np.ndarray:
+def draw_axes(image: np.ndarray, camera: Camera, rvec, tvec, length_m: float,
+              colours: Optional[Sequence[Tuple[int, int, int]]] = None, thickness: int = 2) -> np.ndarray:
     """The marker frame's axes at pose (rvec, tvec): x red, y green, z blue (out of the marker),
-    each ``length_m`` long, projected through the lens. Draws in place on a BGR image."""
+    each ``length_m`` long, projected through the lens (``colours``: one colour per axis
+    instead). Draws in place on a BGR image."""
     R = R_from_rvec(np.asarray(rvec, dtype=np.float64).reshape(3))
     t = np.asarray(tvec, dtype=np.float64).reshape(3)
     pts_marker = np.array([[0, 0, 0], [length_m, 0, 0], [0, length_m, 0], [0, 0, length_m]], np.float64)
@@ -52,8 +59,8 @@ def draw_axes(image: np.ndarray, camera: Camera, rvec, tvec, length_m: float) ->
     if np.any(pts_cam[:, 2] <= 1e-6):
         return image  # an axis would reach behind the camera: nothing sensible to draw
     px = camera.project(pts_cam)
-    for end, colour in zip(px[1:], ((0, 0, 255), (0, 255, 0), (255, 0, 0))):
-        cv2.line(image, _pt(px[0]), _pt(end), colour, 2, cv2.LINE_AA, shift=_SHIFT)
+    for end, colour in zip(px[1:], colours or AXIS_COLOURS):
+        cv2.line(image, _pt(px[0]), _pt(end), colour, thickness, cv2.LINE_AA, shift=_SHIFT)
     return image
 
 
@@ -95,3 +102,40 @@ def annotate(image: np.ndarray, result, camera: Camera, marker: Marker,
     if result.pose is not None:
         draw_axes(out, camera, result.pose.rvec, result.pose.tvec, 0.5 * min(marker.width, marker.height))
     return draw_text(out, pose_lines(result))
+
+
+def marker_label(marker: Marker) -> str:
+    """What the marker is: "ArUco DICT_4X4_50 id 7" or "square 0.20 x 0.20 m"."""
+    if marker.type == "aruco":
+        return f"ArUco {marker.dictionary} id {marker.id}"
+    return f"square {marker.width:.2f} x {marker.height:.2f} m"
+
+
+def annotate_live(image: np.ndarray, result, camera: Camera, marker: Marker, *,
+                  detector_step: Optional[str] = None, warnings: Sequence[str] = ()) -> np.ndarray:
+    """The live preview's frame: ``annotate`` plus the rejected planar solution's axes (thin,
+    magenta, with its ambiguity ratio), the marker's id at its centre, the detector step that
+    found it (follow / roi / full) and the warnings (orange) at the bottom."""
+    out = annotate(image, result, camera, marker)
+    length = 0.5 * min(marker.width, marker.height)
+    pose = result.pose
+    if pose is not None and pose.alternative is not None:
+        alt = pose.alternative
+        draw_axes(out, camera, alt.rvec, alt.tvec, length, colours=(REJECTED_COLOUR,) * 3, thickness=1)
+    if result.corners is not None:
+        c = np.asarray(result.corners, dtype=np.float64).reshape(4, 2)
+        centre = c.mean(axis=0)
+        text = marker_label(marker) if marker.type == "aruco" else "square"
+        if detector_step:
+            text += f" ({detector_step})"
+        cv2.putText(out, text, (int(centre[0]) + 6, int(centre[1]) + 14), cv2.FONT_HERSHEY_SIMPLEX,
+                    0.4, OUTLINE_COLOUR, 1, cv2.LINE_AA)
+    # Bottom-up: the warnings (orange), above them the rejected solution's note (magenta).
+    notes = [(text, WARNING_COLOUR) for text in list(warnings)[:3]]
+    if pose is not None and pose.alternative is not None:
+        notes.insert(0, (f"rejected solution (magenta): ambiguity {pose.ambiguity_ratio:.2f}", REJECTED_COLOUR))
+    y = out.shape[0] - 8 - 19 * (len(notes) - 1)
+    for text, colour in notes:
+        draw_text(out, [text], origin_px=(8, y), colour=colour)
+        y += 19
+    return out

@@ -213,14 +213,18 @@ class Pipeline:
     ``on_idle``: called once in each gap between frames (``IDLE_AFTER_S`` without a new frame
     after a processed one), in the processing thread: the daemon collects garbage there
     (service.IdleCollector), out of the frames' capture -> output time.
+    ``frame_observer(frame, result)``: called in the processing thread after every processed
+    frame (the live preview's handoff); it must take O(1) time and never raise.
     """
 
     def __init__(self, source: FrameSource, processor, outputs: OutputFactory, *,
                  latency_budget_s: float = 0.1, source_retry_s: float = 0.5, source_retry_max_s: float = 5.0,
                  clock: Callable[[], float] = time.monotonic,
                  on_written: Optional[WrittenHook] = None,
-                 on_idle: Optional[Callable[[], None]] = None) -> None:
+                 on_idle: Optional[Callable[[], None]] = None,
+                 frame_observer: Optional[Callable[[Frame, FrameResult], None]] = None) -> None:
         self.source = source
+        self.frame_observer = frame_observer
         self.processor = processor
         self.latency_budget_s = float(latency_budget_s)
         self.source_retry_s = float(source_retry_s)
@@ -295,9 +299,9 @@ class Pipeline:
             self._source_state = state
 
     def status_line(self, reset: bool = True) -> str:
-        return self.stats.status_line(self.source_state, [self._output_state(o) for o in self.outputs], reset)
+        return self.stats.status_line(self.source_state, [self.output_state(o) for o in self.outputs], reset)
 
-    def _output_state(self, output: Output) -> str:
+    def output_state(self, output: Output) -> str:
         """"name N sent (...)": results written, with the output's own ``status()`` text."""
         try:
             text = str(output.status())
@@ -409,6 +413,8 @@ class Pipeline:
                         stages[stage] = result.stage_s[stage]
                 result.stage_s.update({"capture": stages["capture"], "queue": stages["queue"]})
                 self.stats.processed_frame(result, stages)
+                if self.frame_observer is not None:
+                    self.frame_observer(frame, result)
                 if not self.first_frame.is_set():
                     self.first_frame.set()
                 # Handed over as is: each output drops it as late if its write would come after

@@ -57,7 +57,8 @@ class FrameProcessor:
         return cls(camera, marker, method=estimator.method, iterations=estimator.iterations,
                    refine=estimator.refine,
                    detector=MarkerDetector(marker, max_misses=detector.max_misses,
-                                           min_side_px=detector.min_side_px, camera=camera))
+                                           min_side_px=detector.min_side_px, camera=camera,
+                                           gamma=detector.gamma))
 
     @classmethod
     def from_config(cls, cfg) -> FrameProcessor:

@@ -11,6 +11,7 @@ ideal detector finds them.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -20,6 +21,7 @@ import cv2
 import numpy as np
 
 from .camera import Camera, Marker
+from .detect.response import Response, check_response, decode, encode, is_linear
 from .geometry import R_UNROT_MARKER, R_from_rvec, rot_z, rvec_from_R
 
 __all__ = [
@@ -62,6 +64,9 @@ class Effects:
     plain_gray: float = 128.0          # the "plain" background's grey level
     quiet_zone: float = 0.25           # white margin around the dark region (see above)
     supersample: int = 3               # samples per pixel along each axis (>= 1)
+    gamma: Response = 1.0              # camera response: 1.0 linear, a power law or "srgb"
+    sharpen: float = 0.0               # unsharp-mask amount on the encoded image (0 = none)
+    sharpen_px: float = 1.0            # its Gaussian sigma, pixels
 
     def __post_init__(self) -> None:
         for name in ("blur_px", "noise_gray", "motion_blur_px", "lighting_gradient", "quiet_zone"):
@@ -74,12 +79,18 @@ class Effects:
             raise ValueError(f"Effects.background must be 'texture' or 'plain', got {self.background!r}")
         if int(self.supersample) < 1:
             raise ValueError(f"Effects.supersample must be >= 1, got {self.supersample!r}")
+        self.gamma = check_response(self.gamma, "Effects.gamma")
+        for name, lowest in (("sharpen", 0.0), ("sharpen_px", 0.1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value)
+                                               and value >= lowest):
+                raise ValueError(f"Effects.{name} must be a number >= {lowest}, got {value!r}")
 
     @classmethod
     def clean(cls, **overrides) -> Effects:
         """No blur, noise, gradient or compression: the bare anti-aliased rendering."""
         base = dict(blur_px=0.0, noise_gray=0.0, motion_blur_px=0.0, jpeg_quality=0,
-                    lighting_gradient=0.0)
+                    lighting_gradient=0.0, gamma=1.0, sharpen=0.0)
         base.update(overrides)
         return cls(**base)
 
@@ -455,8 +466,33 @@ def make_background(rng: np.random.Generator, width: int, height: int, kind: str
     return (base - 20.0 + 120.0 * out * (0.6 + 0.4 * rng.random())).astype(np.float32)
 
 
+def _to_linear(img: np.ndarray, effects: Effects) -> np.ndarray:
+    """Grey levels as the camera would deliver them in focus -> the scene's linear light
+    (the same array when the camera's response is linear)."""
+    if is_linear(effects.gamma):
+        return img
+    return decode(img, effects.gamma).astype(np.float32)
+
+
+def _linear_effects(effects: Effects) -> Effects:
+    """``effects`` with the paper and ink levels in linear light (for the marker texture)."""
+    if is_linear(effects.gamma):
+        return effects
+    white, black = decode(np.array([effects.white, effects.black]), effects.gamma).tolist()
+    return dataclasses.replace(effects, white=white, black=black)
+
+
+def _sharpen(img: np.ndarray, amount: float, sigma_px: float) -> np.ndarray:
+    """A camera's unsharp mask: ``img + amount * (img - blurred)`` (halos on both sides of
+    an edge, clipped later at 0 and 255 like the camera's)."""
+    soft = cv2.GaussianBlur(img, (0, 0), float(sigma_px), borderType=cv2.BORDER_REFLECT)
+    return img + float(amount) * (img - soft)
+
+
 def _apply_effects(img: np.ndarray, effects: Effects, rng: np.random.Generator) -> np.ndarray:
-    """Scene radiance (float32 grey levels) -> the uint8 image the camera delivers."""
+    """Scene radiance (float32, linear light on the 0..255 scale) -> the uint8 image the
+    camera delivers: lighting, motion blur, defocus and sensor noise act on linear light;
+    then the camera's response (``gamma``), sharpening, 8-bit rounding and JPEG."""
     h, w = img.shape
     if effects.lighting_gradient:
         angle = rng.uniform(0.0, 2.0 * math.pi)
@@ -490,6 +526,10 @@ def _apply_effects(img: np.ndarray, effects: Effects, rng: np.random.Generator) 
         cv2.setRNGSeed(int(rng.integers(1, 2**31 - 1)))
         cv2.randn(noise, 0.0, float(effects.noise_gray))
         img = img + noise
+    if not is_linear(effects.gamma):
+        img = encode(img, effects.gamma).astype(np.float32)
+    if effects.sharpen > 0:
+        img = _sharpen(img, effects.sharpen, effects.sharpen_px)
     out = np.clip(img + 0.5, 0, 255).astype(np.uint8)
     if effects.jpeg_quality:
         ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(effects.jpeg_quality)])
@@ -513,7 +553,7 @@ def _background(camera: Camera, effects: Effects, rng: np.random.Generator,
 
 def _composite(camera: Camera, pyramid: _TexturePyramid, R: np.ndarray, t: np.ndarray,
                effects: Effects, rng: np.random.Generator, background: Optional[np.ndarray]) -> np.ndarray:
-    scene = _background(camera, effects, rng, background)
+    scene = _to_linear(_background(camera, effects, rng, background), effects)
     if background is not None and scene is background:
         scene = scene.copy()
     layer = _render_plane_layer(camera, pyramid, R, t, max(1, int(effects.supersample)))
@@ -550,7 +590,8 @@ def render_marker(camera: Camera, marker: Marker, rvec, tvec, *, effects: Effect
     """
     rng = _rng(rng)
     R, t = _pose_arrays(rvec, tvec)
-    image = _composite(camera, _marker_pyramid(marker, effects), R, t, effects, rng, background)
+    image = _composite(camera, _marker_pyramid(marker, _linear_effects(effects)), R, t, effects, rng,
+                       background)
     pts = marker.object_points @ R.T + t
     visible = bool(np.all(pts[:, 2] > 1e-6))
     corners = camera.project(pts)
@@ -570,7 +611,9 @@ def render_plane(camera: Camera, texture: np.ndarray, size_m: Sequence[float], r
     up like the marker frame (row 0 of the texture at +y), at pose (rvec, tvec)."""
     rng = _rng(rng)
     R, t = _pose_arrays(rvec, tvec)
-    tex = np.ascontiguousarray(texture)
+    # The texture's grey levels are as the camera gives them in focus: rendered in linear light.
+    tex = np.ascontiguousarray(_to_linear(np.asarray(texture, dtype=np.float32), effects)
+                               if not is_linear(effects.gamma) else texture)
     size = (float(size_m[0]), float(size_m[1]))
     # Keyed on the content: callers may reuse or mutate one array between calls.
     key = ("plane", tex.shape, str(tex.dtype), size, hash(tex.tobytes()))
@@ -588,7 +631,8 @@ def render_empty(camera: Camera, *, effects: Effects = _DEFAULT_EFFECTS,
                  background: Optional[np.ndarray] = None) -> np.ndarray:
     """A frame without any marker (false-positive tests)."""
     rng = _rng(rng)
-    return _apply_effects(_background(camera, effects, rng, background).copy(), effects, rng)
+    return _apply_effects(_to_linear(_background(camera, effects, rng, background), effects).copy(),
+                          effects, rng)
 
 
 def aruco_texture(marker: Marker, white: float = 220.0, black: float = 25.0) -> Tuple[np.ndarray, Tuple[float, float]]:

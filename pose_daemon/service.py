@@ -139,15 +139,33 @@ class Service:
 
             outputs = functools.partial(open_outputs, cfg)
         self.idle_collector = IdleCollector()
+        tap = None
+        if cfg.preview is not None:
+            from .preview import FrameTap
+
+            tap = FrameTap(processor)
         self.pipeline = Pipeline.from_config(cfg, source, processor, outputs, clock=clock,
-                                             on_idle=self.idle_collector.run)
+                                             on_idle=self.idle_collector.run, frame_observer=tap)
         self.outputs: List[Output] = self.pipeline.outputs
+        self.preview = self._open_preview(tap) if tap is not None else None
         self.notifier = notifier if notifier is not None else SdNotifier()
         self.watchdog_s = watchdog_interval_s(env)
         self._stop = threading.Event()
         self._status_requested = threading.Event()
         self.stop_reason: Optional[str] = None
         self.watchdog_pings = 0
+
+    def _open_preview(self, tap):
+        """The [preview] web server, or None (logged) when it cannot listen: the pose feed
+        matters more than the page, so a taken port does not stop the daemon."""
+        from .preview import PreviewError, PreviewServer
+
+        try:
+            return PreviewServer(self.cfg, self.pipeline, tap, clock=self.clock)
+        except PreviewError as exc:
+            log.error("%s; running without the preview", exc)
+            self.pipeline.frame_observer = None
+            return None
 
     # Signal handlers only set flags; the main loop acts on them.
     def request_stop(self, reason: str = "stop requested") -> None:
@@ -182,6 +200,8 @@ class Service:
         wd_s = self.watchdog_s
         ping_every_s = wd_s / 2.0 if wd_s else None
         self.pipeline.start()
+        if self.preview is not None:
+            self.preview.start()
         log.info("started: source %s, outputs %s, latency budget %.0f ms", self.cfg.camera.source,
                  ", ".join(o.name for o in self.outputs) or "none",
                  self.cfg.pipeline.latency_budget_s * 1e3)
@@ -219,6 +239,8 @@ class Service:
         finally:
             self.notifier.notify("STOPPING=1", f"STATUS=stopping: {self.stop_reason or 'stop'}")
             log.info("stopping: %s", self.stop_reason or "stop")
+            if self.preview is not None:
+                self.preview.stop()
             clean = self.pipeline.stop(STOP_TIMEOUT_S)
             if not clean:
                 log.warning("a thread did not end within %.1f s (a camera read stuck?)", STOP_TIMEOUT_S)

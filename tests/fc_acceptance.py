@@ -4,9 +4,12 @@ Written from shared/autopilot-rules.md (ArduPilot AP_VisualOdom / AP_NavEKF3, PX
 the MAVLink common.xml definitions), independently of pose_daemon's code: it looks only at
 decoded messages. Used by the tests on every message the MAVLink output sends, and on its own:
 
-    python tests/fc_acceptance.py CAPTURE      # a .tlog (MAVProxy) or raw MAVLink bytes
+    python tests/fc_acceptance.py [--autopilot ardupilot|px4] [--qual-min N] CAPTURE
+                                               # a .tlog (MAVProxy) or raw MAVLink bytes
 
-prints every violation and exits 1 if there is any.
+prints every violation and exits 1 if there is any. ``--qual-min``: the autopilot's
+VISO_QUAL_MIN (ArduPilot) or EKF2_EV_QMIN (PX4): a pose below it is dropped there, and
+VISION_POSITION_ESTIMATE (no quality field: taken as 0) is dropped whenever it is above 0.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from dataclasses import dataclass, field
 from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple
 
 # common.xml values, spelled out rather than imported from the code under test.
+MAV_FRAME_LOCAL_NED = 1
 MAV_FRAME_BODY_FRD = 12
 MAV_FRAME_LOCAL_FRD = 20
 MAV_ESTIMATOR_TYPE_VISION = 2
@@ -66,13 +70,24 @@ def _time_us(msg: Any) -> int:
     return int(msg.usec if msg.get_type() == "VISION_POSITION_ESTIMATE" else msg.time_usec)
 
 
+AUTOPILOTS = ("ardupilot", "px4")
+# Where each takes a LANDING_TARGET's position (position_valid = 1): ArduPilot's
+# AC_PrecLand_Companion only in BODY_FRD, PX4's mavlink_receiver only in LOCAL_NED.
+LANDING_TARGET_FRAME = {"ardupilot": MAV_FRAME_BODY_FRD, "px4": MAV_FRAME_LOCAL_NED}
+
+
 def check(received: Sequence[Any], *, component: int = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY,
-          jump_m: float = 0.5, require_heartbeat: bool = True) -> Report:
+          jump_m: float = 0.5, require_heartbeat: bool = True, autopilot: str = "ardupilot",
+          qual_min: int = 0) -> Report:
     """Every rule, over the messages one sender sent, in arrival order.
 
     ``received``: pymavlink messages or ``Received``. ``jump_m``: a position step larger than
-    this between two messages of a type must come with a new reset_counter.
+    this between two messages of a type must come with a new reset_counter. ``autopilot``:
+    whose LANDING_TARGET rules apply. ``qual_min``: VISO_QUAL_MIN / EKF2_EV_QMIN.
     """
+    if autopilot not in AUTOPILOTS:
+        raise ValueError(f"autopilot must be one of {AUTOPILOTS}, got {autopilot!r}")
+    lt_frame = LANDING_TARGET_FRAME[autopilot]
     items = [r if isinstance(r, Received) else Received(r) for r in received]
     rep = Report()
     v = rep.violations
@@ -96,6 +111,8 @@ def check(received: Sequence[Any], *, component: int = MAV_COMP_ID_VISUAL_INERTI
                          f"ONBOARD_CONTROLLER (18) and INVALID (8)")
             heartbeats.append(item.t_arrival_s)
             continue
+        if kind == "TIMESYNC" and m.tc1 < 0:
+            v.append(f"#{i} TIMESYNC: tc1 {m.tc1} (an answer's tc1 is the sender's time in ns)")
         if kind not in POSE_TYPES:
             continue
         t_us = _time_us(m)
@@ -111,6 +128,8 @@ def check(received: Sequence[Any], *, component: int = MAV_COMP_ID_VISUAL_INERTI
                 v.append(f"#{i} ODOMETRY: estimator_type {m.estimator_type} is dropped by PX4")
             if not 1 <= m.quality <= 100:
                 v.append(f"#{i} ODOMETRY: quality {m.quality} with a pose (expected 1..100; -1 means failed)")
+            elif m.quality < qual_min:
+                v.append(f"#{i} ODOMETRY: quality {m.quality} below the autopilot's minimum {qual_min}: dropped")
             if not _finite([m.x, m.y, m.z, *m.q]):
                 v.append(f"#{i} ODOMETRY: NaN or inf in position or attitude")
             if _finite(m.q) and abs(math.sqrt(sum(c * c for c in m.q)) - 1.0) > 1e-3:
@@ -120,6 +139,9 @@ def check(received: Sequence[Any], *, component: int = MAV_COMP_ID_VISUAL_INERTI
             elif any(m.pose_covariance[k] <= 0 for k in PX4_VARIANCE_INDICES):
                 v.append(f"#{i} ODOMETRY: a pose variance is not positive")
         elif kind == "VISION_POSITION_ESTIMATE":
+            if qual_min > 0:
+                v.append(f"#{i} VISION_POSITION_ESTIMATE: no quality field (taken as 0), dropped by a "
+                         f"minimum quality of {qual_min}")
             if not _finite([m.x, m.y, m.z, m.roll, m.pitch, m.yaw]):
                 v.append(f"#{i} VISION_POSITION_ESTIMATE: NaN or inf in the pose")
             if not _finite(m.covariance):
@@ -127,10 +149,11 @@ def check(received: Sequence[Any], *, component: int = MAV_COMP_ID_VISUAL_INERTI
             elif any(m.covariance[k] <= 0 for k in PX4_VARIANCE_INDICES):
                 v.append(f"#{i} VISION_POSITION_ESTIMATE: a variance is not positive")
         else:
-            if m.frame != MAV_FRAME_BODY_FRD:
-                v.append(f"#{i} LANDING_TARGET: frame {m.frame}, expected BODY_FRD (12) with position_valid")
-            if m.position_valid != 1:
-                v.append(f"#{i} LANDING_TARGET: position_valid {m.position_valid}, expected 1")
+            if m.position_valid == 1 and m.frame != lt_frame:
+                v.append(f"#{i} LANDING_TARGET: frame {m.frame} with position_valid; {autopilot} takes a "
+                         f"position only in frame {lt_frame}")
+            if m.position_valid not in (0, 1):
+                v.append(f"#{i} LANDING_TARGET: position_valid {m.position_valid}, expected 0 or 1")
             if not (math.isfinite(m.distance) and m.distance > 0):
                 v.append(f"#{i} LANDING_TARGET: distance {m.distance}, expected > 0")
             if not _finite([m.x, m.y, m.z, m.angle_x, m.angle_y, m.size_x, m.size_y, *m.q]):
@@ -200,17 +223,24 @@ def split_by_sender(received: Sequence[Received]) -> Dict[Tuple[int, int], List[
 
 
 def main(argv: Sequence[str]) -> int:
-    if len(argv) != 1:
-        print("usage: fc_acceptance.py CAPTURE(.tlog or raw bytes)", file=sys.stderr)
-        return 2
-    senders = split_by_sender(read_capture(argv[0]))
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="fc_acceptance.py", description=__doc__.splitlines()[0])
+    parser.add_argument("--autopilot", choices=AUTOPILOTS, default="ardupilot")
+    parser.add_argument("--qual-min", type=int, default=0, help="VISO_QUAL_MIN / EKF2_EV_QMIN (default 0)")
+    parser.add_argument("capture", help=".tlog or raw MAVLink bytes")
+    try:
+        a = parser.parse_args(list(argv))
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    senders = split_by_sender(read_capture(a.capture))
     ours = {k: v for k, v in senders.items() if k[1] == MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY}
     if not ours:
         print(f"no messages from component {MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY}")
         return 1
     bad = 0
     for (sysid, comp), msgs in sorted(ours.items()):
-        rep = check(msgs, component=comp)
+        rep = check(msgs, component=comp, autopilot=a.autopilot, qual_min=a.qual_min)
         print(f"system {sysid} component {comp}: {rep}")
         bad += len(rep.violations)
     return 1 if bad else 0

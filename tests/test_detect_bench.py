@@ -7,6 +7,7 @@ import json
 import pytest
 
 from pose_daemon.cli import main
+from pose_daemon.tools.bench_detector import BLUR_SWEEP, CLUTTER_SCENES
 
 
 def test_bench_prints_figures_for_both_markers_and_the_anchor(capsys) -> None:
@@ -29,6 +30,19 @@ def test_bench_prints_figures_for_both_markers_and_the_anchor(capsys) -> None:
     labels = [label for label, _, _ in result["timing_rows"]]
     assert labels[-1].startswith("anchor") and all(ms > 0 and cpu > 0 for _, ms, cpu in result["timing_rows"])
     assert result["setup"]["width"] == 640 and result["setup"]["pi2_factor"] == 20.0
+    # Clutter scenes, reported separately, the anchor interleaved on the ArUco frames.
+    clutter = {(row["scene"], row["marker"]): row for row in result["clutter"]}
+    assert set(clutter) == {(scene, kind) for scene in CLUTTER_SCENES for kind in ("square", "aruco")}
+    for (_scene, kind), row in clutter.items():
+        assert row["frames"] == 1 and row["empty_frames"] == 1 and row["time_median_ms"] > 0
+        if kind == "aruco":
+            assert row["detection_rate"] == 1.0 and row["false_detections"] == 0
+            assert row["anchor_time_median_ms"] > 0 and row["time_ratio_median"] > 0
+    # The blur sweep: every condition, size bias against the renderer's truth.
+    sweep = {row["condition"]: row for row in result["blur_sweep"]}
+    assert list(sweep) == [label for label, _, _ in BLUR_SWEEP]
+    assert abs(sweep["sRGB, defocus 0.8 px"]["size_bias_mean_pct"]) < 0.2
+    assert sweep["sRGB 1.5 px read as linear"]["size_bias_mean_pct"] < -1.0
 
 
 def test_bench_table_is_readable(capsys) -> None:

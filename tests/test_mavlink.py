@@ -28,7 +28,9 @@ from pose_daemon import geometry as g
 from pose_daemon.config import parse_config
 from pose_daemon.errors import ConfigError
 from pose_daemon.outputs import MavlinkOutput
+from pose_daemon.outputs import mavlink as mavlink_module
 from pose_daemon.outputs.mavlink import PoseMessageInputs, encode_pose_messages, parse_connection
+from pose_daemon.outputs.quality import pose_quality
 from pose_daemon.result import time_usec_from_s
 
 ALL = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
@@ -74,26 +76,44 @@ def test_encoding_round_trip_with_time_usec_beyond_32_bits():
         assert lt.size_x == pytest.approx(2 * math.atan2(0.1, math.sqrt(4.25)), rel=1e-6)
 
 
-def test_quality_and_covariance_follow_residual_and_ambiguity():
+def test_quality_and_covariance_follow_residual_and_a_real_flip_risk():
+    """Two planar solutions that agree are no risk; two that disagree with a near-tie are."""
+    import dataclasses
+
     from pymavlink.dialects.v20 import common as mavlink2
 
     mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
-    R = np.diag([1.0, -1.0, -1.0])
+    R = g.R_from_euler_rpy(0.0, math.radians(20.0), 0.0) @ np.diag([1.0, -1.0, -1.0])
 
-    def odo(t, err, amb):
-        inputs = PoseMessageInputs.from_pose(1, camera_pose(R, t, err, amb), WALL, fx_px=500.0, marker_width_m=0.2)
+    def with_alt(pose, R_alt, ratio):
+        return dataclasses.replace(pose, alternative=camera_pose(R_alt, pose.tvec, pose.reprojection_error_px),
+                                   ambiguity_ratio=ratio)
+
+    def odo(pose):
+        inputs = PoseMessageInputs.from_pose(1, pose, WALL, fx_px=500.0, marker_width_m=0.2)
         (m,) = encode_pose_messages(mav, ["ODOMETRY"], inputs)
         return m
 
-    clear, noisy, ambiguous = odo([0, 0, 2.0], 0.1, 0.0), odo([0, 0, 2.0], 2.0, 0.0), odo([0, 0, 2.0], 0.1, 0.9)
-    assert clear.quality == 99 and noisy.quality == 20 and ambiguous.quality == 10
-    # Depth (local x for a wall marker) is the least certain axis; variance grows with the residual,
-    # with ambiguity, and with distance.
-    assert clear.pose_covariance[0] > clear.pose_covariance[6] > 0
-    assert noisy.pose_covariance[0] > 50 * clear.pose_covariance[0]
-    assert ambiguous.pose_covariance[0] > 50 * clear.pose_covariance[0]
-    far = odo([0, 0, 4.0], 0.1, 0.0)
-    assert far.pose_covariance[0] == pytest.approx(16 * clear.pose_covariance[0], rel=1e-3)
+    clear = camera_pose(R, [0, 0, 1.0], 0.1)
+    noisy = camera_pose(R, [0, 0, 1.0], 2.0)
+    # The mirror solution 40 deg away fits almost as well: a coin flip between two poses.
+    flip = with_alt(clear, g.R_from_euler_rpy(0.0, math.radians(-20.0), 0.0) @ np.diag([1.0, -1.0, -1.0]), 0.95)
+    # Face-on: the two solutions coincide (ratio 1) and either is right.
+    level = with_alt(camera_pose(np.diag([1.0, -1.0, -1.0]), [0, 0, 1.0], 0.1), np.diag([1.0, -1.0, -1.0]), 1.0)
+    q = {k: odo(p).quality for k, p in dict(clear=clear, noisy=noisy, flip=flip, level=level).items()}
+    assert q["clear"] >= 80 and q["level"] >= 80, q
+    assert q["noisy"] <= 25 and q["flip"] <= 10, q
+    # Chosen by the vehicle's attitude, the same near-tie is no risk any more.
+    assert pose_quality(flip, 500.0, 0.2, flip_resolved=True) == pose_quality(clear, 500.0, 0.2)
+    # Variances grow with the residual, with a real flip risk, and with distance.
+    c = odo(clear).pose_covariance
+    assert all(c[k] > 0 for k in (0, 6, 11, 15, 18, 20))
+    assert odo(noisy).pose_covariance[0] > 50 * c[0]
+    assert odo(flip).pose_covariance[0] > 50 * c[0]
+    assert odo(level).pose_covariance[0] < 2 * odo(camera_pose(np.diag([1.0, -1.0, -1.0]), [0, 0, 1.0], 0.1)
+                                                     ).pose_covariance[0]
+    far = odo(camera_pose(R, [0, 0, 4.0], 0.1))
+    assert far.pose_covariance[0] > 10 * c[0]
 
 
 class _CountingFrames(g.VehicleFrames):
@@ -231,11 +251,16 @@ def test_waits_for_the_autopilot_then_sends_origin_and_home():
     peer.close()
     assert len(of_type(msgs, "ODOMETRY")) == 5
     assert out.stats()["dropped"]["no_autopilot"] == 5
-    (origin,) = of_type(msgs, "SET_GPS_GLOBAL_ORIGIN")
-    assert (origin.target_system, origin.latitude, origin.longitude, origin.altitude) == (3, 473977420, 85455940,
-                                                                                        488000)
-    (home,) = of_type(msgs, "SET_HOME_POSITION")
-    assert (home.target_system, home.latitude, home.altitude) == (3, 473977420, 488000)
+    # The origin goes to the autopilot's system id, every second until it is reported back
+    # (this peer never does), each time with a request for GPS_GLOBAL_ORIGIN.
+    origins = of_type(msgs, "SET_GPS_GLOBAL_ORIGIN")
+    assert len(origins) >= 2
+    assert {(o.target_system, o.latitude, o.longitude, o.altitude) for o in origins} == {
+        (3, 473977420, 85455940, 488000)}
+    asked = [m for m in of_type(msgs, "COMMAND_LONG") if m.command == 512]
+    assert len(asked) >= 2 and {(m.target_system, int(m.param1)) for m in asked} == {(3, 49)}
+    # No SET_HOME_POSITION (ArduPilot has no handler), and no DO_SET_HOME before the origin holds.
+    assert not of_type(msgs, "SET_HOME_POSITION") and not of_type(msgs, "COMMAND_INT")
     beats = [t for m, t in zip(peer.messages, peer.arrivals) if m.get_type() == "HEARTBEAT"]
     assert len(beats) >= 3
     gaps = np.diff(beats)
@@ -380,7 +405,6 @@ def test_mavproxy_ground_station_receives_the_stream(tmp_path):
     import shutil
     import subprocess
     import sys
-    import time
 
     exe = shutil.which("mavproxy.py", path=os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", ""))
     if exe is None:
@@ -475,22 +499,22 @@ def test_acceptance_checker_command_line(tmp_path, capsys):
     assert "frames (1, 12)" in capsys.readouterr().out
 
 
-def test_origin_sent_again_when_the_autopilot_returns_after_a_silence():
-    skew = [0.0]  # the output's clock jumps ahead to stand for seconds of silence
-    peer = UdpPeer()
-    out = output(f"udpout:127.0.0.1:{peer.port}", wait_heartbeat=True, origin=(-35.363261, 149.165230, 584.0),
-                 clock=lambda: time.monotonic() + skew[0])
+def test_origin_sent_again_when_the_autopilot_stops_reporting_it(monkeypatch):
+    """A reboot or EKF reset forgets the origin: once GPS_GLOBAL_ORIGIN is no longer reported,
+    the output sends it again (the fake autopilot's EKF starts at once and keeps what it gets)."""
+    from fake_autopilot import FakeAutopilot
+
+    monkeypatch.setattr(mavlink_module, "ORIGIN_STALE_S", 1.0)
+    fc = FakeAutopilot("ardupilot", ekf_start_s=0.0, ekf_bootstrap_s=0.0, heartbeat_s=0.2)
+    out = output(fc.connection, wait_heartbeat=True, origin=(-35.363261, 149.165230, 584.0))
     try:
-        peer.collect(1.0, until=lambda ms: bool(of_type(ms, "HEARTBEAT")))
-        peer.send(autopilot_heartbeat())
-        peer.collect(1.0, until=lambda ms: bool(of_type(ms, "SET_GPS_GLOBAL_ORIGIN")))
-        peer.send(autopilot_heartbeat())          # heard again at once: nothing to resend
-        peer.collect(0.3)
-        skew[0] += 10.0                            # ten seconds without its HEARTBEAT
-        peer.send(autopilot_heartbeat())
-        msgs = peer.collect(1.0, until=lambda ms: len(of_type(ms, "SET_GPS_GLOBAL_ORIGIN")) >= 2)
+        assert wait_for(lambda: out.origin_state == "held", 5.0)
+        assert fc.tally.origins_taken == 1
+        with fc._lock:
+            fc.origin = None                      # the EKF was reset
+        assert wait_for(lambda: fc.tally.origins_taken == 2 and out.origin_state == "held", 6.0), out.stats()
     finally:
         out.close()
-        peer.close()
-    origins = of_type(msgs, "SET_GPS_GLOBAL_ORIGIN")
-    assert len(origins) == 2 and origins[1].latitude == -353632610 and origins[1].longitude == 1491652300
+        fc.close()
+    assert fc.origin == (-353632610, 1491652300, 584000)
+    assert out.stats()["origin_forgotten"] == 1

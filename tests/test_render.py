@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from pose_daemon import Camera, Marker
+from pose_daemon.detect.response import decode, encode
 from pose_daemon.geometry import R_from_rvec
 from pose_daemon.render import (
     Effects,
@@ -178,6 +179,51 @@ def test_effects_and_seeds() -> None:
     assert (lit.max() - lit.min()) / 128.0 == pytest.approx(0.4, abs=0.02)
 
 
+@pytest.mark.parametrize("gamma", [2.2, "srgb"])
+def test_a_gamma_camera_blurs_in_linear_light_then_encodes(gamma) -> None:
+    """A real camera's frame: the scene blurs in linear light, the camera then encodes it.
+    Flat paper and ink keep the levels set; a blurred edge is the encoded linear blur."""
+    rvec, tvec = [math.pi, 0.0, 0.0], [0.0, 0.0, 1.0]
+    fx = dict(background="plain", plain_gray=180.0, blur_px=2.0)
+    encoded = render_marker(CAM, SQUARE, rvec, tvec, effects=Effects.clean(gamma=gamma, **fx)).image
+    white, black, grey = decode(np.array([WHITE, BLACK, 180.0]), gamma).tolist()
+    linear = render_marker(CAM, SQUARE, rvec, tvec, effects=Effects.clean(
+        white=white, black=black, background="plain", plain_gray=grey, blur_px=2.0)).image
+    # Rounded to 8 bits in between: the encoding's slope in the darks magnifies that step.
+    expected = encode(linear.astype(float), gamma)
+    assert np.abs(encoded - expected).max() <= 0.6 * (encode(np.array([1.0]), gamma)[0] - 0.0) + 1.0
+    assert encoded[240, 320] == pytest.approx(BLACK, abs=1) and encoded[240, 245] == pytest.approx(WHITE, abs=1)
+    # The half-way grey level of the encoded edge lies inside the true edge (x = 259.5).
+    row = encoded[240, 250:270].astype(float)
+    half = 0.5 * (BLACK + WHITE)
+    crossing = 250 + np.interp(half, row[::-1], np.arange(20)[::-1])
+    assert crossing > 259.5 + 0.5
+
+
+def test_sharpening_overshoots_both_sides_of_an_edge() -> None:
+    rvec, tvec = [math.pi, 0.0, 0.0], [0.0, 0.0, 1.0]
+    fx = dict(background="plain", plain_gray=150.0, blur_px=1.0, white=200.0, black=60.0)
+    soft = render_marker(CAM, SQUARE, rvec, tvec, effects=Effects.clean(**fx)).image.astype(int)
+    sharp = render_marker(CAM, SQUARE, rvec, tvec, effects=Effects.clean(sharpen=2.0, **fx)).image.astype(int)
+    row_soft, row_sharp = soft[240, 250:270], sharp[240, 250:270]
+    assert row_sharp.max() > row_soft.max() + 3 and row_sharp.min() < row_soft.min() - 3
+    # Flat areas are untouched.
+    assert sharp[240, 320] == soft[240, 320] and sharp[100, 100] == soft[100, 100]
+
+
+def test_motion_blur_of_8_px_spreads_the_edge_over_8_px() -> None:
+    rvec, tvec = [math.pi, 0.0, 0.0], [0.0, 0.0, 1.0]
+    img = render_marker(CAM, SQUARE, rvec, tvec, effects=Effects.clean(
+        background="plain", plain_gray=220.0, motion_blur_px=8.0, motion_blur_angle_deg=0.0)).image
+    row = img[240, 240:280].astype(float)
+    level = (row - BLACK) / (WHITE - BLACK)
+    # A linear ramp across the smear: 10 %..90 % takes 0.8 of its length.
+    x = np.arange(40)
+    x10 = np.interp(0.1, level[::-1], x[::-1])
+    x90 = np.interp(0.9, level[::-1], x[::-1])
+    assert x10 - x90 == pytest.approx(0.8 * 8.0, abs=0.7)
+
+
 def test_render_empty_has_no_dark_quadrilateral_and_varies() -> None:
     rng = np.random.default_rng(0)
     frames = [render_empty(CAM, rng=rng) for _ in range(3)]
@@ -235,6 +281,9 @@ def test_render_is_cheap_and_right_on_the_pi_stack() -> None:
     ({"jpeg_quality": 101}, "jpeg_quality must be 0"),
     ({"background": "stars"}, "background must be 'texture' or 'plain'"),
     ({"supersample": 0}, "supersample must be >= 1"),
+    ({"gamma": "cinema"}, "gamma must be a number in \\[0.2, 5\\] or 'srgb'"),
+    ({"gamma": 0.0}, "gamma must be a number in \\[0.2, 5\\] or 'srgb'"),
+    ({"sharpen": -0.5}, "sharpen must be a number >= 0"),
 ])
 def test_bad_effects_are_refused(bad, message) -> None:
     with pytest.raises(ValueError, match=message):

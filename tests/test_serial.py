@@ -28,11 +28,11 @@ def test_line_format_fields_and_checksum():
     r = FrameResult(seq=3, t_capture_s=4295.123456,
                     pose=camera_pose(np.diag([1.0, -1.0, -1.0]), [-0.5, 0.0, 2.0], err_px=0.3, ambiguity=0.0))
     line = pose_line(r, WALL)
-    assert line == "$POSE,4295123456,-2.0000,0.5000,0.0000,0.00,0.00,0.00,92*" + xor_hex(
-        "POSE,4295123456,-2.0000,0.5000,0.0000,0.00,0.00,0.00,92") + "\r\n"
+    assert line == "$POSE,4295123456,-2.0000,0.5000,0.0000,0.00,0.00,0.00,89*" + xor_hex(
+        "POSE,4295123456,-2.0000,0.5000,0.0000,0.00,0.00,0.00,89") + "\r\n"
     assert nmea_checksum("POSE,1") == xor_hex("POSE,1")
     fields = parse_pose_line(line)
-    assert fields["t_us"] == 4295123456 and fields["quality"] == 92
+    assert fields["t_us"] == 4295123456 and fields["quality"] == 89
     assert (fields["x_m"], fields["y_m"], fields["yaw_deg"]) == (-2.0, 0.5, 0.0)
     lost = pose_line(lost_result(4, 4295.2), WALL)
     assert lost == "$POSE,4295200000,,,,,,,-1*" + xor_hex("POSE,4295200000,,,,,,,-1") + "\r\n"

@@ -18,6 +18,7 @@ BENCHES = {
     "pipeline": "end-to-end latency (capture -> bytes written) and memory over a long run",
     "outputs": "time each output takes from publish to bytes written on its link",
     "map": "marker maps: floor-grid flights, the nested-pad descent, cost with 1/4/9 markers",
+    "quality": "the quality sent to the autopilot against the pose's true error (rendered hovers)",
 }
 
 
@@ -37,7 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p["detector"].add_argument("--seed", type=int, default=0, help="random seed of poses and images")
     p["detector"].add_argument("--repeat", type=int, default=3, metavar="K",
                                help="time each frame K times and keep the fastest (default 3)")
-    for name in ("estimator", "detector"):
+    for name in ("estimator", "detector", "quality"):
         p[name].add_argument("--json", action="store_true", help="print one JSON object instead of tables")
     p["pipeline"].add_argument("--frames", type=int, default=3000,
                                help="frames to run (default 3000; 20000 for the memory figure)")
@@ -45,6 +46,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                help="rate at which the source hands out frames (default 100)")
     p["pipeline"].add_argument("--distinct", type=int, default=48, help="distinct rendered frames, cycled (default 48)")
     p["pipeline"].add_argument("--seed", type=int, default=0, help="trajectory and noise seed")
+    p["pipeline"].add_argument("--preview", choices=("off", "idle", "watch"), default="off",
+                               help="live preview: off (default), idle (served, nobody watching), "
+                                    "watch (one viewer reading /stream.mjpg)")
     p["outputs"].add_argument("--poses", type=int, default=3000, help="poses per output (default 3000)")
     p["map"].add_argument("--frames", type=int, default=600, help="frames per floor-grid flight (default 600)")
     p["map"].add_argument("--descent-frames", type=int, default=300,
@@ -52,6 +56,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p["map"].add_argument("--repeat", type=int, default=200, help="timed frames per cost row (default 200)")
     p["map"].add_argument("--seed", type=int, default=0, help="trajectory and noise seed")
     p["map"].add_argument("--json", action="store_true", help="print one JSON object instead of tables")
+    p["quality"].add_argument("--frames", type=int, default=150, metavar="N",
+                              help="hover frames per tilt and height (default 150)")
+    p["quality"].add_argument("--seed", type=int, default=0, help="random seed of hovers and images")
     for parser in p.values():
         parser.set_defaults(func=run)
 
@@ -74,11 +81,14 @@ def run(a: argparse.Namespace) -> int:
         report = bench.run_bench(a.frames, a.empty, a.seed, a.repeat)
     elif a.bench == "pipeline":
         _check(a.frames >= 1 and a.fps > 0 and a.distinct >= 1, "--frames and --distinct must be >= 1 and --fps > 0")
-        report = bench.run_bench(a.frames, a.fps, a.distinct, a.seed)
+        report = bench.run_bench(a.frames, a.fps, a.distinct, a.seed, preview=a.preview)
     elif a.bench == "map":
         _check(a.frames >= 2 and a.descent_frames >= 2 and a.repeat >= 1,
                "--frames and --descent-frames must be >= 2 and --repeat >= 1")
         report = bench.run_bench(a.frames, a.descent_frames, a.repeat, a.seed, progress=not a.json)
+    elif a.bench == "quality":
+        _check(a.frames >= 1, f"--frames must be at least 1, got {a.frames}")
+        report = bench.run_bench(a.frames, a.seed)
     else:
         _check(a.poses >= 1, f"--poses must be at least 1, got {a.poses}")
         report = bench.run_bench(a.poses)

@@ -5,21 +5,20 @@ edge fits, and followed between frames by reading its bits again.
 
 from __future__ import annotations
 
-from typing import List, Optional
+from typing import Any, List, Optional, Tuple
 
 import cv2
 import numpy as np
 
 from ..camera import Marker
 from . import aruco_compat
-from .quads import Roi, find_quads, inside_any, odd
-from .refine import SEARCH_CONVERGED_PX, EdgeFit, signed_area
+from .quads import Roi, inside_any
+from .refine import SEARCH_CONVERGED_PX, SEARCH_ITERATIONS, EdgeFit, signed_area
 from .square import (
     Candidate,
     OutlineFinder,
     SquareOptions,
     clamp,
-    darker_inside,
     median_of,
     sample_canonical,
     side_lengths,
@@ -72,6 +71,29 @@ class ArucoFinder(OutlineFinder):
                                      np.column_stack([s, np.full_like(s, 1.08)]),
                                      np.column_stack([np.full_like(s, -0.08), s])])
         self._cell_and_ring_uv = np.concatenate([self._cell_uv, self._ring])
+        self._pool: Optional[Any] = None   # a ThreadPoolExecutor once use_threads(2+)
+        self._pending = None   # (future, frame, roi) of OpenCV's detector started early
+
+    def use_threads(self, threads: int) -> None:
+        """``threads`` >= 2: when a whole-frame search reaches its full-size pass (the
+        half-size one found nothing), OpenCV's detector, its last step, starts at once on
+        another core (the marker is then likely absent, and that step would come anyway).
+        The result is the same; the tracked path never uses it."""
+        if threads >= 2 and self._pool is None:
+            # Imported here: the daemon's start-up does not pay for it on a single core.
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pose-daemon-aruco")
+            # Its own OpenCV detector object: never shared between two threads.
+            self._early_finder = aruco_compat.ArucoMarkerFinder(self.dictionary, self._finder.parameters)
+
+    def prepare_stage(self, gray: np.ndarray, plan: List[Tuple[str, int]], stage_i: int,
+                      roi: Optional[Roi]) -> None:
+        if self._pool is None or stage_i == 0 or stage_i + 1 >= len(plan) or plan[stage_i + 1][0] != "opencv":
+            return
+        if self._pending is not None and not self._pending[0].done():
+            return   # one early run at a time (a time-capped search may have left one)
+        self._pending = (self._pool.submit(self._search_opencv, gray, roi, self._early_finder), gray, roi)
 
     def reach_px(self, corners: np.ndarray):
         side = min(side_lengths(corners).tolist())
@@ -105,47 +127,72 @@ class ArucoFinder(OutlineFinder):
                 return k
         return None
 
+    def could_be(self, gray: np.ndarray, quad: np.ndarray) -> bool:
+        """Early rejection, before any sub-pixel work: the code read from the rough outline
+        (about a pixel off, so with one more bit error and border cell allowed). Rejects
+        the dark squares of a board, print and texture at a fraction of an edge fit's cost."""
+        values = sample_canonical(gray, quad, self._cell_and_ring_uv)
+        cells, ring = values[:len(self._cell_uv)], values[len(self._cell_uv):]
+        ring = ring[np.isfinite(ring)]
+        if not np.isfinite(cells).all() or len(ring) < 10:
+            return False
+        dark, light = median_of(cells[self._border]), median_of(ring)
+        if light - dark < 0.5 * self.options.min_contrast:
+            return False
+        white = cells > 0.5 * (dark + light)
+        if np.count_nonzero(white[self._border]) > 2:
+            return False
+        inner = self._inner
+        return any(np.count_nonzero(white[perm][inner] != self._expected_white[inner]) <= self.max_bit_errors + 1
+                   for perm in self._perms)
+
     def verify(self, gray: np.ndarray, fit: EdgeFit) -> bool:
         """Is this the marker, with the corners already labelled TL, TR, BR, BL?"""
         return self.orientation(gray, fit) == 0
 
-    def search(self, gray: np.ndarray, roi: Optional[Roi] = None,
-               expected_side_px: Optional[float] = None) -> List[Candidate]:
-        """Every instance of the marker in ``roi`` (or the whole frame), refined.
+    def try_quad(self, gray: np.ndarray, quad: np.ndarray, scale: int,
+                 found: List[Candidate]) -> Optional[Candidate]:
+        """A rough outline -> the marker (refined, labelled) or None; the code is read from
+        the rough outline first, the edges fitted only when it may be the marker."""
+        # Quads come largest first: one inside a marker already found is part of it.
+        if inside_any(quad.mean(axis=0), [c.corners for c in found]):
+            return None
+        # (could_be also checks that the border is darker than the quiet zone.)
+        if not self.could_be(gray, quad):
+            return None
+        fit = self.refine(gray, quad, iterations=SEARCH_ITERATIONS, max_move_px=1.5 * scale + 1.0,
+                          converged_px=SEARCH_CONVERGED_PX)
+        if fit is None:
+            return None
+        k = self.orientation(gray, fit)
+        return None if k is None else Candidate(np.roll(fit.corners, -k, axis=0), True, fit)
 
-        Our own quadrilaterals and bit reading first (cheap); OpenCV's ArUco detector, with
-        its several threshold scales, when they find nothing.
-        """
-        o = self.options
-        block = o.block_px if expected_side_px is None else odd(np.clip(expected_side_px / 3.0, 7, 41))
-        scales = (2, 1) if roi is None and min(gray.shape) >= 240 else (1,)
-        out: List[Candidate] = []
-        for scale in scales:
-            for quad in find_quads(gray, min_side_px=o.min_side_px, block_px=block,
-                                   offset_gray=o.threshold_offset, roi=roi, downscale=scale):
-                # Quads come largest first: one inside a marker already found is part of it.
-                if inside_any(quad.mean(axis=0), [c.corners for c in out]):
-                    continue
-                if not darker_inside(gray, quad, 0.5 / (self.n_bits + 2), 0.5 * o.min_contrast):
-                    continue
-                fit = self.refine(gray, quad, iterations=2, max_move_px=1.5 * scale + 1.0,
-                                  converged_px=SEARCH_CONVERGED_PX)
-                if fit is None:
-                    continue
-                k = self.orientation(gray, fit)
-                if k is not None:
-                    out.append(Candidate(np.roll(fit.corners, -k, axis=0), True, fit))
-            if out:
-                return out
-        return self._search_opencv(gray, roi)
+    def stages(self, gray: np.ndarray, roi: Optional[Roi]) -> List[Tuple[str, int]]:
+        """Our own quadrilaterals and bit reading first (cheap); OpenCV's ArUco detector, with
+        its several threshold scales, when they find nothing."""
+        return super().stages(gray, roi) + [("opencv", 1)]
 
-    def _search_opencv(self, gray: np.ndarray, roi: Optional[Roi]) -> List[Candidate]:
+    def stage_items(self, gray: np.ndarray, stage: Tuple[str, int], roi: Optional[Roi], block: int) -> list:
+        if stage[0] == "opencv":
+            return [None]
+        return super().stage_items(gray, stage, roi, block)
+
+    def process(self, gray: np.ndarray, stage: Tuple[str, int], item, roi: Optional[Roi],
+                found: List[Candidate]) -> List[Candidate]:
+        if stage[0] == "opencv":
+            pending, self._pending = self._pending, None
+            if pending is not None and pending[1] is gray and pending[2] == roi:
+                return pending[0].result()
+            return self._search_opencv(gray, roi)
+        return super().process(gray, stage, item, roi, found)
+
+    def _search_opencv(self, gray: np.ndarray, roi: Optional[Roi], finder=None) -> List[Candidate]:
         x0, y0 = 0, 0
         img = gray
         if roi is not None:
             x0, y0, x1, y1 = roi
             img = gray[y0:y1, x0:x1]
-        corners_list, ids = self._finder.detect(img)
+        corners_list, ids = (finder or self._finder).detect(img)
         out: List[Candidate] = []
         for corners, marker_id in zip(corners_list, ids):
             if int(marker_id) != self.marker_id:

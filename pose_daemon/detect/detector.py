@@ -11,13 +11,16 @@ one way reads right up to |roll| < 90 deg).
 from __future__ import annotations
 
 import math
-from typing import List, Optional, Tuple
+import os
+import time
+from typing import Callable, List, Optional, Tuple
 
 import numpy as np
 
 from ..camera import Camera, Marker
 from ..capture.base import as_gray
 from .quads import Roi
+from .response import Response, check_response
 from .square import Candidate, SquareFinder, SquareOptions, aspect_error, side_lengths
 
 #: Which step found the marker in the last call: "follow", "roi", "full" or None (not found).
@@ -80,13 +83,28 @@ class MarkerDetector:
       the marker's (perspective).
     - ``roi_margin`` (0.5): the tracked search region extends this fraction of the marker's
       size (at least 16 px) around the predicted corners.
+    - ``gamma`` (1.0): the camera's response, a power-law exponent (1.0 = linear intensity,
+      about 2.2 for sRGB/Rec. 709 cameras) or "srgb"; edges are located in linear intensity,
+      so that blur does not shrink the marker (see detect/response.py).
+    - ``search_budget_ms`` (None = no cap): time cap per frame, from the call to ``detect``,
+      for a whole-frame search. The search runs cheapest first (half-size threshold, full
+      size, then OpenCV's ArUco detector) and checks the clock before each candidate; at
+      the cap it stops and the next frame's search goes on from there (``search_deferrals``
+      counts such frames). Each frame does at least one step, so the search always advances.
+    - ``clock`` (time.perf_counter): the clock of that cap, seconds.
+    - ``search_threads`` (None = 2 on a machine with 4 or more cores, else 1): 2 lets an
+      ArUco whole-frame search run OpenCV's detector (its last step) on another core while
+      its own full-size pass runs, once the half-size pass found nothing. Same results.
     """
 
     def __init__(self, marker: Marker, *, max_misses: int = 5, min_side_px: float = 10.0,
                  camera: Optional[Camera] = None, block_px: int = 25,
                  threshold_offset: float = 10.0, min_contrast: float = 20.0,
                  max_edge_residual_px: float = 0.4, max_aspect_ratio_error: float = 3.0,
-                 roi_margin: float = 0.5) -> None:
+                 roi_margin: float = 0.5, gamma: Response = 1.0,
+                 search_budget_ms: Optional[float] = None,
+                 clock: Callable[[], float] = time.perf_counter,
+                 search_threads: Optional[int] = None) -> None:
         if not isinstance(marker, Marker):
             raise ValueError(f"marker must be a pose_daemon.Marker, got {type(marker).__name__}")
         if isinstance(max_misses, bool) or not isinstance(max_misses, (int, np.integer)) or max_misses < 0:
@@ -98,6 +116,16 @@ class MarkerDetector:
         for name, value, lowest in checks:
             if not isinstance(value, (int, float)) or not np.isfinite(value) or value < lowest:
                 raise ValueError(f"{name} must be a number >= {lowest}, got {value!r}")
+        if search_budget_ms is not None and (isinstance(search_budget_ms, bool)
+                                             or not isinstance(search_budget_ms, (int, float))
+                                             or not np.isfinite(search_budget_ms) or search_budget_ms <= 0):
+            raise ValueError(f"search_budget_ms must be a number > 0 or None, got {search_budget_ms!r}")
+        if search_threads is not None and (isinstance(search_threads, bool)
+                                           or not isinstance(search_threads, (int, np.integer))
+                                           or not 1 <= search_threads <= 64):
+            raise ValueError(f"search_threads must be an integer in [1, 64] or None, got {search_threads!r}")
+        if not callable(clock):
+            raise ValueError(f"clock must be a callable returning seconds, got {clock!r}")
         if camera is not None and not isinstance(camera, Camera):
             raise ValueError(f"camera must be a pose_daemon.Camera, got {type(camera).__name__}")
         self.marker = marker
@@ -108,20 +136,35 @@ class MarkerDetector:
             min_side_px=float(min_side_px), block_px=int(block_px),
             threshold_offset=float(threshold_offset), min_contrast=float(min_contrast),
             max_edge_residual_px=float(max_edge_residual_px),
-            max_aspect_ratio_error=float(max_aspect_ratio_error))
+            max_aspect_ratio_error=float(max_aspect_ratio_error), gamma=check_response(gamma))
         if marker.type == "aruco":
             from .aruco import ArucoFinder
 
             self._finder = ArucoFinder(marker, self.options, camera)
+            if search_threads is None:
+                search_threads = 2 if (os.cpu_count() or 1) >= 4 else 1
+            self._finder.use_threads(int(search_threads))
         else:
             self._finder = SquareFinder(marker, self.options, camera)
         self.last_stage: Optional[str] = None
+        self.search_budget_s = None if search_budget_ms is None else float(search_budget_ms) / 1e3
+        self._clock = clock
+        #: Frames whose whole-frame search stopped at ``search_budget_ms``, leaving the rest
+        #: of it to the next frame.
+        self.search_deferrals = 0
+        #: Whether the last frame's whole-frame search was cut short by the cap.
+        self.last_search_deferred = False
+        self._deadline = math.inf
         self.reset()
 
     # ------------------------------------------------------------------ state
 
     def reset(self) -> None:
         """Forget the track: the next frame is searched whole and labelled afresh."""
+        self._forget_track()
+        self._cursor: Tuple[int, int] = (0, 0)   # where an interrupted whole-frame search goes on
+
+    def _forget_track(self) -> None:
         self._last: Optional[np.ndarray] = None
         self._previous: Optional[np.ndarray] = None
         self.misses = 0
@@ -139,6 +182,9 @@ class MarkerDetector:
         ``image``: grey uint8 (H, W) (BGR/BGRA and uint16 are converted). ValueError for
         something that is not an image.
         """
+        if self.search_budget_s is not None:
+            self._deadline = self._clock() + self.search_budget_s
+        self.last_search_deferred = False
         gray = as_gray(image)
         if self.camera is not None and gray.shape != (self.camera.height, self.camera.width):
             raise ValueError(f"image is {gray.shape[1]}x{gray.shape[0]} but the camera model is "
@@ -149,7 +195,8 @@ class MarkerDetector:
             self.misses += 1
             self._previous = None  # no velocity across a gap
             if self.misses > self.max_misses:
-                self.reset()
+                # The track is lost; a capped whole-frame search still goes on where it stopped.
+                self._forget_track()
             return None
         self._previous = self._last if self.misses == 0 else None
         self._last = found
@@ -161,7 +208,7 @@ class MarkerDetector:
         if h < 8 or w < 8:
             return None, None
         if self._last is None:
-            return self._pick_first(self._finder.search(gray)), "full"
+            return self._pick_first(self._full_search(gray)), "full"
         predicted = self._predict()
         inside = ((predicted >= 1.0) & (predicted <= [w - 2.0, h - 2.0])).all()
         if inside:
@@ -174,8 +221,23 @@ class MarkerDetector:
             found = self._pick_continuous(self._finder.search(gray, roi, side), predicted)
             if found is not None:
                 return found, "roi"
-        found = self._pick_continuous(self._finder.search(gray), predicted)
+        found = self._pick_continuous(self._full_search(gray), predicted)
         return found, ("full" if found is not None else None)
+
+    def _full_search(self, gray: np.ndarray) -> List[Candidate]:
+        """The whole frame, within the frame's time cap (if any), going on from where the
+        last capped search stopped."""
+        if self.search_budget_s is None:
+            return self._finder.search(gray)
+        deadline, clock = self._deadline, self._clock
+        cands, cursor = self._finder.search_from(gray, start=self._cursor, over=lambda: clock() >= deadline)
+        if cursor is None:
+            self._cursor = (0, 0)
+        else:
+            self._cursor = cursor
+            self.search_deferrals += 1
+            self.last_search_deferred = True
+        return cands
 
     def _predict(self) -> np.ndarray:
         """Where the corners should be now: constant velocity over the last two frames."""

@@ -4,6 +4,10 @@ intersections of neighbouring lines.
 
 On blurred frames this beats a corner-window search (cv2.cornerSubPix), which is pulled
 towards the inside of the blurred corner; an edge fit uses the whole side.
+
+The half-way level is only the edge in linear intensity: a camera that encodes grey levels
+with a gamma curve puts it on the dark side (the marker shrinks with blur), so with a
+known response (``lut``, from ``response.decode_lut``) the profiles are linearised first.
 """
 
 from __future__ import annotations
@@ -21,9 +25,16 @@ PROFILE_STEP_PX = 0.5
 _RECENTER_PASSES = 2
 
 _NEXT = np.array([1, 2, 3, 0])
+_PREV = np.array([3, 0, 1, 2])
 #: A search starts from polygon corners about a pixel off: one pass of edge fits is as good
 #: as two unless it moves them further than this (pixels).
 SEARCH_CONVERGED_PX = 1.5
+#: Passes of a search's edge fits: a blurred edge found from a rough outline needs its
+#: profiles re-centred on it before the half-way level is right (see ``fit_edges``).
+SEARCH_ITERATIONS = 3
+#: A pass is final only once the profiles' symmetric windows reach this many blur sigmas.
+WINDOW_BLUR_SIGMAS = 1.5
+_LEVELS = np.arange(256, dtype=np.float64)
 
 
 @dataclass
@@ -60,12 +71,59 @@ def _interp(prof: np.ndarray, rows: np.ndarray, x: np.ndarray) -> np.ndarray:
     return prof[rows, i] * (1.0 - f) + prof[rows, i + 1] * f
 
 
-def _crossing(prof: np.ndarray, rows: np.ndarray, level: np.ndarray) -> np.ndarray:
-    """Fractional sample index where each profile first rises through ``level``."""
+def _crossing(prof: np.ndarray, rows: np.ndarray, level: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Fractional sample index where each profile first rises through ``level``, and the
+    rise per sample there."""
     j = np.minimum(np.maximum((prof >= level[:, None]).argmax(axis=1), 1), prof.shape[1] - 1)
     lo, hi = prof[rows, j - 1], prof[rows, j]
-    frac = np.minimum(np.maximum((level - lo) / np.maximum(hi - lo, 1e-9), 0.0), 1.0)
-    return j - 1 + frac
+    rise = hi - lo
+    frac = np.minimum(np.maximum((level - lo) / np.maximum(rise, 1e-9), 0.0), 1.0)
+    return j - 1 + frac, rise
+
+
+def _profiles(gray: np.ndarray, gx: np.ndarray, gy: np.ndarray, lut: Optional[np.ndarray]) -> np.ndarray:
+    """Grey levels (float64) at the sample points, bilinear; in linear intensity with ``lut``.
+
+    Linearised before interpolating (a pixel's light mixes linearly), over just the box
+    the samples touch."""
+    if lut is None:
+        return cv2.remap(gray, gx, gy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+    h, w = gray.shape
+    x0 = int(min(max(math.floor(float(gx.min())) - 1, 0), w - 1))
+    y0 = int(min(max(math.floor(float(gy.min())) - 1, 0), h - 1))
+    x1 = int(min(max(math.ceil(float(gx.max())) + 2, x0 + 1), w))
+    y1 = int(min(max(math.ceil(float(gy.max())) + 2, y0 + 1), h))
+    box = cv2.LUT(gray[y0:y1, x0:x1], lut)
+    # Outside the image a sample repeats the nearest pixel, as BORDER_REPLICATE does: clamp
+    # to the box (which reaches the image's edge wherever samples leave it).
+    mx = np.clip(gx - x0, 0.0, x1 - x0 - 1).astype(np.float32)
+    my = np.clip(gy - y0, 0.0, y1 - y0 - 1).astype(np.float32)
+    return cv2.remap(box, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+
+
+def _corner_clearance(u: np.ndarray, length: np.ndarray, blur_px: float) -> np.ndarray:
+    """How far from its ends (pixels) each side's profiles must start: a blurred corner
+    rounds the sides near it, the further the sharper its angle (the neighbouring side is
+    2.5 sigma away only that far along this one). At most 0.3 of the side."""
+    if blur_px <= 0.0:
+        return np.zeros(4)
+    sin_corner = np.abs(u[:, 0] * u[_PREV, 1] - u[:, 1] * u[_PREV, 0])   # at each side's start
+    sin_end = np.minimum(sin_corner, sin_corner[_NEXT])
+    return np.minimum(2.5 * blur_px / np.maximum(sin_end, 0.3), 0.3 * length)
+
+
+def _clear_of_corners(u: np.ndarray, length: np.ndarray, end: np.ndarray, blur_px: float) -> bool:
+    """Do the profiles start at least ``_corner_clearance`` (+ 0.5 px) from the corners?
+    Plain floats: four sides, where numpy's per-call overhead would dominate."""
+    (ax, ay), (bx, by), (cx, cy), (dx, dy) = u.tolist()
+    # |sin| of the corner at the start of each side (between the previous side and it).
+    s = [abs(ax * dy - ay * dx), abs(bx * ay - by * ax), abs(cx * by - cy * bx), abs(dx * cy - dy * cx)]
+    lengths, ends = length.tolist(), end.tolist()
+    for i in range(4):
+        need = min(2.5 * blur_px / max(min(s[i], s[(i + 1) % 4]), 0.3), 0.3 * lengths[i])
+        if need > ends[i] + 0.5:
+            return False
+    return True
 
 
 def _fit_line(points: np.ndarray) -> Tuple[float, float, float]:
@@ -77,7 +135,8 @@ def _fit_line(points: np.ndarray) -> Tuple[float, float, float]:
 def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_px: float,
               iterations: int = 2, camera=None, min_contrast: float = 8.0,
               max_move_px: Optional[float] = None, samples_per_side: int = 24,
-              converged_px: float = 0.5) -> Optional[EdgeFit]:
+              converged_px: float = 0.5, lut: Optional[np.ndarray] = None,
+              check_blur: bool = True) -> Optional[EdgeFit]:
     """Refine approximate corners (4, 2) of a dark quadrilateral on a lighter surround.
 
     ``corners`` must be in image-clockwise order (positive ``signed_area``); the result
@@ -87,6 +146,12 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
     the corners mapped back. Stops after ``iterations`` passes or once corners move less
     than ``converged_px`` in a pass. None when the sides cannot be fitted (too few clean crossings,
     too little contrast, or corners that move further than ``max_move_px``).
+    ``lut``: the camera's response as a 256-entry table grey level -> linear intensity
+    (``response.decode_lut``); edges are then located in linear intensity. Contrasts stay in
+    the frame's own grey levels either way. ``check_blur``: a pass is final only once its
+    profiles are centred within ``WINDOW_BLUR_SIGMAS`` of the estimated blur and clear of
+    the blurred corners (off: as soon as the corners settle; a tracked marker's predicted
+    corners are already centred, and that path stays as cheap as it was).
     """
     h, w = gray.shape
     start = np.asarray(corners, dtype=np.float64).reshape(4, 2)
@@ -103,6 +168,7 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
     rows2 = np.concatenate([rows, rows]) * n_off
     last = float(n_off - 1)
     frac_along = (np.arange(m) + 0.5) / m
+    blur_px = 0.0   # the edges' blur (Gaussian sigma equivalent), estimated by each pass
     for _ in range(iterations):
         d = current[_NEXT] - current
         length = np.hypot(d[:, 0], d[:, 1])
@@ -110,7 +176,7 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
             return None
         u = d / length[:, None]
         # Keep clear of the rounded, blurred corners where the side is not a straight edge.
-        end = np.maximum(1.5 + inner_px, 0.1 * length)
+        end = np.maximum(np.maximum(1.5 + inner_px, 0.1 * length), _corner_clearance(u, length, blur_px))
         span = length - 2.0 * end
         if span.min() < 2.0:
             return None
@@ -129,14 +195,18 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
         else:
             ends_x, ends_y = gx[:, [0, -1]], gy[:, [0, -1]]
             inside = ((ends_x >= 0) & (ends_x <= w - 1) & (ends_y >= 0) & (ends_y <= h - 1)).all(axis=1)
-        prof = cv2.remap(gray, gx, gy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+        prof = _profiles(gray, gx, gy, lut)
         dark = 0.5 * (prof[:, 0] + prof[:, 1])
         light = 0.5 * (prof[:, -1] + prof[:, -2])
-        contrast = light - dark
+        if lut is None:
+            contrast = light - dark
+        else:
+            # Contrast in the frame's grey levels, as the thresholds are set.
+            contrast = np.interp(light, lut, _LEVELS) - np.interp(dark, lut, _LEVELS)
         mid = 0.5 * (dark + light)
         # A clean crossing: dark at the inner end, light at the outer end.
         ok = inside & (contrast >= min_contrast) & (prof[:, 0] < mid) & (prof[:, -1] >= mid)
-        x = _crossing(prof, rows, mid)
+        x, rise = _crossing(prof, rows, mid)
         # Re-take the dark and light levels symmetrically about the edge just found: a
         # symmetric blur leaks the same amount into both, so their mean stays the
         # half-way level even when the profile is too short to reach either plateau.
@@ -148,7 +218,7 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
             f = xs - i
             k = rows2 + i
             v = flat[k] * (1.0 - f) + flat[k + 1] * f
-            x_new = _crossing(prof, rows, 0.5 * (v[:n] + v[n:]))
+            x_new, rise = _crossing(prof, rows, 0.5 * (v[:n] + v[n:]))
             # Profiles already centred on their edge (a good prediction) settle at once.
             settled = float(np.abs(x_new - x).max()) < 0.1
             x = x_new
@@ -205,8 +275,18 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
         # of the edge; profiles that found their edge near one end get another pass.
         half = np.minimum(x, last - x)
         window_px = float(np.partition(half, n // 2)[n // 2]) * PROFILE_STEP_PX
-        if moved < converged_px and window_px >= 1.25:
+        if moved < converged_px and window_px >= 1.25 and not check_blur:
             break
+        if moved < converged_px and window_px >= 1.25:
+            # Final unless the edges are so blurred that the windows were too narrow for the
+            # half-way level or the profiles too close to the rounded corners. The blur from
+            # the slope at the crossings: sigma = contrast / (slope sqrt(2 pi)).
+            good = ok & (rise > 1e-6)
+            if int(np.count_nonzero(good)) >= 8:
+                sigmas = (light - dark)[good] / (rise[good] / PROFILE_STEP_PX * math.sqrt(2.0 * math.pi))
+                blur_px = float(np.partition(sigmas, len(sigmas) // 2)[len(sigmas) // 2])
+            if window_px >= WINDOW_BLUR_SIGMAS * blur_px and _clear_of_corners(u, length, end, blur_px):
+                break
     if fit is None:
         return None
     if max_move_px is not None and float(np.abs(fit.corners - start).max()) > max_move_px:

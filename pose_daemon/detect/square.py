@@ -7,16 +7,18 @@ of a textured background fail these checks, so frames without the marker give no
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
-from typing import List, Optional
+from typing import Callable, List, Optional, Tuple
 
 import cv2
 import numpy as np
 
 from ..camera import Marker
 from .quads import Roi, find_quads, inside_any, odd
-from .refine import SEARCH_CONVERGED_PX, EdgeFit, fit_edges
+from .refine import SEARCH_CONVERGED_PX, SEARCH_ITERATIONS, EdgeFit, fit_edges
+from .response import Response, decode_lut
 
 
 @dataclass
@@ -43,6 +45,7 @@ class SquareOptions:
     max_edge_residual_px: float = 0.4
     max_aspect_ratio_error: float = 3.0   # measured W:H may differ from the marker's by this factor
     ring_px: float = 2.5             # how far outside the sides the light ring is sampled
+    gamma: Response = 1.0            # the camera's response (response.py): edges fitted in linear light
 
 
 def side_lengths(corners: np.ndarray) -> np.ndarray:
@@ -68,6 +71,7 @@ _RING_BASE = np.concatenate([np.column_stack([_s, 0 * _s]), np.column_stack([1 +
 _RING_DIR = np.concatenate([np.tile([0.0, -1.0], (7, 1)), np.tile([1.0, 0.0], (7, 1)),
                             np.tile([0.0, 1.0], (7, 1)), np.tile([-1.0, 0.0], (7, 1))])
 _N_GRID = len(_GRID)
+_LEVELS = np.arange(256, dtype=np.float64)
 
 
 def clamp(value: float, lo: float, hi: float) -> float:
@@ -78,6 +82,7 @@ def median_of(values: np.ndarray) -> float:
     return float(np.partition(values, len(values) // 2)[len(values) // 2])
 
 
+@functools.lru_cache(maxsize=64)
 def _band(d: float) -> np.ndarray:
     """Points at canonical distance ``d`` inside (d > 0) or outside (d < 0) each side."""
     return np.concatenate([np.column_stack([_s, 0 * _s + d]), np.column_stack([1 - d + 0 * _s, _s]),
@@ -134,6 +139,7 @@ class OutlineFinder:
         self.marker = marker
         self.options = options
         self.camera = camera
+        self.lut = decode_lut(options.gamma)
 
     def reach_px(self, corners: np.ndarray):
         raise NotImplementedError
@@ -142,16 +148,89 @@ class OutlineFinder:
         raise NotImplementedError
 
     def refine(self, gray: np.ndarray, corners: np.ndarray, iterations: int,
-               max_move_px: Optional[float] = None, converged_px: float = 0.5) -> Optional[EdgeFit]:
-        inner, outer = self.reach_px(corners)
+               max_move_px: Optional[float] = None, converged_px: float = 0.5,
+               reach: Optional[Tuple[float, float]] = None, check_blur: bool = True) -> Optional[EdgeFit]:
+        inner, outer = self.reach_px(corners) if reach is None else reach
         return fit_edges(gray, corners, inner_px=inner, outer_px=outer, iterations=iterations,
                          camera=self.camera, min_contrast=0.5 * self.options.min_contrast,
-                         max_move_px=max_move_px, converged_px=converged_px)
+                         max_move_px=max_move_px, converged_px=converged_px, lut=self.lut,
+                         check_blur=check_blur)
+
+    # ------------------------------------------------------------------ search
+
+    def try_quad(self, gray: np.ndarray, quad: np.ndarray, scale: int,
+                 found: List[Candidate]) -> Optional[Candidate]:
+        raise NotImplementedError
+
+    def stages(self, gray: np.ndarray, roi: Optional[Roi]) -> List[Tuple[str, int]]:
+        """The steps of a search, cheapest first: ("quads", downscale) threshold passes. A
+        whole frame is first searched at half size (4x cheaper); markers too small to show
+        there are found by a full-size pass."""
+        if roi is None and min(gray.shape) >= 240:
+            return [("quads", 2), ("quads", 1)]
+        return [("quads", 1)]
+
+    def stage_items(self, gray: np.ndarray, stage: Tuple[str, int], roi: Optional[Roi],
+                    block: int) -> list:
+        """The work items of a stage: its rough outlines, largest first."""
+        o = self.options
+        return find_quads(gray, min_side_px=o.min_side_px, block_px=block, offset_gray=o.threshold_offset,
+                          roi=roi, downscale=stage[1])
+
+    def process(self, gray: np.ndarray, stage: Tuple[str, int], item, roi: Optional[Roi],
+                found: List[Candidate]) -> List[Candidate]:
+        cand = self.try_quad(gray, item, stage[1], found)
+        return [] if cand is None else [cand]
+
+    def prepare_stage(self, gray: np.ndarray, plan: List[Tuple[str, int]], stage_i: int,
+                      roi: Optional[Roi]) -> None:
+        """Called as stage ``stage_i`` of ``plan`` starts (a finder may start later work early)."""
+
+    def search(self, gray: np.ndarray, roi: Optional[Roi] = None,
+               expected_side_px: Optional[float] = None) -> List[Candidate]:
+        """Every verified marker outline in ``roi`` (or the whole frame)."""
+        return self.search_from(gray, roi, expected_side_px)[0]
+
+    def search_from(self, gray: np.ndarray, roi: Optional[Roi] = None,
+                    expected_side_px: Optional[float] = None, start: Tuple[int, int] = (0, 0),
+                    over: Optional[Callable[[], bool]] = None
+                    ) -> Tuple[List[Candidate], Optional[Tuple[int, int]]]:
+        """A search that may stop early: (candidates, where to go on or None).
+
+        Starts at ``start`` = (stage, item); stages run cheapest first and a stage that finds
+        the marker ends the search. ``over()`` is asked before every item but the first of
+        this call: once it says True the search stops and returns the (stage, item) to start
+        the next frame's search from. None: the search ran to its end (found or not)."""
+        plan = self.stages(gray, roi)
+        stage_i, skip = start
+        if not 0 <= stage_i < len(plan):
+            stage_i, skip = 0, 0
+        o = self.options
+        block = o.block_px if expected_side_px is None else odd(np.clip(expected_side_px / 3.0, 7, 41))
+        first = True
+        while stage_i < len(plan):
+            stage = plan[stage_i]
+            if not first and over is not None and over():
+                return [], (stage_i, skip)
+            self.prepare_stage(gray, plan, stage_i, roi)
+            items = self.stage_items(gray, stage, roi, block)
+            out: List[Candidate] = []
+            for k in range(min(skip, len(items)), len(items)):
+                if not first and over is not None and over():
+                    return out, (None if out else (stage_i, k))
+                first = False
+                out.extend(self.process(gray, stage, items[k], roi, out))
+            first = False
+            if out:
+                return out, None
+            stage_i, skip = stage_i + 1, 0
+        return [], None
 
     def follow(self, gray: np.ndarray, predicted: np.ndarray) -> Optional[Candidate]:
         """The marker near ``predicted`` corners (tracked frames): edge fits from there, checked."""
         inner, outer = self.reach_px(predicted)
-        fit = self.refine(gray, predicted, iterations=2, max_move_px=0.8 * min(inner, outer) + 0.5)
+        fit = self.refine(gray, predicted, iterations=2, max_move_px=0.8 * min(inner, outer) + 0.5,
+                          reach=(inner, outer), check_blur=False)
         if fit is None or not self.verify(gray, fit):
             return None
         return Candidate(fit.corners, self.oriented, fit)
@@ -195,6 +274,11 @@ class SquareFinder(OutlineFinder):
         dark, light = median_of(inside), median_of(ring)
         if light - dark < o.min_contrast:
             return False
+        if self.lut is not None:
+            # The shape of the blur is judged in linear light: encoded, the blurred rim of
+            # the inside looks like a lighter band.
+            inside, ring = np.interp(inside, _LEVELS, self.lut), np.interp(ring, _LEVELS, self.lut)
+            dark, light = median_of(inside), median_of(ring)
         mid = 0.5 * (dark + light)
         # The inside is one dark ink; the ring is paper (a shadow or glare may touch a few).
         if np.count_nonzero(inside >= mid) > 1 or float(inside.max() - inside.min()) > 0.5 * (light - dark):
@@ -204,27 +288,18 @@ class SquareFinder(OutlineFinder):
             return False
         return np.count_nonzero(ring <= mid) <= 0.1 * len(ring)
 
-    def search(self, gray: np.ndarray, roi: Optional[Roi] = None,
-               expected_side_px: Optional[float] = None) -> List[Candidate]:
-        """Every verified marker outline in ``roi`` (or the whole frame)."""
+    def try_quad(self, gray: np.ndarray, quad: np.ndarray, scale: int,
+                 found: List[Candidate]) -> Optional[Candidate]:
+        """A rough outline from the threshold -> the verified marker, or None. Cheap checks
+        first (shape, not inside one found, darker inside); the edge fit only for survivors."""
         o = self.options
-        block = o.block_px if expected_side_px is None else odd(np.clip(expected_side_px / 3.0, 7, 41))
-        # A whole frame is first searched at half size (4x cheaper); markers too small to
-        # show there are found by a full-size pass.
-        scales = (2, 1) if roi is None and min(gray.shape) >= 240 else (1,)
-        out: List[Candidate] = []
-        for scale in scales:
-            for quad in find_quads(gray, min_side_px=o.min_side_px, block_px=block,
-                                   offset_gray=o.threshold_offset, roi=roi, downscale=scale):
-                # Quads come largest first: one inside a marker already found is part of it.
-                if not self.shape_ok(quad) or inside_any(quad.mean(axis=0), [c.corners for c in out]):
-                    continue
-                if not darker_inside(gray, quad, 0.1, 0.5 * o.min_contrast):
-                    continue
-                fit = self.refine(gray, quad, iterations=2, max_move_px=1.5 * scale + 1.0,
-                                  converged_px=SEARCH_CONVERGED_PX)
-                if fit is not None and self.verify(gray, fit):
-                    out.append(Candidate(fit.corners, False, fit))
-            if out:
-                break
-        return out
+        # Quads come largest first: one inside a marker already found is part of it.
+        if not self.shape_ok(quad) or inside_any(quad.mean(axis=0), [c.corners for c in found]):
+            return None
+        if not darker_inside(gray, quad, 0.1, 0.5 * o.min_contrast):
+            return None
+        fit = self.refine(gray, quad, iterations=SEARCH_ITERATIONS, max_move_px=1.5 * scale + 1.0,
+                          converged_px=SEARCH_CONVERGED_PX)
+        if fit is not None and self.verify(gray, fit):
+            return Candidate(fit.corners, False, fit)
+        return None

@@ -1,4 +1,10 @@
-"""JSON lines output: the per-frame JSON object of interface.md, one per line, flushed, to a file or stdout."""
+"""JSON lines output: the per-frame JSON object of interface.md, one per line, flushed, to a file or stdout.
+
+A file is written with one ``os.write`` per line (no user-space buffer that could keep half a
+line). A write that fails or stops short (a full disk) is cut away again: the file is truncated
+back to where the line began, so a reader never sees a broken object and the next line starts
+on a fresh line. If even that truncation fails, it is done before the next line is written.
+"""
 
 from __future__ import annotations
 
@@ -38,6 +44,8 @@ class JsonlOutput(QueuedOutput):
         self.path = cfg.path
         self._given_stream = stream
         self._stream: Optional[TextIO] = None
+        self._fd: Optional[int] = None          # the file (path not "-"), written with os.write
+        self._cut_to: Optional[int] = None      # a failed line's start still to be truncated back to
         super().__init__(queue_size=queue_size, max_age_s=max_age_s, on_written=on_written,
                          on_closed=on_closed, retry_s=retry_s, retry_max_s=retry_max_s, clock=clock,
                          start=start)
@@ -52,9 +60,12 @@ class JsonlOutput(QueuedOutput):
         elif self.path == "-":
             self._stream = sys.stdout
         else:
-            self._stream = open(self.path, "a", encoding="utf-8")
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
 
     def _close_link(self) -> None:
+        fd, self._fd = self._fd, None
+        if fd is not None:
+            os.close(fd)
         stream, self._stream = self._stream, None
         if stream is None:
             return
@@ -69,9 +80,13 @@ class JsonlOutput(QueuedOutput):
         except ValueError:  # a NaN or infinity: never written
             self._drop("not_finite")
             return 0
+        if self._fd is not None:
+            self._write_file((line + "\n").encode("utf-8"))
+            return 1
         if self._stream is None:
             # Started with fd 1 closed (`>&-`): Python then sets sys.stdout to None.
             raise LinkClosed("stdout is closed")
+        self._before_send(len(line) + 1)  # the last step before the bytes go out
         try:
             self._stream.write(line + "\n")
             self._stream.flush()
@@ -83,7 +98,33 @@ class JsonlOutput(QueuedOutput):
             raise LinkError(f"cannot write {self.path}: {exc}") from exc
         except (OSError, ValueError) as exc:  # ValueError: write to a closed file
             raise LinkError(f"cannot write {self.path}: {exc}") from exc
+        self._after_send(len(line) + 1)
         return 1
+
+    def _write_file(self, data: bytes) -> None:
+        """Append one whole line, or nothing: a short or failed write is truncated away."""
+        fd = self._fd
+        assert fd is not None
+        try:
+            if self._cut_to is not None:
+                os.ftruncate(fd, self._cut_to)
+                self._cut_to = None
+            start = os.fstat(fd).st_size
+        except OSError as exc:
+            raise LinkError(f"cannot write {self.path}: {exc}") from exc
+        done = 0
+        self._before_send(len(data))      # the last step before the bytes go out
+        try:
+            while done < len(data):
+                done += os.write(fd, data[done:])
+        except OSError as exc:
+            if done:
+                try:
+                    os.ftruncate(fd, start)
+                except OSError:
+                    self._cut_to = start
+            raise LinkError(f"cannot write {self.path}: {exc}") from exc
+        self._after_send(len(data))
 
     def _detach_stdout(self) -> None:
         """Point fd 1 at /dev/null, so that flushing what stdout still buffers (at exit) does not

@@ -25,7 +25,16 @@ from ..geometry import VehicleFrames
 from ..result import FrameResult, time_usec_from_s
 from .base import ClosedHook, WrittenHook
 from .quality import LOST_QUALITY, pose_quality
-from .worker import LinkBusy, LinkError, QueuedOutput
+from .worker import (
+    LinkBusy,
+    LinkError,
+    QueuedOutput,
+    discard_tty_output,
+    fd_queued_bytes,
+    hold_serial_port,
+    is_pty,
+    release_serial_port,
+)
 
 if TYPE_CHECKING:
     from ..config import SerialOutputConfig
@@ -41,8 +50,11 @@ def nmea_checksum(body: str) -> str:
     return f"{c:02X}"
 
 
-def pose_line(result: FrameResult, frames: VehicleFrames) -> Optional[str]:
-    """The ``$POSE`` line (with CR LF) for one result; None when the pose is not finite."""
+def pose_line(result: FrameResult, frames: VehicleFrames, fx_px: Optional[float] = None,
+              marker_width_m: Optional[float] = None) -> Optional[str]:
+    """The ``$POSE`` line (with CR LF) for one result; None when the pose is not finite.
+    ``fx_px``/``marker_width_m``: the focal length and marker width behind the quality's
+    expected-error factor (quality.pose_quality; without them that factor is left out)."""
     t_us = time_usec_from_s(result.t_capture_s)
     pose = result.pose
     if pose is None:
@@ -53,7 +65,7 @@ def pose_line(result: FrameResult, frames: VehicleFrames) -> Optional[str]:
         rpy = np.degrees(v.rpy_rad)
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(rpy))):
             return None
-        q = pose_quality(pose.reprojection_error_px, pose.ambiguity_ratio)
+        q = pose_quality(pose, fx_px, marker_width_m)
         # "+ 0.0" turns -0.0 into 0.0 so that a still vehicle prints the same line every time.
         fields = [f"{float(x) + 0.0:.4f}" for x in p] + [f"{float(a) + 0.0:.2f}" for a in rpy]
         body = f"POSE,{t_us}," + ",".join(fields) + f",{q}"
@@ -89,12 +101,17 @@ class PlainSerialOutput(QueuedOutput):
     def __init__(self, cfg: SerialOutputConfig, frames: VehicleFrames, *, queue_size: int = 4,
                  max_age_s: Optional[float] = None, on_written: Optional[WrittenHook] = None,
                  on_closed: Optional[ClosedHook] = None, clock: Callable[[], float] = time.monotonic,
-                 start: bool = True) -> None:
-        """``cfg``: the ``[output.serial]`` table; ``frames``: mount and marker placement; the
-        rest as QueuedOutput."""
+                 start: bool = True, fx_px: Optional[float] = None,
+                 marker_width_m: Optional[float] = None) -> None:
+        """``cfg``: the ``[output.serial]`` table; ``frames``: mount and marker placement;
+        ``fx_px``/``marker_width_m``: for the quality, as MAVLink's; the rest as QueuedOutput."""
         self.cfg = cfg
         self.frames = frames
+        self.fx_px = fx_px
+        self.marker_width_m = marker_width_m
         self._serial = None
+        self._fd: Optional[int] = None     # the tty's descriptor (None for a pyserial URL)
+        self._pty = False
         self._last_sent_t: Optional[float] = None
         super().__init__(queue_size=queue_size, max_age_s=max_age_s, on_written=on_written,
                          on_closed=on_closed, retry_s=cfg.retry_s, retry_max_s=cfg.retry_max_s,
@@ -103,17 +120,46 @@ class PlainSerialOutput(QueuedOutput):
     @classmethod
     def from_config(cls, cfg, **kwargs) -> PlainSerialOutput:
         """The output of a whole Config's ``[output.serial]``; ``kwargs`` as ``__init__``."""
-        return cls(cfg.output.serial, VehicleFrames.from_config(cfg.mount, cfg.placement), **kwargs)
+        return cls(cfg.output.serial, VehicleFrames.from_config(cfg.mount, cfg.placement),
+                   fx_px=cfg.camera.fx, marker_width_m=cfg.target_marker().width, **kwargs)
 
     def _open(self) -> None:
         import serial
 
-        self._serial = serial.serial_for_url(self.cfg.port, baudrate=self.cfg.baud, timeout=0,
-                                             write_timeout=WRITE_TIMEOUT_S)
+        port = serial.serial_for_url(self.cfg.port, baudrate=self.cfg.baud, timeout=0,
+                                     write_timeout=WRITE_TIMEOUT_S)
+        fd = getattr(port, "fd", None)
+        if isinstance(fd, int):  # a device (not a pyserial URL): this daemon's alone
+            try:
+                hold_serial_port(fd, self.cfg.port)
+            except OSError:
+                port.close()
+                raise
+            self._fd, self._pty = fd, is_pty(fd)
+        else:
+            self._fd, self._pty = None, False
+        self._serial = port
+
+    def _queued_bytes(self) -> Optional[int]:
+        if self._fd is None:
+            return 0
+        return None if self._pty else fd_queued_bytes(self._fd)
+
+    def _link_rate_Bps(self) -> Optional[float]:
+        return None if self._pty or self._fd is None else self.cfg.baud / 10.0
+
+    def _discard_queued(self) -> bool:
+        if self._fd is None:
+            return False
+        discard_tty_output(self._fd)
+        return True
 
     def _close_link(self) -> None:
         port, self._serial = self._serial, None
         if port is not None:
+            fd = getattr(port, "fd", None)
+            if isinstance(fd, int):
+                release_serial_port(fd)
             port.close()
 
     def _write(self, result: FrameResult) -> int:
@@ -126,18 +172,27 @@ class PlainSerialOutput(QueuedOutput):
         if self._last_sent_t is not None and t - self._last_sent_t < self.cfg.min_interval_s - 1e-9:
             self._drop("rate")
             return 0
-        line = pose_line(result, self.frames)
+        line = pose_line(result, self.frames, self.fx_px, self.marker_width_m)
         if line is None:
             self._drop("not_finite")
             return 0
         data = line.encode("ascii")
+        self._before_send(len(data))      # the last step before the bytes go out
         try:
             n = self._serial.write(data)
         except serial.SerialTimeoutException as exc:
-            raise LinkBusy("serial write timed out (nobody reading?)") from exc
+            self._timed_out()
+            raise LinkBusy("serial write timed out (nobody reading?): what waited was discarded") from exc
         except Exception as exc:
             raise LinkError(f"write failed: {exc}") from exc
         if n is not None and n < len(data):
-            raise LinkBusy(f"serial write timed out after {n} of {len(data)} bytes")
+            self._timed_out()
+            raise LinkBusy(f"serial write timed out after {n} of {len(data)} bytes: what waited was discarded")
+        self._after_send(len(data))
         self._last_sent_t = t
         return 1
+
+    def _timed_out(self) -> None:
+        """The reader stopped and its buffer is full: what waits there is stale, discard it."""
+        if self._discard_queued():
+            self._discarded_after_timeout()

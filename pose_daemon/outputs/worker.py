@@ -12,9 +12,26 @@ Two ways to feed an output, both safe for the caller:
 - direct (``queue_size`` = 0): ``submit`` writes in the caller's thread and returns once the
   bytes are written. It never waits on a link being opened: a link that is down or busy
   drops the result (counted); every write has a 0.25 s timeout.
-Either way a result older than ``max_age_s`` (after capture) at the moment it is written is
-dropped as ``late``, never sent late: that check is the last step before ``_write``. This is
-the only place where results are dropped for age.
+Either way a result older than ``max_age_s`` (after capture) is dropped as ``late``, never
+sent late. It is checked when its write starts and again by ``_before_send``, which each link
+calls as the very last step before its bytes go out (after encoding, right before the
+write/send call): there the age plus a guard (the median of the last few check-to-sent
+times, so a machine that stays starved asks for more margin) must fit the budget, and a clock that went
+backwards or a capture stamp ahead of the clock refuses the send (``clock``): a check that
+cannot be trusted sends nothing. What cannot be excluded from user space is a preemption in
+the few instructions between that check and the system call; a send that still left late is
+counted (``sent_late``). This is the only place where results are dropped for age.
+
+Nothing stale may wait in a kernel buffer either. ``_before_send`` also looks at what the
+link still holds (``_queued_bytes``: SIOCOUTQ / TIOCOUTQ, bytes not yet on the wire) against
+what was written: when the oldest byte still queued belongs to a result that is now older
+than the budget (the peer stopped reading), the link discards what it holds
+(``_discard_queued``: TCOFLUSH for a serial port, a reset for TCP) and those results are
+counted as ``flushed``; a link that cannot discard (UDP) refuses the new result (``late``).
+With a known byte rate (``_link_rate_Bps``, serial: baud / 10) a result whose bytes would only
+be through after the budget is refused (``late``). A link that cannot tell what it holds
+(``_queued_bytes`` None: a pseudo-terminal) is treated as holding everything written since its
+last discard, which is discarded once the oldest of it is half the budget old.
 
 The output's thread opens the link, reopens it after a failure with a doubling pause, and
 does the periodic work (MAVLink heartbeats, reading the autopilot) every ``tick_s``, after
@@ -34,9 +51,10 @@ from __future__ import annotations
 
 import collections
 import logging
+import os
 import threading
 import time
-from typing import Callable, Deque, Dict, Optional
+from typing import Callable, Deque, Dict, Optional, Tuple
 
 from ..result import FrameResult
 from .base import ClosedHook, WrittenHook
@@ -52,8 +70,79 @@ class LinkClosed(LinkError):
     pipeline ends the run, as SIGPIPE ends `yes | head`."""
 
 
+def hold_serial_port(fd: int, device: str) -> None:
+    """Make an open serial port this process's alone: an exclusive ``flock`` (which every
+    pose-daemon and pyserial's ``exclusive=True`` honour, root included) and TIOCEXCL (no further
+    open() of the tty by anyone but root). OSError "DEVICE is in use by another process" when
+    another holds the lock. ``release_serial_port`` undoes TIOCEXCL before the port is closed."""
+    import fcntl
+    import termios
+
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError as exc:
+        raise OSError(f"{device} is in use by another process (it holds the port's lock)") from exc
+    try:
+        fcntl.ioctl(fd, termios.TIOCEXCL)
+    except OSError:
+        pass  # not a tty (a pyserial URL): the lock is what counts
+
+
+def fd_queued_bytes(fd: int) -> int:
+    """Bytes a socket or tty has taken but not yet sent (SIOCOUTQ = TIOCOUTQ)."""
+    import array
+    import fcntl
+    import termios
+
+    buf = array.array("i", [0])
+    fcntl.ioctl(fd, termios.TIOCOUTQ, buf, True)
+    return int(buf[0])
+
+
+def is_pty(fd: int) -> bool:
+    """True for a pseudo-terminal's slave (Unix98 majors 136-143, BSD 3): it reports nothing
+    queued (TIOCOUTQ is 0) whatever its reader left unread."""
+    import stat
+
+    st = os.fstat(fd)
+    return stat.S_ISCHR(st.st_mode) and (136 <= os.major(st.st_rdev) <= 143 or os.major(st.st_rdev) == 3)
+
+
+def discard_tty_output(fd: int) -> None:
+    """Throw away what a tty holds for its reader (TCOFLUSH)."""
+    import termios
+
+    termios.tcflush(fd, termios.TCOFLUSH)
+
+
+def release_serial_port(fd: int) -> None:
+    """Clear TIOCEXCL (it outlives our descriptor while anyone else holds the tty open)."""
+    import fcntl
+    import termios
+
+    try:
+        fcntl.ioctl(fd, termios.TIOCNXCL)
+    except OSError:
+        pass
+
+
 class LinkBusy(Exception):
     """The link could not take the bytes in time (full buffer): this write is dropped."""
+
+
+class _Refused(Exception):
+    """``_before_send`` refused the bytes of the result at hand; ``cause`` is its drop cause."""
+
+    def __init__(self, cause: str) -> None:
+        super().__init__(cause)
+        self.cause = cause
+
+
+# A capture stamp this far ahead of the output's clock means the clock (or the stamp) jumped.
+CLOCK_SLACK_S = 0.005
+# The guard of the last check is the median check-to-sent time of this many recent sends (one
+# preemption does not stop the stream; a machine that stays starved raises it).
+GUARD_SENDS = 8
 
 
 class QueuedOutput:
@@ -95,9 +184,20 @@ class QueuedOutput:
         self.log = logging.getLogger(f"pose_daemon.outputs.{self.name}")
         self._counts: Dict[str, int] = {"submitted": 0, "written": 0, "sent": 0, "errors": 0, "opens": 0, "link_failures": 0}
         self._dropped: Dict[str, int] = collections.defaultdict(int)
+        # Received bytes or messages not acted on, by cause (bad_signature, oversized, ...).
+        self._ignored: Dict[str, int] = collections.defaultdict(int)
         self._last_error = ""
         self._last_latency_s: Optional[float] = None
         self._thread: Optional[threading.Thread] = None
+        # The result whose bytes are being written (for _before_send) and when its write began.
+        self._current: Optional[FrameResult] = None
+        self._t_write_began = 0.0
+        self._t_send_check = 0.0
+        self._send_s: Deque[float] = collections.deque(maxlen=GUARD_SENDS)
+        # Bytes handed to the link since it opened, and (t_capture_s, end offset) of the results
+        # among them that may still wait in the kernel: what _before_send measures the queue by.
+        self._bytes_out = 0
+        self._written: Deque[Tuple[float, int]] = collections.deque(maxlen=4096)
         if start:
             self.start()
 
@@ -174,6 +274,7 @@ class QueuedOutput:
                 **dict(self._counts),
                 "dropped": dict(self._dropped),
                 "dropped_total": sum(self._dropped.values()),
+                "ignored": dict(self._ignored),
                 "queued": len(self._queue),
                 "last_error": self._last_error,
                 "last_latency_s": self._last_latency_s,
@@ -185,6 +286,10 @@ class QueuedOutput:
         parts = [f"link {s['link']}"]
         if s["dropped"]:
             parts.append("dropped " + " ".join(f"{k}={v}" for k, v in sorted(s["dropped"].items())))
+        if s.get("sent_late"):
+            parts.append(f"sent_late {s['sent_late']}")
+        if s["ignored"]:
+            parts.append("ignored " + " ".join(f"{k}={v}" for k, v in sorted(s["ignored"].items())))
         if s["errors"]:
             parts.append(f"errors {s['errors']} (last: {s['last_error']})")
         return ", ".join(parts)
@@ -206,6 +311,91 @@ class QueuedOutput:
         """Send what this result calls for; return the number of messages/lines written (0 when
         a rule held it back, after counting why with ``_drop``). LinkError/LinkBusy on failure."""
         raise NotImplementedError
+
+    def _queued_bytes(self) -> Optional[int]:
+        """Bytes this link has taken but not yet put on the wire (SIOCOUTQ, TIOCOUTQ); None when
+        the link cannot tell (a pseudo-terminal). Default 0: nothing waits (a file)."""
+        return 0
+
+    def _link_rate_Bps(self) -> Optional[float]:
+        """The link's byte rate when it is fixed (a serial line: baud / 10), else None."""
+        return None
+
+    def _discard_queued(self) -> bool:
+        """Throw away what the link still holds (True), or False when it cannot; may raise
+        LinkError to have the link reopened (a TCP connection that is reset)."""
+        return False
+
+    def _before_send(self, nbytes: int) -> None:
+        """The last step before a link writes ``nbytes`` of the result at hand (nothing to check
+        for other bytes, heartbeats, or without a budget): raises _Refused (late, clock) when
+        they must not go out; discards what waits in the kernel that would arrive late."""
+        item, budget = self._current, self._max_age_s
+        if item is None or budget is None:
+            return
+        now = self._clock()
+        t_capture = float(item.t_capture_s)
+        if now < self._t_write_began or t_capture - now > CLOCK_SLACK_S:
+            raise _Refused("clock")
+        self._check_queue(now, budget, nbytes, t_capture)
+        recent = sorted(self._send_s)
+        guard = min(recent[len(recent) // 2], budget / 2) if recent else 0.0
+        if now - t_capture + guard > budget:
+            raise _Refused("late")
+        self._t_send_check = now
+
+    def _after_send(self, nbytes: int) -> None:
+        """Called by a link once it handed ``nbytes`` to the kernel."""
+        self._bytes_out += nbytes
+        item, budget = self._current, self._max_age_s
+        if item is None or budget is None:
+            return
+        now = self._clock()
+        t_capture = float(item.t_capture_s)
+        self._send_s.append(max(0.0, now - self._t_send_check))
+        self._written.append((t_capture, self._bytes_out))
+        if now - t_capture > budget:
+            self._count("sent_late")
+
+    def _discarded_after_timeout(self) -> None:
+        """A write timed out (the reader stopped; its buffer is full): what the link still holds
+        was discarded by the caller; count it as ``flushed``."""
+        held = len(self._written)
+        self._written.clear()
+        if held:
+            with self._cond:
+                self._dropped["flushed"] += held
+
+    def _check_queue(self, now: float, budget: float, nbytes: int, t_capture: float) -> None:
+        queued = self._queued_bytes()
+        written = self._written
+        if queued is not None:
+            first_waiting = self._bytes_out - queued
+            while written and written[0][1] <= first_waiting:
+                written.popleft()       # through: on the wire or read by the peer
+            limit = budget
+        else:
+            limit = budget / 2          # cannot tell: assume all since the last discard waits
+        if written and now - written[0][0] > limit:
+            held = len(written) if queued is not None else 0
+            discarded = False
+            try:
+                discarded = self._discard_queued()
+            except LinkError:           # discarded by closing the link (TCP reset)
+                discarded = True
+                raise
+            finally:
+                if discarded:
+                    written.clear()
+                    if held:
+                        with self._cond:
+                            self._dropped["flushed"] += held
+            if not discarded:
+                raise _Refused("late")  # cannot discard: do not add to a queue that is late
+            queued = 0
+        rate = self._link_rate_Bps()
+        if rate and queued is not None and now + (queued + nbytes) / rate - t_capture > budget:
+            raise _Refused("late")      # it would only be through after the budget
 
     def _writes_never_block(self) -> bool:
         """True when a write cannot wait (non-blocking datagrams): submit may then write at once
@@ -231,6 +421,11 @@ class QueuedOutput:
         """Count one result not written, by cause (the status line shows each cause)."""
         with self._cond:
             self._dropped[cause] += 1
+
+    def _ignore(self, cause: str, n: int = 1) -> None:
+        """Count received data not acted on, by cause (the status line shows each cause)."""
+        with self._cond:
+            self._ignored[cause] += n
 
     def _count(self, key: str, n: int = 1) -> None:
         with self._cond:
@@ -281,11 +476,16 @@ class QueuedOutput:
             self._drop("link_closed" if self._gone else "link_down")
             return
         max_age = self._max_age_s
-        if max_age is not None and self._clock() - float(item.t_capture_s) > max_age:
+        now = self._clock()
+        if max_age is not None and now - float(item.t_capture_s) > max_age:
             self._drop("late")
             return
+        self._current, self._t_write_began = item, now
         try:
             n = self._write(item)
+        except _Refused as exc:
+            self._drop(exc.cause)
+            return
         except LinkBusy as exc:
             self._drop("link_busy")
             self._error(str(exc))
@@ -302,6 +502,8 @@ class QueuedOutput:
             self._drop("error")
             self._error(f"{type(exc).__name__}: {exc}")
             return
+        finally:
+            self._current = None
         if n:
             t_written = self._clock()
             with self._cond:
@@ -332,6 +534,8 @@ class QueuedOutput:
         # be reopened every ``retry_s`` for ever (see _link_failed).
         self._link_up = True
         self._t_up = now
+        self._bytes_out = 0
+        self._written.clear()
         with self._cond:
             self._counts["opens"] += 1
             self._link_state = "up"

@@ -97,6 +97,17 @@ class MapPose(Pose):
         return A @ self.covariance @ A.T
 
     @property
+    def solve_covariance_map(self) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+        """(3x3 covariance of the camera centre in the map frame, m^2; 3x3 covariance of the
+        rotation in the map frame, rad^2), as outputs/quality.solve_covariance gives for one
+        marker: exp(w_cam) R = R exp(R^T w_cam)."""
+        c = self.camera_position_covariance_cam
+        if c is None:
+            return None
+        R = np.asarray(self.R, dtype=np.float64)
+        return R.T @ c @ R, R.T @ self.covariance[:3, :3] @ R
+
+    @property
     def attitude_std_rad(self) -> Optional[float]:
         """RMS standard deviation of the three attitude angles (rad), from the solve."""
         if self.covariance is None or not np.all(np.isfinite(self.covariance)):

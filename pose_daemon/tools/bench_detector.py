@@ -17,6 +17,7 @@ import numpy as np
 
 from ..camera import Camera, Marker
 from ..geometry import R_from_rvec, rotation_angle_deg, rvec_from_R
+from ..render import Effects, random_pose, render_empty, render_frame
 
 #: How much slower a Pi 2 (900 MHz Cortex-A7) runs this code than the machine measured here.
 PI2_FACTOR = 20.0
@@ -85,13 +86,82 @@ class Tally:
 
 
 def _effects(rng: np.random.Generator):
-    from ..render import Effects
 
     # Varied scenes: mostly textured backgrounds, some plain; lighting from even to strong.
     plain = rng.random() < 0.25
     return Effects(blur_px=0.8, noise_gray=2.0, background="plain" if plain else "texture",
                    plain_gray=float(rng.uniform(60.0, 200.0)),
                    lighting_gradient=float(rng.uniform(0.0, 0.6)))
+
+
+CLUTTER_SCENES = ("carpet", "board", "text", "rectangles")
+
+
+def clutter_background(kind: str, rng: np.random.Generator, width: int, height: int) -> np.ndarray:
+    """A cluttered background (height, width) float32 grey levels, the hard cases of a
+    whole-frame search: "carpet" (strong blotchy texture, dark blobs everywhere), "board"
+    (a board of many dark squares, seen in perspective), "text" (a page of dark print) and
+    "rectangles" (many dark rectangles on light surrounds: posters, notes, windows)."""
+    if kind == "carpet":
+        field = np.zeros((height, width), np.float32)
+        for cells, weight in ((6, 0.6), (20, 1.0), (60, 0.8), (160, 0.5)):
+            grid = rng.random((max(2, cells * height // width), cells), dtype=np.float32)
+            field += weight * cv2.resize(grid, (width, height), interpolation=cv2.INTER_CUBIC)
+        field = (field - field.mean()) / max(float(field.std()), 1e-6)
+        # A steep curve: dark blobs with sharp-ish rims on a light pile, and the speckle between.
+        blob = 1.0 / (1.0 + np.exp(-3.0 * field))
+        return (30.0 + 180.0 * blob).astype(np.float32)
+    if kind == "board":
+        out = np.full((height, width), float(rng.uniform(150, 200)), np.float32)
+        n = int(rng.integers(6, 10))
+        cell = float(rng.uniform(0.6, 0.9)) * min(width, height) / n
+        board = np.full((int(n * cell) + 8, int(n * cell) + 8), 235.0, np.float32)
+        for r in range(n):
+            for c in range(n):
+                y0, x0 = int(4 + r * cell), int(4 + c * cell)
+                if (r + c) % 2 == 0:
+                    board[y0:int(4 + (r + 1) * cell), x0:int(4 + (c + 1) * cell)] = 30.0
+                else:
+                    # A ChArUco board: a marker-like dark square in every white one.
+                    m0, m1 = int(0.2 * cell), int(0.8 * cell)
+                    board[y0 + m0:y0 + m1, x0 + m0:x0 + m1] = 30.0
+                    k = max(1, int(0.12 * cell))
+                    for _ in range(3):
+                        py, px = rng.integers(m0 + k, m1 - 2 * k, 2)
+                        board[y0 + py:y0 + py + k, x0 + px:x0 + px + k] = 235.0
+        h, w = board.shape
+        src = np.float32([[0, 0], [w, 0], [w, h], [0, h]])
+        jitter = rng.uniform(-0.12, 0.12, (4, 2)) * [width, height]
+        x0, y0 = rng.uniform(0, width - w * 0.8), rng.uniform(0, height - h * 0.8)
+        dst = (src * 0.9 + [x0, y0] + jitter).astype(np.float32)
+        H = cv2.getPerspectiveTransform(src, dst)
+        warped = cv2.warpPerspective(board, H, (width, height), flags=cv2.INTER_AREA, borderValue=-1.0)
+        mask = warped >= 0
+        out[mask] = warped[mask]
+        return out
+    if kind == "text":
+        page = np.full((height, width), float(rng.uniform(190, 235)), np.uint8)
+        y = int(rng.integers(12, 24))
+        letters = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789.,;:-"
+        while y < height:
+            scale = float(rng.uniform(0.4, 1.3))
+            thickness = int(rng.integers(1, 3))
+            line = "".join(rng.choice(list(letters + "     "), size=60))
+            font = int(rng.choice([cv2.FONT_HERSHEY_SIMPLEX, cv2.FONT_HERSHEY_DUPLEX, cv2.FONT_HERSHEY_COMPLEX]))
+            cv2.putText(page, line, (int(rng.integers(-20, 10)), y), font, scale, int(rng.uniform(10, 60)),
+                        thickness, cv2.LINE_AA)
+            y += int(30 * scale + rng.integers(4, 12))
+        return page.astype(np.float32)
+    if kind == "rectangles":
+        out = np.full((height, width), float(rng.uniform(170, 230)), np.float32)
+        for _ in range(int(rng.integers(25, 45))):
+            w, h = rng.uniform(12, 90, 2)
+            centre = (float(rng.uniform(0, width)), float(rng.uniform(0, height)))
+            box = cv2.boxPoints((centre, (float(w), float(h)), float(rng.uniform(0, 90))))
+            pts = np.round(box * 16).astype(np.int32)
+            cv2.fillConvexPoly(out, pts, float(rng.uniform(15, 90)), cv2.LINE_AA, shift=4)
+        return out
+    raise ValueError(f"clutter scene must be one of {', '.join(CLUTTER_SCENES)}, got {kind!r}")
 
 
 def _align_labels(found: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -170,7 +240,6 @@ def _run_marker_type(kind: str, n_frames: int, seed: int, camera: Camera,
                      repeat: int) -> Dict[str, Tally]:
     from ..detect import MarkerDetector, aruco_compat
     from ..pose.estimator import EstimationError, estimate_pose
-    from ..render import random_pose, render_frame
 
     if kind == "aruco":
         marker = Marker(MARKER_SIZE_M, MARKER_SIZE_M, type="aruco", dictionary=DICTIONARY, id=MARKER_ID)
@@ -266,7 +335,6 @@ def _run_marker_type(kind: str, n_frames: int, seed: int, camera: Camera,
 
 def _run_empty(tallies: Dict[str, Dict[str, Tally]], n_empty: int, seed: int, camera: Camera) -> None:
     from ..detect import MarkerDetector, aruco_compat
-    from ..render import render_empty
 
     square = Marker(MARKER_SIZE_M, MARKER_SIZE_M)
     aruco = Marker(MARKER_SIZE_M, MARKER_SIZE_M, type="aruco", dictionary=DICTIONARY, id=MARKER_ID)
@@ -291,6 +359,152 @@ def _run_empty(tallies: Dict[str, Dict[str, Tally]], n_empty: int, seed: int, ca
             anchor.empty_frames += 1
             _, ids = anchor_finder.detect(image)
             anchor.false_detections += bool(np.any(ids == MARKER_ID))
+
+
+def _clutter_effects(rng: np.random.Generator):
+
+    return Effects(blur_px=0.8, noise_gray=2.0, lighting_gradient=float(rng.uniform(0.0, 0.4)))
+
+
+def run_clutter(n_frames: int, seed: int, camera: Camera, repeat: int) -> List[dict]:
+    """Whole-frame search on cluttered scenes (``CLUTTER_SCENES``), pose-daemon and the anchor
+    (OpenCV's ArucoDetector with sub-pixel refinement) interleaved on the same frames.
+
+    Per scene and marker type: ``n_frames`` frames with the marker (a random pose in front
+    of the clutter) and as many of the clutter alone (false detections). Times are the
+    detection alone (no pose), each the fastest of ``repeat`` runs."""
+    from ..detect import MarkerDetector, aruco_compat
+
+    markers = {"square": Marker(MARKER_SIZE_M, MARKER_SIZE_M),
+               "aruco": Marker(MARKER_SIZE_M, MARKER_SIZE_M, type="aruco", dictionary=DICTIONARY,
+                               id=MARKER_ID)}
+    anchor_finder = aruco_compat.ArucoMarkerFinder(
+        aruco_compat.get_dictionary(DICTIONARY), aruco_compat.make_parameters(corner_refine="subpix"))
+    rows = []
+    for s_index, scene in enumerate(CLUTTER_SCENES):
+        for kind, marker in markers.items():
+            detector = MarkerDetector(marker)
+            ours, anchor = Tally(f"{scene}, {kind} (pose-daemon)"), Tally(f"{scene}, aruco (anchor)")
+            pose_rng = np.random.default_rng([seed, 10, s_index])
+            for i in range(n_frames):
+                scene_rng = np.random.default_rng([seed, 11, s_index, i])
+                effects = _clutter_effects(scene_rng)
+                background = clutter_background(scene, scene_rng, camera.width, camera.height)
+                rvec, tvec = random_pose(pose_rng, camera, marker, distance_m=(0.5, 3.0), max_tilt_deg=60.0)
+                image, truth = render_frame(camera, marker, rvec, tvec, effects=effects,
+                                            rng=np.random.default_rng([seed, 12, s_index, i]),
+                                            background=background)
+                empty = render_empty(camera, effects=effects, rng=np.random.default_rng([seed, 13, s_index, i]),
+                                     background=background)
+
+                def ours_full(image=image, detector=detector):
+                    detector.reset()
+                    return detector.detect(image)
+
+                def anchor_full(image=image):
+                    found, ids = anchor_finder.detect(image)
+                    return next((c.astype(np.float64) for c, m in zip(found, ids) if int(m) == MARKER_ID), None)
+
+                # Interleaved: ours, the anchor, on the same frame, then the marker-free one.
+                corners, (seconds, cpu) = _timed(ours_full, repeat)
+                ours.t_full_s.append(seconds)
+                ours.cpu_full_s.append(cpu)
+                if corners is not None and kind == "square":
+                    corners = _align_labels(corners, truth)
+                _score(ours, corners, truth, rvec, tvec, None)
+                if kind == "aruco":
+                    corners, (seconds, cpu) = _timed(anchor_full, repeat)
+                    anchor.t_full_s.append(seconds)
+                    anchor.cpu_full_s.append(cpu)
+                    _score(anchor, corners, truth, rvec, tvec, None)
+                found, (seconds, _) = _timed(lambda empty=empty: ours_full(empty), repeat)
+                ours.t_tracked_s.append(seconds)   # here: the marker-free frame's search
+                ours.empty_frames += 1
+                ours.false_detections += found is not None
+                if kind == "aruco":
+                    found, (seconds, _) = _timed(lambda empty=empty: anchor_full(empty), repeat)
+                    anchor.t_tracked_s.append(seconds)
+                    anchor.empty_frames += 1
+                    anchor.false_detections += found is not None
+            rows.append(_clutter_row(scene, kind, ours, anchor if kind == "aruco" else None))
+    return rows
+
+
+def _clutter_row(scene: str, kind: str, ours: Tally, anchor: Optional[Tally]) -> dict:
+    s = ours.summary()
+    row = {"scene": scene, "marker": kind, "frames": s["frames"], "detection_rate": s["detection_rate"],
+           "wrong_detections": s["wrong_detections"], "corner_rms_px": s["corner_rms_px"],
+           "false_detections": s["false_detections"], "empty_frames": s["empty_frames"],
+           "time_median_ms": s["time_full_median_ms"], "time_empty_median_ms": s["time_tracked_median_ms"],
+           "cpu_median_ms": s["cpu_full_median_ms"]}
+    if anchor is not None:
+        a = anchor.summary()
+        row.update({"anchor_detection_rate": a["detection_rate"], "anchor_wrong_detections": a["wrong_detections"],
+                    "anchor_corner_rms_px": a["corner_rms_px"], "anchor_false_detections": a["false_detections"],
+                    "anchor_time_median_ms": a["time_full_median_ms"],
+                    "anchor_time_empty_median_ms": a["time_tracked_median_ms"],
+                    "anchor_cpu_median_ms": a["cpu_full_median_ms"]})
+        # Ratio of medians per frame pair: both timed on the same frames, one after the other.
+        row["time_ratio_median"] = float(np.median(np.array(ours.t_full_s) / np.array(anchor.t_full_s)))
+    return row
+
+
+#: The blur sweep: (label, Effects overrides, the detector's gamma). Gamma-encoded frames
+#: are what real cameras give; "as linear" reads them without the camera's response.
+BLUR_SWEEP = (
+    ("defocus 0.8 px", dict(blur_px=0.8), 1.0),
+    ("defocus 1.5 px", dict(blur_px=1.5), 1.0),
+    ("defocus 2.5 px", dict(blur_px=2.5), 1.0),
+    ("sRGB, defocus 0.8 px", dict(blur_px=0.8, gamma="srgb"), "srgb"),
+    ("sRGB, defocus 1.5 px", dict(blur_px=1.5, gamma="srgb"), "srgb"),
+    ("sRGB, defocus 2.5 px", dict(blur_px=2.5, gamma="srgb"), "srgb"),
+    ("sRGB, motion 4 px", dict(blur_px=0.8, motion_blur_px=4.0, gamma="srgb"), "srgb"),
+    ("sRGB, motion 8 px", dict(blur_px=0.8, motion_blur_px=8.0, gamma="srgb"), "srgb"),
+    ("sRGB, sharpened, JPEG 85", dict(blur_px=1.5, gamma="srgb", sharpen=0.6, jpeg_quality=85), "srgb"),
+    ("sRGB 1.5 px read as linear", dict(blur_px=1.5, gamma="srgb"), 1.0),
+)
+
+
+def run_blur_sweep(n_frames: int, seed: int, camera: Camera) -> List[dict]:
+    """Corner accuracy and marker size bias over ``BLUR_SWEEP``, ArUco marker, pose-daemon and
+    the anchor on the same ``n_frames`` frames per condition (same poses for every condition)."""
+    from ..detect import MarkerDetector, aruco_compat
+    from ..detect.square import side_lengths
+
+    marker = Marker(MARKER_SIZE_M, MARKER_SIZE_M, type="aruco", dictionary=DICTIONARY, id=MARKER_ID)
+    anchor_finder = aruco_compat.ArucoMarkerFinder(
+        aruco_compat.get_dictionary(DICTIONARY), aruco_compat.make_parameters(corner_refine="subpix"))
+    rows = []
+    for label, overrides, detector_gamma in BLUR_SWEEP:
+        detector = MarkerDetector(marker, gamma=detector_gamma)
+        pose_rng = np.random.default_rng([seed, 20])
+        tallies = {"ours": Tally(label), "anchor": Tally(label)}
+        sizes: Dict[str, List[float]] = {"ours": [], "anchor": []}
+        for i in range(n_frames):
+            rvec, tvec = random_pose(pose_rng, camera, marker, distance_m=(0.5, 3.0), max_tilt_deg=60.0)
+            scene_rng = np.random.default_rng([seed, 21, i])
+            fields = dict(noise_gray=2.0, background="texture", lighting_gradient=float(scene_rng.uniform(0, 0.4)),
+                          motion_blur_angle_deg=float(scene_rng.uniform(0, 180)))
+            fields.update(overrides)
+            image, truth = render_frame(camera, marker, rvec, tvec, effects=Effects(**fields),
+                                        rng=np.random.default_rng([seed, 22, i]))
+            detector.reset()
+            found = {"ours": detector.detect(image)}
+            corners, ids = anchor_finder.detect(image)
+            found["anchor"] = next((c.astype(np.float64) for c, m in zip(corners, ids) if int(m) == MARKER_ID), None)
+            for key, corners in found.items():
+                _score(tallies[key], corners, truth, rvec, tvec, None)
+                if corners is not None and float(np.abs(corners - truth).max()) <= 5.0:
+                    sizes[key].append(float(side_lengths(corners).sum() / side_lengths(truth).sum() - 1.0))
+        row = {"condition": label, "frames": n_frames, "detector_gamma": detector_gamma}
+        for key in ("ours", "anchor"):
+            s = tallies[key].summary()
+            prefix = "" if key == "ours" else "anchor_"
+            row.update({prefix + "detection_rate": s["detection_rate"], prefix + "corner_rms_px": s["corner_rms_px"],
+                        prefix + "size_bias_mean_pct": 100 * float(np.mean(sizes[key])) if sizes[key] else None,
+                        prefix + "size_bias_median_pct": 100 * float(np.median(sizes[key])) if sizes[key] else None})
+        rows.append(row)
+    return rows
 
 
 def _fmt(value: Optional[float], spec: str, suffix: str = "") -> str:
@@ -346,6 +560,49 @@ def print_report(result: dict) -> None:
           + ", ".join(f"{name} {100 * rate:.1f}%" for name, rate in follow)
           + f"; each time the fastest of {result['setup']['repeat']} runs, median over frames;"
           " CPU = processor time of all threads (OpenCV's detector also uses idle cores)")
+    if "clutter" in result:
+        _print_clutter(result["clutter"], result["setup"]["clutter_frames"])
+    if "blur_sweep" in result:
+        _print_sweep(result["blur_sweep"], result["setup"]["sweep_frames"])
+
+
+def _print_clutter(rows: List[dict], n_frames: int) -> None:
+    print()
+    print(f"whole-frame search in clutter: {n_frames} frames per scene and marker type with the marker,"
+          f" as many without (false); detection alone, fastest of the repeats, median; anchor ="
+          f" OpenCV ArucoDetector + CORNER_REFINE_SUBPIX, interleaved on the same frames")
+    header = (f"{'scene, marker':<22}{'detected':>9}{'wrong':>6}{'false':>7}{'time':>10}{'no marker':>11}"
+              f"{'anchor det.':>12}{'anchor':>10}{'no marker':>11}{'ratio':>8}")
+    print(header)
+    print("-" * len(header))
+    for r in rows:
+        rate = _fmt(None if r["detection_rate"] is None else 100 * r["detection_rate"], ".0f", "%")
+        line = (f"{r['scene'] + ', ' + r['marker']:<22}{rate:>9}{r['wrong_detections']:>6}"
+                f"{r['false_detections']:>3}/{r['empty_frames']:<3}{_fmt(r['time_median_ms'], '.2f', ' ms'):>10}"
+                f"{_fmt(r['time_empty_median_ms'], '.2f', ' ms'):>11}")
+        if "anchor_time_median_ms" in r:
+            a_rate = _fmt(None if r["anchor_detection_rate"] is None else 100 * r["anchor_detection_rate"], ".0f", "%")
+            line += (f"{a_rate:>12}{_fmt(r['anchor_time_median_ms'], '.2f', ' ms'):>10}"
+                     f"{_fmt(r['anchor_time_empty_median_ms'], '.2f', ' ms'):>11}"
+                     f"{_fmt(r['time_ratio_median'], '.2f', 'x'):>8}")
+        print(line)
+    print("ratio: median over frames of pose-daemon's time / the anchor's on the same frame")
+
+
+def _print_sweep(rows: List[dict], n_frames: int) -> None:
+    print()
+    print(f"blur sweep, aruco marker, {n_frames} frames per condition (same poses): marker size bias ="
+          f" detected / true perimeter - 1")
+    header = (f"{'condition':<30}{'detector gamma':>15}{'detected':>9}{'corner RMS':>12}{'size bias mean':>16}"
+              f"{'anchor det.':>12}{'anchor RMS':>12}{'anchor bias':>13}")
+    print(header)
+    print("-" * len(header))
+    for r in rows:
+        print(f"{r['condition']:<30}{str(r['detector_gamma']):>15}"
+              f"{_fmt(None if r['detection_rate'] is None else 100 * r['detection_rate'], '.0f', '%'):>9}"
+              f"{_fmt(r['corner_rms_px'], '.3f', ' px'):>12}{_fmt(r['size_bias_mean_pct'], '+.3f', ' %'):>16}"
+              f"{_fmt(None if r['anchor_detection_rate'] is None else 100 * r['anchor_detection_rate'], '.0f', '%'):>12}"
+              f"{_fmt(r['anchor_corner_rms_px'], '.3f', ' px'):>12}{_fmt(r['anchor_size_bias_mean_pct'], '+.3f', ' %'):>13}")
 
 
 def run_bench(frames: int = 300, empty: int = 200, seed: int = 0, repeat: int = 3) -> dict:
@@ -383,4 +640,9 @@ def run_bench(frames: int = 300, empty: int = 200, seed: int = 0, repeat: int = 
         "anchor_full_ms": an["time_full_median_ms"],
         "anchor_full_cpu_ms": an["cpu_full_median_ms"],
     }
+    # Clutter scenes and the blur sweep: a tenth as many frames each, reported separately.
+    n_extra = max(1, frames // 10)
+    result["clutter"] = run_clutter(n_extra, seed, camera, repeat)
+    result["blur_sweep"] = run_blur_sweep(n_extra, seed, camera)
+    result["setup"]["clutter_frames"] = result["setup"]["sweep_frames"] = n_extra
     return result

@@ -4,14 +4,19 @@ Runs the daemon's real pipeline (detector, estimator, MAVLink over UDP to 127.0.
 lines to /dev/null) on rendered 640x480 frames handed out at a fixed rate by a paced source
 that stamps each frame when it is handed out, as a camera driver would. The rendered frames
 are played forth and back, so the camera moves continuously (and turns round) as in flight.
+``preview="idle"`` adds the live preview with nobody watching, ``preview="watch"`` with one
+viewer (a separate process reading /stream.mjpg), to measure what the page costs.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 import socket
+import subprocess
 import sys
+import tempfile
 import threading
 import time
 from typing import Any, Callable, Dict, List, Optional
@@ -108,6 +113,26 @@ path = "{os.devnull}"
 """, "<bench>")
 
 
+# The viewer of --preview watch: a separate process, so its reading is not the daemon's CPU.
+VIEWER = r"""
+import signal, sys, urllib.request
+frames = size = 0
+signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+try:
+    with urllib.request.urlopen(sys.argv[1], timeout=30) as r:
+        while True:
+            chunk = r.read(65536)
+            if not chunk:
+                break
+            size += len(chunk)
+            frames += chunk.count(b"--frame")
+except Exception:
+    pass
+finally:
+    print(frames, size, flush=True)
+"""
+
+
 def _percentiles_ms(values: np.ndarray) -> str:
     if values.size == 0:
         return "no samples"
@@ -115,13 +140,18 @@ def _percentiles_ms(values: np.ndarray) -> str:
     return f"median {p50:.2f} ms, p99 {p99:.2f} ms, max {values.max() * 1e3:.2f} ms ({values.size} frames)"
 
 
+PREVIEW_MODES = ("off", "idle", "watch")
+
+
 def run_bench(frames: int = 3000, fps: float = 100.0, distinct: int = 48, seed: int = 0,
-              progress: Callable[[str], None] = print) -> Dict[str, Any]:
+              progress: Callable[[str], None] = print, preview: str = "off") -> Dict[str, Any]:
     """The daemon's pipeline over ``frames`` frames (``distinct`` rendered ones played forth
     and back) handed out at ``fps``: the report for ``print_report``; ``progress`` gets a line
-    before the rendering and before the run."""
+    before the rendering and before the run. ``preview``: one of PREVIEW_MODES."""
     if frames < 1 or fps <= 0 or distinct < 1:
         raise ValueError(f"frames and distinct must be >= 1 and fps > 0 (got {frames}, {distinct}, {fps})")
+    if preview not in PREVIEW_MODES:
+        raise ValueError(f"preview must be one of {', '.join(PREVIEW_MODES)}, got {preview!r}")
     from ..outputs import open_outputs
     from ..pipeline import Pipeline
     from ..processing import FrameProcessor
@@ -130,13 +160,13 @@ def run_bench(frames: int = 3000, fps: float = 100.0, distinct: int = 48, seed: 
     previous_interval = sys.getswitchinterval()
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)  # as `pose-daemon run` does
     try:
-        return _run(frames, fps, distinct, seed, progress, Pipeline, FrameProcessor, open_outputs)
+        return _run(frames, fps, distinct, seed, progress, Pipeline, FrameProcessor, open_outputs, preview)
     finally:
         sys.setswitchinterval(previous_interval)
 
 
 def _run(n_frames: int, fps: float, distinct: int, seed: int, progress: Callable[[str], None],
-         Pipeline, FrameProcessor, open_outputs) -> Dict[str, Any]:
+         Pipeline, FrameProcessor, open_outputs, preview: str) -> Dict[str, Any]:
     # A ground station stand-in that drains the UDP port.
     sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sink.bind(("127.0.0.1", 0))
@@ -174,23 +204,59 @@ def _run(n_frames: int, fps: float, distinct: int, seed: int, progress: Callable
         if rss_warm[0] is None and result.seq >= warm_at:
             rss_warm[0] = rss_bytes()
 
+    tap = server = viewer = None
+    data_dir = tempfile.TemporaryDirectory(prefix="bench-preview-")
+    if preview != "off":
+        from ..config import PreviewConfig
+        from ..preview import FrameTap
+
+        cfg = dataclasses.replace(cfg, preview=PreviewConfig(listen="127.0.0.1:0", data_dir=data_dir.name))
+        tap = FrameTap(processor)
     # Garbage collection between frames, as `pose-daemon run` does.
     from ..service import IdleCollector
 
     pipeline = Pipeline.from_config(cfg, source, processor, functools.partial(open_outputs, cfg),
-                                    on_written=on_written, on_idle=IdleCollector().run)
+                                    on_written=on_written, on_idle=IdleCollector().run,
+                                    frame_observer=tap)
     outputs = pipeline.outputs
     totals = {o.name: np.zeros(n_frames) for o in outputs}  # filled by on_written once started
     counts = dict.fromkeys(totals, 0)
+    if tap is not None:
+        from ..preview import PreviewServer
+
+        server = PreviewServer(cfg, pipeline, tap)
+        server.start()
+        if preview == "watch":
+            viewer = subprocess.Popen([sys.executable, "-c", VIEWER, server.url + "stream.mjpg"],
+                                      stdout=subprocess.PIPE, text=True)
+            while server.counts["viewers"] < 1 and viewer.poll() is None:
+                time.sleep(0.01)
     rss_start = rss_bytes()
+    cpu0 = time.process_time()
     t0 = time.monotonic()
     progress(f"running {n_frames} frames at {fps:g} fps through detect -> estimate -> "
              f"{', '.join(o.name for o in outputs)} ...")
     pipeline.start()
     pipeline.wait()
     elapsed = time.monotonic() - t0
+    cpu_s = time.process_time() - cpu0
     status = pipeline.status_line(reset=False)
     pipeline.stop()
+    preview_line = None
+    if server is not None:
+        c = dict(server.counts)
+        server.stop()
+        seen = ""
+        if viewer is not None:
+            viewer.terminate()
+            out = viewer.communicate(timeout=10)[0].split()
+            seen = f"; the viewer received {out[-2]} frames, {int(out[-1]) / 1e6:.1f} MB" if len(out) >= 2 else ""
+        cpu = server.stream_cpu_s
+        preview_line = (f"preview ({preview}): {c['encoded']} frames annotated and encoded, "
+                        f"{c['frames_sent']} sent, {c['frames_skipped']} skipped{seen}; viewer thread CPU "
+                        f"{cpu * 1e3 / max(c['frames_sent'], 1):.2f} ms per frame sent, "
+                        f"{100 * cpu / max(elapsed, 1e-9):.2f} % of one core")
+    data_dir.cleanup()
     for o in outputs:
         o.close()
     time.sleep(0.3)
@@ -202,7 +268,7 @@ def _run(n_frames: int, fps: float, distinct: int, seed: int, progress: Callable
         "received_datagrams": received[0], "received_bytes": received[1],
         "latency_s": {name: values[:counts[name]] for name, values in totals.items()},
         "rss_start_bytes": rss_start, "rss_warm_bytes": rss_warm[0] or rss_start,
-        "rss_end_bytes": rss_end, "warm_at": warm_at,
+        "rss_end_bytes": rss_end, "warm_at": warm_at, "cpu_s": cpu_s, "preview_line": preview_line,
     }
 
 
@@ -213,6 +279,11 @@ def print_report(report: Dict[str, Any]) -> None:
     print(f"frames: {snap['captured']} captured, {snap['processed']} processed, "
           f"{snap['detected']} with a pose, in {report['elapsed_s']:.1f} s; drops: "
           + (", ".join(f"{k} {v}" for k, v in sorted(snap["drops"].items())) or "none"))
+    cpu_s, elapsed = report["cpu_s"], report["elapsed_s"]
+    print(f"CPU: {cpu_s * 1e3 / max(snap['processed'], 1):.2f} ms per processed frame "
+          f"({100 * cpu_s / max(elapsed, 1e-9):.1f} % of one core over the run, all threads)")
+    if report["preview_line"]:
+        print(report["preview_line"])
     print(f"UDP ground station received {report['received_datagrams']} datagrams, "
           f"{report['received_bytes']} bytes")
     print("end-to-end latency, capture -> bytes written (this machine):")

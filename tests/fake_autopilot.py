@@ -1,0 +1,350 @@
+"""A fake flight controller for the tests: ArduPilot- or PX4-like, over real UDP on 127.0.0.1,
+real pymavlink encoding and decoding. Only the behaviours the daemon must live with are modelled,
+each as the autopilot's own source has it (shared/autopilot-rules.md):
+
+ArduPilot (AP_VisualOdom, AP_NavEKF3, GCS_MAVLink):
+- HEARTBEAT autopilot 3; EKF3 exists only ``ekf_start_s`` after the first HEARTBEAT
+  (``NavEKF3::setOriginLLH`` refuses an origin before), and an origin taken during its first
+  ``ekf_bootstrap_s`` is wiped at the end of it (InitialiseFilter), after "origin set" was said.
+- GPS_GLOBAL_ORIGIN only when asked (MAV_CMD_REQUEST_MESSAGE) and only while it has one;
+  HOME_POSITION likewise. ArduCopter sets home itself once the EKF has an origin.
+  MAV_CMD_DO_SET_HOME (COMMAND_LONG/INT) sets home; SET_HOME_POSITION has no handler.
+- ODOMETRY used only in (LOCAL_FRD, BODY_FRD) and with quality >= VISO_QUAL_MIN;
+  VISION_POSITION_ESTIMATE has no quality: taken as 0, so dropped when VISO_QUAL_MIN > 0.
+  Fused only with VISO_TYPE > 0 and EK3_SRC1_POSXY = 6 ("EKF3 IMU0 is using external nav data").
+- LANDING_TARGET with position_valid only in BODY_FRD with distance > 0.
+- TIMESYNC requests every ``timesync_s``; EKF_STATUS_REPORT every 0.5 s.
+- Parameters as ArduPilot sends them (PARAM_VALUE's float is the value itself).
+PX4 (mavlink_receiver.cpp, mavlink_timesync, EKF2):
+- HEARTBEAT autopilot 12; an origin is taken at any time.
+- LANDING_TARGET with position_valid only in MAV_FRAME_LOCAL_NED; any other frame is refused
+  with a CRITICAL "Landing target: coordinate frame N unsupported"; position_valid 0 = angles.
+- ODOMETRY / VISION_POSITION_ESTIMATE quality against EKF2_EV_QMIN (VPE: 0).
+- TIMESYNC requests every ``timesync_s``; once answered, a pose's ``time_usec`` is mapped onto
+  its clock, before that the arrival time stands in (``stamped_by``).
+- LOCAL_POSITION_NED and ATTITUDE at the rate MAV_CMD_SET_MESSAGE_INTERVAL asks for, from
+  ``vehicle_state(t_s) -> (p_ned_m, (roll, pitch, yaw))``.
+- INT32 parameters sent bytewise in PARAM_VALUE's float (PX4's MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE).
+"""
+
+from __future__ import annotations
+
+import math
+import select
+import socket
+import struct
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Dict, List, Optional, Tuple
+
+MAV_PARAM_TYPE_INT8 = 2
+MAV_PARAM_TYPE_INT16 = 4
+MAV_PARAM_TYPE_INT32 = 6
+MAV_PARAM_TYPE_REAL32 = 9
+
+ARDUPILOT_PARAMS: Dict[str, Tuple[float, int]] = {
+    "VISO_TYPE": (1, MAV_PARAM_TYPE_INT8), "VISO_QUAL_MIN": (0, MAV_PARAM_TYPE_INT8),
+    "VISO_DELAY_MS": (10, MAV_PARAM_TYPE_INT16), "VISO_ORIENT": (0, MAV_PARAM_TYPE_INT8),
+    "VISO_POS_X": (0.0, MAV_PARAM_TYPE_REAL32), "VISO_POS_Y": (0.0, MAV_PARAM_TYPE_REAL32),
+    "VISO_POS_Z": (0.0, MAV_PARAM_TYPE_REAL32),
+    "EK3_SRC1_POSXY": (6, MAV_PARAM_TYPE_INT8), "EK3_SRC1_POSZ": (6, MAV_PARAM_TYPE_INT8),
+    "EK3_SRC1_VELXY": (0, MAV_PARAM_TYPE_INT8), "EK3_SRC1_VELZ": (0, MAV_PARAM_TYPE_INT8),
+    "EK3_SRC1_YAW": (6, MAV_PARAM_TYPE_INT8), "GPS1_TYPE": (0, MAV_PARAM_TYPE_INT8),
+    "SERIAL2_PROTOCOL": (2, MAV_PARAM_TYPE_INT8), "SERIAL2_BAUD": (921, MAV_PARAM_TYPE_INT32),
+    "SR2_EXTRA1": (10, MAV_PARAM_TYPE_INT16), "SR2_POSITION": (10, MAV_PARAM_TYPE_INT16),
+    "PLND_ENABLED": (0, MAV_PARAM_TYPE_INT8), "PLND_TYPE": (0, MAV_PARAM_TYPE_INT8),
+}
+PX4_PARAMS: Dict[str, Tuple[float, int]] = {
+    "EKF2_EV_CTRL": (11, MAV_PARAM_TYPE_INT32), "EKF2_HGT_REF": (3, MAV_PARAM_TYPE_INT32),
+    "EKF2_EV_DELAY": (0.0, MAV_PARAM_TYPE_REAL32), "EKF2_GPS_CTRL": (0, MAV_PARAM_TYPE_INT32),
+    "EKF2_EV_QMIN": (0, MAV_PARAM_TYPE_INT32), "EKF2_EVP_NOISE": (0.1, MAV_PARAM_TYPE_REAL32),
+    "MAV_0_CONFIG": (101, MAV_PARAM_TYPE_INT32), "MAV_0_MODE": (2, MAV_PARAM_TYPE_INT32),
+    "MAV_0_RATE": (0, MAV_PARAM_TYPE_INT32),
+}
+
+
+def _name(raw: Any) -> str:
+    return (raw.decode("ascii", "replace") if isinstance(raw, (bytes, bytearray)) else str(raw)).rstrip("\x00")
+
+
+@dataclass
+class Tally:
+    """What the fake did with what it got."""
+
+    fused: Dict[str, int] = field(default_factory=dict)        # ODOMETRY / VISION_POSITION_ESTIMATE used
+    ignored: Dict[str, int] = field(default_factory=dict)      # by cause, e.g. "ODOMETRY quality"
+    origins_refused: int = 0
+    origins_taken: int = 0
+    origins_wiped: int = 0
+    set_home_position: int = 0                                 # SET_HOME_POSITION (ArduPilot: no handler)
+    landing_targets: List[Any] = field(default_factory=list)   # accepted LANDING_TARGET messages
+    landing_refused: int = 0
+    timesync_answers: List[Tuple[int, int, int]] = field(default_factory=list)  # (tc1, ts1, our now ns)
+    stamped_by: Dict[str, int] = field(default_factory=dict)   # PX4: "timesync" / "arrival"
+    received: List[Any] = field(default_factory=list)          # every message from the daemon
+
+
+class FakeAutopilot:
+    """Listens on 127.0.0.1:``port`` (the daemon's ``udpout:127.0.0.1:PORT``)."""
+
+    def __init__(self, kind: str = "ardupilot", *, system: int = 1, ekf_start_s: float = 4.0,
+                 ekf_bootstrap_s: float = 1.0, timesync_s: float = 10.0, heartbeat_s: float = 1.0,
+                 params: Optional[Dict[str, float]] = None,
+                 vehicle_state: Optional[Callable[[float], Tuple[Any, Any]]] = None) -> None:
+        # ArduPilot's dialect (common.xml and EKF_STATUS_REPORT); PX4 uses only common messages.
+        from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+        assert kind in ("ardupilot", "px4")
+        self.kind = kind
+        self.system = system
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.port = self.sock.getsockname()[1]
+        self.mav = mavlink2.MAVLink(self, srcSystem=system, srcComponent=1)
+        self.parser = mavlink2.MAVLink(None)
+        self.parser.robust_parsing = True
+        self.peer: Optional[Tuple[str, int]] = None
+        table = ARDUPILOT_PARAMS if kind == "ardupilot" else PX4_PARAMS
+        self.params: Dict[str, List[Any]] = {k: [v, t] for k, (v, t) in table.items()}
+        for k, v in (params or {}).items():
+            self.params.setdefault(k, [v, MAV_PARAM_TYPE_REAL32])[0] = v
+        self.ekf_start_s = ekf_start_s
+        self.ekf_bootstrap_s = ekf_bootstrap_s
+        self.timesync_s = timesync_s
+        self.heartbeat_s = heartbeat_s
+        self.vehicle_state = vehicle_state
+        self.tally = Tally()
+        self.origin: Optional[Tuple[int, int, int]] = None
+        self.home: Optional[Tuple[int, int, int]] = None
+        self.home_set_by: Optional[str] = None
+        self.statustexts: List[str] = []
+        self.intervals_us: Dict[int, int] = {}
+        self.timesync_offset_ns: Optional[int] = None        # PX4: ours - theirs, once synced
+        self._t_first_heartbeat: Optional[float] = None
+        self._wipe_at: Optional[float] = None
+        self._last_sent: Dict[str, float] = {}
+        self._ext_nav_t: Optional[float] = None
+        self._said_ext_nav = False
+        self._lock = threading.Lock()
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    # pymavlink's encoder writes through this
+    def write(self, data: bytes) -> int:
+        if self.peer is not None:
+            try:
+                self.sock.sendto(bytes(data), self.peer)
+            except OSError:
+                pass
+        return len(data)
+
+    @property
+    def connection(self) -> str:
+        return f"udpout:127.0.0.1:{self.port}"
+
+    def ekf_running(self, now: float) -> bool:
+        return self._t_first_heartbeat is not None and now - self._t_first_heartbeat >= self.ekf_start_s
+
+    def close(self) -> None:
+        self._stop = True
+        self._thread.join(2.0)
+        self.sock.close()
+
+    def param(self, name: str) -> float:
+        return self.params[name][0]
+
+    # ------------------------------------------------------------------ loop
+
+    def _run(self) -> None:
+        while not self._stop:
+            try:
+                ready = select.select([self.sock], [], [], 0.005)[0]
+            except (OSError, ValueError):
+                return
+            now = time.monotonic()
+            if ready:
+                try:
+                    data, addr = self.sock.recvfrom(65536)
+                except OSError:
+                    return
+                self.peer = addr
+                for msg in self.parser.parse_buffer(data) or []:
+                    with self._lock:
+                        self.tally.received.append(msg)
+                        self._handle(msg, now)
+            with self._lock:
+                self._periodic(now)
+
+    def _every(self, key: str, period_s: float, now: float) -> bool:
+        if now - self._last_sent.get(key, -1e18) >= period_s:
+            self._last_sent[key] = now
+            return True
+        return False
+
+    def _text(self, severity: int, text: str) -> None:
+        self.statustexts.append(text)
+        self.mav.statustext_send(severity, text.encode("ascii")[:50])
+
+    def _periodic(self, now: float) -> None:
+        if self.peer is None:
+            return
+        if self._every("hb", self.heartbeat_s, now):
+            self.mav.heartbeat_send(2, 3 if self.kind == "ardupilot" else 12, 0, 0, 4)
+            if self._t_first_heartbeat is None:
+                self._t_first_heartbeat = now
+        if self._wipe_at is not None and now >= self._wipe_at:
+            self._wipe_at = None
+            if self.origin is not None:
+                self.origin = None
+                self.tally.origins_wiped += 1
+        if self.kind == "ardupilot" and self.origin is not None and self.home is None and self.ekf_running(now):
+            self.home, self.home_set_by = self.origin, "EKF origin"
+        if self.timesync_s and self._every("ts", self.timesync_s, now):
+            self.mav.timesync_send(0, time.monotonic_ns())
+        if self._every("ekf", 0.5, now):
+            flags = 0x01 | (0x08 | 0x10 | 0x20 if self._fusing(now) and self.origin is not None else 0)
+            if self.kind == "ardupilot":
+                self.mav.ekf_status_report_send(flags, 0.1, 0.1, 0.1, 0.1, 0.1)
+            else:
+                self.mav.estimator_status_send(int(now * 1e6), flags, 0, 0, 0, 0, 0, 0, 0, 0)
+        if self.vehicle_state is not None:
+            p, (roll, pitch, yaw) = self.vehicle_state(now)
+            boot_ms = int((now - (self._t_first_heartbeat or now)) * 1e3)
+            if 32 in self.intervals_us and self._every("lpn", self.intervals_us[32] / 1e6, now):
+                self.mav.local_position_ned_send(boot_ms, float(p[0]), float(p[1]), float(p[2]), 0.0, 0.0, 0.0)
+            if 30 in self.intervals_us and self._every("att", self.intervals_us[30] / 1e6, now):
+                self.mav.attitude_send(boot_ms, float(roll), float(pitch), float(yaw), 0.0, 0.0, 0.0)
+
+    def _fusing(self, now: float) -> bool:
+        return self._ext_nav_t is not None and now - self._ext_nav_t < 0.3
+
+    # ------------------------------------------------------------------ messages
+
+    def _handle(self, msg: Any, now: float) -> None:
+        kind = msg.get_type()
+        if kind == "SET_GPS_GLOBAL_ORIGIN":
+            if self.kind == "ardupilot" and not self.ekf_running(now):
+                self.tally.origins_refused += 1         # NavEKF3::setOriginLLH: no cores yet
+                return
+            self.origin = (msg.latitude, msg.longitude, msg.altitude)
+            self.tally.origins_taken += 1
+            self._text(6, "EKF3 IMU0 origin set" if self.kind == "ardupilot" else "origin set")
+            if (self.kind == "ardupilot" and self._t_first_heartbeat is not None
+                    and now < self._t_first_heartbeat + self.ekf_start_s + self.ekf_bootstrap_s):
+                self._wipe_at = self._t_first_heartbeat + self.ekf_start_s + self.ekf_bootstrap_s
+        elif kind == "SET_HOME_POSITION":
+            self.tally.set_home_position += 1
+            if self.kind == "px4":
+                self.home, self.home_set_by = (msg.latitude, msg.longitude, msg.altitude), "SET_HOME_POSITION"
+        elif kind in ("COMMAND_LONG", "COMMAND_INT"):
+            self._command(msg, now)
+        elif kind in ("ODOMETRY", "VISION_POSITION_ESTIMATE"):
+            self._pose(msg, now)
+        elif kind == "LANDING_TARGET":
+            self._landing_target(msg)
+        elif kind == "TIMESYNC":
+            if msg.tc1 != 0:
+                self.tally.timesync_answers.append((msg.tc1, msg.ts1, time.monotonic_ns()))
+                rtt_ns = time.monotonic_ns() - msg.ts1
+                if 0 <= rtt_ns < 50_000_000:
+                    self.timesync_offset_ns = msg.tc1 - (msg.ts1 + rtt_ns // 2)
+        elif kind in ("PARAM_REQUEST_READ", "PARAM_REQUEST_LIST", "PARAM_SET"):
+            self._param(msg)
+
+    def _command(self, msg: Any, now: float) -> None:
+        cmd = msg.command
+        result = 3  # MAV_RESULT_UNSUPPORTED
+        if cmd == 512:   # MAV_CMD_REQUEST_MESSAGE
+            wanted = int(msg.param1)
+            result = 0
+            if wanted == 49 and self.origin is not None:
+                self.mav.gps_global_origin_send(*self.origin, int(now * 1e6))
+            elif wanted == 242 and self.home is not None:
+                self.mav.home_position_send(*self.home, 0, 0, 0, [1, 0, 0, 0], 0, 0, 0, int(now * 1e6))
+        elif cmd == 511:  # MAV_CMD_SET_MESSAGE_INTERVAL
+            self.intervals_us[int(msg.param1)] = int(msg.param2)
+            result = 0
+        elif cmd == 179:  # MAV_CMD_DO_SET_HOME
+            if self.kind == "ardupilot" and self.origin is None:
+                result = 4  # MAV_RESULT_FAILED: Copter::set_home needs the EKF origin
+            else:
+                if msg.get_type() == "COMMAND_INT":
+                    self.home = (msg.x, msg.y, int(round(msg.z * 1e3)))
+                else:
+                    self.home = (int(round(msg.param5 * 1e7)), int(round(msg.param6 * 1e7)),
+                                 int(round(msg.param7 * 1e3)))
+                self.home_set_by = "DO_SET_HOME"
+                result = 0
+        self.mav.command_ack_send(cmd, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
+
+    def _pose(self, msg: Any, now: float) -> None:
+        kind = msg.get_type()
+        quality = msg.quality if kind == "ODOMETRY" else 0
+        if self.kind == "ardupilot":
+            if kind == "ODOMETRY" and (msg.frame_id, msg.child_frame_id) != (20, 12):
+                self.tally.ignored["ODOMETRY frames"] = self.tally.ignored.get("ODOMETRY frames", 0) + 1
+                return
+            qmin = self.param("VISO_QUAL_MIN")
+            usable = self.param("VISO_TYPE") > 0 and self.param("EK3_SRC1_POSXY") == 6
+        else:
+            qmin = self.param("EKF2_EV_QMIN")
+            usable = int(self.param("EKF2_EV_CTRL")) & 1 == 1
+            by = "timesync" if self.timesync_offset_ns is not None else "arrival"
+            self.tally.stamped_by[by] = self.tally.stamped_by.get(by, 0) + 1
+        if quality < qmin:
+            key = f"{kind} quality"
+            self.tally.ignored[key] = self.tally.ignored.get(key, 0) + 1
+            return
+        if not usable:
+            self.tally.ignored[f"{kind} not a source"] = self.tally.ignored.get(f"{kind} not a source", 0) + 1
+            return
+        self.tally.fused[kind] = self.tally.fused.get(kind, 0) + 1
+        self._ext_nav_t = now
+        if not self._said_ext_nav and self.kind == "ardupilot" and self.ekf_running(now):
+            self._said_ext_nav = True
+            self._text(6, "EKF3 IMU0 is using external nav data")
+
+    def _landing_target(self, msg: Any) -> None:
+        if msg.position_valid:
+            wanted = 12 if self.kind == "ardupilot" else 1
+            if msg.frame != wanted or (self.kind == "ardupilot" and not msg.distance > 0):
+                self.tally.landing_refused += 1
+                if self.kind == "px4":
+                    self._text(2, f"Landing target: coordinate frame {msg.frame} unsupported")
+                return
+        self.tally.landing_targets.append(msg)
+
+    def _send_param(self, name: str, index: int) -> None:
+        value, ptype = self.params[name]
+        if self.kind == "px4" and ptype == MAV_PARAM_TYPE_INT32:
+            wire = struct.unpack("<f", struct.pack("<i", int(value)))[0]
+        else:
+            wire = float(value)
+        self.mav.param_value_send(name.encode("ascii"), wire, ptype, len(self.params), index)
+
+    def _param(self, msg: Any) -> None:
+        names = list(self.params)
+        kind = msg.get_type()
+        if kind == "PARAM_REQUEST_LIST":
+            for i, name in enumerate(names):
+                self._send_param(name, i)
+            return
+        name = _name(msg.param_id)
+        if kind == "PARAM_REQUEST_READ" and msg.param_index >= 0:
+            if msg.param_index < len(names):
+                self._send_param(names[msg.param_index], msg.param_index)
+            return
+        if name not in self.params:
+            return
+        if kind == "PARAM_SET":
+            ptype = self.params[name][1]
+            if self.kind == "px4" and ptype == MAV_PARAM_TYPE_INT32:
+                value: float = struct.unpack("<i", struct.pack("<f", msg.param_value))[0]
+            elif ptype == MAV_PARAM_TYPE_REAL32:
+                value = msg.param_value
+            else:
+                value = int(round(msg.param_value)) if math.isfinite(msg.param_value) else 0
+            self.params[name][0] = value
+        self._send_param(name, names.index(name))

@@ -1,0 +1,127 @@
+"""Whole-frame search in clutter: the marker found, nothing false, and the per-frame time cap
+(with a clock the test controls) leaving the rest of the search to the next frame."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from detect_helpers import ARUCO, CAM, render
+
+from pose_daemon import MarkerDetector
+from pose_daemon.render import Effects, random_pose, render_empty
+from pose_daemon.tools.bench_detector import CLUTTER_SCENES, clutter_background
+
+
+def _scene(kind: str, i: int, with_marker: bool = True, distance_m=(0.5, 1.5)):
+    rng = np.random.default_rng([7, i, CLUTTER_SCENES.index(kind)])
+    background = clutter_background(kind, rng, CAM.width, CAM.height)
+    if not with_marker:
+        return render_empty(CAM, effects=Effects(), rng=rng, background=background), None
+    rvec, tvec = random_pose(rng, CAM, ARUCO, distance_m=distance_m, max_tilt_deg=50)
+    return render(ARUCO, rvec, tvec, seed=i, background=background)
+
+
+@pytest.mark.parametrize("kind", CLUTTER_SCENES)
+def test_aruco_marker_found_in_clutter_and_nothing_without_it(kind: str) -> None:
+    for i in range(3):
+        image, truth = _scene(kind, i)
+        corners = MarkerDetector(ARUCO).detect(image)
+        assert corners is not None, f"{kind} frame {i}: marker not found"
+        assert float(np.abs(corners - truth).max()) < 0.5
+        empty, _ = _scene(kind, i, with_marker=False)
+        assert MarkerDetector(ARUCO).detect(empty) is None, f"{kind} frame {i}: false detection"
+
+
+class StepClock:
+    """A clock the test controls: every reading advances it by ``step_s``."""
+
+    def __init__(self, step_s: float) -> None:
+        self.t_s, self.step_s, self.readings = 0.0, step_s, 0
+
+    def __call__(self) -> float:
+        self.readings += 1
+        self.t_s += self.step_s
+        return self.t_s
+
+
+def test_time_cap_leaves_the_rest_of_the_search_to_the_next_frame() -> None:
+    """Every clock reading costs 1 ms, the cap is 0.5 ms: a frame examines one candidate
+    and stops; the search goes on next frame and reaches the (small, far) marker."""
+    image, truth = _scene("board", 1, distance_m=(2.5, 3.2))
+    uncapped = MarkerDetector(ARUCO)
+    assert uncapped.detect(image) is not None
+    capped = MarkerDetector(ARUCO, search_budget_ms=0.5, clock=StepClock(1e-3))
+    results = []
+    for _ in range(200):
+        found = capped.detect(image)
+        results.append(found)
+        if found is not None:
+            break
+        assert capped.last_search_deferred and capped.last_stage is None
+    assert results[-1] is not None and float(np.abs(results[-1] - truth).max()) < 0.5
+    assert capped.search_deferrals == len(results) - 1 >= 2
+    assert not capped.last_search_deferred
+    # Once tracked the marker is followed: no whole-frame search, nothing deferred.
+    before = capped.search_deferrals
+    assert capped.detect(image) is not None and capped.last_stage == "follow"
+    assert capped.search_deferrals == before
+
+
+def test_time_cap_on_marker_free_frames_cycles_through_every_step() -> None:
+    """Without the marker a capped search never stalls on one step: it reaches OpenCV's
+    detector (the last step) and starts over."""
+    empty, _ = _scene("text", 1, with_marker=False)
+    capped = MarkerDetector(ARUCO, search_budget_ms=0.5, clock=StepClock(1e-3))
+    stages = set()
+    for _ in range(400):
+        assert capped.detect(empty) is None
+        stages.add(capped._cursor[0])
+        if capped._cursor == (0, 0) and len(stages) > 1:
+            break
+    assert capped._cursor == (0, 0) and stages >= {1, 2}
+    assert capped.search_deferrals >= 3
+
+
+def test_no_cap_never_defers_and_an_ample_cap_gives_the_same_corners() -> None:
+    image, _ = _scene("carpet", 2)
+    free = MarkerDetector(ARUCO)
+    ample = MarkerDetector(ARUCO, search_budget_ms=1e6, clock=StepClock(1e-3))
+    a, b = free.detect(image), ample.detect(image)
+    assert a is not None and np.array_equal(a, b)
+    assert free.search_deferrals == 0 and ample.search_deferrals == 0
+
+
+@pytest.mark.parametrize("bad, message", [
+    ({"search_budget_ms": 0.0}, "search_budget_ms must be a number > 0 or None"),
+    ({"search_budget_ms": "fast"}, "search_budget_ms must be a number > 0 or None"),
+    ({"clock": 3.0}, "clock must be a callable"),
+    ({"search_threads": 0}, "search_threads must be an integer in \\[1, 64\\] or None"),
+])
+def test_bad_cap_options_raise(bad, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        MarkerDetector(ARUCO, **bad)
+
+
+@pytest.mark.parametrize("kind", ["text", "board"])
+def test_opencv_step_on_a_second_core_gives_the_same_results(kind: str) -> None:
+    one, two = MarkerDetector(ARUCO, search_threads=1), MarkerDetector(ARUCO, search_threads=2)
+    for i in range(2):
+        for with_marker in (True, False):
+            image, _ = _scene(kind, i, with_marker=with_marker)
+            one.reset()
+            two.reset()
+            a, b = one.detect(image), two.detect(image)
+            assert (a is None) == (b is None) == (not with_marker)
+            if a is not None:
+                assert np.array_equal(a, b)
+    # A capped search may leave the early OpenCV run behind: the next frame still comes right.
+    capped = MarkerDetector(ARUCO, search_threads=2, search_budget_ms=1.5, clock=StepClock(1e-3))
+    empty, _ = _scene(kind, 0, with_marker=False)
+    image, truth = _scene(kind, 0)
+    for _ in range(5):
+        assert capped.detect(empty) is None
+    for _ in range(100):
+        found = capped.detect(image)
+        if found is not None:
+            break
+    assert found is not None and float(np.abs(found - truth).max()) < 0.5
