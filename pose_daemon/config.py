@@ -639,7 +639,6 @@ def config_from_dict(data: Dict[str, Any], name: str = "<config>") -> Config:
     """Config from an already-parsed TOML document (a dict of tables)."""
     sections: Dict[str, Any] = {}
     outputs: Dict[str, Any] = {}
-    allowed = ", ".join(list(SECTIONS) + ["output", "map"])
     map_cfg = None
     if "map" in data:
         data = dict(data)
@@ -648,7 +647,7 @@ def config_from_dict(data: Dict[str, Any], name: str = "<config>") -> Config:
             raise ConfigError(f"{name}: [map]: [map] and [marker] are exclusive (a map names its markers; "
                               "remove one of the two)")
     known_sections = {**SECTIONS, **OPTIONAL_SECTIONS}
-    allowed = ", ".join(list(known_sections) + ["output"])
+    allowed = ", ".join(list(known_sections) + ["output", "map"])
     for section, table in data.items():
         if section not in known_sections and section != "output":
             raise ConfigError(f"{name}: [{section}]: unknown section (expected one of {allowed})")
