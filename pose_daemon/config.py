@@ -45,6 +45,7 @@ __all__ = [
     "JsonlOutputConfig",
     "OutputConfig",
     "LoggingConfig",
+    "MapConfig",
     "PreviewConfig",
     "ConfigError",
     "DEFAULT_CONFIG_FILE",
@@ -483,6 +484,25 @@ class LoggingConfig:
 
 
 @dataclass(frozen=True)
+class MapConfig:
+    """Many markers in one map frame (interface.md "Marker maps"); exclusive with [marker]."""
+
+    dictionary: Optional[str] = _key(None, Rule("str", nonempty=True),
+                                     "OpenCV dictionary of every map marker (ArUco or AprilTag)")
+    placement: str = _key("floor", Rule("str", choices=MARKER_PLACEMENTS),
+                          "how the map frame sits in the room, as [marker] placement")
+    file: Optional[str] = _key(None, Rule("str", nonempty=True),
+                               "a TOML file holding the [[markers]] (or [[map.markers]]) entries")
+    markers: Tuple[Any, ...] = ()  # MapMarker entries, from [[map.markers]] or the file
+
+    def model(self) -> Any:
+        """The MarkerMap (marker_map.MarkerMap)."""
+        from .marker_map import MarkerMap
+
+        return MarkerMap(str(self.dictionary), tuple(self.markers), self.placement)
+
+
+@dataclass(frozen=True)
 class PreviewConfig:
     """The live preview web page (pose_daemon.preview); None unless the table is present."""
 
@@ -548,8 +568,22 @@ class Config:
     gate: GateConfig = field(default_factory=GateConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
+    map: Optional[MapConfig] = None
     preview: Optional[PreviewConfig] = None
     name: str = "<default config>"
+
+    @property
+    def placement(self) -> str:
+        """How the pose's frame (the [map], else the [marker]) sits in the room."""
+        return self.map.placement if self.map is not None else self.marker.placement
+
+    def target_marker(self) -> Marker:
+        """The [marker], or for a [map] a square as large as its largest marker (the size
+        LANDING_TARGET reports; the map's pose is that of its origin)."""
+        if self.map is not None:
+            size = max(m.size_m for m in self.map.markers)
+            return Marker(width=size, height=size)
+        return self.marker.model()
 
     @classmethod
     def default(cls) -> Config:
@@ -560,12 +594,19 @@ class Config:
         """Plain data in the TOML layout (absent outputs and unset optional keys left out)."""
         out: Dict[str, Any] = {}
         for name in SECTIONS:
+            if name == "marker" and self.map is not None:
+                continue  # exclusive with [map]
             out[name] = _plain(asdict(getattr(self, name)))
         for name in OPTIONAL_SECTIONS:
             if getattr(self, name) is not None:
                 out[name] = _plain(asdict(getattr(self, name)))
         outputs = {k: _plain(asdict(v)) for k, v in asdict_shallow(self.output).items() if v is not None}
         out["output"] = outputs
+        if self.map is not None:
+            m: Dict[str, Any] = {"dictionary": self.map.dictionary, "placement": self.map.placement}
+            m["markers"] = [{"id": k.id, "size": k.size_m, "position": list(k.position_m),
+                             "rotation_deg": list(k.rotation_deg)} for k in self.map.markers]
+            out["map"] = m
         return out
 
     def to_toml(self) -> str:
@@ -573,6 +614,9 @@ class Config:
         lines: List[str] = []
         data = self.to_dict()
         for section, values in data.items():
+            if section == "map" and self.map is not None:
+                lines.extend(self.map.model().to_toml_lines())
+                continue
             if section == "output":
                 for name, sub in values.items():
                     lines.append(f"[output.{name}]")
@@ -641,8 +685,15 @@ def config_from_dict(data: Dict[str, Any], name: str = "<config>") -> Config:
     """Config from an already-parsed TOML document (a dict of tables)."""
     sections: Dict[str, Any] = {}
     outputs: Dict[str, Any] = {}
+    map_cfg = None
+    if "map" in data:
+        data = dict(data)
+        map_cfg = _map_config(data.pop("map"), name)
+        if "marker" in data:
+            raise ConfigError(f"{name}: [map]: [map] and [marker] are exclusive (a map names its markers; "
+                              "remove one of the two)")
     known_sections = {**SECTIONS, **OPTIONAL_SECTIONS}
-    allowed = ", ".join(list(known_sections) + ["output"])
+    allowed = ", ".join(list(known_sections) + ["output", "map"])
     for section, table in data.items():
         if section not in known_sections and section != "output":
             raise ConfigError(f"{name}: [{section}]: unknown section (expected one of {allowed})")
@@ -669,11 +720,12 @@ def config_from_dict(data: Dict[str, Any], name: str = "<config>") -> Config:
             raise ConfigError(_message(name, where, err)) from None
     synthetic_table = data.get("synthetic", {})
     marker = sections.get("marker", MarkerConfig())
-    if "trajectory" not in synthetic_table and marker.placement != SyntheticConfig().trajectory:
+    placement = map_cfg.placement if map_cfg is not None else marker.placement
+    if "trajectory" not in synthetic_table and placement != SyntheticConfig().trajectory:
         # The synthetic camera moves over the marker as it is placed unless told otherwise.
         sections["synthetic"] = replace(sections.get("synthetic", SyntheticConfig()),
-                                        trajectory=marker.placement)
-    cfg = Config(output=OutputConfig(**outputs), name=name, **sections)
+                                        trajectory=placement)
+    cfg = Config(output=OutputConfig(**outputs), name=name, map=map_cfg, **sections)
     check_whole(cfg, files=False)
     return cfg
 
@@ -691,9 +743,10 @@ def check_whole(cfg: Config, *, files: bool = True) -> None:
     (``replay PATH --config`` ignores the config's source). ``pose-daemon run`` and
     ``pose-daemon check-config`` run all of it, so check-config refuses what run refuses.
     """
-    if cfg.camera.source_kind == "synthetic" and cfg.marker.placement != cfg.synthetic.trajectory:
-        raise ConfigError(f"{cfg.name}: [synthetic] trajectory: expected {_show(cfg.marker.placement)} "
-                          f"(the [marker] placement), got {_show(cfg.synthetic.trajectory)}")
+    if cfg.camera.source_kind == "synthetic" and cfg.placement != cfg.synthetic.trajectory:
+        where = "[map]" if cfg.map is not None else "[marker]"
+        raise ConfigError(f"{cfg.name}: [synthetic] trajectory: expected {_show(cfg.placement)} "
+                          f"(the {where} placement), got {_show(cfg.synthetic.trajectory)}")
     try:
         _check_aruco(cfg.marker)
     except _Invalid as err:
@@ -710,6 +763,77 @@ def check_whole(cfg: Config, *, files: bool = True) -> None:
         what = "a video file" if kind == "video" else "a recording, image folder or video"
         raise ConfigError(f"{cfg.name}: [camera] source: expected {what} that exists, "
                           f"got {_show(cfg.camera.source)} (no such file or folder)")
+
+
+def _map_config(table: Any, name: str) -> MapConfig:
+    """[map] (with [[map.markers]] or ``file``) -> MapConfig; ConfigError naming file, index and key."""
+    from .marker_map import MapError, markers_from_tables
+
+    if not isinstance(table, dict):
+        raise ConfigError(f"{name}: map: expected a table [map], got {_show(table)}")
+    table = dict(table)
+    entries = table.pop("markers", None)
+    try:
+        cfg = _build(MapConfig, table, "[map]")
+    except _Invalid as err:
+        raise ConfigError(_message(name, "[map]", err)) from None
+    source, where = name, "[map] "
+    dictionary = cfg.dictionary
+    if cfg.file is not None:
+        if entries is not None:
+            raise ConfigError(f"{name}: [map] file: expected either file or [[map.markers]] entries, not both")
+        path = Path(cfg.file)
+        if not path.is_absolute() and not name.startswith("<"):
+            path = Path(name).parent / path
+        try:
+            mode = path.stat().st_mode
+            if not stat.S_ISREG(mode):
+                raise OSError("not a regular file")
+            data = tomllib.loads(path.read_bytes().decode("utf-8"))
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{name}: [map] file: cannot read {str(path)!r}: "
+                              f"{getattr(exc, 'strerror', None) or exc}") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: invalid TOML: {' '.join(str(exc).split())}") from None
+        source, where = str(path), ""
+        if "map" in data and isinstance(data["map"], dict):
+            inner = dict(data["map"])
+            entries = inner.pop("markers", None)
+            file_dict = inner.get("dictionary")
+            if isinstance(file_dict, str):
+                if dictionary is not None and file_dict.upper() != dictionary.upper():
+                    raise ConfigError(f"{path}: [map] dictionary: expected {_show(dictionary)} "
+                                      f"(the dictionary of {name}), got {_show(file_dict)}")
+                dictionary = file_dict
+            where = "[map] "
+        else:
+            entries = data.get("markers")
+    if dictionary is None:
+        raise ConfigError(f"{name}: [map] dictionary: expected an OpenCV dictionary name such as "
+                          '"DICT_4X4_50" or "DICT_APRILTAG_36h11"')
+    n_ids = None
+    try:
+        from .detect import aruco_compat
+
+        n_ids = aruco_compat.dictionary_size(aruco_compat.get_dictionary(dictionary))
+    except ImportError:  # an OpenCV build without aruco: the detector reports it
+        pass
+    except ValueError:
+        raise ConfigError(f"{name}: [map] dictionary: expected an OpenCV ArUco or AprilTag dictionary name "
+                          f"such as \"DICT_4X4_50\", got {_show(dictionary)}") from None
+    if entries is None:
+        raise ConfigError(f"{source}: {where}markers: expected [[{'map.' if where else ''}markers]] entries "
+                          "(id, size, position, rotation_deg), got none")
+    try:
+        markers = markers_from_tables(entries, n_ids, dictionary)
+    except MapError as err:
+        got = f", got {_show(err.got)}" if err.has_got else ""
+        if err.has_got is False and "unknown" in err.expected:
+            raise ConfigError(f"{source}: {where}{err.where} {err.key}: unknown key "
+                              f"(expected {err.expected.replace(' (unknown key)', '')})") from None
+        label = f"{err.where} {err.key}".strip()
+        raise ConfigError(f"{source}: {where}{label}: expected {err.expected}{got}") from None
+    return replace(cfg, dictionary=dictionary, markers=markers)
 
 
 def _check_aruco(marker: MarkerConfig) -> None:

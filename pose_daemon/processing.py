@@ -81,10 +81,14 @@ class FrameProcessor:
 
     @classmethod
     def from_config(cls, cfg: Config) -> FrameProcessor:
-        """The processor a Config asks for: its camera, marker, estimator, detector, mount,
-        [attitude] and [gate] keys."""
+        """The processor a Config asks for: its camera, marker (or map), estimator, detector,
+        mount, [attitude] and [gate] keys."""
+        if cfg.map is not None:
+            from .map_processing import MapFrameProcessor
+
+            return MapFrameProcessor.from_config(cfg)  # type: ignore[return-value]
         return cls.from_models(cfg.camera.model(), cfg.marker.model(), cfg.estimator, cfg.detector,
-                               frames=VehicleFrames.from_config(cfg.mount, cfg.marker.placement),
+                               frames=VehicleFrames.from_config(cfg.mount, cfg.placement),
                                prior=PriorSettings.from_config(cfg))
 
     @property

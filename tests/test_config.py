@@ -139,7 +139,7 @@ def test_marker_placement_drives_the_synthetic_trajectory():
      "dist, fps, exposure_us, analogue_gain)"),
     ("[cam]\nfx = 1\n",
      "config.toml: [cam]: unknown section (expected one of camera, marker, estimator, detector, "
-     "synthetic, pipeline, mount, attitude, gate, logging, preview, output)"),
+     "synthetic, pipeline, mount, attitude, gate, logging, preview, output, map)"),
     ("[output.udp]\nport = 1\n",
      "config.toml: [output.udp]: unknown output (expected one of mavlink, serial, jsonl)"),
     ("[output.jsonl]\nfile = \"x\"\n",

@@ -70,11 +70,13 @@ def open_source(camera: CameraConfig, cfg: Optional[Config] = None, *,
         syn = cfg.synthetic
         effects = Effects(blur_px=syn.blur_px, noise_gray=syn.noise_gray,
                           motion_blur_px=syn.motion_blur_px, jpeg_quality=syn.jpeg_quality)
+        marker_map = cfg.map.model() if cfg.map is not None else None
         return SyntheticSource(camera.model(), cfg.marker.model(), trajectory=syn.trajectory,
                                seed=syn.seed, fps=camera.fps, frames=syn.frames, effects=effects,
                                realtime=realtime, attitude=syn.attitude,
                                attitude_noise_deg=syn.attitude_noise_deg, attitude_lag_s=syn.attitude_lag_s,
-                               frames_on_vehicle=VehicleFrames.from_config(cfg.mount, cfg.marker.placement))
+                               frames_on_vehicle=VehicleFrames.from_config(cfg.mount, cfg.placement),
+                               marker_map=marker_map)
     if kind == "picamera2":
         from .picamera2 import Picamera2Source
 

@@ -23,6 +23,10 @@ def run(args: argparse.Namespace) -> int:
         print(cfg.to_toml(), end="")
     else:
         outputs = [name for name in ("mavlink", "serial", "jsonl") if getattr(cfg.output, name)]
-        print(f"{args.config}: ok (source {cfg.camera.source}, marker {cfg.marker.type} "
-              f"{cfg.marker.width:g}x{cfg.marker.height:g} m, outputs: {', '.join(outputs) or 'none'})")
+        if cfg.map is not None:
+            target = f"map {cfg.map.dictionary} with {len(cfg.map.markers)} markers ({cfg.map.placement})"
+        else:
+            target = f"marker {cfg.marker.type} {cfg.marker.width:g}x{cfg.marker.height:g} m"
+        print(f"{args.config}: ok (source {cfg.camera.source}, {target}, "
+              f"outputs: {', '.join(outputs) or 'none'})")
     return 0

@@ -543,8 +543,8 @@ class MavlinkOutput(QueuedOutput):
     @classmethod
     def from_config(cls, cfg: Config, **kwargs: Any) -> MavlinkOutput:
         """The output of a whole Config's ``[output.mavlink]``; ``kwargs`` as ``__init__``."""
-        return cls(cfg.output.mavlink, VehicleFrames.from_config(cfg.mount, cfg.marker.placement),
-                   camera=cfg.camera.model(), marker=cfg.marker.model(), **kwargs)
+        return cls(cfg.output.mavlink, VehicleFrames.from_config(cfg.mount, cfg.placement),
+                   camera=cfg.camera.model(), marker=cfg.target_marker(), **kwargs)
 
     def stats(self) -> dict:
         s = super().stats()

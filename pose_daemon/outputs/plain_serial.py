@@ -120,8 +120,8 @@ class PlainSerialOutput(QueuedOutput):
     @classmethod
     def from_config(cls, cfg: Config, **kwargs: Any) -> PlainSerialOutput:
         """The output of a whole Config's ``[output.serial]``; ``kwargs`` as ``__init__``."""
-        return cls(cfg.output.serial, VehicleFrames.from_config(cfg.mount, cfg.marker.placement),
-                   fx_px=cfg.camera.fx, marker_width_m=cfg.marker.width, **kwargs)
+        return cls(cfg.output.serial, VehicleFrames.from_config(cfg.mount, cfg.placement),
+                   fx_px=cfg.camera.fx, marker_width_m=cfg.target_marker().width, **kwargs)
 
     def _open(self) -> None:
         import serial

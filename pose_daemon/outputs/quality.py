@@ -78,6 +78,9 @@ def solve_covariance(pose: Pose, fx_px: float, marker_width_m: float,
     marker's tilt is weakly seen and the camera centre moves with it (distance x tilt): this
     is where a planar pose's real error lies, and what a fixed d*e/f misses.
     """
+    solved = getattr(pose, "solve_covariance_map", None)
+    if solved is not None:  # a map pose (pose/map_solve.py) carries the covariance of its own solve
+        return solved
     w2 = marker_width_m / 2.0
     h2 = (marker_height_m if marker_height_m is not None else marker_width_m) / 2.0
     R = np.asarray(pose.R, dtype=np.float64)

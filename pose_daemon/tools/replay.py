@@ -14,6 +14,7 @@ from ..config import load_config_or_default
 from ..errors import EndOfStream, SourceError, UserError
 from ..geometry import VehicleFrames
 from ..outputs.jsonl import json_line
+from ..pipeline import Processor
 from ..pose.prior import PriorSettings
 from ..processing import FrameProcessor
 from ..result import FrameResult
@@ -64,9 +65,15 @@ def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = No
         if ignored:
             print(f"pose-daemon: note: {path} has its own {' and '.join(ignored)}, used instead of "
                   f"those of {config}", file=sys.stderr)
-    processor = FrameProcessor.from_models(
-        camera, marker, cfg.estimator, cfg.detector, prior=PriorSettings.from_config(cfg),
-        frames=VehicleFrames.from_config(cfg.mount, cfg.marker.placement))
+    processor: Processor
+    if cfg.map is not None:  # a map names its own markers: the recording's [marker] is not used
+        from ..map_processing import MapFrameProcessor
+
+        processor = MapFrameProcessor.from_models(camera, cfg.map.model(), cfg.estimator, cfg.detector)
+    else:
+        processor = FrameProcessor.from_models(
+            camera, marker, cfg.estimator, cfg.detector, prior=PriorSettings.from_config(cfg),
+            frames=VehicleFrames.from_config(cfg.mount, cfg.placement))
     annotate_dir: Optional[Path] = None
     if annotate:
         annotate_dir = Path(annotate)
