@@ -56,8 +56,7 @@ class Camera:
         object.__setattr__(self, "fy", float(self.fy))
         object.__setattr__(self, "cx", float(self.cx))
         object.__setattr__(self, "cy", float(self.cy))
-        object.__setattr__(self, "_K", np.array(
-            [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]]))
+        object.__setattr__(self, "_K", np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]]))
         object.__setattr__(self, "_dist", np.array(dist, dtype=np.float64))
         object.__setattr__(self, "_distorted", any(d != 0.0 for d in dist))
 
@@ -84,8 +83,7 @@ class Camera:
             out[..., 1] = (pts[..., 1] - self.cy) / self.fy
             return out.reshape(-1, 2)
         if _UNDISTORT_ITER is not None:
-            return _UNDISTORT_ITER(pts, self._K, self._dist, None, None,
-                                   _UNDISTORT_CRITERIA).reshape(-1, 2)
+            return _UNDISTORT_ITER(pts, self._K, self._dist, None, None, _UNDISTORT_CRITERIA).reshape(-1, 2)
         return cv2.undistortPoints(pts, self._K, self._dist).reshape(-1, 2)
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
@@ -97,8 +95,15 @@ class Camera:
     def scaled(self, width: int, height: int) -> Camera:
         """The same lens at another resolution (intrinsics scaled, distortion unchanged)."""
         sx, sy = width / self.width, height / self.height
-        return Camera(fx=self.fx * sx, fy=self.fy * sy, cx=(self.cx + 0.5) * sx - 0.5,
-                      cy=(self.cy + 0.5) * sy - 0.5, dist=self.dist, width=width, height=height)
+        return Camera(
+            fx=self.fx * sx,
+            fy=self.fy * sy,
+            cx=(self.cx + 0.5) * sx - 0.5,
+            cy=(self.cy + 0.5) * sy - 0.5,
+            dist=self.dist,
+            width=width,
+            height=height,
+        )
 
 
 @dataclass(frozen=True)
@@ -115,8 +120,15 @@ class Marker:
     _object_points: np.ndarray = field(init=False, repr=False, compare=False)
 
     if TYPE_CHECKING:
-        def __init__(self, width: float, height: Optional[float] = None, type: str = "square",
-                     dictionary: Optional[str] = None, id: Optional[int] = None) -> None: ...
+
+        def __init__(
+            self,
+            width: float,
+            height: Optional[float] = None,
+            type: str = "square",
+            dictionary: Optional[str] = None,
+            id: Optional[int] = None,
+        ) -> None: ...
 
     def __post_init__(self) -> None:
         height = self.width if self.height is None else self.height

@@ -25,8 +25,9 @@ from .result import FrameResult
 class MapFrameProcessor:
     """detect (MapDetector) -> solve (solve_map_pose) for one map and one camera."""
 
-    def __init__(self, camera: Camera, marker_map: MarkerMap, *, method: str = "iterative",
-                 iterations: int = 5, detector=None) -> None:
+    def __init__(
+        self, camera: Camera, marker_map: MarkerMap, *, method: str = "iterative", iterations: int = 5, detector=None
+    ) -> None:
         from .detect.multi import MapDetector
 
         self.camera = camera
@@ -45,9 +46,15 @@ class MapFrameProcessor:
         """The processor for a camera and a map with a Config's [estimator] and [detector] keys."""
         from .detect.multi import MapDetector
 
-        return cls(camera, marker_map, method=estimator.method, iterations=estimator.iterations,
-                   detector=MapDetector(marker_map, camera=camera, max_misses=detector.max_misses,
-                                        min_side_px=detector.min_side_px))
+        return cls(
+            camera,
+            marker_map,
+            method=estimator.method,
+            iterations=estimator.iterations,
+            detector=MapDetector(
+                marker_map, camera=camera, max_misses=detector.max_misses, min_side_px=detector.min_side_px
+            ),
+        )
 
     @classmethod
     def from_config(cls, cfg) -> MapFrameProcessor:
@@ -79,8 +86,15 @@ class MapFrameProcessor:
             self._last = None
             return result
         try:
-            pose = solve_map_pose(found, self.camera, self.map, previous=self._last, prior=self.prior,
-                                  method=self.method, iterations=self.iterations)
+            pose = solve_map_pose(
+                found,
+                self.camera,
+                self.map,
+                previous=self._last,
+                prior=self.prior,
+                method=self.method,
+                iterations=self.iterations,
+            )
         except EstimationError as exc:
             result.error = f"pose: {exc}"
             self._last = None

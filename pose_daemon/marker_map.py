@@ -21,8 +21,7 @@ import numpy as np
 from .camera import Marker
 from .geometry import MARKER_PLACEMENTS, R_from_euler_rpy
 
-__all__ = ["MapMarker", "MarkerMap", "MapError", "markers_from_tables", "floor_grid", "landing_pad",
-           "MARKER_KEYS"]
+__all__ = ["MapMarker", "MarkerMap", "MapError", "markers_from_tables", "floor_grid", "landing_pad", "MARKER_KEYS"]
 
 MARKER_KEYS = ("id", "size", "position", "rotation_deg")
 
@@ -140,9 +139,14 @@ class MarkerMap:
         if with_header:
             lines += ["[map]", f'dictionary = "{self.dictionary}"', f'placement = "{self.placement}"', ""]
         for m in self.markers:
-            lines += ["[[map.markers]]", f"id = {m.id}", f"size = {_g(m.size_m)}",
-                      "position = [" + ", ".join(_g(v) for v in m.position_m) + "]",
-                      "rotation_deg = [" + ", ".join(_g(v) for v in m.rotation_deg) + "]", ""]
+            lines += [
+                "[[map.markers]]",
+                f"id = {m.id}",
+                f"size = {_g(m.size_m)}",
+                "position = [" + ", ".join(_g(v) for v in m.position_m) + "]",
+                "rotation_deg = [" + ", ".join(_g(v) for v in m.rotation_deg) + "]",
+                "",
+            ]
         return lines
 
 
@@ -166,8 +170,9 @@ def _number_list(where: str, key: str, value: Any, n: int) -> Tuple[float, ...]:
     return tuple(out)
 
 
-def markers_from_tables(tables: Any, n_ids: Optional[int], dictionary: str,
-                        prefix: str = "markers") -> Tuple[MapMarker, ...]:
+def markers_from_tables(
+    tables: Any, n_ids: Optional[int], dictionary: str, prefix: str = "markers"
+) -> Tuple[MapMarker, ...]:
     """Map markers from a TOML array of tables; MapError names ``prefix[i]`` and the key.
 
     ``n_ids``: how many ids the dictionary has (None: not checked here).
@@ -196,8 +201,12 @@ def markers_from_tables(tables: Any, n_ids: Optional[int], dictionary: str,
         if "size" not in table:
             raise MapError(where, "size", "a number > 0 (metres; every marker needs its size)", None, False)
         size = table["size"]
-        if isinstance(size, bool) or not isinstance(size, (int, float)) or not math.isfinite(float(size)) \
-                or not 0.0 < float(size) <= 100.0:
+        if (
+            isinstance(size, bool)
+            or not isinstance(size, (int, float))
+            or not math.isfinite(float(size))
+            or not 0.0 < float(size) <= 100.0
+        ):
             raise MapError(where, "size", "a number in (0, 100] (metres)", size)
         position = _number_list(where, "position", table.get("position", [0.0, 0.0, 0.0]), 3)
         rotation = _number_list(where, "rotation_deg", table.get("rotation_deg", [0.0, 0.0, 0.0]), 3)
@@ -208,8 +217,15 @@ def markers_from_tables(tables: Any, n_ids: Optional[int], dictionary: str,
 # --------------------------------------------------------------------------- map layouts
 
 
-def floor_grid(dictionary: str = "DICT_4X4_50", rows: int = 3, cols: int = 3, spacing_m: float = 1.0,
-               sizes_m: Sequence[float] = (0.20,), first_id: int = 0, placement: str = "floor") -> MarkerMap:
+def floor_grid(
+    dictionary: str = "DICT_4X4_50",
+    rows: int = 3,
+    cols: int = 3,
+    spacing_m: float = 1.0,
+    sizes_m: Sequence[float] = (0.20,),
+    first_id: int = 0,
+    placement: str = "floor",
+) -> MarkerMap:
     """A rows x cols grid centred on the map origin, ids row by row from ``first_id``; sizes
     cycle through ``sizes_m``. Every marker's top edge points along the map's +y."""
     markers = []
@@ -223,8 +239,13 @@ def floor_grid(dictionary: str = "DICT_4X4_50", rows: int = 3, cols: int = 3, sp
     return MarkerMap(dictionary, tuple(markers), placement)
 
 
-def landing_pad(dictionary: str = "DICT_4X4_50", outer_m: float = 0.6, inner_m: Optional[float] = None,
-                outer_id: Optional[int] = None, inner_id: Optional[int] = None) -> MarkerMap:
+def landing_pad(
+    dictionary: str = "DICT_4X4_50",
+    outer_m: float = 0.6,
+    inner_m: Optional[float] = None,
+    outer_id: Optional[int] = None,
+    inner_id: Optional[int] = None,
+) -> MarkerMap:
     """A nested pad centred on the map origin (the landing point): a large marker whose four
     centre bits are white, and a small marker inside that white square.
 
@@ -245,19 +266,22 @@ def landing_pad(dictionary: str = "DICT_4X4_50", outer_m: float = 0.6, inner_m: 
     if not inner_m <= 0.6 * cell_m + 1e-12:
         raise ValueError(f"the inner marker must be at most 0.6 of an outer cell ({0.6 * cell_m:.3f} m)")
     c0, c1 = n // 2 - 1, n // 2 + 1
-    candidates = [i for i in range(aruco_compat.dictionary_size(d))
-                  if aruco_compat.marker_bits(d, i)[c0:c1, c0:c1].all()]
+    candidates = [
+        i for i in range(aruco_compat.dictionary_size(d)) if aruco_compat.marker_bits(d, i)[c0:c1, c0:c1].all()
+    ]
     if outer_id is None:
         if not candidates:
             raise ValueError(f"no marker of {dictionary} has its centre bits white")
         outer_id = candidates[0]
     elif outer_id not in candidates:
-        raise ValueError(f"marker {outer_id} of {dictionary} does not have its four centre bits white; "
-                         f"choose one of {candidates[:10]}")
+        raise ValueError(
+            f"marker {outer_id} of {dictionary} does not have its four centre bits white; "
+            f"choose one of {candidates[:10]}"
+        )
     if inner_id is None:
         inner_id = next(i for i in range(aruco_compat.dictionary_size(d)) if i != outer_id)
     if inner_id == outer_id:
         raise ValueError("the inner and the outer marker need different ids")
-    return MarkerMap(dictionary, (MapMarker(int(outer_id), float(outer_m)),
-                                  MapMarker(int(inner_id), float(inner_m))), "floor")
-
+    return MarkerMap(
+        dictionary, (MapMarker(int(outer_id), float(outer_m)), MapMarker(int(inner_id), float(inner_m))), "floor"
+    )

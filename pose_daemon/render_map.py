@@ -25,8 +25,14 @@ from .render import (
     _render_plane_layer,
 )
 
-__all__ = ["MapFrame", "render_map", "MapTrajectory", "map_pose_looking_down", "camera_position_map",
-           "MAP_TRAJECTORIES"]
+__all__ = [
+    "MapFrame",
+    "render_map",
+    "MapTrajectory",
+    "map_pose_looking_down",
+    "camera_position_map",
+    "MAP_TRAJECTORIES",
+]
 
 MAP_TRAJECTORIES = ("floor", "wall")
 
@@ -45,9 +51,16 @@ class MapFrame:
 _DEFAULT_EFFECTS = Effects()
 
 
-def render_map(camera: Camera, marker_map: MarkerMap, rvec, tvec, *, effects: Effects = _DEFAULT_EFFECTS,
-               rng: Optional[np.random.Generator] = None,
-               background: Optional[np.ndarray] = None) -> MapFrame:
+def render_map(
+    camera: Camera,
+    marker_map: MarkerMap,
+    rvec,
+    tvec,
+    *,
+    effects: Effects = _DEFAULT_EFFECTS,
+    rng: Optional[np.random.Generator] = None,
+    background: Optional[np.ndarray] = None,
+) -> MapFrame:
     """Render every marker of ``marker_map`` with the map at pose (rvec, tvec) in the camera frame.
 
     Larger markers are drawn first, so a marker nested inside another (a landing pad) lies on
@@ -81,12 +94,12 @@ def render_map(camera: Camera, marker_map: MarkerMap, rvec, tvec, *, effects: Ef
             corners[m.id] = px
             if np.all((px >= -0.5) & (px <= lim)):
                 visible.append(m.id)
-    return MapFrame(image=_apply_effects(scene, effects, rng), corners_px=corners,
-                    visible=tuple(sorted(visible)))
+    return MapFrame(image=_apply_effects(scene, effects, rng), corners_px=corners, visible=tuple(sorted(visible)))
 
 
-def map_pose_looking_down(x_m: float, y_m: float, height_m: float, yaw_rad: float = 0.0,
-                          tilt_x_rad: float = 0.0, tilt_y_rad: float = 0.0) -> Tuple[np.ndarray, np.ndarray]:
+def map_pose_looking_down(
+    x_m: float, y_m: float, height_m: float, yaw_rad: float = 0.0, tilt_x_rad: float = 0.0, tilt_y_rad: float = 0.0
+) -> Tuple[np.ndarray, np.ndarray]:
     """(rvec, tvec) of the map in the camera frame for a camera at (x, y, height) over a floor
     map (or in front of a wall map at that distance) looking along the map's -z, image top
     along the map's +y turned by ``yaw_rad``, then tilted about its own x and y axes."""
@@ -107,9 +120,16 @@ class MapTrajectory:
     ``speed`` scales every motion (1 = a slow walk: about 0.3 m/s over a 3 m map).
     """
 
-    def __init__(self, kind: str, marker_map: MarkerMap, seed: int = 0,
-                 height_m: Tuple[float, float] = (0.8, 2.5), max_tilt_deg: float = 8.0,
-                 speed: float = 1.0, margin_m: float = 0.0) -> None:
+    def __init__(
+        self,
+        kind: str,
+        marker_map: MarkerMap,
+        seed: int = 0,
+        height_m: Tuple[float, float] = (0.8, 2.5),
+        max_tilt_deg: float = 8.0,
+        speed: float = 1.0,
+        margin_m: float = 0.0,
+    ) -> None:
         if kind not in MAP_TRAJECTORIES:
             raise ValueError(f"map trajectory must be one of {', '.join(MAP_TRAJECTORIES)}, got {kind!r}")
         lo, hi = float(height_m[0]), float(height_m[1])
@@ -136,8 +156,7 @@ class MapTrajectory:
             yaw = self.phases[7] + 2 * math.pi * t_s / self.periods[5] + 0.6 * s[6]
         else:
             yaw = math.radians(12.0) * s[6]
-        rvec, tvec = map_pose_looking_down(x, y, self.centre[2] + h, yaw, self.max_tilt * s[3],
-                                           self.max_tilt * s[4])
+        rvec, tvec = map_pose_looking_down(x, y, self.centre[2] + h, yaw, self.max_tilt * s[3], self.max_tilt * s[4])
         return TruePose(t_s=float(t_s), rvec=rvec, tvec=tvec)
 
 
@@ -145,4 +164,3 @@ def camera_position_map(rvec, tvec) -> np.ndarray:
     """The camera centre in the map frame for a map pose: -R^T t."""
     R = R_from_rvec(np.asarray(rvec, dtype=np.float64).reshape(3))
     return -R.T @ np.asarray(tvec, dtype=np.float64).reshape(3)
-

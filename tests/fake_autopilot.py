@@ -44,22 +44,35 @@ MAV_PARAM_TYPE_INT32 = 6
 MAV_PARAM_TYPE_REAL32 = 9
 
 ARDUPILOT_PARAMS: Dict[str, Tuple[float, int]] = {
-    "VISO_TYPE": (1, MAV_PARAM_TYPE_INT8), "VISO_QUAL_MIN": (0, MAV_PARAM_TYPE_INT8),
-    "VISO_DELAY_MS": (10, MAV_PARAM_TYPE_INT16), "VISO_ORIENT": (0, MAV_PARAM_TYPE_INT8),
-    "VISO_POS_X": (0.0, MAV_PARAM_TYPE_REAL32), "VISO_POS_Y": (0.0, MAV_PARAM_TYPE_REAL32),
+    "VISO_TYPE": (1, MAV_PARAM_TYPE_INT8),
+    "VISO_QUAL_MIN": (0, MAV_PARAM_TYPE_INT8),
+    "VISO_DELAY_MS": (10, MAV_PARAM_TYPE_INT16),
+    "VISO_ORIENT": (0, MAV_PARAM_TYPE_INT8),
+    "VISO_POS_X": (0.0, MAV_PARAM_TYPE_REAL32),
+    "VISO_POS_Y": (0.0, MAV_PARAM_TYPE_REAL32),
     "VISO_POS_Z": (0.0, MAV_PARAM_TYPE_REAL32),
-    "EK3_SRC1_POSXY": (6, MAV_PARAM_TYPE_INT8), "EK3_SRC1_POSZ": (6, MAV_PARAM_TYPE_INT8),
-    "EK3_SRC1_VELXY": (0, MAV_PARAM_TYPE_INT8), "EK3_SRC1_VELZ": (0, MAV_PARAM_TYPE_INT8),
-    "EK3_SRC1_YAW": (6, MAV_PARAM_TYPE_INT8), "GPS1_TYPE": (0, MAV_PARAM_TYPE_INT8),
-    "SERIAL2_PROTOCOL": (2, MAV_PARAM_TYPE_INT8), "SERIAL2_BAUD": (921, MAV_PARAM_TYPE_INT32),
-    "SR2_EXTRA1": (10, MAV_PARAM_TYPE_INT16), "SR2_POSITION": (10, MAV_PARAM_TYPE_INT16),
-    "PLND_ENABLED": (0, MAV_PARAM_TYPE_INT8), "PLND_TYPE": (0, MAV_PARAM_TYPE_INT8),
+    "EK3_SRC1_POSXY": (6, MAV_PARAM_TYPE_INT8),
+    "EK3_SRC1_POSZ": (6, MAV_PARAM_TYPE_INT8),
+    "EK3_SRC1_VELXY": (0, MAV_PARAM_TYPE_INT8),
+    "EK3_SRC1_VELZ": (0, MAV_PARAM_TYPE_INT8),
+    "EK3_SRC1_YAW": (6, MAV_PARAM_TYPE_INT8),
+    "GPS1_TYPE": (0, MAV_PARAM_TYPE_INT8),
+    "SERIAL2_PROTOCOL": (2, MAV_PARAM_TYPE_INT8),
+    "SERIAL2_BAUD": (921, MAV_PARAM_TYPE_INT32),
+    "SR2_EXTRA1": (10, MAV_PARAM_TYPE_INT16),
+    "SR2_POSITION": (10, MAV_PARAM_TYPE_INT16),
+    "PLND_ENABLED": (0, MAV_PARAM_TYPE_INT8),
+    "PLND_TYPE": (0, MAV_PARAM_TYPE_INT8),
 }
 PX4_PARAMS: Dict[str, Tuple[float, int]] = {
-    "EKF2_EV_CTRL": (11, MAV_PARAM_TYPE_INT32), "EKF2_HGT_REF": (3, MAV_PARAM_TYPE_INT32),
-    "EKF2_EV_DELAY": (0.0, MAV_PARAM_TYPE_REAL32), "EKF2_GPS_CTRL": (0, MAV_PARAM_TYPE_INT32),
-    "EKF2_EV_QMIN": (0, MAV_PARAM_TYPE_INT32), "EKF2_EVP_NOISE": (0.1, MAV_PARAM_TYPE_REAL32),
-    "MAV_0_CONFIG": (101, MAV_PARAM_TYPE_INT32), "MAV_0_MODE": (2, MAV_PARAM_TYPE_INT32),
+    "EKF2_EV_CTRL": (11, MAV_PARAM_TYPE_INT32),
+    "EKF2_HGT_REF": (3, MAV_PARAM_TYPE_INT32),
+    "EKF2_EV_DELAY": (0.0, MAV_PARAM_TYPE_REAL32),
+    "EKF2_GPS_CTRL": (0, MAV_PARAM_TYPE_INT32),
+    "EKF2_EV_QMIN": (0, MAV_PARAM_TYPE_INT32),
+    "EKF2_EVP_NOISE": (0.1, MAV_PARAM_TYPE_REAL32),
+    "MAV_0_CONFIG": (101, MAV_PARAM_TYPE_INT32),
+    "MAV_0_MODE": (2, MAV_PARAM_TYPE_INT32),
     "MAV_0_RATE": (0, MAV_PARAM_TYPE_INT32),
 }
 
@@ -72,26 +85,34 @@ def _name(raw: Any) -> str:
 class Tally:
     """What the fake did with what it got."""
 
-    fused: Dict[str, int] = field(default_factory=dict)        # ODOMETRY / VISION_POSITION_ESTIMATE used
-    ignored: Dict[str, int] = field(default_factory=dict)      # by cause, e.g. "ODOMETRY quality"
+    fused: Dict[str, int] = field(default_factory=dict)  # ODOMETRY / VISION_POSITION_ESTIMATE used
+    ignored: Dict[str, int] = field(default_factory=dict)  # by cause, e.g. "ODOMETRY quality"
     origins_refused: int = 0
     origins_taken: int = 0
     origins_wiped: int = 0
-    set_home_position: int = 0                                 # SET_HOME_POSITION (ArduPilot: no handler)
-    landing_targets: List[Any] = field(default_factory=list)   # accepted LANDING_TARGET messages
+    set_home_position: int = 0  # SET_HOME_POSITION (ArduPilot: no handler)
+    landing_targets: List[Any] = field(default_factory=list)  # accepted LANDING_TARGET messages
     landing_refused: int = 0
     timesync_answers: List[Tuple[int, int, int]] = field(default_factory=list)  # (tc1, ts1, our now ns)
-    stamped_by: Dict[str, int] = field(default_factory=dict)   # PX4: "timesync" / "arrival"
-    received: List[Any] = field(default_factory=list)          # every message from the daemon
+    stamped_by: Dict[str, int] = field(default_factory=dict)  # PX4: "timesync" / "arrival"
+    received: List[Any] = field(default_factory=list)  # every message from the daemon
 
 
 class FakeAutopilot:
     """Listens on 127.0.0.1:``port`` (the daemon's ``udpout:127.0.0.1:PORT``)."""
 
-    def __init__(self, kind: str = "ardupilot", *, system: int = 1, ekf_start_s: float = 4.0,
-                 ekf_bootstrap_s: float = 1.0, timesync_s: float = 10.0, heartbeat_s: float = 1.0,
-                 params: Optional[Dict[str, float]] = None,
-                 vehicle_state: Optional[Callable[[float], Tuple[Any, Any]]] = None) -> None:
+    def __init__(
+        self,
+        kind: str = "ardupilot",
+        *,
+        system: int = 1,
+        ekf_start_s: float = 4.0,
+        ekf_bootstrap_s: float = 1.0,
+        timesync_s: float = 10.0,
+        heartbeat_s: float = 1.0,
+        params: Optional[Dict[str, float]] = None,
+        vehicle_state: Optional[Callable[[float], Tuple[Any, Any]]] = None,
+    ) -> None:
         # ArduPilot's dialect (common.xml and EKF_STATUS_REPORT); PX4 uses only common messages.
         from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
@@ -120,7 +141,7 @@ class FakeAutopilot:
         self.home_set_by: Optional[str] = None
         self.statustexts: List[str] = []
         self.intervals_us: Dict[int, int] = {}
-        self.timesync_offset_ns: Optional[int] = None        # PX4: ours - theirs, once synced
+        self.timesync_offset_ns: Optional[int] = None  # PX4: ours - theirs, once synced
         self._t_first_heartbeat: Optional[float] = None
         self._wipe_at: Optional[float] = None
         self._last_sent: Dict[str, float] = {}
@@ -226,13 +247,16 @@ class FakeAutopilot:
         kind = msg.get_type()
         if kind == "SET_GPS_GLOBAL_ORIGIN":
             if self.kind == "ardupilot" and not self.ekf_running(now):
-                self.tally.origins_refused += 1         # NavEKF3::setOriginLLH: no cores yet
+                self.tally.origins_refused += 1  # NavEKF3::setOriginLLH: no cores yet
                 return
             self.origin = (msg.latitude, msg.longitude, msg.altitude)
             self.tally.origins_taken += 1
             self._text(6, "EKF3 IMU0 origin set" if self.kind == "ardupilot" else "origin set")
-            if (self.kind == "ardupilot" and self._t_first_heartbeat is not None
-                    and now < self._t_first_heartbeat + self.ekf_start_s + self.ekf_bootstrap_s):
+            if (
+                self.kind == "ardupilot"
+                and self._t_first_heartbeat is not None
+                and now < self._t_first_heartbeat + self.ekf_start_s + self.ekf_bootstrap_s
+            ):
                 self._wipe_at = self._t_first_heartbeat + self.ekf_start_s + self.ekf_bootstrap_s
         elif kind == "SET_HOME_POSITION":
             self.tally.set_home_position += 1
@@ -256,7 +280,7 @@ class FakeAutopilot:
     def _command(self, msg: Any, now: float) -> None:
         cmd = msg.command
         result = 3  # MAV_RESULT_UNSUPPORTED
-        if cmd == 512:   # MAV_CMD_REQUEST_MESSAGE
+        if cmd == 512:  # MAV_CMD_REQUEST_MESSAGE
             wanted = int(msg.param1)
             result = 0
             if wanted == 49 and self.origin is not None:
@@ -273,8 +297,11 @@ class FakeAutopilot:
                 if msg.get_type() == "COMMAND_INT":
                     self.home = (msg.x, msg.y, int(round(msg.z * 1e3)))
                 else:
-                    self.home = (int(round(msg.param5 * 1e7)), int(round(msg.param6 * 1e7)),
-                                 int(round(msg.param7 * 1e3)))
+                    self.home = (
+                        int(round(msg.param5 * 1e7)),
+                        int(round(msg.param6 * 1e7)),
+                        int(round(msg.param7 * 1e3)),
+                    )
                 self.home_set_by = "DO_SET_HOME"
                 result = 0
         self.mav.command_ack_send(cmd, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())

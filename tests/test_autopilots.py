@@ -45,8 +45,8 @@ def test_origin_is_sent_until_the_ekf_keeps_it(monkeypatch):
     finally:
         out.close()
         fc.close()
-    assert fc.tally.origins_refused >= 1      # before EKF3 ran
-    assert fc.home == ORIGIN_E7 and fc.home_set_by == "EKF origin"   # ArduCopter sets home itself
+    assert fc.tally.origins_refused >= 1  # before EKF3 ran
+    assert fc.home == ORIGIN_E7 and fc.home_set_by == "EKF origin"  # ArduCopter sets home itself
     asked = [m for m in of_type(fc.tally.received, "COMMAND_LONG") if m.command == 512]
     assert asked and all(int(m.param1) == 49 for m in asked)
 
@@ -97,8 +97,9 @@ def test_vision_position_estimate_with_a_quality_minimum_is_said_plainly():
     try:
         assert wait_for(lambda: out.autopilot_system == 1, 5.0)
         _stream(out, 20)
-        assert wait_for(lambda: any("VPE has no quality" in m.text
-                                    for m in of_type(fc.tally.received, "STATUSTEXT")), 10.0)
+        assert wait_for(
+            lambda: any("VPE has no quality" in m.text for m in of_type(fc.tally.received, "STATUSTEXT")), 10.0
+        )
         assert wait_for(lambda: fc.tally.fused.get("ODOMETRY", 0) >= 20, 10.0)
     finally:
         out.close()
@@ -113,15 +114,18 @@ def test_px4_takes_the_landing_target_in_local_ned_and_syncs_time():
     # PX4's local origin is not the marker's: the vehicle is at (5, 2, -1.5) NED in PX4's frame
     # and 0.3 m south, 0.2 m east of... i.e. at (0.3, -0.2, -1.5) in the marker's, heading 20 deg.
     yaw = math.radians(20.0)
-    fc = FakeAutopilot("px4", heartbeat_s=0.2, timesync_s=0.3,
-                       vehicle_state=lambda t: ((5.0, 2.0, -1.5), (0.0, 0.0, yaw)))
+    fc = FakeAutopilot(
+        "px4", heartbeat_s=0.2, timesync_s=0.3, vehicle_state=lambda t: ((5.0, 2.0, -1.5), (0.0, 0.0, yaw))
+    )
     out = mavlink_output(fc.connection, DOWN, messages=("ODOMETRY", "LANDING_TARGET"), queue_size=0)
     try:
         assert wait_for(lambda: out.autopilot_system == 1, 5.0)
         assert wait_for(lambda: fc.intervals_us.get(32) == 20_000 and fc.intervals_us.get(30) == 20_000, 5.0)
         _stream(out, 45, p_local=(0.3, -0.2, -1.5), yaw_deg=20.0)
-        assert wait_for(lambda: len(fc.tally.landing_targets) >= 45, 10.0), (fc.tally.landing_refused,
-                                                                              len(fc.tally.landing_targets))
+        assert wait_for(lambda: len(fc.tally.landing_targets) >= 45, 10.0), (
+            fc.tally.landing_refused,
+            len(fc.tally.landing_targets),
+        )
     finally:
         out.close()
         fc.close()

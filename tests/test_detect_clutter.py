@@ -92,12 +92,15 @@ def test_no_cap_never_defers_and_an_ample_cap_gives_the_same_corners() -> None:
     assert free.search_deferrals == 0 and ample.search_deferrals == 0
 
 
-@pytest.mark.parametrize("bad, message", [
-    ({"search_budget_ms": 0.0}, "search_budget_ms must be a number > 0 or None"),
-    ({"search_budget_ms": "fast"}, "search_budget_ms must be a number > 0 or None"),
-    ({"clock": 3.0}, "clock must be a callable"),
-    ({"search_threads": 0}, "search_threads must be an integer in \\[1, 64\\] or None"),
-])
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        ({"search_budget_ms": 0.0}, "search_budget_ms must be a number > 0 or None"),
+        ({"search_budget_ms": "fast"}, "search_budget_ms must be a number > 0 or None"),
+        ({"clock": 3.0}, "clock must be a callable"),
+        ({"search_threads": 0}, "search_threads must be an integer in \\[1, 64\\] or None"),
+    ],
+)
 def test_bad_cap_options_raise(bad, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         MarkerDetector(ARUCO, **bad)

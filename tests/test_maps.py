@@ -34,8 +34,7 @@ from pose_daemon.render_map import (
 )
 
 CAM = Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
-CAM_DIST = Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, dist=(-0.25, 0.08, 0.0, 0.0, 0.0),
-                  width=640, height=480)
+CAM_DIST = Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, dist=(-0.25, 0.08, 0.0, 0.0, 0.0), width=640, height=480)
 
 MAP_TOML = """
 [map]
@@ -76,30 +75,52 @@ def test_map_config_parses_into_a_map_with_its_placement():
     assert again.map == cfg.map
 
 
-@pytest.mark.parametrize("edit, expected", [
-    (("id = 7", "id = 0"), "config.toml: [map] markers[1] id: expected an id not used before "
-                           "(markers[0] has id 0), got 0"),
-    (("id = 7", "id = 50"), "config.toml: [map] markers[1] id: expected an integer in [0, 49] "
-                            "(the ids of DICT_4X4_50), got 50"),
-    (("size = 0.15", "size = 0"), "config.toml: [map] markers[1] size: expected a number in (0, 100] (metres), got 0"),
-    (("size = 0.15", "size = -0.1"), "config.toml: [map] markers[1] size: expected a number in (0, 100] (metres), "
-                                     "got -0.1"),
-    (("position = [1.0, 0.0, 0.0]", "position = [1.0, 0.0]"),
-     "config.toml: [map] markers[1] position: expected a list of 3 numbers, got [1.0, 0.0]"),
-    (("position = [1.0, 0.0, 0.0]", "where = 1"),
-     "config.toml: [map] markers[1] where: unknown key (expected one of id, size, position, rotation_deg)"),
-    (('"DICT_4X4_50"', '"DICT_9X9_1"'), 'config.toml: [map] dictionary: expected an OpenCV ArUco or AprilTag '
-                                        'dictionary name such as "DICT_4X4_50", got "DICT_9X9_1"'),
-    (('placement = "floor"', 'placement = "ceiling"'),
-     'config.toml: [map] placement: expected one of "wall", "floor", got "ceiling"'),
-])
+@pytest.mark.parametrize(
+    "edit, expected",
+    [
+        (
+            ("id = 7", "id = 0"),
+            "config.toml: [map] markers[1] id: expected an id not used before (markers[0] has id 0), got 0",
+        ),
+        (
+            ("id = 7", "id = 50"),
+            "config.toml: [map] markers[1] id: expected an integer in [0, 49] (the ids of DICT_4X4_50), got 50",
+        ),
+        (
+            ("size = 0.15", "size = 0"),
+            "config.toml: [map] markers[1] size: expected a number in (0, 100] (metres), got 0",
+        ),
+        (
+            ("size = 0.15", "size = -0.1"),
+            "config.toml: [map] markers[1] size: expected a number in (0, 100] (metres), got -0.1",
+        ),
+        (
+            ("position = [1.0, 0.0, 0.0]", "position = [1.0, 0.0]"),
+            "config.toml: [map] markers[1] position: expected a list of 3 numbers, got [1.0, 0.0]",
+        ),
+        (
+            ("position = [1.0, 0.0, 0.0]", "where = 1"),
+            "config.toml: [map] markers[1] where: unknown key (expected one of id, size, position, rotation_deg)",
+        ),
+        (
+            ('"DICT_4X4_50"', '"DICT_9X9_1"'),
+            "config.toml: [map] dictionary: expected an OpenCV ArUco or AprilTag "
+            'dictionary name such as "DICT_4X4_50", got "DICT_9X9_1"',
+        ),
+        (
+            ('placement = "floor"', 'placement = "ceiling"'),
+            'config.toml: [map] placement: expected one of "wall", "floor", got "ceiling"',
+        ),
+    ],
+)
 def test_map_config_errors_name_the_file_the_table_index_and_the_key(edit, expected):
     assert _error(MAP_TOML.replace(*edit)) == expected
 
 
 def test_map_and_marker_are_exclusive_and_a_map_needs_markers():
     assert _error(MAP_TOML + '\n[marker]\ntype = "square"\n') == (
-        "config.toml: [map]: [map] and [marker] are exclusive (a map names its markers; remove one of the two)")
+        "config.toml: [map]: [map] and [marker] are exclusive (a map names its markers; remove one of the two)"
+    )
     assert "markers: expected [[map.markers]] entries" in _error('[map]\ndictionary = "DICT_4X4_50"\n')
 
 
@@ -111,8 +132,9 @@ def test_apriltag_dictionaries_are_maps_too():
 
 def test_map_file_is_read_relative_to_the_config_and_its_errors_name_it(tmp_path):
     grid = floor_grid(rows=2, cols=2, spacing_m=0.5)
-    (tmp_path / "field.toml").write_text("\n".join(grid.to_toml_lines(with_header=False)).replace(
-        "[[map.markers]]", "[[markers]]"))
+    (tmp_path / "field.toml").write_text(
+        "\n".join(grid.to_toml_lines(with_header=False)).replace("[[map.markers]]", "[[markers]]")
+    )
     cfg_path = tmp_path / "config.toml"
     cfg_path.write_text('[map]\ndictionary = "DICT_4X4_50"\nfile = "field.toml"\n')
     from pose_daemon.config import load_config
@@ -126,7 +148,9 @@ def test_map_file_is_read_relative_to_the_config_and_its_errors_name_it(tmp_path
     cfg_path.write_text('[map]\ndictionary = "DICT_4X4_50"\nfile = "field.toml"\n')
     with pytest.raises(ConfigError) as info:
         load_config(cfg_path)
-    assert str(info.value) == f"{tmp_path / 'field.toml'}: markers[1] size: expected a number in (0, 100] (metres), got -1"
+    assert (
+        str(info.value) == f"{tmp_path / 'field.toml'}: markers[1] size: expected a number in (0, 100] (metres), got -1"
+    )
     cfg_path.write_text('[map]\ndictionary = "DICT_4X4_50"\nfile = "missing.toml"\n')
     with pytest.raises(ConfigError, match=r"config.toml: \[map\] file: cannot read .*missing.toml"):
         load_config(cfg_path)
@@ -135,8 +159,14 @@ def test_map_file_is_read_relative_to_the_config_and_its_errors_name_it(tmp_path
 # --------------------------------------------------------------------------- poses against truth
 
 
-def _fly(marker_map: MarkerMap, poses, camera: Camera = CAM, effects: Optional[Effects] = None, seed: int = 0,
-         render_as: Optional[MarkerMap] = None):
+def _fly(
+    marker_map: MarkerMap,
+    poses,
+    camera: Camera = CAM,
+    effects: Optional[Effects] = None,
+    seed: int = 0,
+    render_as: Optional[MarkerMap] = None,
+):
     proc = MapFrameProcessor(camera, marker_map)
     rng = np.random.default_rng(seed)
     out = []
@@ -170,8 +200,15 @@ def test_floor_map_poses_match_the_renderer_through_a_distorting_lens():
 
 
 def test_wall_map_poses_match_the_renderer():
-    wall = MarkerMap("DICT_4X4_50", (MapMarker(3, 0.2, (-0.5, 0.3, 0.0)), MapMarker(4, 0.2, (0.5, 0.3, 0.0)),
-                                     MapMarker(5, 0.15, (0.0, -0.3, 0.0), (0.0, 0.0, 15.0))), "wall")
+    wall = MarkerMap(
+        "DICT_4X4_50",
+        (
+            MapMarker(3, 0.2, (-0.5, 0.3, 0.0)),
+            MapMarker(4, 0.2, (0.5, 0.3, 0.0)),
+            MapMarker(5, 0.15, (0.0, -0.3, 0.0), (0.0, 0.0, 15.0)),
+        ),
+        "wall",
+    )
     path = MapTrajectory("wall", wall, seed=4, height_m=(1.5, 2.5), speed=2.0)
     results = _fly(wall, [(p.rvec, p.tvec) for p in (path.at(i / 30.0) for i in range(30))])
     ok = [r for r in results if r[0].ok]
@@ -184,10 +221,16 @@ def test_wall_map_poses_match_the_renderer():
 def test_mixed_floor_and_wall_map_one_pose_from_markers_on_two_planes():
     # Floor markers ahead of the camera and markers on the wall 2 m ahead (standing up: their
     # face looks back along -y, their top edge up).
-    mixed = MarkerMap("DICT_4X4_50", (
-        MapMarker(0, 0.2, (-0.3, 1.0, 0.0)), MapMarker(1, 0.2, (0.3, 1.0, 0.0)),
-        MapMarker(10, 0.25, (-0.4, 2.0, 0.5), (90.0, 0.0, 0.0)), MapMarker(11, 0.25, (0.4, 2.0, 0.5), (90.0, 0.0, 0.0))),
-        "floor")
+    mixed = MarkerMap(
+        "DICT_4X4_50",
+        (
+            MapMarker(0, 0.2, (-0.3, 1.0, 0.0)),
+            MapMarker(1, 0.2, (0.3, 1.0, 0.0)),
+            MapMarker(10, 0.25, (-0.4, 2.0, 0.5), (90.0, 0.0, 0.0)),
+            MapMarker(11, 0.25, (0.4, 2.0, 0.5), (90.0, 0.0, 0.0)),
+        ),
+        "floor",
+    )
     poses = []
     for k in range(12):
         pitch = math.radians(25.0 + 0.5 * k)
@@ -207,9 +250,16 @@ def test_mixed_floor_and_wall_map_one_pose_from_markers_on_two_planes():
 
 def test_a_moved_marker_is_found_as_an_outlier_and_left_out():
     grid = floor_grid(rows=2, cols=2, spacing_m=0.5, sizes_m=(0.2,))
-    moved = MarkerMap(grid.dictionary, tuple(
-        MapMarker(m.id, m.size_m, (m.position_m[0] + 0.08, m.position_m[1] - 0.05, 0.0), (0.0, 0.0, 10.0))
-        if m.id == 2 else m for m in grid.markers), grid.placement)
+    moved = MarkerMap(
+        grid.dictionary,
+        tuple(
+            MapMarker(m.id, m.size_m, (m.position_m[0] + 0.08, m.position_m[1] - 0.05, 0.0), (0.0, 0.0, 10.0))
+            if m.id == 2
+            else m
+            for m in grid.markers
+        ),
+        grid.placement,
+    )
     poses = [map_pose_looking_down(0.01 * k, 0.0, 1.2, 0.2) for k in range(6)]
     for res, rvec, tvec, frame in _fly(grid, poses, render_as=moved):
         assert res.ok and set(frame.visible) == {0, 1, 2, 3}
@@ -220,7 +270,7 @@ def test_a_moved_marker_is_found_as_an_outlier_and_left_out():
 
 def test_per_frame_json_lists_the_markers_used_and_the_residual_of_each():
     grid = floor_grid(rows=2, cols=2, spacing_m=0.5)
-    (res, *_), = _fly(grid, [map_pose_looking_down(0.0, 0.0, 1.2, 0.3)])
+    ((res, *_),) = _fly(grid, [map_pose_looking_down(0.0, 0.0, 1.2, 0.3)])
     d = json.loads(json.dumps(res.to_json_dict()))
     assert d["ok"] and d["marker_ids"] == [0, 1, 2, 3] and len(d["marker_residuals_px"]) == 4
     assert all(0 <= r < 0.5 for r in d["marker_residuals_px"])
@@ -233,8 +283,7 @@ def test_two_markers_far_apart_remove_the_planar_ambiguity():
     """One small marker at 2.5 m seen obliquely is ambiguous (the mirror pose fits about as well,
     and is sometimes taken); a second one 1 m away settles it. Corners: truth + 0.3 px noise."""
     one = MarkerMap("DICT_4X4_50", (MapMarker(1, 0.15, (0.5, 0.0, 0.0)),), "floor")
-    two = MarkerMap("DICT_4X4_50", (MapMarker(0, 0.15, (-0.5, 0.0, 0.0)), MapMarker(1, 0.15, (0.5, 0.0, 0.0))),
-                    "floor")
+    two = MarkerMap("DICT_4X4_50", (MapMarker(0, 0.15, (-0.5, 0.0, 0.0)), MapMarker(1, 0.15, (0.5, 0.0, 0.0))), "floor")
     rvec, tvec = map_pose_looking_down(-0.4, 0.3, 2.5, 0.3, math.radians(-6.0), math.radians(-13.0))
     R = g.R_from_rvec(rvec)
     rng = np.random.default_rng(1)
@@ -283,8 +332,7 @@ def test_nested_pad_descent_from_10_m_to_0_2_m_has_a_pose_every_frame_and_no_jum
     pad = landing_pad(outer_m=0.6)
     assert pad.contains_others(pad.ids[0]) and not pad.contains_others(pad.ids[1])
     heights = np.geomspace(10.0, 0.2, 70)
-    poses = [map_pose_looking_down(0.03 * h, -0.02 * h, h, 0.2 + 0.01 * i, 0.02, -0.03)
-             for i, h in enumerate(heights)]
+    poses = [map_pose_looking_down(0.03 * h, -0.02 * h, h, 0.2 + 0.01 * i, 0.02, -0.03) for i, h in enumerate(heights)]
     results = _fly(pad, poses)
     used = [res.pose.marker_ids for res, *_ in results]
     assert all(res.ok for res, *_ in results)
@@ -314,12 +362,23 @@ def test_a_far_off_previous_pose_is_not_kept_when_the_view_changed_completely():
 
 
 def test_synthetic_source_flies_over_the_configured_map_and_the_processor_follows():
-    cfg = parse_config(MAP_TOML.replace("position = [1.0, 0.0, 0.0]", "position = [0.5, 0.0, 0.0]")
-                       + '[camera]\nsource = "synthetic"\n[synthetic]\nframes = 20\n', "syn.toml")
+    cfg = parse_config(
+        MAP_TOML.replace("position = [1.0, 0.0, 0.0]", "position = [0.5, 0.0, 0.0]")
+        + '[camera]\nsource = "synthetic"\n[synthetic]\nframes = 20\n',
+        "syn.toml",
+    )
     proc = FrameProcessor.from_config(cfg)
     assert isinstance(proc, MapFrameProcessor)
-    src = SyntheticSource(cfg.camera.model(), cfg.marker.model(), trajectory="floor", seed=1, frames=20,
-                          realtime=False, marker_map=cfg.map.model(), height_m=(0.8, 1.2))
+    src = SyntheticSource(
+        cfg.camera.model(),
+        cfg.marker.model(),
+        trajectory="floor",
+        seed=1,
+        frames=20,
+        realtime=False,
+        marker_map=cfg.map.model(),
+        height_m=(0.8, 1.2),
+    )
     src.open()
     seen = 0
     for _ in range(20):
@@ -328,8 +387,10 @@ def test_synthetic_source_flies_over_the_configured_map_and_the_processor_follow
         if frame.metadata["visible_ids"]:
             assert res.ok
             seen += 1
-            err = np.linalg.norm(camera_position_map(res.pose.rvec, res.pose.tvec)
-                                 - camera_position_map(frame.metadata["true_rvec"], frame.metadata["true_tvec"]))
+            err = np.linalg.norm(
+                camera_position_map(res.pose.rvec, res.pose.tvec)
+                - camera_position_map(frame.metadata["true_rvec"], frame.metadata["true_tvec"])
+            )
             assert err < 0.02
     assert seen >= 10
 
@@ -342,7 +403,9 @@ def test_map_poses_reach_a_flight_controller_over_udp_with_the_pad_as_landing_ta
 
     peer = UdpPeer()
     pad = landing_pad(outer_m=0.6)
-    cfg = parse_config("\n".join(pad.to_toml_lines()) + f"""
+    cfg = parse_config(
+        "\n".join(pad.to_toml_lines())
+        + f"""
 [camera]
 width = 640
 height = 480
@@ -360,16 +423,17 @@ connection = "udpout:127.0.0.1:{peer.port}"
 messages = ["ODOMETRY", "LANDING_TARGET"]
 wait_heartbeat = false
 [output.jsonl]
-path = "{tmp_path / 'poses.jsonl'}"
-""", "pad.toml")
+path = "{tmp_path / "poses.jsonl"}"
+""",
+        "pad.toml",
+    )
     frames = g.VehicleFrames.from_config(cfg.mount, cfg.placement)
     heights = np.geomspace(4.0, 0.25, 40)
     poses = [map_pose_looking_down(0.1 + 0.02 * h, -0.05, h, 0.3, 0.02, 0.0) for h in heights]
     rng = np.random.default_rng(0)
     images = [render_map(cfg.camera.model(), pad, rv, tv, rng=rng).image for rv, tv in poses]
     source = RecordingSource(images, fps=5.0)  # slow enough for a loaded 2-core machine
-    pipeline = Pipeline.from_config(cfg, source, FrameProcessor.from_config(cfg),
-                                    functools.partial(open_outputs, cfg))
+    pipeline = Pipeline.from_config(cfg, source, FrameProcessor.from_config(cfg), functools.partial(open_outputs, cfg))
     outputs = pipeline.outputs
     pipeline.start()
     assert pipeline.wait(60.0)

@@ -39,13 +39,26 @@ class SyntheticSource:
     sigma; for a camera on ``frames`` (default: the trajectory's mount and placement).
     """
 
-    def __init__(self, camera: Camera, marker: Marker, *, trajectory: str = "wall", seed: int = 0,
-                 fps: float = 30.0, frames: int = 0, effects: Optional[Effects] = None,
-                 realtime: bool = True, clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep, attitude: bool = True,
-                 attitude_noise_deg: float = 0.5, attitude_lag_s: float = 0.0,
-                 frames_on_vehicle: Optional[VehicleFrames] = None, marker_map=None,
-                 height_m: Optional[Tuple[float, float]] = None) -> None:
+    def __init__(
+        self,
+        camera: Camera,
+        marker: Marker,
+        *,
+        trajectory: str = "wall",
+        seed: int = 0,
+        fps: float = 30.0,
+        frames: int = 0,
+        effects: Optional[Effects] = None,
+        realtime: bool = True,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+        attitude: bool = True,
+        attitude_noise_deg: float = 0.5,
+        attitude_lag_s: float = 0.0,
+        frames_on_vehicle: Optional[VehicleFrames] = None,
+        marker_map=None,
+        height_m: Optional[Tuple[float, float]] = None,
+    ) -> None:
         if fps <= 0:
             raise SourceError(f"synthetic source: fps must be positive, got {fps}")
         if not (attitude_noise_deg >= 0 and attitude_lag_s >= 0):
@@ -61,8 +74,11 @@ class SyntheticSource:
         else:
             self.path = Trajectory(trajectory, seed, camera, marker)
         # The vehicle the camera rides on, for the attitude an autopilot would report.
-        self.vehicle_frames = (frames_on_vehicle if frames_on_vehicle is not None
-                               else VehicleFrames.from_settings(TRAJECTORY_MOUNTS[trajectory], placement=trajectory))
+        self.vehicle_frames = (
+            frames_on_vehicle
+            if frames_on_vehicle is not None
+            else VehicleFrames.from_settings(TRAJECTORY_MOUNTS[trajectory], placement=trajectory)
+        )
         self._attitude_rng: Optional[np.random.Generator] = None
         self.seed, self.fps, self.frames = seed, float(fps), int(frames)
         self.effects = effects if effects is not None else Effects()
@@ -78,8 +94,9 @@ class SyntheticSource:
         self._rng = np.random.default_rng(self.seed)
         self._attitude_rng = np.random.default_rng([self.seed, 1])
         # One background for the whole run: a camera on a robot sees the same room.
-        self._background = make_background(self._rng, self.camera.width, self.camera.height,
-                                           self.effects.background, self.effects.plain_gray)
+        self._background = make_background(
+            self._rng, self.camera.width, self.camera.height, self.effects.background, self.effects.plain_gray
+        )
         self._seq = 0
         self._t0 = self._clock()
 
@@ -104,13 +121,28 @@ class SyntheticSource:
             frame = self._map_frame(truth, t_capture, t_traj)
             self._seq += 1
             return frame
-        rendered = render_marker(self.camera, self.marker, truth.rvec, truth.tvec,
-                                 effects=self.effects, rng=self._rng, background=self._background)
-        frame = Frame(image=rendered.image, t_capture_s=t_capture, seq=self._seq,
-                      metadata={"true_rvec": truth.rvec, "true_tvec": truth.tvec,
-                                "true_corners": rendered.corners_px, "visible": rendered.visible,
-                                "trajectory_t_s": t_traj},
-                      attitude=self._attitude(t_traj))
+        rendered = render_marker(
+            self.camera,
+            self.marker,
+            truth.rvec,
+            truth.tvec,
+            effects=self.effects,
+            rng=self._rng,
+            background=self._background,
+        )
+        frame = Frame(
+            image=rendered.image,
+            t_capture_s=t_capture,
+            seq=self._seq,
+            metadata={
+                "true_rvec": truth.rvec,
+                "true_tvec": truth.tvec,
+                "true_corners": rendered.corners_px,
+                "visible": rendered.visible,
+                "trajectory_t_s": t_traj,
+            },
+            attitude=self._attitude(t_traj),
+        )
         self._seq += 1
         return frame
 
@@ -125,14 +157,29 @@ class SyntheticSource:
         return Attitude((float(rpy[0]), float(rpy[1]), float(rpy[2])), sigma)
 
     def _map_frame(self, truth, t_capture: float, t_traj: float) -> Frame:
-        rendered = render_map(self.camera, self.marker_map, truth.rvec, truth.tvec, effects=self.effects,
-                              rng=self._rng, background=self._background)
-        return Frame(image=rendered.image, t_capture_s=t_capture, seq=self._seq,
-                     metadata={"true_rvec": truth.rvec, "true_tvec": truth.tvec,
-                               "true_marker_corners": rendered.corners_px,
-                               "visible_ids": rendered.visible, "visible": bool(rendered.visible),
-                               "trajectory_t_s": t_traj},
-                     attitude=self._attitude(t_traj))
+        rendered = render_map(
+            self.camera,
+            self.marker_map,
+            truth.rvec,
+            truth.tvec,
+            effects=self.effects,
+            rng=self._rng,
+            background=self._background,
+        )
+        return Frame(
+            image=rendered.image,
+            t_capture_s=t_capture,
+            seq=self._seq,
+            metadata={
+                "true_rvec": truth.rvec,
+                "true_tvec": truth.tvec,
+                "true_marker_corners": rendered.corners_px,
+                "visible_ids": rendered.visible,
+                "visible": bool(rendered.visible),
+                "trajectory_t_s": t_traj,
+            },
+            attitude=self._attitude(t_traj),
+        )
 
     def close(self) -> None:
         self._rng = None

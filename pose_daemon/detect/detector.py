@@ -48,8 +48,11 @@ class SearchRecord(NamedTuple):
     @property
     def steps(self) -> Tuple[str, ...]:
         """The steps that ran, in order."""
-        ran = (("follow", self.predicted_px is not None), ("roi", self.roi_px is not None),
-               ("full", self.full is not None))
+        ran = (
+            ("follow", self.predicted_px is not None),
+            ("roi", self.roi_px is not None),
+            ("full", self.full is not None),
+        )
         return tuple(name for name, did in ran if did)
 
     @property
@@ -74,8 +77,9 @@ _NOTHING_SEARCHED = SearchRecord(None, None, None, None)
 def _cyclic_shift_to(corners: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """Relabel clockwise corners so each lands nearest its previous label (continuity)."""
     c, r = corners.tolist(), reference.tolist()
-    costs = [sum((c[(i + k) % 4][0] - r[i][0]) ** 2 + (c[(i + k) % 4][1] - r[i][1]) ** 2
-                 for i in range(4)) for k in range(4)]
+    costs = [
+        sum((c[(i + k) % 4][0] - r[i][0]) ** 2 + (c[(i + k) % 4][1] - r[i][1]) ** 2 for i in range(4)) for k in range(4)
+    ]
     k = costs.index(min(costs))
     return corners[[(i + k) % 4 for i in range(4)]]
 
@@ -141,32 +145,52 @@ class MarkerDetector:
       its own full-size pass runs, once the half-size pass found nothing. Same results.
     """
 
-    def __init__(self, marker: Marker, *, max_misses: int = 5, min_side_px: float = 10.0,
-                 camera: Optional[Camera] = None, block_px: int = 25,
-                 threshold_offset: float = 10.0, min_contrast: float = 20.0,
-                 max_edge_residual_px: float = 0.4, max_aspect_ratio_error: float = 3.0,
-                 roi_margin: float = 0.5, gamma: Response = 1.0,
-                 search_budget_ms: Optional[float] = None,
-                 clock: Callable[[], float] = time.perf_counter,
-                 search_threads: Optional[int] = None) -> None:
+    def __init__(
+        self,
+        marker: Marker,
+        *,
+        max_misses: int = 5,
+        min_side_px: float = 10.0,
+        camera: Optional[Camera] = None,
+        block_px: int = 25,
+        threshold_offset: float = 10.0,
+        min_contrast: float = 20.0,
+        max_edge_residual_px: float = 0.4,
+        max_aspect_ratio_error: float = 3.0,
+        roi_margin: float = 0.5,
+        gamma: Response = 1.0,
+        search_budget_ms: Optional[float] = None,
+        clock: Callable[[], float] = time.perf_counter,
+        search_threads: Optional[int] = None,
+    ) -> None:
         if not isinstance(marker, Marker):
             raise ValueError(f"marker must be a pose_daemon.Marker, got {type(marker).__name__}")
         if isinstance(max_misses, bool) or not isinstance(max_misses, (int, np.integer)) or max_misses < 0:
             raise ValueError(f"max_misses must be a non-negative integer, got {max_misses!r}")
-        checks = (("min_side_px", min_side_px, 1.0), ("block_px", block_px, 3),
-                  ("min_contrast", min_contrast, 1.0), ("max_edge_residual_px", max_edge_residual_px, 0.01),
-                  ("max_aspect_ratio_error", max_aspect_ratio_error, 1.0), ("roi_margin", roi_margin, 0.0),
-                  ("threshold_offset", threshold_offset, 0.0))
+        checks = (
+            ("min_side_px", min_side_px, 1.0),
+            ("block_px", block_px, 3),
+            ("min_contrast", min_contrast, 1.0),
+            ("max_edge_residual_px", max_edge_residual_px, 0.01),
+            ("max_aspect_ratio_error", max_aspect_ratio_error, 1.0),
+            ("roi_margin", roi_margin, 0.0),
+            ("threshold_offset", threshold_offset, 0.0),
+        )
         for name, value, lowest in checks:
             if not isinstance(value, (int, float)) or not np.isfinite(value) or value < lowest:
                 raise ValueError(f"{name} must be a number >= {lowest}, got {value!r}")
-        if search_budget_ms is not None and (isinstance(search_budget_ms, bool)
-                                             or not isinstance(search_budget_ms, (int, float))
-                                             or not np.isfinite(search_budget_ms) or search_budget_ms <= 0):
+        if search_budget_ms is not None and (
+            isinstance(search_budget_ms, bool)
+            or not isinstance(search_budget_ms, (int, float))
+            or not np.isfinite(search_budget_ms)
+            or search_budget_ms <= 0
+        ):
             raise ValueError(f"search_budget_ms must be a number > 0 or None, got {search_budget_ms!r}")
-        if search_threads is not None and (isinstance(search_threads, bool)
-                                           or not isinstance(search_threads, (int, np.integer))
-                                           or not 1 <= search_threads <= 64):
+        if search_threads is not None and (
+            isinstance(search_threads, bool)
+            or not isinstance(search_threads, (int, np.integer))
+            or not 1 <= search_threads <= 64
+        ):
             raise ValueError(f"search_threads must be an integer in [1, 64] or None, got {search_threads!r}")
         if not callable(clock):
             raise ValueError(f"clock must be a callable returning seconds, got {clock!r}")
@@ -177,10 +201,14 @@ class MarkerDetector:
         self.max_misses = int(max_misses)
         self.roi_margin = float(roi_margin)
         self.options = SquareOptions(
-            min_side_px=float(min_side_px), block_px=int(block_px),
-            threshold_offset=float(threshold_offset), min_contrast=float(min_contrast),
+            min_side_px=float(min_side_px),
+            block_px=int(block_px),
+            threshold_offset=float(threshold_offset),
+            min_contrast=float(min_contrast),
             max_edge_residual_px=float(max_edge_residual_px),
-            max_aspect_ratio_error=float(max_aspect_ratio_error), gamma=check_response(gamma))
+            max_aspect_ratio_error=float(max_aspect_ratio_error),
+            gamma=check_response(gamma),
+        )
         if marker.type == "aruco":
             from .aruco import ArucoFinder
 
@@ -208,7 +236,7 @@ class MarkerDetector:
     def reset(self) -> None:
         """Forget the track: the next frame is searched whole and labelled afresh."""
         self._forget_track()
-        self._cursor: Tuple[int, int] = (0, 0)   # where an interrupted whole-frame search goes on
+        self._cursor: Tuple[int, int] = (0, 0)  # where an interrupted whole-frame search goes on
 
     def _forget_track(self) -> None:
         self._last: Optional[np.ndarray] = None
@@ -233,8 +261,10 @@ class MarkerDetector:
         self.last_search_deferred = False
         gray = as_gray(image)
         if self.camera is not None and gray.shape != (self.camera.height, self.camera.width):
-            raise ValueError(f"image is {gray.shape[1]}x{gray.shape[0]} but the camera model is "
-                             f"{self.camera.width}x{self.camera.height}")
+            raise ValueError(
+                f"image is {gray.shape[1]}x{gray.shape[0]} but the camera model is "
+                f"{self.camera.width}x{self.camera.height}"
+            )
         found, search = self._find(gray)
         self.last_search = search
         self.last_stage = search.stage
@@ -322,9 +352,11 @@ class MarkerDetector:
         """No track: the candidate closest to the marker's shape; the larger one on a tie."""
         if not cands:
             return None
+
         def key(c: Candidate):
             labelled = self._label(c, None)
             return (round(aspect_error(labelled, self.marker), 1), -float(side_lengths(labelled).sum()))
+
         return self._label(min(cands, key=key), None)
 
     def _pick_continuous(self, cands: List[Candidate], predicted: np.ndarray) -> Optional[np.ndarray]:

@@ -54,10 +54,14 @@ class _Decoder:
         uu, vv = np.meshgrid(centres, centres)
         self.cell_uv = np.column_stack([uu.ravel(), vv.ravel()])
         s = np.linspace(0.1, 0.9, 7)
-        ring = np.concatenate([np.column_stack([s, np.full_like(s, -0.08)]),
-                               np.column_stack([np.full_like(s, 1.08), s]),
-                               np.column_stack([s, np.full_like(s, 1.08)]),
-                               np.column_stack([np.full_like(s, -0.08), s])])
+        ring = np.concatenate(
+            [
+                np.column_stack([s, np.full_like(s, -0.08)]),
+                np.column_stack([np.full_like(s, 1.08), s]),
+                np.column_stack([s, np.full_like(s, 1.08)]),
+                np.column_stack([np.full_like(s, -0.08), s]),
+            ]
+        )
         self.uv = np.concatenate([self.cell_uv, ring])
         border = np.ones((cells, cells), dtype=bool)
         border[1:-1, 1:-1] = False
@@ -113,11 +117,21 @@ class MapDetector:
     thresholds), plus ``full_every``: frames between whole-frame searches while tracking.
     """
 
-    def __init__(self, marker_map: MarkerMap, *, camera: Optional[Camera] = None, max_misses: int = 5,
-                 min_side_px: float = 10.0, full_every: int = 10, block_px: int = 25,
-                 threshold_offset: float = 10.0, min_contrast: float = 20.0,
-                 max_edge_residual_px: float = 0.4, max_aspect_ratio_error: float = 3.0,
-                 roi_margin: float = 0.5) -> None:
+    def __init__(
+        self,
+        marker_map: MarkerMap,
+        *,
+        camera: Optional[Camera] = None,
+        max_misses: int = 5,
+        min_side_px: float = 10.0,
+        full_every: int = 10,
+        block_px: int = 25,
+        threshold_offset: float = 10.0,
+        min_contrast: float = 20.0,
+        max_edge_residual_px: float = 0.4,
+        max_aspect_ratio_error: float = 3.0,
+        roi_margin: float = 0.5,
+    ) -> None:
         if not isinstance(marker_map, MarkerMap):
             raise ValueError(f"marker_map must be a MarkerMap, got {type(marker_map).__name__}")
         if isinstance(max_misses, bool) or not isinstance(max_misses, int) or max_misses < 0:
@@ -130,16 +144,23 @@ class MapDetector:
         self.full_every = full_every
         self.roi_margin = float(roi_margin)
         self.options = SquareOptions(
-            min_side_px=float(min_side_px), block_px=int(block_px), threshold_offset=float(threshold_offset),
-            min_contrast=float(min_contrast), max_edge_residual_px=float(max_edge_residual_px),
-            max_aspect_ratio_error=float(max_aspect_ratio_error))
+            min_side_px=float(min_side_px),
+            block_px=int(block_px),
+            threshold_offset=float(threshold_offset),
+            min_contrast=float(min_contrast),
+            max_edge_residual_px=float(max_edge_residual_px),
+            max_aspect_ratio_error=float(max_aspect_ratio_error),
+        )
         self.finders: Dict[int, ArucoFinder] = {
-            i: ArucoFinder(marker_map.single(i), self.options, camera) for i in marker_map.ids}
+            i: ArucoFinder(marker_map.single(i), self.options, camera) for i in marker_map.ids
+        }
         dictionary = aruco_compat.get_dictionary(marker_map.dictionary)
         self._decoder = _Decoder(dictionary, list(marker_map.ids), self.options)
         self._nests = {i: marker_map.contains_others(i) for i in marker_map.ids}
-        self._opencv = aruco_compat.ArucoMarkerFinder(dictionary, aruco_compat.make_parameters(
-            corner_refine="none", minMarkerPerimeterRate=0.01, minCornerDistanceRate=0.02))
+        self._opencv = aruco_compat.ArucoMarkerFinder(
+            dictionary,
+            aruco_compat.make_parameters(corner_refine="none", minMarkerPerimeterRate=0.01, minCornerDistanceRate=0.02),
+        )
         #: How each marker was found in the last call: id -> "follow", "roi", "predicted" or "full".
         self.last_stages: Dict[int, str] = {}
         #: Whole-frame searches run so far (the costly step).
@@ -160,8 +181,10 @@ class MapDetector:
         should be ({id: (4, 2) pixels}, e.g. the map projected with the last pose)."""
         gray = as_gray(image)
         if self.camera is not None and gray.shape != (self.camera.height, self.camera.width):
-            raise ValueError(f"image is {gray.shape[1]}x{gray.shape[0]} but the camera model is "
-                             f"{self.camera.width}x{self.camera.height}")
+            raise ValueError(
+                f"image is {gray.shape[1]}x{gray.shape[0]} but the camera model is "
+                f"{self.camera.width}x{self.camera.height}"
+            )
         h, w = gray.shape
         found: Dict[int, np.ndarray] = {}
         stages: Dict[int, str] = {}
@@ -194,8 +217,9 @@ class MapDetector:
         self.last_stages = stages
         return {i: c.copy() for i, c in found.items()}
 
-    def _find_tracked(self, gray: np.ndarray, marker_id: int, predicted: np.ndarray,
-                      last: np.ndarray) -> Tuple[Optional[np.ndarray], Optional[str]]:
+    def _find_tracked(
+        self, gray: np.ndarray, marker_id: int, predicted: np.ndarray, last: np.ndarray
+    ) -> Tuple[Optional[np.ndarray], Optional[str]]:
         h, w = gray.shape
         finder = self.finders[marker_id]
         if ((predicted >= 1.0) & (predicted <= [w - 2.0, h - 2.0])).all():
@@ -231,14 +255,16 @@ class MapDetector:
         depth = 0.5 / (self._decoder.n_bits + 2)
         scales = (2, 1) if min(gray.shape) >= 240 else (1,)
         for scale in scales:
-            for quad in find_quads(gray, min_side_px=o.min_side_px, block_px=o.block_px,
-                                   offset_gray=o.threshold_offset, downscale=scale):
+            for quad in find_quads(
+                gray, min_side_px=o.min_side_px, block_px=o.block_px, offset_gray=o.threshold_offset, downscale=scale
+            ):
                 if inside_any(quad.mean(axis=0), blocking):
                     continue
                 if not darker_inside(gray, quad, depth, 0.5 * o.min_contrast):
                     continue
-                fit = refiner.refine(gray, quad, iterations=2, max_move_px=1.5 * scale + 1.0,
-                                     converged_px=SEARCH_CONVERGED_PX)
+                fit = refiner.refine(
+                    gray, quad, iterations=2, max_move_px=1.5 * scale + 1.0, converged_px=SEARCH_CONVERGED_PX
+                )
                 if fit is None:
                     continue
                 decoded = self._decoder.decode(gray, fit)

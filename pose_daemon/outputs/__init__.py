@@ -27,13 +27,30 @@ from .worker import LinkBusy, LinkError, QueuedOutput
 if TYPE_CHECKING:  # config.py imports the outputs' choices: no import back at run time
     from ..config import Config
 
-__all__ = ["Output", "OutputFactory", "WrittenHook", "ClosedHook", "QueuedOutput", "MavlinkOutput", "PlainSerialOutput", "JsonlOutput", "LinkError",
-           "LinkBusy", "open_outputs"]
+__all__ = [
+    "Output",
+    "OutputFactory",
+    "WrittenHook",
+    "ClosedHook",
+    "QueuedOutput",
+    "MavlinkOutput",
+    "PlainSerialOutput",
+    "JsonlOutput",
+    "LinkError",
+    "LinkBusy",
+    "open_outputs",
+]
 
 
-def open_outputs(cfg: Config, *, max_age_s: Optional[float] = None, on_written: Optional[WrittenHook] = None,
-                 on_closed: Optional[ClosedHook] = None, start: bool = True,
-                 queue_size: Optional[int] = None) -> List[QueuedOutput]:
+def open_outputs(
+    cfg: Config,
+    *,
+    max_age_s: Optional[float] = None,
+    on_written: Optional[WrittenHook] = None,
+    on_closed: Optional[ClosedHook] = None,
+    start: bool = True,
+    queue_size: Optional[int] = None,
+) -> List[QueuedOutput]:
     """The outputs ``cfg.output`` asks for, started (links open in their own threads, so a link
     that is down now does not stop the daemon: it is retried with a doubling pause).
 
@@ -45,8 +62,9 @@ def open_outputs(cfg: Config, *, max_age_s: Optional[float] = None, on_written: 
     """
     if queue_size is None:
         queue_size = cfg.pipeline.output_buffer
-    common: Dict[str, Any] = dict(max_age_s=max_age_s, on_written=on_written, on_closed=on_closed, start=start,
-                  queue_size=queue_size)
+    common: Dict[str, Any] = dict(
+        max_age_s=max_age_s, on_written=on_written, on_closed=on_closed, start=start, queue_size=queue_size
+    )
     outputs: List[QueuedOutput] = []
     m = cfg.output.mavlink
     if m is not None:

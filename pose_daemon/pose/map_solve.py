@@ -26,8 +26,15 @@ from ..geometry import R_from_rvec, paper_angles_deg_from_R_cam_marker, rvec_fro
 from ..marker_map import MarkerMap
 from .types import EstimationError, Pose
 
-__all__ = ["GravityPrior", "MapPose", "solve_map_pose", "refine_pose", "map_corners_px",
-           "OUTLIER_PX", "CORNER_SIGMA_PX"]
+__all__ = [
+    "GravityPrior",
+    "MapPose",
+    "solve_map_pose",
+    "refine_pose",
+    "map_corners_px",
+    "OUTLIER_PX",
+    "CORNER_SIGMA_PX",
+]
 
 #: A marker whose RMS corner residual under the common pose exceeds this many pixels (and
 #: several times the others') is an outlier.
@@ -125,9 +132,17 @@ def _project(camera: Camera, P: np.ndarray, t: np.ndarray, jac: bool):
     return img, J[:, :6]
 
 
-def refine_pose(camera: Camera, obj: np.ndarray, img: np.ndarray, R0: np.ndarray, t0: np.ndarray, *,
-                prior: Optional[GravityPrior] = None, max_iter: int = MAX_ITER,
-                sigma_px: float = CORNER_SIGMA_PX) -> Tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+def refine_pose(
+    camera: Camera,
+    obj: np.ndarray,
+    img: np.ndarray,
+    R0: np.ndarray,
+    t0: np.ndarray,
+    *,
+    prior: Optional[GravityPrior] = None,
+    max_iter: int = MAX_ITER,
+    sigma_px: float = CORNER_SIGMA_PX,
+) -> Tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Levenberg-Marquardt of (R, t) minimising the reprojection error of ``obj`` (N, 3) onto
     ``img`` (N, 2) pixels, plus the prior's term. Returns (R, t, sum of squared pixel
     residuals, J^T J of the whitened problem at the minimum (6x6))."""
@@ -192,8 +207,9 @@ def refine_pose(camera: Camera, obj: np.ndarray, img: np.ndarray, R0: np.ndarray
     return R, t, sse_px, J.T @ J
 
 
-def _marker_rms(camera: Camera, obj: np.ndarray, img: np.ndarray, R: np.ndarray, t: np.ndarray,
-                n_markers: int) -> np.ndarray:
+def _marker_rms(
+    camera: Camera, obj: np.ndarray, img: np.ndarray, R: np.ndarray, t: np.ndarray, n_markers: int
+) -> np.ndarray:
     proj = camera.project(obj @ R.T + t)
     d2 = np.sum((proj - img) ** 2, axis=1).reshape(n_markers, 4)
     return np.sqrt(d2.mean(axis=1))
@@ -204,11 +220,16 @@ def _robust_cost(camera: Camera, obj: np.ndarray, img: np.ndarray, R: np.ndarray
     if not np.all(pts[:, 2] > 1e-6):
         return math.inf
     d2 = np.sum((camera.project(pts) - img) ** 2, axis=1)
-    return float(np.minimum(d2, ROBUST_CAP_PX ** 2).sum())
+    return float(np.minimum(d2, ROBUST_CAP_PX**2).sum())
 
 
-def _starts(camera: Camera, marker_map: MarkerMap, observed: Dict[int, np.ndarray], estimate,
-            previous: Optional[Tuple[np.ndarray, np.ndarray]]) -> List[Tuple[np.ndarray, np.ndarray, float]]:
+def _starts(
+    camera: Camera,
+    marker_map: MarkerMap,
+    observed: Dict[int, np.ndarray],
+    estimate,
+    previous: Optional[Tuple[np.ndarray, np.ndarray]],
+) -> List[Tuple[np.ndarray, np.ndarray, float]]:
     """(R_cam_map, t, ambiguity of the marker it came from) for every start."""
     out = []
     if previous is not None:
@@ -229,10 +250,17 @@ def _starts(camera: Camera, marker_map: MarkerMap, observed: Dict[int, np.ndarra
     return out
 
 
-def solve_map_pose(observed: Dict[int, np.ndarray], camera: Camera, marker_map: MarkerMap, *,
-                   previous: Optional[Tuple[np.ndarray, np.ndarray]] = None,
-                   prior: Optional[GravityPrior] = None, outlier_px: float = OUTLIER_PX,
-                   method: str = "iterative", iterations: int = 5) -> MapPose:
+def solve_map_pose(
+    observed: Dict[int, np.ndarray],
+    camera: Camera,
+    marker_map: MarkerMap,
+    *,
+    previous: Optional[Tuple[np.ndarray, np.ndarray]] = None,
+    prior: Optional[GravityPrior] = None,
+    outlier_px: float = OUTLIER_PX,
+    method: str = "iterative",
+    iterations: int = 5,
+) -> MapPose:
     """The map's pose in the camera frame from the corners of every visible map marker.
 
     ``observed``: {id: (4, 2) pixels TL, TR, BR, BL}; ids not in the map are ignored.
@@ -241,8 +269,7 @@ def solve_map_pose(observed: Dict[int, np.ndarray], camera: Camera, marker_map: 
     """
     from .estimator import estimate_pose
 
-    obs = {int(i): np.asarray(c, dtype=np.float64).reshape(4, 2) for i, c in observed.items()
-           if int(i) in marker_map}
+    obs = {int(i): np.asarray(c, dtype=np.float64).reshape(4, 2) for i, c in observed.items() if int(i) in marker_map}
     obs = {i: c for i, c in obs.items() if np.all(np.isfinite(c))}
     if not obs:
         raise EstimationError("no marker of the map in view")
@@ -345,7 +372,7 @@ def solve_map_pose(observed: Dict[int, np.ndarray], camera: Camera, marker_map: 
                 ambiguity = min(1.0, err / max(err_alt, 1e-12)) if err_alt > 0 else 1.0
                 rms = _marker_rms(camera, obj, img, R, t, len(ids))
     dof = max(2 * n_img - 6, 1)
-    s2 = max(sse / dof, CORNER_SIGMA_PX ** 2) / CORNER_SIGMA_PX ** 2
+    s2 = max(sse / dof, CORNER_SIGMA_PX**2) / CORNER_SIGMA_PX**2
     try:
         cov = s2 * np.linalg.inv(JtJ)
     except np.linalg.LinAlgError:
@@ -353,20 +380,32 @@ def solve_map_pose(observed: Dict[int, np.ndarray], camera: Camera, marker_map: 
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and math.isfinite(err)):
         raise EstimationError("no finite map pose fits these corners")
     a, b, g = paper_angles_deg_from_R_cam_marker(R)
-    return MapPose(rvec=rvec_from_R(R), tvec=t.copy(), R=R, alpha_deg=a, beta_deg=b, gamma_deg=g,
-                   reprojection_error_px=err, method="map", iterations=0, alternative=None,
-                   ambiguity_ratio=float(ambiguity), marker_ids=tuple(ids),
-                   marker_residuals_px=tuple(float(v) for v in rms), outlier_ids=tuple(sorted(outliers)),
-                   covariance=cov)
+    return MapPose(
+        rvec=rvec_from_R(R),
+        tvec=t.copy(),
+        R=R,
+        alpha_deg=a,
+        beta_deg=b,
+        gamma_deg=g,
+        reprojection_error_px=err,
+        method="map",
+        iterations=0,
+        alternative=None,
+        ambiguity_ratio=float(ambiguity),
+        marker_ids=tuple(ids),
+        marker_residuals_px=tuple(float(v) for v in rms),
+        outlier_ids=tuple(sorted(outliers)),
+        covariance=cov,
+    )
 
 
-def map_corners_px(camera: Camera, marker_map: MarkerMap, R: np.ndarray, t: np.ndarray,
-                   ids: Optional[Sequence[int]] = None) -> Dict[int, np.ndarray]:
+def map_corners_px(
+    camera: Camera, marker_map: MarkerMap, R: np.ndarray, t: np.ndarray, ids: Optional[Sequence[int]] = None
+) -> Dict[int, np.ndarray]:
     """Where each map marker's corners project with the map pose (R, t) (in front only)."""
     out: Dict[int, np.ndarray] = {}
-    for marker_id in (marker_map.ids if ids is None else ids):
+    for marker_id in marker_map.ids if ids is None else ids:
         pts = marker_map.corners_map(marker_id) @ R.T + t
         if np.all(pts[:, 2] > 1e-3):
             out[marker_id] = camera.project(pts)
     return out
-

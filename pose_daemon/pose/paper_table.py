@@ -37,7 +37,7 @@ class PaperTable:
             c = np.asarray(data[name], dtype=np.float64)  # (n, 4): a, b, c, d
             # Coefficients of the cubic in u = e * z_rel: nearly constant in depth, so they
             # interpolate well and extend beyond the grid (weak perspective: e ~ 1 / z_rel).
-            powers = np.stack([z_rel ** -3, z_rel ** -2, z_rel ** -1, np.ones_like(z_rel)], -1)
+            powers = np.stack([z_rel**-3, z_rel**-2, z_rel**-1, np.ones_like(z_rel)], -1)
             self._norm[name] = c * powers
             # Limit of |u| = |e| z_rel that the fit covered, per depth.
             self._u_max[name] = np.asarray(data[name + "_e_max"], dtype=np.float64) * z_rel

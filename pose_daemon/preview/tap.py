@@ -27,8 +27,8 @@ class Tapped(NamedTuple):
 
     frame: Frame
     result: FrameResult
-    detector_step: Optional[str]   # "follow", "roi", "full" or None (the detector's last_stage)
-    search: Any = None             # the detector's last_search (a SearchRecord) or None
+    detector_step: Optional[str]  # "follow", "roi", "full" or None (the detector's last_stage)
+    search: Any = None  # the detector's last_search (a SearchRecord) or None
 
     @property
     def seq(self) -> int:
@@ -48,8 +48,8 @@ class FrameTap:
         self.latest: Optional[Tapped] = None
         self.history: Deque[FrameResult] = collections.deque(maxlen=history)
         self._cond = threading.Condition()
-        self._waiting = 0          # viewers blocked in wait_newer: only then is there a notify
-        self.recorder = None       # a Recorder while one records (set by the server)
+        self._waiting = 0  # viewers blocked in wait_newer: only then is there a notify
+        self.recorder = None  # a Recorder while one records (set by the server)
         self.frames = 0
         self.failures = 0
 
@@ -57,8 +57,9 @@ class FrameTap:
         try:
             detector = self._detector
             if detector is not None:
-                item = Tapped(frame, result, getattr(detector, "last_stage", None),
-                              getattr(detector, "last_search", None))
+                item = Tapped(
+                    frame, result, getattr(detector, "last_stage", None), getattr(detector, "last_search", None)
+                )
             else:
                 item = Tapped(frame, result, None)
             self.latest = item

@@ -25,8 +25,14 @@ NOISE_PX = (0.0, 0.25, 0.5, 1.0)
 FLIP_DEG = 10.0
 
 
-def random_poses(n: int, camera: Camera, marker: Marker, rng: np.random.Generator,
-                 d_range: Tuple[float, float] = (0.5, 4.0), tilt_max_deg: float = 60.0) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+def random_poses(
+    n: int,
+    camera: Camera,
+    marker: Marker,
+    rng: np.random.Generator,
+    d_range: Tuple[float, float] = (0.5, 4.0),
+    tilt_max_deg: float = 60.0,
+) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """n poses (R_cam_marker (n,3,3), tvec (n,3)) with every corner inside the image, and the
     exact corner pixels (n,4,2)."""
     Rs: List[np.ndarray] = []
@@ -36,8 +42,7 @@ def random_poses(n: int, camera: Camera, marker: Marker, rng: np.random.Generato
         m = 2 * (n - len(Rs)) + 16
         d = rng.uniform(*d_range, m)
         pix = rng.uniform([0, 0], [camera.width, camera.height], (m, 2))
-        ray = np.stack([(pix[:, 0] - camera.cx) / camera.fx, (pix[:, 1] - camera.cy) / camera.fy,
-                        np.ones(m)], -1)
+        ray = np.stack([(pix[:, 0] - camera.cx) / camera.fx, (pix[:, 1] - camera.cy) / camera.fy, np.ones(m)], -1)
         ray /= np.linalg.norm(ray, axis=-1, keepdims=True)
         t = ray * d[:, None]
         # Marker facing the camera along the line of sight (normal = -ray), then a tilt about
@@ -63,10 +68,14 @@ def random_poses(n: int, camera: Camera, marker: Marker, rng: np.random.Generato
 
 
 def _stats(rot_err: np.ndarray, t_err_pct: np.ndarray) -> Dict[str, float]:
-    return {"rot_median_deg": float(np.median(rot_err)), "rot_p95_deg": float(np.percentile(rot_err, 95)),
-            "rot_max_deg": float(np.max(rot_err)),
-            "trans_median_pct": float(np.median(t_err_pct)), "trans_p95_pct": float(np.percentile(t_err_pct, 95)),
-            "flip_rate": float(np.mean(rot_err > FLIP_DEG))}
+    return {
+        "rot_median_deg": float(np.median(rot_err)),
+        "rot_p95_deg": float(np.percentile(rot_err, 95)),
+        "rot_max_deg": float(np.max(rot_err)),
+        "trans_median_pct": float(np.median(t_err_pct)),
+        "trans_p95_pct": float(np.percentile(t_err_pct, 95)),
+        "flip_rate": float(np.mean(rot_err > FLIP_DEG)),
+    }
 
 
 def _ippe(camera: Camera, marker: Marker, refine: bool) -> Callable:
@@ -123,10 +132,12 @@ def run_bench(n: int, timing_n: int, seed: int, progress: bool = True) -> Dict[s
             # Accuracy through the batch form (tested equal to estimate_pose row by row).
             b = estimate_pose_batch(corners, camera, marker, method=method, refine=refine)
             # A corner set the method could not solve counts as a flip (180 deg, 100 %).
-            rot = np.where(b.ok, geometry.rotation_angle_deg(np.where(b.ok[:, None, None], b.R, np.eye(3)),
-                                                             R_true), 180.0)
-            t_err = np.where(b.ok, 100.0 * np.linalg.norm(np.where(b.ok[:, None], b.tvec, 0.0) - t_true,
-                                                          axis=-1) / dist, 100.0)
+            rot = np.where(
+                b.ok, geometry.rotation_angle_deg(np.where(b.ok[:, None, None], b.R, np.eye(3)), R_true), 180.0
+            )
+            t_err = np.where(
+                b.ok, 100.0 * np.linalg.norm(np.where(b.ok[:, None], b.tvec, 0.0) - t_true, axis=-1) / dist, 100.0
+            )
             row[name] = _stats(rot, t_err)
             row[name]["failures"] = int((~b.ok).sum())
         for name, solve in opencv.items():
@@ -138,7 +149,8 @@ def run_bench(n: int, timing_n: int, seed: int, progress: bool = True) -> Dict[s
         default = row["iterative+polish"]
         row["default_vs_ml"] = {
             "rot_median_ratio": default["rot_median_deg"] / max(anchor["rot_median_deg"], 1e-300),
-            "rot_p95_ratio": default["rot_p95_deg"] / max(anchor["rot_p95_deg"], 1e-300)}
+            "rot_p95_ratio": default["rot_p95_deg"] / max(anchor["rot_p95_deg"], 1e-300),
+        }
         levels.append(row)
         if progress:
             print(f"noise {noise} px done", file=sys.stderr)
@@ -146,12 +158,15 @@ def run_bench(n: int, timing_n: int, seed: int, progress: bool = True) -> Dict[s
     # Speed: one call at a time on the same corners (0.5 px noise), default settings.
     sample = exact[:timing_n] + rng.normal(scale=0.5, size=exact[:timing_n].shape)
     K, dist_c, obj = camera.K, camera.dist_coeffs, marker.object_points
-    timing = {name: _time_calls(lambda c, m=m, r=r: estimate_pose(c, camera, marker, method=m, refine=r), sample)
-              for name, (m, r) in ours.items()}
+    timing = {
+        name: _time_calls(lambda c, m=m, r=r: estimate_pose(c, camera, marker, method=m, refine=r), sample)
+        for name, (m, r) in ours.items()
+    }
     for name, solve in opencv.items():
         timing[name] = _time_calls(solve, sample)
     timing["solvePnP_ITERATIVE"] = _time_calls(
-        lambda c: cv2.solvePnP(obj, c, K, dist_c, flags=cv2.SOLVEPNP_ITERATIVE), sample)
+        lambda c: cv2.solvePnP(obj, c, K, dist_c, flags=cv2.SOLVEPNP_ITERATIVE), sample
+    )
     timing["default_vs_solvePnP_ITERATIVE"] = timing["iterative+polish"] / timing["solvePnP_ITERATIVE"]
     # Batch throughput, default settings, on all noisy corners.
     corners = exact + rng.normal(scale=0.5, size=exact.shape)
@@ -161,34 +176,52 @@ def run_bench(n: int, timing_n: int, seed: int, progress: bool = True) -> Dict[s
     t0 = time.perf_counter()
     estimate_pose_batch(corners, camera, marker, refine=False)
     batch_rate_plain = len(corners) / (time.perf_counter() - t0)
-    return {"n": n, "camera": "640x480, f = 600 px", "marker_m": 0.2, "distance_m": [0.5, 4.0],
-            "tilt_max_deg": 60.0, "levels": levels, "us_per_call": timing,
-            "batch_poses_per_s": batch_rate, "batch_poses_per_s_no_polish": batch_rate_plain,
-            "opencv": cv2.__version__, "numpy": np.__version__}
+    return {
+        "n": n,
+        "camera": "640x480, f = 600 px",
+        "marker_m": 0.2,
+        "distance_m": [0.5, 4.0],
+        "tilt_max_deg": 60.0,
+        "levels": levels,
+        "us_per_call": timing,
+        "batch_poses_per_s": batch_rate,
+        "batch_poses_per_s_no_polish": batch_rate_plain,
+        "opencv": cv2.__version__,
+        "numpy": np.__version__,
+    }
 
 
 def print_report(res: Dict[str, Any]) -> None:
-    print(f"estimator accuracy: {res['n']} random poses, {res['camera']}, {res['marker_m']} m square, "
-          f"{res['distance_m'][0]}-{res['distance_m'][1]} m, tilt <= {res['tilt_max_deg']:g} deg "
-          f"(OpenCV {res['opencv']}, numpy {res['numpy']})")
+    print(
+        f"estimator accuracy: {res['n']} random poses, {res['camera']}, {res['marker_m']} m square, "
+        f"{res['distance_m'][0]}-{res['distance_m'][1]} m, tilt <= {res['tilt_max_deg']:g} deg "
+        f"(OpenCV {res['opencv']}, numpy {res['numpy']})"
+    )
     names = ["paper", "paper+polish", "iterative", "iterative+polish", "IPPE_SQUARE", "IPPE_SQUARE+LM"]
     for row in res["levels"]:
         print(f"\nnoise {row['noise_px']} px")
-        print(f"  {'method':<18}{'rot med deg':>13}{'rot p95 deg':>13}{'t med %':>11}"
-              f"{'t p95 %':>11}{'flips':>9}{'failed':>8}")
+        print(
+            f"  {'method':<18}{'rot med deg':>13}{'rot p95 deg':>13}{'t med %':>11}"
+            f"{'t p95 %':>11}{'flips':>9}{'failed':>8}"
+        )
         for name in names:
             s = row[name]
-            print(f"  {name:<18}{s['rot_median_deg']:>13.3g}{s['rot_p95_deg']:>13.3g}"
-                  f"{s['trans_median_pct']:>11.3g}{s['trans_p95_pct']:>11.3g}"
-                  f"{100 * s['flip_rate']:>8.2f}%{s['failures']:>8d}")
+            print(
+                f"  {name:<18}{s['rot_median_deg']:>13.3g}{s['rot_p95_deg']:>13.3g}"
+                f"{s['trans_median_pct']:>11.3g}{s['trans_p95_pct']:>11.3g}"
+                f"{100 * s['flip_rate']:>8.2f}%{s['failures']:>8d}"
+            )
         r = row["default_vs_ml"]
-        print(f"  default (iterative+polish) / IPPE_SQUARE+LM: median x{r['rot_median_ratio']:.4f}, "
-              f"p95 x{r['rot_p95_ratio']:.4f}")
+        print(
+            f"  default (iterative+polish) / IPPE_SQUARE+LM: median x{r['rot_median_ratio']:.4f}, "
+            f"p95 x{r['rot_p95_ratio']:.4f}"
+        )
     print("\nmedian microseconds per call (0.5 px noise):")
     for name, us in res["us_per_call"].items():
         if name != "default_vs_solvePnP_ITERATIVE":
             print(f"  {name:<22}{us:>9.1f}")
     print(f"  default / solvePnP(ITERATIVE): x{res['us_per_call']['default_vs_solvePnP_ITERATIVE']:.2f}")
-    print(f"batch: {res['batch_poses_per_s']:,.0f} poses/s (default), "
-          f"{res['batch_poses_per_s_no_polish']:,.0f} poses/s without the polish")
-
+    print(
+        f"batch: {res['batch_poses_per_s']:,.0f} poses/s (default), "
+        f"{res['batch_poses_per_s_no_polish']:,.0f} poses/s without the polish"
+    )

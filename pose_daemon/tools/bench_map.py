@@ -42,8 +42,7 @@ BEST_OF = 3
 
 
 def _grid(n_side: int) -> MarkerMap:
-    return floor_grid("DICT_4X4_50", rows=n_side, cols=n_side, spacing_m=3.0 / (n_side - 1),
-                      sizes_m=(0.15, 0.20))
+    return floor_grid("DICT_4X4_50", rows=n_side, cols=n_side, spacing_m=3.0 / (n_side - 1), sizes_m=(0.15, 0.20))
 
 
 def _single_position(camera: Camera, marker_map: MarkerMap, found: Dict[int, np.ndarray]) -> Optional[np.ndarray]:
@@ -109,14 +108,18 @@ def flight(marker_map: MarkerMap, frames: int, seed: int, camera: Camera = CAMER
     noise = float(np.median(steps_same)) if steps_same else None
     jump = max(steps_changed) if steps_changed else None
     return {
-        "markers": len(marker_map.ids), "frames": frames, "frames_in_view": in_view,
+        "markers": len(marker_map.ids),
+        "frames": frames,
+        "frames_in_view": in_view,
         "pose_rate": with_pose / in_view if in_view else None,
-        "error_m": _stats(err_map), "error_single_m": _stats(err_single),
+        "error_m": _stats(err_map),
+        "error_single_m": _stats(err_single),
         "error_at_1_5m_median_m": float(np.median(err_map_15)) if err_map_15 else None,
         "markers_used_median": float(np.median(used)) if used else None,
-        "step_noise_median_m": noise, "step_noise_p95_m": _stats(steps_same)["p95"],
-        "jump_max_m": jump, "jump_over_noise_p95": (jump / _stats(steps_same)["p95"]
-                                                    if jump is not None and steps_same else None),
+        "step_noise_median_m": noise,
+        "step_noise_p95_m": _stats(steps_same)["p95"],
+        "jump_max_m": jump,
+        "jump_over_noise_p95": (jump / _stats(steps_same)["p95"] if jump is not None and steps_same else None),
         "set_changes": len(steps_changed),
     }
 
@@ -132,8 +135,9 @@ def descent(frames: int, seed: int, camera: Camera = CAMERA) -> Dict[str, Any]:
     sets: Dict[str, int] = {}
     for i, h in enumerate(heights):
         s = math.sin(2 * math.pi * i / max(frames, 1))
-        rvec, tvec = map_pose_looking_down(0.04 * h * s, -0.03 * h * s, h, 0.4 + 2.0 * i / frames,
-                                           math.radians(3.0) * s, math.radians(-2.0) * s)
+        rvec, tvec = map_pose_looking_down(
+            0.04 * h * s, -0.03 * h * s, h, 0.4 + 2.0 * i / frames, math.radians(3.0) * s, math.radians(-2.0) * s
+        )
         rendered = render_map(camera, pad, rvec, tvec, rng=rng)
         result = proc.process(Frame(image=rendered.image, t_capture_s=i / FPS, seq=i))
         if result.ok:
@@ -141,9 +145,14 @@ def descent(frames: int, seed: int, camera: Camera = CAMERA) -> Dict[str, Any]:
             rel.append(float(np.linalg.norm(result.pose.tvec - tvec)) / h)
             key = "+".join(str(k) for k in result.pose.marker_ids)
             sets[key] = sets.get(key, 0) + 1
-    return {"frames": frames, "pose_rate": ok / frames, "landing_error_rel": _stats(rel),
-            "outer_m": pad.marker(pad.ids[0]).size_m, "inner_m": pad.marker(pad.ids[1]).size_m,
-            "marker_sets": sets}
+    return {
+        "frames": frames,
+        "pose_rate": ok / frames,
+        "landing_error_rel": _stats(rel),
+        "outer_m": pad.marker(pad.ids[0]).size_m,
+        "inner_m": pad.marker(pad.ids[1]).size_m,
+        "marker_sets": sets,
+    }
 
 
 def _timing_map(n_side: int) -> MarkerMap:
@@ -175,18 +184,33 @@ def cost(repeat: int, seed: int, camera: Camera = CAMERA) -> List[Dict[str, Any]
                 r1 = [single.process(Frame(image=image, t_capture_s=k / FPS, seq=k)) for _ in range(BEST_OF)]
                 if k >= 5:
                     t_single.append(min(sum(r.stage_s.values()) for r in r1))
-        rows.append({"markers_in_view": n_side * n_side, "markers_used": used,
-                     "median_ms": 1e3 * float(np.median(t_map)), "detect_median_ms": 1e3 * float(np.median(t_det)),
-                     "single_marker_processor_ms": 1e3 * float(np.median(t_single)) if t_single else None})
+        rows.append(
+            {
+                "markers_in_view": n_side * n_side,
+                "markers_used": used,
+                "median_ms": 1e3 * float(np.median(t_map)),
+                "detect_median_ms": 1e3 * float(np.median(t_det)),
+                "single_marker_processor_ms": 1e3 * float(np.median(t_single)) if t_single else None,
+            }
+        )
     return rows
 
 
-def run_bench(frames: int = 600, descent_frames: int = 300, repeat: int = 200, seed: int = 0,
-              progress: bool = False) -> Dict[str, Any]:
+def run_bench(
+    frames: int = 600, descent_frames: int = 300, repeat: int = 200, seed: int = 0, progress: bool = False
+) -> Dict[str, Any]:
     """Every figure of the module docstring as one report (plain data)."""
-    report: Dict[str, Any] = {"setup": {"width": CAMERA.width, "height": CAMERA.height, "fx": CAMERA.fx,
-                                        "frames": frames, "seed": seed, "opencv": cv2.__version__,
-                                        "numpy": np.__version__}}
+    report: Dict[str, Any] = {
+        "setup": {
+            "width": CAMERA.width,
+            "height": CAMERA.height,
+            "fx": CAMERA.fx,
+            "frames": frames,
+            "seed": seed,
+            "opencv": cv2.__version__,
+            "numpy": np.__version__,
+        }
+    }
     t0 = time.perf_counter()
     report["flights"] = []
     for n_side in (3, 4):
@@ -206,38 +230,53 @@ def _mm(v: Optional[float]) -> str:
 
 def print_report(report: Dict[str, Any]) -> None:
     s = report["setup"]
-    print(f"pose-daemon bench map: {s['width']}x{s['height']} fx={s['fx']:.0f}, rendered (blur 0.8 px, "
-          f"noise 2 grey levels), DICT_4X4_50, seed {s['seed']}; OpenCV {s['opencv']}, numpy {s['numpy']}")
+    print(
+        f"pose-daemon bench map: {s['width']}x{s['height']} fx={s['fx']:.0f}, rendered (blur 0.8 px, "
+        f"noise 2 grey levels), DICT_4X4_50, seed {s['seed']}; OpenCV {s['opencv']}, numpy {s['numpy']}"
+    )
     print()
-    header = (f"{'3 x 3 m floor grid':<22}{'with pose':>10}{'err med':>10}{'err p95':>10}{'single med':>12}"
-              f"{'single p95':>12}{'at 1.5 m':>10}{'noise p95':>11}{'max jump':>10}{'jump/noise':>11}")
+    header = (
+        f"{'3 x 3 m floor grid':<22}{'with pose':>10}{'err med':>10}{'err p95':>10}{'single med':>12}"
+        f"{'single p95':>12}{'at 1.5 m':>10}{'noise p95':>11}{'max jump':>10}{'jump/noise':>11}"
+    )
     print(header)
     print("-" * len(header))
     for f in report["flights"]:
         rate = "-" if f["pose_rate"] is None else f"{100 * f['pose_rate']:.1f}%"
         ratio = "-" if f["jump_over_noise_p95"] is None else f"{f['jump_over_noise_p95']:.2f}x"
-        print(f"{str(f['markers']) + ' markers, ' + str(f['frames']) + ' frames':<22}{rate:>10}"
-              f"{_mm(f['error_m']['median']):>10}{_mm(f['error_m']['p95']):>10}"
-              f"{_mm(f['error_single_m']['median']):>12}{_mm(f['error_single_m']['p95']):>12}"
-              f"{_mm(f['error_at_1_5m_median_m']):>10}{_mm(f['step_noise_p95_m']):>11}"
-              f"{_mm(f['jump_max_m']):>10}{ratio:>11}")
+        print(
+            f"{str(f['markers']) + ' markers, ' + str(f['frames']) + ' frames':<22}{rate:>10}"
+            f"{_mm(f['error_m']['median']):>10}{_mm(f['error_m']['p95']):>10}"
+            f"{_mm(f['error_single_m']['median']):>12}{_mm(f['error_single_m']['p95']):>12}"
+            f"{_mm(f['error_at_1_5m_median_m']):>10}{_mm(f['step_noise_p95_m']):>11}"
+            f"{_mm(f['jump_max_m']):>10}{ratio:>11}"
+        )
     print()
-    print("with pose: of the frames with at least one marker wholly in view; err: camera position vs "
-          "truth; single: the marker nearest the image centre alone (same corners); noise p95: "
-          "frame-to-frame change of the error while the markers used stay the same; max jump: the "
-          "largest such change when a marker enters or leaves")
+    print(
+        "with pose: of the frames with at least one marker wholly in view; err: camera position vs "
+        "truth; single: the marker nearest the image centre alone (same corners); noise p95: "
+        "frame-to-frame change of the error while the markers used stay the same; max jump: the "
+        "largest such change when a marker enters or leaves"
+    )
     print()
     d = report["descent"]
     e = d["landing_error_rel"]
-    print(f"nested pad {d['outer_m']:.2f} m / {d['inner_m']:.2f} m, descent 10 m -> 0.2 m, {d['frames']} frames: "
-          f"pose in {100 * d['pose_rate']:.1f}% of frames, landing-point error / height median "
-          f"{100 * e['median']:.3f}%, max {100 * e['max']:.3f}%; markers used: "
-          + ", ".join(f"{k}: {v}" for k, v in d["marker_sets"].items()))
+    print(
+        f"nested pad {d['outer_m']:.2f} m / {d['inner_m']:.2f} m, descent 10 m -> 0.2 m, {d['frames']} frames: "
+        f"pose in {100 * d['pose_rate']:.1f}% of frames, landing-point error / height median "
+        f"{100 * e['median']:.3f}%, max {100 * e['max']:.3f}%; markers used: "
+        + ", ".join(f"{k}: {v}" for k, v in d["marker_sets"].items())
+    )
     print()
-    header = f"{'markers in view':<17}{'used':>6}{'detect+solve':>14}{'detect':>9}{'Pi 2 (x20)':>12}{'1-marker processor':>20}"
+    header = (
+        f"{'markers in view':<17}{'used':>6}{'detect+solve':>14}{'detect':>9}{'Pi 2 (x20)':>12}"
+        f"{'1-marker processor':>20}"
+    )
     print(header)
     print("-" * len(header))
     for r in report["cost"]:
         single = "-" if r["single_marker_processor_ms"] is None else f"{r['single_marker_processor_ms']:.2f} ms"
-        print(f"{r['markers_in_view']:<17}{r['markers_used']:>6}{r['median_ms']:>11.2f} ms"
-              f"{r['detect_median_ms']:>6.2f} ms{PI2_FACTOR * r['median_ms']:>9.0f} ms{single:>20}")
+        print(
+            f"{r['markers_in_view']:<17}{r['markers_used']:>6}{r['median_ms']:>11.2f} ms"
+            f"{r['detect_median_ms']:>6.2f} ms{PI2_FACTOR * r['median_ms']:>9.0f} ms{single:>20}"
+        )
