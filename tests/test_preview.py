@@ -368,6 +368,16 @@ def test_each_cause_of_a_missing_pose_gives_its_warning(processed):
     assert _codes(source_state="failed (camera unplugged), reopening in 0.5 s") == ["source"]
     assert _codes(since_frame_s=3.0) == ["stalled"]
     assert _codes(recent_drops={"late": 2}) == ["late"]
+    assert _codes(recent_drops={"gated": 3, "inconsistent": 1}) == ["withheld"]
+    from pose_daemon.attitude import Attitude
+    from pose_daemon.preview.tap import Tapped
+
+    frame = tracked.frame
+    without = Tapped(frame, dataclasses.replace(r, attitude=None), None)
+    with_att = Tapped(frame, dataclasses.replace(r, attitude=Attitude((0.0, 0.0, 0.0), 0.01)), None)
+    assert _codes(last=without, history=[r], attitude_expected=True) == ["attitude_stale"]
+    assert _codes(last=with_att, history=[r], attitude_expected=True) == []
+    assert _codes(last=without, history=[r]) == []  # no live attitude configured: nothing to miss
     assert _codes(recent_drops={"full[mavlink]": 1}) == ["output_drops"]
     mav = {
         "name": "mavlink",

@@ -26,6 +26,7 @@ from urllib.parse import parse_qs, urlsplit
 
 import cv2
 
+from ..attitude import attitude_connection
 from ..errors import PoseDaemonError
 from ..pipeline import STAGES, summarize_ms
 from .page import PAGE_HTML
@@ -242,6 +243,7 @@ class PreviewServer:
             recent_drops={k: v for k, v in recent.items() if v > 0},
             outputs=self._outputs(),
             min_side_px=self.cfg.detector.min_side_px,
+            attitude_expected=attitude_connection(self.cfg) is not None,
         )
         found = evaluate(ctx)
         self._warnings_cache = (now, found)

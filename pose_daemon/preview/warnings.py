@@ -1,8 +1,8 @@
 """Why there is no pose (or a doubtful one): the warnings the page and the annotated frame show.
 
 Each cause is one entry of RULES: a code and a function of the Context that returns the
-warning's text or None. A new cause (a gate that rejected the pose, a stale autopilot
-attitude) is one more function and one more entry; the page lists whatever comes back.
+warning's text or None. A new cause is one more function and one more entry; the page lists
+whatever comes back.
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ class Context:
     outputs: List[dict] = field(default_factory=list)  # per output: name, link_up, link, ...
     min_side_px: float = 10.0
     ambiguous_ratio: float = 0.1
+    attitude_expected: bool = False  # [attitude] names a live source: frames should carry one
 
 
 def shortest_side_px(corners) -> float:
@@ -123,6 +124,22 @@ def _late(ctx: Context) -> Optional[str]:
     return None
 
 
+def _withheld(ctx: Context) -> Optional[str]:
+    gated, inconsistent = ctx.recent_drops.get("gated", 0), ctx.recent_drops.get("inconsistent", 0)
+    parts = []
+    if gated:
+        parts.append(f"{gated} rejected by the quality gate (the corners fit no marker well enough)")
+    if inconsistent:
+        parts.append(f"{inconsistent} inconsistent (neither planar solution agrees with the attitude or tilt)")
+    return "poses withheld in the last seconds: " + "; ".join(parts) if parts else None
+
+
+def _attitude_stale(ctx: Context) -> Optional[str]:
+    if not ctx.attitude_expected or ctx.last is None or ctx.last.result.attitude is not None:
+        return None
+    return "no fresh autopilot attitude for this frame: the planar solution is chosen without it"
+
+
 def _autopilot(ctx: Context) -> Optional[str]:
     for out in ctx.outputs:
         if out.get("wait_heartbeat") and out.get("link_up") and out.get("autopilot") is None:
@@ -150,6 +167,8 @@ RULES: Tuple[Tuple[str, Rule], ...] = (
     ("pose_failed", _pose_failed),
     ("ambiguous", _ambiguous),
     ("late", _late),
+    ("withheld", _withheld),
+    ("attitude_stale", _attitude_stale),
     ("autopilot_not_heard", _autopilot),
     ("output_down", _output_down),
     ("output_drops", _output_drops),
