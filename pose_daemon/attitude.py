@@ -24,14 +24,21 @@ import collections
 import math
 import threading
 from dataclasses import dataclass
-from typing import Deque, List, Optional, Sequence, Tuple
+from typing import Deque, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
 from .geometry import R_from_euler_rpy, euler_rpy_from_R, quaternion_from_R_3x3
 
-__all__ = ["Attitude", "ClockMapper", "AttitudeHistory", "AutopilotAttitude", "slerp", "attitude_connection",
-           "autopilot_attitude_from_config"]
+__all__ = [
+    "Attitude",
+    "ClockMapper",
+    "AttitudeHistory",
+    "AutopilotAttitude",
+    "slerp",
+    "attitude_connection",
+    "autopilot_attitude_from_config",
+]
 
 
 @dataclass(frozen=True)
@@ -59,16 +66,20 @@ class Attitude:
         return R_from_euler_rpy(*self.rpy_rad)
 
     @classmethod
-    def from_quaternion(cls, q_wxyz: Sequence[float], sigma_rad: Optional[float] = None) -> Attitude:
+    def from_quaternion(cls, q_wxyz: Union[Sequence[float], np.ndarray], sigma_rad: Optional[float] = None) -> Attitude:
         r, p, y = euler_rpy_from_R(_R_from_quaternion(np.asarray(q_wxyz, dtype=np.float64)))
         return cls((float(r), float(p), float(y)), sigma_rad)
 
 
 def _R_from_quaternion(q: np.ndarray) -> np.ndarray:
     w, x, y, z = q / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
@@ -107,16 +118,20 @@ class ClockMapper:
       from the ATTITUDE stream (``AutopilotAttitude``), which calls ``reset()``.
     """
 
-    def __init__(self, *, window: int = 16, max_rtt_s: float = 0.05, jump_s: float = 0.1,
-                 jump_count: int = 3) -> None:
+    def __init__(self, *, window: int = 16, max_rtt_s: float = 0.05, jump_s: float = 0.1, jump_count: int = 3) -> None:
         if window < 1 or not max_rtt_s > 0 or not jump_s > 0 or jump_count < 1:
             raise ValueError("ClockMapper: window, max_rtt_s, jump_s and jump_count must be positive")
-        self.window, self.max_rtt_s, self.jump_s, self.jump_count = int(window), float(max_rtt_s), float(jump_s), int(jump_count)
+        self.window, self.max_rtt_s, self.jump_s, self.jump_count = (
+            int(window),
+            float(max_rtt_s),
+            float(jump_s),
+            int(jump_count),
+        )
         self._exchanges: Deque[Tuple[float, float]] = collections.deque(maxlen=self.window)  # (rtt_s, offset_s)
         self._outstanding: Deque[int] = collections.deque(maxlen=16)
         self._far: List[Tuple[float, float]] = []
-        self.replies = 0          # replies to our requests
-        self.rejected_rtt = 0     # ... of them too slow to use
+        self.replies = 0  # replies to our requests
+        self.rejected_rtt = 0  # ... of them too slow to use
         self.resets = 0
 
     def request(self, t_now_ns: int) -> int:
@@ -194,8 +209,7 @@ class AttitudeHistory:
     rate) or before the oldest, or when the history is empty.
     """
 
-    def __init__(self, *, capacity: int = 256, max_gap_s: float = 0.25,
-                 max_extrapolation_s: float = 0.05) -> None:
+    def __init__(self, *, capacity: int = 256, max_gap_s: float = 0.25, max_extrapolation_s: float = 0.05) -> None:
         if capacity < 2:
             raise ValueError("AttitudeHistory: capacity must be >= 2")
         self.capacity = int(capacity)
@@ -279,9 +293,16 @@ class AutopilotAttitude:
     one-way delay (a fraction of a millisecond on UDP, a few ms on a fast serial link).
     """
 
-    def __init__(self, *, max_age_s: float = 0.5, max_extrapolation_s: float = 0.05,
-                 max_gap_s: float = 0.25, sigma_rad: Optional[float] = None,
-                 clock: Optional[ClockMapper] = None, reboot_back_s: float = 1.0) -> None:
+    def __init__(
+        self,
+        *,
+        max_age_s: float = 0.5,
+        max_extrapolation_s: float = 0.05,
+        max_gap_s: float = 0.25,
+        sigma_rad: Optional[float] = None,
+        clock: Optional[ClockMapper] = None,
+        reboot_back_s: float = 1.0,
+    ) -> None:
         self.max_age_s = float(max_age_s)
         self.sigma_rad = sigma_rad
         self.clock = clock if clock is not None else ClockMapper()
@@ -292,8 +313,8 @@ class AutopilotAttitude:
         self._newest_arrival_s: Optional[float] = None
         self.samples = 0
         self.reboots = 0
-        self.used = 0       # attitude_at calls answered
-        self.missing = 0    # ... that had no attitude to give
+        self.used = 0  # attitude_at calls answered
+        self.missing = 0  # ... that had no attitude to give
 
     # -- the link's side
 
@@ -308,8 +329,9 @@ class AutopilotAttitude:
         with self._lock:
             return self.clock.on_reply(tc1_ns, ts1_ns, t_now_ns)
 
-    def on_attitude(self, time_boot_ms: int, roll_rad: float, pitch_rad: float, yaw_rad: float,
-                    t_arrival_s: float) -> bool:
+    def on_attitude(
+        self, time_boot_ms: int, roll_rad: float, pitch_rad: float, yaw_rad: float, t_arrival_s: float
+    ) -> bool:
         """An ATTITUDE message; False (ignored) when its angles are not finite."""
         if not all(math.isfinite(float(v)) for v in (roll_rad, pitch_rad, yaw_rad)):
             return False
@@ -374,8 +396,15 @@ class AutopilotAttitude:
                 span = self._arrival[-1][1] - self._arrival[0][1]
                 rate = (len(self._arrival) - 1) / span if span > 0 else 0.0
             age = None if self._newest_arrival_s is None else t_now_s - self._newest_arrival_s
-            return {"rate_hz": rate, "age_s": age, "sync": how, "rtt_s": self.clock.rtt_s,
-                    "used": self.used, "missing": self.missing, "reboots": self.reboots}
+            return {
+                "rate_hz": rate,
+                "age_s": age,
+                "sync": how,
+                "rtt_s": self.clock.rtt_s,
+                "used": self.used,
+                "missing": self.missing,
+                "reboots": self.reboots,
+            }
 
     def status(self, t_now_s: float) -> str:
         f = self.freshness(t_now_s)
@@ -403,5 +432,6 @@ def attitude_connection(cfg) -> Optional[str]:
 def autopilot_attitude_from_config(cfg) -> AutopilotAttitude:
     """The AutopilotAttitude the ``[attitude]`` keys ask for (ages, extrapolation, sigma)."""
     a = cfg.attitude
-    return AutopilotAttitude(max_age_s=a.max_age_s, max_extrapolation_s=a.max_extrapolation_s,
-                             sigma_rad=math.radians(a.sigma_deg))
+    return AutopilotAttitude(
+        max_age_s=a.max_age_s, max_extrapolation_s=a.max_extrapolation_s, sigma_rad=math.radians(a.sigma_deg)
+    )

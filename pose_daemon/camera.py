@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Optional, Sequence
+from typing import TYPE_CHECKING, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -28,6 +28,10 @@ class Camera:
     dist: Sequence[float] = (0.0, 0.0, 0.0, 0.0, 0.0)
     width: int = 640
     height: int = 480
+    # Cached arrays, set once by __post_init__: the per-frame path must not rebuild them.
+    _K: np.ndarray = field(init=False, repr=False, compare=False)
+    _dist: np.ndarray = field(init=False, repr=False, compare=False)
+    _distorted: bool = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         for name in ("fx", "fy", "cx", "cy"):
@@ -52,9 +56,7 @@ class Camera:
         object.__setattr__(self, "fy", float(self.fy))
         object.__setattr__(self, "cx", float(self.cx))
         object.__setattr__(self, "cy", float(self.cy))
-        # Cached arrays: the per-frame path must not rebuild them.
-        object.__setattr__(self, "_K", np.array(
-            [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]]))
+        object.__setattr__(self, "_K", np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]]))
         object.__setattr__(self, "_dist", np.array(dist, dtype=np.float64))
         object.__setattr__(self, "_distorted", any(d != 0.0 for d in dist))
 
@@ -81,8 +83,7 @@ class Camera:
             out[..., 1] = (pts[..., 1] - self.cy) / self.fy
             return out.reshape(-1, 2)
         if _UNDISTORT_ITER is not None:
-            return _UNDISTORT_ITER(pts, self._K, self._dist, None, None,
-                                   _UNDISTORT_CRITERIA).reshape(-1, 2)
+            return _UNDISTORT_ITER(pts, self._K, self._dist, None, None, _UNDISTORT_CRITERIA).reshape(-1, 2)
         return cv2.undistortPoints(pts, self._K, self._dist).reshape(-1, 2)
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
@@ -94,8 +95,15 @@ class Camera:
     def scaled(self, width: int, height: int) -> Camera:
         """The same lens at another resolution (intrinsics scaled, distortion unchanged)."""
         sx, sy = width / self.width, height / self.height
-        return Camera(fx=self.fx * sx, fy=self.fy * sy, cx=(self.cx + 0.5) * sx - 0.5,
-                      cy=(self.cy + 0.5) * sy - 0.5, dist=self.dist, width=width, height=height)
+        return Camera(
+            fx=self.fx * sx,
+            fy=self.fy * sy,
+            cx=(self.cx + 0.5) * sx - 0.5,
+            cy=(self.cy + 0.5) * sy - 0.5,
+            dist=self.dist,
+            width=width,
+            height=height,
+        )
 
 
 @dataclass(frozen=True)
@@ -103,11 +111,24 @@ class Marker:
     """A rectangle of known size; ``width``/``height`` are the outer edge of the dark region, metres."""
 
     width: float
-    height: Optional[float] = None
+    # None (a square) is taken at construction only: __post_init__ sets it to the width, so
+    # every reader sees a float. The __init__ below tells the type checker so.
+    height: float = None  # type: ignore[assignment]
     type: str = "square"
     dictionary: Optional[str] = None
     id: Optional[int] = None
     _object_points: np.ndarray = field(init=False, repr=False, compare=False)
+
+    if TYPE_CHECKING:
+
+        def __init__(
+            self,
+            width: float,
+            height: Optional[float] = None,
+            type: str = "square",
+            dictionary: Optional[str] = None,
+            id: Optional[int] = None,
+        ) -> None: ...
 
     def __post_init__(self) -> None:
         height = self.width if self.height is None else self.height

@@ -45,9 +45,13 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="pose-daemon", description=(
-        "Camera pose from the four corners of a known rectangle, streamed to a flight "
-        "controller over MAVLink or to a microcontroller over a serial line."))
+    parser = _Parser(
+        prog="pose-daemon",
+        description=(
+            "Camera pose from the four corners of a known rectangle, streamed to a flight "
+            "controller over MAVLink or to a microcontroller over a serial line."
+        ),
+    )
     parser.add_argument("--version", action="version", version=f"pose-daemon {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name in COMMANDS:

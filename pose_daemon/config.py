@@ -45,6 +45,7 @@ __all__ = [
     "JsonlOutputConfig",
     "OutputConfig",
     "LoggingConfig",
+    "MapConfig",
     "PreviewConfig",
     "ConfigError",
     "DEFAULT_CONFIG_FILE",
@@ -101,15 +102,23 @@ class Rule:
     upper: bool = False
 
     def expectation(self) -> str:
-        noun = {"int": "an integer", "float": "a number", "str": "a string", "bool": "true or false",
-                "floats": "a list of numbers", "strs": "a list of strings"}[self.kind]
+        noun = {
+            "int": "an integer",
+            "float": "a number",
+            "str": "a string",
+            "bool": "true or false",
+            "floats": "a list of numbers",
+            "strs": "a list of strings",
+        }[self.kind]
         if self.choices is not None and self.kind in ("str", "int"):
             return "one of " + ", ".join(_show(c) for c in self.choices)
         if self.kind in ("floats", "strs"):
             parts = [noun]
             if self.lengths:
-                parts = [f"a list of {' or '.join(str(n) for n in self.lengths)} "
-                         f"{'numbers' if self.kind == 'floats' else 'strings'}"]
+                parts = [
+                    f"a list of {' or '.join(str(n) for n in self.lengths)} "
+                    f"{'numbers' if self.kind == 'floats' else 'strings'}"
+                ]
             if self.choices is not None:
                 parts.append("each one of " + ", ".join(_show(c) for c in self.choices))
             elif self.lo is not None or self.hi is not None:
@@ -243,6 +252,7 @@ def _key(default: Any, rule: Rule, doc: str, *, default_from: Optional[str] = No
 
 # --------------------------------------------------------------------------- sections
 
+
 @dataclass(frozen=True)
 class CameraConfig:
     """The frame source and its intrinsics (pixels at the capture resolution)."""
@@ -254,8 +264,7 @@ class CameraConfig:
     fy: float = _key(500.0, Rule("float", lo=0, lo_open=True), "focal length y, pixels")
     cx: float = _key(319.5, Rule("float"), "principal point x, pixels (0 = centre of the left pixel)")
     cy: float = _key(239.5, Rule("float"), "principal point y, pixels")
-    dist: Tuple[float, ...] = _key([0.0] * 5, Rule("floats", lengths=(4, 5, 8)),
-                                   "distortion k1 k2 p1 p2 k3 (OpenCV)")
+    dist: Tuple[float, ...] = _key([0.0] * 5, Rule("floats", lengths=(4, 5, 8)), "distortion k1 k2 p1 p2 k3 (OpenCV)")
     fps: float = _key(30.0, Rule("float", lo=0, hi=1000, lo_open=True), "frames per second asked of the camera")
     exposure_us: int = _key(0, Rule("int", lo=0, hi=10_000_000), "exposure time, microseconds (0 = auto)")
     analogue_gain: float = _key(0.0, Rule("float", lo=0, hi=64), "sensor analogue gain (0 = auto)")
@@ -281,8 +290,9 @@ class CameraConfig:
         return parse_source(self.source)[1]
 
     def model(self) -> Camera:
-        return Camera(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, dist=tuple(self.dist),
-                      width=self.width, height=self.height)
+        return Camera(
+            fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, dist=tuple(self.dist), width=self.width, height=self.height
+        )
 
 
 @dataclass(frozen=True)
@@ -292,7 +302,9 @@ class MarkerConfig:
     type: str = _key("square", Rule("str", choices=MARKER_TYPES), "square or aruco")
     width: float = _key(0.20, Rule("float", lo=0, hi=100, lo_open=True), "outer edge of the dark region, metres")
     height: float = _key(0.20, Rule("float", lo=0, hi=100, lo_open=True), "metres", default_from="width")
-    dictionary: Optional[str] = _key(None, Rule("str", nonempty=True), "aruco only: OpenCV dictionary, e.g. DICT_4X4_50")
+    dictionary: Optional[str] = _key(
+        None, Rule("str", nonempty=True), "aruco only: OpenCV dictionary, e.g. DICT_4X4_50"
+    )
     id: Optional[int] = _key(None, Rule("int", lo=0, hi=100_000), "aruco only: marker id")
     placement: str = _key("wall", Rule("str", choices=MARKER_PLACEMENTS), "wall (vertical) or floor (face up)")
 
@@ -310,8 +322,7 @@ class MarkerConfig:
                 raise _Invalid("id", 'no id unless type = "aruco"', self.id)
 
     def model(self) -> Marker:
-        return Marker(width=self.width, height=self.height, type=self.type,
-                      dictionary=self.dictionary, id=self.id)
+        return Marker(width=self.width, height=self.height, type=self.type, dictionary=self.dictionary, id=self.id)
 
 
 @dataclass(frozen=True)
@@ -325,14 +336,20 @@ class EstimatorConfig:
 class DetectorConfig:
     max_misses: int = _key(5, Rule("int", lo=0, hi=10_000), "frames a track survives without the marker")
     min_side_px: float = _key(10.0, Rule("float", lo=1, hi=10_000), "shortest accepted marker side, pixels")
-    gamma: float = _key(1.0, Rule("float", lo=0.2, hi=5), "camera response exponent: edges located in linear light "
-                        "(1.0 linear, about 2.2 for sRGB/Rec. 709 cameras)")
+    gamma: float = _key(
+        1.0,
+        Rule("float", lo=0.2, hi=5),
+        "camera response exponent: edges located in linear light (1.0 linear, about 2.2 for sRGB/Rec. 709 cameras)",
+    )
 
 
 @dataclass(frozen=True)
 class SyntheticConfig:
-    trajectory: str = _key("wall", Rule("str", choices=MARKER_PLACEMENTS),
-                           "wall: camera in front of a wall marker; floor: over a floor marker")
+    trajectory: str = _key(
+        "wall",
+        Rule("str", choices=MARKER_PLACEMENTS),
+        "wall: camera in front of a wall marker; floor: over a floor marker",
+    )
     seed: int = _key(0, Rule("int", lo=0, hi=2**32 - 1), "random seed of noise and trajectory")
     blur_px: float = _key(0.8, Rule("float", lo=0, hi=20), "Gaussian blur sigma, pixels")
     noise_gray: float = _key(2.0, Rule("float", lo=0, hi=100), "sensor noise sigma, gray levels")
@@ -346,8 +363,11 @@ class SyntheticConfig:
 
 @dataclass(frozen=True)
 class PipelineConfig:
-    latency_budget_s: float = _key(0.1, Rule("float", lo=0, hi=10, lo_open=True),
-                                   "a pose that would leave later than this after capture is dropped")
+    latency_budget_s: float = _key(
+        0.1,
+        Rule("float", lo=0, hi=10, lo_open=True),
+        "a pose that would leave later than this after capture is dropped",
+    )
     status_interval_s: float = _key(10.0, Rule("float", lo=0.1, hi=86400), "seconds between status lines")
     output_buffer: int = _key(4, Rule("int", lo=1, hi=1000), "results buffered per output before dropping the oldest")
     source_retry_s: float = _key(0.5, Rule("float", lo=0.01, hi=60), "first pause before reopening a failed source")
@@ -355,84 +375,135 @@ class PipelineConfig:
 
     def check(self) -> None:
         if self.source_retry_max_s < self.source_retry_s:
-            raise _Invalid("source_retry_max_s", f"a number >= source_retry_s ({_num(self.source_retry_s)})",
-                           self.source_retry_max_s)
+            raise _Invalid(
+                "source_retry_max_s",
+                f"a number >= source_retry_s ({_num(self.source_retry_s)})",
+                self.source_retry_max_s,
+            )
 
 
 @dataclass(frozen=True)
 class MountConfig:
-    preset: str = _key("forward", Rule("str", choices=MOUNT_PRESETS),
-                       "forward: camera looks ahead; down: looks down; custom: rotation_deg + offset_m")
-    rotation_deg: Tuple[float, ...] = _key([0.0, 0.0, 0.0], Rule("floats", lengths=(3,), lo=-360, hi=360),
-                                           "custom mount: roll, pitch, yaw of the camera on the body, degrees")
-    offset_m: Tuple[float, ...] = _key([0.0, 0.0, 0.0], Rule("floats", lengths=(3,), lo=-100, hi=100),
-                                       "camera position in the body frame (FRD), metres")
+    preset: str = _key(
+        "forward",
+        Rule("str", choices=MOUNT_PRESETS),
+        "forward: camera looks ahead; down: looks down; custom: rotation_deg + offset_m",
+    )
+    rotation_deg: Tuple[float, ...] = _key(
+        [0.0, 0.0, 0.0],
+        Rule("floats", lengths=(3,), lo=-360, hi=360),
+        "custom mount: roll, pitch, yaw of the camera on the body, degrees",
+    )
+    offset_m: Tuple[float, ...] = _key(
+        [0.0, 0.0, 0.0],
+        Rule("floats", lengths=(3,), lo=-100, hi=100),
+        "camera position in the body frame (FRD), metres",
+    )
 
 
 @dataclass(frozen=True)
 class AttitudeConfig:
     """The vehicle's attitude at capture time, for the choice of the planar solution."""
 
-    source: str = _key("mavlink", Rule("str", nonempty=True),
-                       '"mavlink": from the [output.mavlink] link (none without one) or "none" '
-                       '(a separate connection string is not supported yet)')
-    max_age_s: float = _key(0.5, Rule("float", lo=0, hi=10, lo_open=True),
-                            "no attitude message for this long = no attitude")
-    max_extrapolation_s: float = _key(0.05, Rule("float", lo=0, hi=1),
-                                      "furthest past the newest attitude sample a capture time may be")
+    source: str = _key(
+        "mavlink",
+        Rule("str", nonempty=True),
+        '"mavlink": from the [output.mavlink] link (none without one) or "none" '
+        "(a separate connection string is not supported yet)",
+    )
+    max_age_s: float = _key(
+        0.5, Rule("float", lo=0, hi=10, lo_open=True), "no attitude message for this long = no attitude"
+    )
+    max_extrapolation_s: float = _key(
+        0.05, Rule("float", lo=0, hi=1), "furthest past the newest attitude sample a capture time may be"
+    )
     sigma_deg: float = _key(1.0, Rule("float", lo=0, hi=30), "stated accuracy of roll and pitch, degrees")
-    max_error_deg: float = _key(15.0, Rule("float", lo=0, hi=90, lo_open=True),
-                                "a pose whose down is further from the attitude's (and 3 sigma) is inconsistent: not sent")
-    max_tilt_deg: float = _key(0.0, Rule("float", lo=0, hi=90, hi_open=True),
-                               "without attitude: the vehicle tilts at most this much (0 = no tilt prior)")
-    polish: bool = _key(True, Rule("bool"), "re-fit the chosen pose with the attitude's roll and pitch as a weighted prior")
+    max_error_deg: float = _key(
+        15.0,
+        Rule("float", lo=0, hi=90, lo_open=True),
+        "a pose whose down is further from the attitude's (and 3 sigma) is inconsistent: not sent",
+    )
+    max_tilt_deg: float = _key(
+        0.0,
+        Rule("float", lo=0, hi=90, hi_open=True),
+        "without attitude: the vehicle tilts at most this much (0 = no tilt prior)",
+    )
+    polish: bool = _key(
+        True, Rule("bool"), "re-fit the chosen pose with the attitude's roll and pitch as a weighted prior"
+    )
 
     def check(self) -> None:
         s = self.source.strip()
         if s not in ("mavlink", "none") and not (":" in s or s.startswith("/")):
-            raise _Invalid("source", '"mavlink", "none" or a pymavlink connection string '
-                           '(udpin:HOST:PORT, /dev/ttyACM0, tcp:HOST:PORT)', self.source)
+            raise _Invalid(
+                "source",
+                '"mavlink", "none" or a pymavlink connection string (udpin:HOST:PORT, /dev/ttyACM0, tcp:HOST:PORT)',
+                self.source,
+            )
 
 
 @dataclass(frozen=True)
 class GateConfig:
     """The quality gate: poses that fit their corners worse than corner noise explains are not sent."""
 
-    max_rms_px: float = _key(1.0, Rule("float", lo=0, hi=100),
-                             "reprojection RMS bound, pixels (0 = no gate)")
-    max_rms_frac: float = _key(0.01, Rule("float", lo=0, hi=1),
-                               "... raised to this fraction of the marker's side for large markers")
-    max_view_deg: float = _key(55.0, Rule("float", lo=0, hi=90),
-                               "a marker seen further off its face than this is not believed (0 = any angle)")
+    max_rms_px: float = _key(1.0, Rule("float", lo=0, hi=100), "reprojection RMS bound, pixels (0 = no gate)")
+    max_rms_frac: float = _key(
+        0.01, Rule("float", lo=0, hi=1), "... raised to this fraction of the marker's side for large markers"
+    )
+    max_view_deg: float = _key(
+        55.0, Rule("float", lo=0, hi=90), "a marker seen further off its face than this is not believed (0 = any angle)"
+    )
 
 
 @dataclass(frozen=True)
 class MavlinkOutputConfig:
-    connection: str = _key("udpout:127.0.0.1:14550", Rule("str", nonempty=True),
-                           "pymavlink connection string: udpout:HOST:PORT, /dev/serial0, tcp:HOST:PORT")
+    connection: str = _key(
+        "udpout:127.0.0.1:14550",
+        Rule("str", nonempty=True),
+        "pymavlink connection string: udpout:HOST:PORT, /dev/serial0, tcp:HOST:PORT",
+    )
     baud: int = _key(921600, Rule("int", lo=300, hi=20_000_000), "serial links only")
-    messages: Tuple[str, ...] = _key(["ODOMETRY"], Rule("strs", choices=MAVLINK_MESSAGES, nonempty=True,
-                                                        unique=True, upper=True), "messages sent per pose")
+    messages: Tuple[str, ...] = _key(
+        ["ODOMETRY"],
+        Rule("strs", choices=MAVLINK_MESSAGES, nonempty=True, unique=True, upper=True),
+        "messages sent per pose",
+    )
     source_system: int = _key(1, Rule("int", lo=1, hi=255), "MAVLink system id")
     source_component: int = _key(197, Rule("int", lo=1, hi=255), "MAVLink component id (197 = visual odometry)")
     wait_heartbeat: bool = _key(True, Rule("bool"), "send poses only once the autopilot's HEARTBEAT was heard")
-    min_interval_s: float = _key(0.02, Rule("float", lo=0.02, hi=0.25),
-                                 "shortest time between two messages of a type (EKF3 drops closer ones)")
-    lost_timeout_s: float = _key(0.3, Rule("float", lo=0.02, hi=10),
-                                 "no pose for this long = marker lost (STATUSTEXT; reset_counter + 1 when found)")
-    jump_m: float = _key(0.5, Rule("float", lo=0, hi=100, lo_open=True),
-                         "a pose moving further between two messages is a jump (reset_counter + 1)")
-    jump_deg: float = _key(30.0, Rule("float", lo=0, hi=180, lo_open=True),
-                           "a pose turning further between two messages is a jump (reset_counter + 1)")
+    min_interval_s: float = _key(
+        0.02, Rule("float", lo=0.02, hi=0.25), "shortest time between two messages of a type (EKF3 drops closer ones)"
+    )
+    lost_timeout_s: float = _key(
+        0.3,
+        Rule("float", lo=0.02, hi=10),
+        "no pose for this long = marker lost (STATUSTEXT; reset_counter + 1 when found)",
+    )
+    jump_m: float = _key(
+        0.5,
+        Rule("float", lo=0, hi=100, lo_open=True),
+        "a pose moving further between two messages is a jump (reset_counter + 1)",
+    )
+    jump_deg: float = _key(
+        30.0,
+        Rule("float", lo=0, hi=180, lo_open=True),
+        "a pose turning further between two messages is a jump (reset_counter + 1)",
+    )
     statustext: bool = _key(True, Rule("bool"), "STATUSTEXT on start, marker lost and marker found")
-    origin: Optional[Tuple[float, ...]] = _key(None, Rule("floats", lengths=(3,)),
-                                               "latitude deg, longitude deg, altitude m: SET_GPS_GLOBAL_ORIGIN "
-                                               "sent to the autopilot (flying without GPS)")
+    origin: Optional[Tuple[float, ...]] = _key(
+        None,
+        Rule("floats", lengths=(3,)),
+        "latitude deg, longitude deg, altitude m: SET_GPS_GLOBAL_ORIGIN sent to the autopilot (flying without GPS)",
+    )
     set_home: bool = _key(False, Rule("bool"), "also MAV_CMD_DO_SET_HOME at the origin once it holds")
-    autopilot: str = _key("auto", Rule("str", choices=AUTOPILOTS),
-                          "auto (from its HEARTBEAT), ardupilot or px4: the messages' frames it takes")
-    signing_key: Optional[str] = _key(None, Rule("str", nonempty=True),
-                                      "MAVLink 2 signing: 64 hex digits, or a passphrase (SHA-256, as MAVProxy)")
+    autopilot: str = _key(
+        "auto",
+        Rule("str", choices=AUTOPILOTS),
+        "auto (from its HEARTBEAT), ardupilot or px4: the messages' frames it takes",
+    )
+    signing_key: Optional[str] = _key(
+        None, Rule("str", nonempty=True), "MAVLink 2 signing: 64 hex digits, or a passphrase (SHA-256, as MAVProxy)"
+    )
     retry_s: float = _key(0.5, Rule("float", lo=0.01, hi=60), "first pause before reopening a failed link")
     retry_max_s: float = _key(5.0, Rule("float", lo=0.01, hi=600), "longest pause (the pause doubles)")
 
@@ -440,8 +511,11 @@ class MavlinkOutputConfig:
         if self.origin is not None:
             lat, lon, alt = self.origin
             if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0 and -1000.0 <= alt <= 10000.0):
-                raise _Invalid("origin", "[latitude in [-90, 90], longitude in [-180, 180], "
-                               "altitude in [-1000, 10000] m]", list(self.origin))
+                raise _Invalid(
+                    "origin",
+                    "[latitude in [-90, 90], longitude in [-180, 180], altitude in [-1000, 10000] m]",
+                    list(self.origin),
+                )
         if self.set_home and self.origin is None:
             raise _Invalid("set_home", "false unless origin is set")
         if self.retry_max_s < self.retry_s:
@@ -478,22 +552,50 @@ class OutputConfig:
 
 @dataclass(frozen=True)
 class LoggingConfig:
-    level: str = _key("INFO", Rule("str", choices=("DEBUG", "INFO", "WARNING", "ERROR"), upper=True),
-                      "log level")
+    level: str = _key("INFO", Rule("str", choices=("DEBUG", "INFO", "WARNING", "ERROR"), upper=True), "log level")
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    """Many markers in one map frame (interface.md "Marker maps"); exclusive with [marker]."""
+
+    dictionary: Optional[str] = _key(
+        None, Rule("str", nonempty=True), "OpenCV dictionary of every map marker (ArUco or AprilTag)"
+    )
+    placement: str = _key(
+        "floor", Rule("str", choices=MARKER_PLACEMENTS), "how the map frame sits in the room, as [marker] placement"
+    )
+    file: Optional[str] = _key(
+        None, Rule("str", nonempty=True), "a TOML file holding the [[markers]] (or [[map.markers]]) entries"
+    )
+    markers: Tuple[Any, ...] = ()  # MapMarker entries, from [[map.markers]] or the file
+
+    def model(self) -> Any:
+        """The MarkerMap (marker_map.MarkerMap)."""
+        from .marker_map import MarkerMap
+
+        return MarkerMap(str(self.dictionary), tuple(self.markers), self.placement)
 
 
 @dataclass(frozen=True)
 class PreviewConfig:
     """The live preview web page (pose_daemon.preview); None unless the table is present."""
 
-    listen: str = _key("127.0.0.1:8080", Rule("str", nonempty=True),
-                       'HOST:PORT the page is served on (port 0 = any free port); another host than '
-                       '127.0.0.1 opens it to the network')
-    max_fps: float = _key(5.0, Rule("float", lo=0, hi=30, lo_open=True), "most annotated frames per second a viewer gets")
+    listen: str = _key(
+        "127.0.0.1:8080",
+        Rule("str", nonempty=True),
+        "HOST:PORT the page is served on (port 0 = any free port); another host than 127.0.0.1 opens it to the network",
+    )
+    max_fps: float = _key(
+        5.0, Rule("float", lo=0, hi=30, lo_open=True), "most annotated frames per second a viewer gets"
+    )
     max_width: int = _key(640, Rule("int", lo=64, hi=4096), "annotated frames wider than this are scaled down, pixels")
-    data_dir: str = _key(".", Rule("str", nonempty=True),
-                         "folder for the page's snapshots and recordings (relative: to the working "
-                         "directory, /var/lib/pose-daemon under systemd)")
+    data_dir: str = _key(
+        ".",
+        Rule("str", nonempty=True),
+        "folder for the page's snapshots and recordings (relative: to the working "
+        "directory, /var/lib/pose-daemon under systemd)",
+    )
 
     def check(self) -> None:
         host, port = self.address
@@ -548,8 +650,22 @@ class Config:
     gate: GateConfig = field(default_factory=GateConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
+    map: Optional[MapConfig] = None
     preview: Optional[PreviewConfig] = None
     name: str = "<default config>"
+
+    @property
+    def placement(self) -> str:
+        """How the pose's frame (the [map], else the [marker]) sits in the room."""
+        return self.map.placement if self.map is not None else self.marker.placement
+
+    def target_marker(self) -> Marker:
+        """The [marker], or for a [map] a square as large as its largest marker (the size
+        LANDING_TARGET reports; the map's pose is that of its origin)."""
+        if self.map is not None:
+            size = max(m.size_m for m in self.map.markers)
+            return Marker(width=size, height=size)
+        return self.marker.model()
 
     @classmethod
     def default(cls) -> Config:
@@ -560,12 +676,21 @@ class Config:
         """Plain data in the TOML layout (absent outputs and unset optional keys left out)."""
         out: Dict[str, Any] = {}
         for name in SECTIONS:
+            if name == "marker" and self.map is not None:
+                continue  # exclusive with [map]
             out[name] = _plain(asdict(getattr(self, name)))
         for name in OPTIONAL_SECTIONS:
             if getattr(self, name) is not None:
                 out[name] = _plain(asdict(getattr(self, name)))
         outputs = {k: _plain(asdict(v)) for k, v in asdict_shallow(self.output).items() if v is not None}
         out["output"] = outputs
+        if self.map is not None:
+            m: Dict[str, Any] = {"dictionary": self.map.dictionary, "placement": self.map.placement}
+            m["markers"] = [
+                {"id": k.id, "size": k.size_m, "position": list(k.position_m), "rotation_deg": list(k.rotation_deg)}
+                for k in self.map.markers
+            ]
+            out["map"] = m
         return out
 
     def to_toml(self) -> str:
@@ -573,6 +698,9 @@ class Config:
         lines: List[str] = []
         data = self.to_dict()
         for section, values in data.items():
+            if section == "map" and self.map is not None:
+                lines.extend(self.map.model().to_toml_lines())
+                continue
             if section == "output":
                 for name, sub in values.items():
                     lines.append(f"[output.{name}]")
@@ -641,8 +769,16 @@ def config_from_dict(data: Dict[str, Any], name: str = "<config>") -> Config:
     """Config from an already-parsed TOML document (a dict of tables)."""
     sections: Dict[str, Any] = {}
     outputs: Dict[str, Any] = {}
+    map_cfg = None
+    if "map" in data:
+        data = dict(data)
+        map_cfg = _map_config(data.pop("map"), name)
+        if "marker" in data:
+            raise ConfigError(
+                f"{name}: [map]: [map] and [marker] are exclusive (a map names its markers; remove one of the two)"
+            )
     known_sections = {**SECTIONS, **OPTIONAL_SECTIONS}
-    allowed = ", ".join(list(known_sections) + ["output"])
+    allowed = ", ".join(list(known_sections) + ["output", "map"])
     for section, table in data.items():
         if section not in known_sections and section != "output":
             raise ConfigError(f"{name}: [{section}]: unknown section (expected one of {allowed})")
@@ -651,11 +787,13 @@ def config_from_dict(data: Dict[str, Any], name: str = "<config>") -> Config:
         if section == "output":
             for out_name, out_table in table.items():
                 if out_name not in OUTPUTS:
-                    raise ConfigError(f"{name}: [output.{out_name}]: unknown output "
-                                      f"(expected one of {', '.join(OUTPUTS)})")
+                    raise ConfigError(
+                        f"{name}: [output.{out_name}]: unknown output (expected one of {', '.join(OUTPUTS)})"
+                    )
                 if not isinstance(out_table, dict):
-                    raise ConfigError(f"{name}: [output] {out_name}: expected a table "
-                                      f"[output.{out_name}], got {_show(out_table)}")
+                    raise ConfigError(
+                        f"{name}: [output] {out_name}: expected a table [output.{out_name}], got {_show(out_table)}"
+                    )
                 where = f"[output.{out_name}]"
                 try:
                     outputs[out_name] = _build(OUTPUTS[out_name], out_table, where)
@@ -669,11 +807,11 @@ def config_from_dict(data: Dict[str, Any], name: str = "<config>") -> Config:
             raise ConfigError(_message(name, where, err)) from None
     synthetic_table = data.get("synthetic", {})
     marker = sections.get("marker", MarkerConfig())
-    if "trajectory" not in synthetic_table and marker.placement != SyntheticConfig().trajectory:
+    placement = map_cfg.placement if map_cfg is not None else marker.placement
+    if "trajectory" not in synthetic_table and placement != SyntheticConfig().trajectory:
         # The synthetic camera moves over the marker as it is placed unless told otherwise.
-        sections["synthetic"] = replace(sections.get("synthetic", SyntheticConfig()),
-                                        trajectory=marker.placement)
-    cfg = Config(output=OutputConfig(**outputs), name=name, **sections)
+        sections["synthetic"] = replace(sections.get("synthetic", SyntheticConfig()), trajectory=placement)
+    cfg = Config(output=OutputConfig(**outputs), name=name, map=map_cfg, **sections)
     check_whole(cfg, files=False)
     return cfg
 
@@ -692,9 +830,12 @@ def check_whole(cfg: Config, *, files: bool = True) -> None:
     (``replay PATH --config`` ignores the config's source). ``pose-daemon run`` and
     ``pose-daemon check-config`` run all of it, so check-config refuses what run refuses.
     """
-    if cfg.camera.source_kind == "synthetic" and cfg.marker.placement != cfg.synthetic.trajectory:
-        raise ConfigError(f"{cfg.name}: [synthetic] trajectory: expected {_show(cfg.marker.placement)} "
-                          f"(the [marker] placement), got {_show(cfg.synthetic.trajectory)}")
+    if cfg.camera.source_kind == "synthetic" and cfg.placement != cfg.synthetic.trajectory:
+        where = "[map]" if cfg.map is not None else "[marker]"
+        raise ConfigError(
+            f"{cfg.name}: [synthetic] trajectory: expected {_show(cfg.placement)} "
+            f"(the {where} placement), got {_show(cfg.synthetic.trajectory)}"
+        )
     try:
         _check_aruco(cfg.marker)
     except _Invalid as err:
@@ -704,18 +845,105 @@ def check_whole(cfg: Config, *, files: bool = True) -> None:
         try:
             parse_connection(m.connection, m.baud)
         except ValueError as exc:
-            raise ConfigError(f"{cfg.name}: [output.mavlink] connection: expected {exc}, "
-                              f"got {m.connection!r}") from None
+            raise ConfigError(
+                f"{cfg.name}: [output.mavlink] connection: expected {exc}, got {m.connection!r}"
+            ) from None
     source = cfg.attitude.source.strip()
     if source not in ("mavlink", "none"):
-        raise ConfigError(f'{cfg.name}: [attitude] source: expected "mavlink" (the [output.mavlink] link) or '
-                          f'"none", got {_show(cfg.attitude.source)} (a separate attitude connection is not '
-                          f'supported yet)')
+        raise ConfigError(
+            f'{cfg.name}: [attitude] source: expected "mavlink" (the [output.mavlink] link) or '
+            f'"none", got {_show(cfg.attitude.source)} (a separate attitude connection is not '
+            f"supported yet)"
+        )
     kind, arg = parse_source(cfg.camera.source)
     if files and kind in ("video", "replay") and not Path(arg).exists():
         what = "a video file" if kind == "video" else "a recording, image folder or video"
-        raise ConfigError(f"{cfg.name}: [camera] source: expected {what} that exists, "
-                          f"got {_show(cfg.camera.source)} (no such file or folder)")
+        raise ConfigError(
+            f"{cfg.name}: [camera] source: expected {what} that exists, "
+            f"got {_show(cfg.camera.source)} (no such file or folder)"
+        )
+
+
+def _map_config(table: Any, name: str) -> MapConfig:
+    """[map] (with [[map.markers]] or ``file``) -> MapConfig; ConfigError naming file, index and key."""
+    from .marker_map import MapError, markers_from_tables
+
+    if not isinstance(table, dict):
+        raise ConfigError(f"{name}: map: expected a table [map], got {_show(table)}")
+    table = dict(table)
+    entries = table.pop("markers", None)
+    try:
+        cfg = _build(MapConfig, table, "[map]")
+    except _Invalid as err:
+        raise ConfigError(_message(name, "[map]", err)) from None
+    source, where = name, "[map] "
+    dictionary = cfg.dictionary
+    if cfg.file is not None:
+        if entries is not None:
+            raise ConfigError(f"{name}: [map] file: expected either file or [[map.markers]] entries, not both")
+        path = Path(cfg.file)
+        if not path.is_absolute() and not name.startswith("<"):
+            path = Path(name).parent / path
+        try:
+            mode = path.stat().st_mode
+            if not stat.S_ISREG(mode):
+                raise OSError("not a regular file")
+            data = tomllib.loads(path.read_bytes().decode("utf-8"))
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(
+                f"{name}: [map] file: cannot read {str(path)!r}: {getattr(exc, 'strerror', None) or exc}"
+            ) from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: invalid TOML: {' '.join(str(exc).split())}") from None
+        source, where = str(path), ""
+        if "map" in data and isinstance(data["map"], dict):
+            inner = dict(data["map"])
+            entries = inner.pop("markers", None)
+            file_dict = inner.get("dictionary")
+            if isinstance(file_dict, str):
+                if dictionary is not None and file_dict.upper() != dictionary.upper():
+                    raise ConfigError(
+                        f"{path}: [map] dictionary: expected {_show(dictionary)} "
+                        f"(the dictionary of {name}), got {_show(file_dict)}"
+                    )
+                dictionary = file_dict
+            where = "[map] "
+        else:
+            entries = data.get("markers")
+    if dictionary is None:
+        raise ConfigError(
+            f"{name}: [map] dictionary: expected an OpenCV dictionary name such as "
+            '"DICT_4X4_50" or "DICT_APRILTAG_36h11"'
+        )
+    n_ids = None
+    try:
+        from .detect import aruco_compat
+
+        n_ids = aruco_compat.dictionary_size(aruco_compat.get_dictionary(dictionary))
+    except ImportError:  # an OpenCV build without aruco: the detector reports it
+        pass
+    except ValueError:
+        raise ConfigError(
+            f"{name}: [map] dictionary: expected an OpenCV ArUco or AprilTag dictionary name "
+            f'such as "DICT_4X4_50", got {_show(dictionary)}'
+        ) from None
+    if entries is None:
+        raise ConfigError(
+            f"{source}: {where}markers: expected [[{'map.' if where else ''}markers]] entries "
+            "(id, size, position, rotation_deg), got none"
+        )
+    try:
+        markers = markers_from_tables(entries, n_ids, dictionary)
+    except MapError as err:
+        got = f", got {_show(err.got)}" if err.has_got else ""
+        if err.has_got is False and "unknown" in err.expected:
+            raise ConfigError(
+                f"{source}: {where}{err.where} {err.key}: unknown key "
+                f"(expected {err.expected.replace(' (unknown key)', '')})"
+            ) from None
+        label = f"{err.where} {err.key}".strip()
+        raise ConfigError(f"{source}: {where}{label}: expected {err.expected}{got}") from None
+    return replace(cfg, dictionary=dictionary, markers=markers)
 
 
 def _check_aruco(marker: MarkerConfig) -> None:
@@ -729,15 +957,21 @@ def _check_aruco(marker: MarkerConfig) -> None:
     try:
         dictionary = aruco_compat.get_dictionary(marker.dictionary)
     except ValueError:
-        raise _Invalid("dictionary", 'an OpenCV ArUco dictionary name such as "DICT_4X4_50"',
-                       marker.dictionary) from None
+        raise _Invalid(
+            "dictionary", 'an OpenCV ArUco dictionary name such as "DICT_4X4_50"', marker.dictionary
+        ) from None
     n_ids = aruco_compat.dictionary_size(dictionary)
     if marker.id >= n_ids:
         raise _Invalid("id", f"an integer in [0, {n_ids - 1}] (the ids of {marker.dictionary})", marker.id)
 
 
-_NOT_REGULAR = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
-                (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+_NOT_REGULAR = (
+    (stat.S_ISDIR, "a directory"),
+    (stat.S_ISFIFO, "a FIFO"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
 
 
 def load_config(path: Union[str, Path]) -> Config:
@@ -770,14 +1004,23 @@ def load_config_or_default(path: Optional[Union[str, Path]]) -> Config:
 def reference() -> List[Tuple[str, str, str, str, str]]:
     """(section, key, default, expectation, meaning) for every key: the README's config reference."""
     rows: List[Tuple[str, str, str, str, str]] = []
-    tables: Sequence[Tuple[str, type]] = (list((f"[{k}]", v) for k, v in SECTIONS.items())
-                                          + list((f"[{k}]", v) for k, v in OPTIONAL_SECTIONS.items())
-                                          + list((f"[output.{k}]", v) for k, v in OUTPUTS.items()))
+    tables: Sequence[Tuple[str, type]] = (
+        list((f"[{k}]", v) for k, v in SECTIONS.items())
+        + list((f"[{k}]", v) for k, v in OPTIONAL_SECTIONS.items())
+        + list((f"[output.{k}]", v) for k, v in OUTPUTS.items())
+    )
     for where, cls in tables:
         for f in fields(cls):
             if "rule" not in f.metadata:
                 continue
             default = f.default if f.default is not MISSING else None
-            rows.append((where, f.name, "-" if default is None else _show(default),
-                         f.metadata["rule"].expectation(), f.metadata["doc"]))
+            rows.append(
+                (
+                    where,
+                    f.name,
+                    "-" if default is None else _show(default),
+                    f.metadata["rule"].expectation(),
+                    f.metadata["doc"],
+                )
+            )
     return rows

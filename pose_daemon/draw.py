@@ -11,13 +11,14 @@ import numpy as np
 from .camera import Camera, Marker
 from .geometry import R_from_rvec
 
-_SHIFT = 4          # sub-pixel drawing: coordinates in 1/16 px
+_SHIFT = 4  # sub-pixel drawing: coordinates in 1/16 px
 _ONE = 1 << _SHIFT
-CORNER_COLOURS = ((0, 0, 255), (0, 255, 0), (255, 0, 0), (0, 255, 255))   # TL TR BR BL (BGR)
-OUTLINE_COLOUR = (0, 255, 0)        # the detected quadrilateral (BGR)
-AXIS_COLOURS = ((0, 0, 255), (0, 255, 0), (255, 0, 0))                  # x red, y green, z blue
-REJECTED_COLOUR = (255, 0, 255)     # the other planar solution's axes: magenta
-WARNING_COLOUR = (0, 165, 255)      # warning text: orange
+CORNER_COLOURS = ((0, 0, 255), (0, 255, 0), (255, 0, 0), (0, 255, 255))  # TL TR BR BL (BGR)
+OUTLINE_COLOUR = (0, 255, 0)  # the detected quadrilateral (BGR)
+AXIS_COLOURS = ((0, 0, 255), (0, 255, 0), (255, 0, 0))  # x red, y green, z blue
+REJECTED_COLOUR = (255, 0, 255)  # the other planar solution's axes: magenta
+WARNING_COLOUR = (0, 165, 255)  # warning text: orange
+SEARCH_COLOUR = (255, 255, 0)  # the detector's search regions: cyan
 
 
 def to_bgr(image: np.ndarray) -> np.ndarray:
@@ -32,8 +33,9 @@ def _pt(p) -> Tuple[int, int]:
     return int(round(float(p[0]) * _ONE)), int(round(float(p[1]) * _ONE))
 
 
-def draw_corners(image: np.ndarray, corners_px: np.ndarray, colour=(0, 255, 0), radius_px: float = 4.0,
-                 label: bool = True) -> np.ndarray:
+def draw_corners(
+    image: np.ndarray, corners_px: np.ndarray, colour=(0, 255, 0), radius_px: float = 4.0, label: bool = True
+) -> np.ndarray:
     """The quadrilateral through ``corners_px`` (4, 2), each corner ringed in its own colour
     (TL red, TR green, BR blue, BL yellow) and labelled. Draws in place on a BGR image."""
     c = np.asarray(corners_px, dtype=np.float64).reshape(4, 2)
@@ -42,13 +44,28 @@ def draw_corners(image: np.ndarray, corners_px: np.ndarray, colour=(0, 255, 0), 
     for i, (p, name) in enumerate(zip(c, ("TL", "TR", "BR", "BL"))):
         cv2.circle(image, _pt(p), int(radius_px * _ONE), CORNER_COLOURS[i], 1, cv2.LINE_AA, shift=_SHIFT)
         if label:
-            cv2.putText(image, name, (int(p[0]) + 5, int(p[1]) - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
-                        CORNER_COLOURS[i], 1, cv2.LINE_AA)
+            cv2.putText(
+                image,
+                name,
+                (int(p[0]) + 5, int(p[1]) - 5),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.35,
+                CORNER_COLOURS[i],
+                1,
+                cv2.LINE_AA,
+            )
     return image
 
 
-def draw_axes(image: np.ndarray, camera: Camera, rvec, tvec, length_m: float,
-              colours: Optional[Sequence[Tuple[int, int, int]]] = None, thickness: int = 2) -> np.ndarray:
+def draw_axes(
+    image: np.ndarray,
+    camera: Camera,
+    rvec,
+    tvec,
+    length_m: float,
+    colours: Optional[Sequence[Tuple[int, int, int]]] = None,
+    thickness: int = 2,
+) -> np.ndarray:
     """The marker frame's axes at pose (rvec, tvec): x red, y green, z blue (out of the marker),
     each ``length_m`` long, projected through the lens (``colours``: one colour per axis
     instead). Draws in place on a BGR image."""
@@ -64,8 +81,9 @@ def draw_axes(image: np.ndarray, camera: Camera, rvec, tvec, length_m: float,
     return image
 
 
-def draw_text(image: np.ndarray, lines: Sequence[str], origin_px: Tuple[int, int] = (8, 18),
-              colour=(255, 255, 255)) -> np.ndarray:
+def draw_text(
+    image: np.ndarray, lines: Sequence[str], origin_px: Tuple[int, int] = (8, 18), colour=(255, 255, 255)
+) -> np.ndarray:
     """Lines of text on a dark box (readable on any background), top-left first."""
     x, y = origin_px
     for line in lines:
@@ -83,14 +101,17 @@ def pose_lines(result) -> Sequence[str]:
     if pose is None:
         return [head, f"no pose: {result.error or 'no marker'}"]
     x, y, z = (float(v) for v in pose.camera_position)
-    return [head,
-            f"camera in marker frame: x {x:+.3f}  y {y:+.3f}  z {z:+.3f} m",
-            f"alpha {pose.alpha_deg:+.1f}  beta {pose.beta_deg:+.1f}  gamma {pose.gamma_deg:+.1f} deg",
-            f"reprojection {pose.reprojection_error_px:.2f} px"]
+    return [
+        head,
+        f"camera in marker frame: x {x:+.3f}  y {y:+.3f}  z {z:+.3f} m",
+        f"alpha {pose.alpha_deg:+.1f}  beta {pose.beta_deg:+.1f}  gamma {pose.gamma_deg:+.1f} deg",
+        f"reprojection {pose.reprojection_error_px:.2f} px",
+    ]
 
 
-def annotate(image: np.ndarray, result, camera: Camera, marker: Marker,
-             true_corners_px: Optional[np.ndarray] = None) -> np.ndarray:
+def annotate(
+    image: np.ndarray, result, camera: Camera, marker: Marker, true_corners_px: Optional[np.ndarray] = None
+) -> np.ndarray:
     """A BGR copy of ``image`` with the detected corners, the marker's axes (half its width)
     and the pose text of ``result`` (a FrameResult); true corners, when known, as grey rings."""
     out = to_bgr(image)
@@ -111,12 +132,25 @@ def marker_label(marker: Marker) -> str:
     return f"square {marker.width:.2f} x {marker.height:.2f} m"
 
 
-def annotate_live(image: np.ndarray, result, camera: Camera, marker: Marker, *,
-                  detector_step: Optional[str] = None, warnings: Sequence[str] = ()) -> np.ndarray:
+def annotate_live(
+    image: np.ndarray,
+    result,
+    camera: Camera,
+    marker: Marker,
+    *,
+    detector_step: Optional[str] = None,
+    search=None,
+    warnings: Sequence[str] = (),
+) -> np.ndarray:
     """The live preview's frame: ``annotate`` plus the rejected planar solution's axes (thin,
     magenta, with its ambiguity ratio), the marker's id at its centre, the detector step that
-    found it (follow / roi / full) and the warnings (orange) at the bottom."""
+    found it (follow / roi / full), where the detector searched (``search``, a SearchRecord:
+    a thin cyan rectangle per region labelled by step, and a cyan note at the top right when
+    the whole frame was searched or its search deferred by the time cap) and the warnings
+    (orange) at the bottom."""
     out = annotate(image, result, camera, marker)
+    if search is not None:
+        draw_search(out, search)
     length = 0.5 * min(marker.width, marker.height)
     pose = result.pose
     if pose is not None and pose.alternative is not None:
@@ -128,8 +162,16 @@ def annotate_live(image: np.ndarray, result, camera: Camera, marker: Marker, *,
         text = marker_label(marker) if marker.type == "aruco" else "square"
         if detector_step:
             text += f" ({detector_step})"
-        cv2.putText(out, text, (int(centre[0]) + 6, int(centre[1]) + 14), cv2.FONT_HERSHEY_SIMPLEX,
-                    0.4, OUTLINE_COLOUR, 1, cv2.LINE_AA)
+        cv2.putText(
+            out,
+            text,
+            (int(centre[0]) + 6, int(centre[1]) + 14),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.4,
+            OUTLINE_COLOUR,
+            1,
+            cv2.LINE_AA,
+        )
     # Bottom-up: the warnings (orange), above them the rejected solution's note (magenta).
     notes = [(text, WARNING_COLOUR) for text in list(warnings)[:3]]
     if pose is not None and pose.alternative is not None:
@@ -139,3 +181,23 @@ def annotate_live(image: np.ndarray, result, camera: Camera, marker: Marker, *,
         draw_text(out, [text], origin_px=(8, y), colour=colour)
         y += 19
     return out
+
+
+def draw_search(image: np.ndarray, search) -> np.ndarray:
+    """The detector's search regions (a SearchRecord) in place on a BGR image: a 1 px cyan
+    rectangle per region (its outline on the region's outermost pixels), labelled by step,
+    and "full search" / "full search deferred (time cap)" at the top right."""
+    h, w = image.shape[:2]
+    for step, (x0, y0, x1, y1) in search.regions:
+        x0, y0 = max(0, x0), max(0, y0)
+        x1, y1 = min(w, x1) - 1, min(h, y1) - 1
+        if x1 < x0 or y1 < y0:
+            continue
+        cv2.rectangle(image, (x0, y0), (x1, y1), SEARCH_COLOUR, 1)
+        y_text = y0 - 3 if y0 >= 12 else min(h - 2, y1 + 12)
+        cv2.putText(image, step, (x0 + 2, y_text), cv2.FONT_HERSHEY_SIMPLEX, 0.35, SEARCH_COLOUR, 1, cv2.LINE_AA)
+    if search.full is not None:
+        text = "full search" if search.full == "done" else "full search deferred (time cap)"
+        (tw, _), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.45, 1)
+        draw_text(image, [text], origin_px=(max(8, w - tw - 8), 18), colour=SEARCH_COLOUR)
+    return image

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence, Tuple
+from typing import Any, Sequence, Tuple, Union
 
 import cv2
 import numpy as np
@@ -97,8 +97,7 @@ def R_from_rvec(rvec: np.ndarray) -> np.ndarray:
     k = r[..., :, None] / safe
     kx, ky, kz = k[..., 0, 0], k[..., 1, 0], k[..., 2, 0]
     zero = np.zeros_like(kx)
-    Kx = np.stack([np.stack([zero, -kz, ky], -1), np.stack([kz, zero, -kx], -1),
-                   np.stack([-ky, kx, zero], -1)], -2)
+    Kx = np.stack([np.stack([zero, -kz, ky], -1), np.stack([kz, zero, -kx], -1), np.stack([-ky, kx, zero], -1)], -2)
     eye = np.broadcast_to(np.eye(3), Kx.shape)
     R = eye + np.sin(safe) * Kx + (1.0 - np.cos(safe)) * (Kx @ Kx)
     return np.where(theta < 1e-12, eye, R)
@@ -133,12 +132,41 @@ def quaternion_from_R(R: np.ndarray) -> np.ndarray:
         return np.array(quaternion_from_R_f(R.ravel().tolist()))
     m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
     tr = m00 + m11 + m22
-    cands = np.stack([
-        np.stack([1 + tr, R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1),
-        np.stack([R[..., 2, 1] - R[..., 1, 2], 1 + m00 - m11 - m22, R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0]], -1),
-        np.stack([R[..., 0, 2] - R[..., 2, 0], R[..., 0, 1] + R[..., 1, 0], 1 - m00 + m11 - m22, R[..., 1, 2] + R[..., 2, 1]], -1),
-        np.stack([R[..., 1, 0] - R[..., 0, 1], R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1], 1 - m00 - m11 + m22], -1),
-    ], -2)
+    cands = np.stack(
+        [
+            np.stack(
+                [1 + tr, R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
+            ),
+            np.stack(
+                [
+                    R[..., 2, 1] - R[..., 1, 2],
+                    1 + m00 - m11 - m22,
+                    R[..., 0, 1] + R[..., 1, 0],
+                    R[..., 0, 2] + R[..., 2, 0],
+                ],
+                -1,
+            ),
+            np.stack(
+                [
+                    R[..., 0, 2] - R[..., 2, 0],
+                    R[..., 0, 1] + R[..., 1, 0],
+                    1 - m00 + m11 - m22,
+                    R[..., 1, 2] + R[..., 2, 1],
+                ],
+                -1,
+            ),
+            np.stack(
+                [
+                    R[..., 1, 0] - R[..., 0, 1],
+                    R[..., 0, 2] + R[..., 2, 0],
+                    R[..., 1, 2] + R[..., 2, 1],
+                    1 - m00 - m11 + m22,
+                ],
+                -1,
+            ),
+        ],
+        -2,
+    )
     diag = np.stack([tr, m00, m11, m22], -1)
     idx = np.argmax(diag, axis=-1)
     q = np.take_along_axis(cands, idx[..., None, None].repeat(4, -1), axis=-2)[..., 0, :]
@@ -146,7 +174,7 @@ def quaternion_from_R(R: np.ndarray) -> np.ndarray:
     return np.where(q[..., :1] < 0, -q, q)
 
 
-def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
+def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> Union[np.float64, np.ndarray]:
     """Angle of the rotation R_a^T R_b in degrees (the usual rotation error), stacks allowed;
     a float for two single matrices."""
     Ra, Rb = np.asarray(R_a, dtype=np.float64), np.asarray(R_b, dtype=np.float64)
@@ -168,6 +196,7 @@ rotation_angle_deg_3x3 = rotation_angle_deg
 # works on four points, where every numpy or cv2 call costs more than the arithmetic it saves.
 # ---------------------------------------------------------------------------------------------
 
+
 def R_from_rvec_f(x: float, y: float, z: float) -> Tuple[float, ...]:
     """R_from_rvec for one vector (x, y, z) radians (Rodrigues' formula), a row-major 9-tuple.
     A NaN or infinite vector gives a NaN matrix, never an exception."""
@@ -182,21 +211,34 @@ def R_from_rvec_f(x: float, y: float, z: float) -> Tuple[float, ...]:
         a = b = math.nan
     bxy, bxz, byz = b * x * y, b * x * z, b * y * z
     ax, ay, az = a * x, a * y, a * z
-    return (1.0 + b * (x * x - t2), bxy - az, bxz + ay,
-            bxy + az, 1.0 + b * (y * y - t2), byz - ax,
-            bxz - ay, byz + ax, 1.0 + b * (z * z - t2))
+    return (
+        1.0 + b * (x * x - t2),
+        bxy - az,
+        bxz + ay,
+        bxy + az,
+        1.0 + b * (y * y - t2),
+        byz - ax,
+        bxz - ay,
+        byz + ax,
+        1.0 + b * (z * z - t2),
+    )
 
 
-def matmul_f(A: Sequence[float], B: Sequence[float]) -> Tuple[float, ...]:
+def matmul_f(A: Sequence[Any], B: Sequence[Any]) -> Tuple[Any, ...]:
     """A @ B for row-major 9-tuples (the entries may also be arrays of one shape)."""
     a00, a01, a02, a10, a11, a12, a20, a21, a22 = A
     b00, b01, b02, b10, b11, b12, b20, b21, b22 = B
-    return (a00 * b00 + a01 * b10 + a02 * b20, a00 * b01 + a01 * b11 + a02 * b21,
-            a00 * b02 + a01 * b12 + a02 * b22,
-            a10 * b00 + a11 * b10 + a12 * b20, a10 * b01 + a11 * b11 + a12 * b21,
-            a10 * b02 + a11 * b12 + a12 * b22,
-            a20 * b00 + a21 * b10 + a22 * b20, a20 * b01 + a21 * b11 + a22 * b21,
-            a20 * b02 + a21 * b12 + a22 * b22)
+    return (
+        a00 * b00 + a01 * b10 + a02 * b20,
+        a00 * b01 + a01 * b11 + a02 * b21,
+        a00 * b02 + a01 * b12 + a02 * b22,
+        a10 * b00 + a11 * b10 + a12 * b20,
+        a10 * b01 + a11 * b11 + a12 * b21,
+        a10 * b02 + a11 * b12 + a12 * b22,
+        a20 * b00 + a21 * b10 + a22 * b20,
+        a20 * b01 + a21 * b11 + a22 * b21,
+        a20 * b02 + a21 * b12 + a22 * b22,
+    )
 
 
 def pose_from_unrot_f(R_cam_unrot, p_unrot) -> Tuple[Tuple[float, ...], Tuple[float, float, float]]:
@@ -205,17 +247,17 @@ def pose_from_unrot_f(R_cam_unrot, p_unrot) -> Tuple[Tuple[float, ...], Tuple[fl
     columns negated, and tvec = R_cam_unrot p."""
     (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = R_cam_unrot
     px, py, pz = p_unrot
-    return ((a00, -a01, -a02, a10, -a11, -a12, a20, -a21, -a22),
-            (a00 * px + a01 * py + a02 * pz, a10 * px + a11 * py + a12 * pz,
-             a20 * px + a21 * py + a22 * pz))
+    return (
+        (a00, -a01, -a02, a10, -a11, -a12, a20, -a21, -a22),
+        (a00 * px + a01 * py + a02 * pz, a10 * px + a11 * py + a12 * pz, a20 * px + a21 * py + a22 * pz),
+    )
 
 
 def paper_angles_deg_from_R_cam_marker_f(R: Sequence[float]) -> Tuple[float, float, float]:
     """paper_angles_deg_from_R_cam_marker on a 9-tuple: R_cam_unrot = R_cam_marker
     diag(1, -1, -1), so its (2,0), (1,0), (0,0) entries are R's and (2,1), (2,2) are negated."""
     beta = math.asin(min(1.0, max(-1.0, R[6])))
-    return (math.degrees(math.atan2(-R[7], -R[8])), math.degrees(beta),
-            math.degrees(math.atan2(R[3], R[0])))
+    return (math.degrees(math.atan2(-R[7], -R[8])), math.degrees(beta), math.degrees(math.atan2(R[3], R[0])))
 
 
 def quaternion_from_R_f(R: Sequence[float]) -> Tuple[float, float, float, float]:
@@ -284,9 +326,13 @@ def R_from_euler_rpy_3x3(roll_rad: float, pitch_rad: float, yaw_rad: float) -> n
     cr, sr = math.cos(roll_rad), math.sin(roll_rad)
     cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
     cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
-    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                     [-sp, cp * sr, cp * cr]])
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
 
 
 def euler_rpy_from_R(R: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -347,13 +393,17 @@ class VehicleFrames:
     R_local_marker: np.ndarray
 
     @classmethod
-    def from_settings(cls, preset: str = "forward", rotation_deg=(0.0, 0.0, 0.0),
-                      offset_m=(0.0, 0.0, 0.0), placement: str = "wall") -> VehicleFrames:
+    def from_settings(
+        cls, preset: str = "forward", rotation_deg=(0.0, 0.0, 0.0), offset_m=(0.0, 0.0, 0.0), placement: str = "wall"
+    ) -> VehicleFrames:
         offset = np.asarray(offset_m, dtype=np.float64).reshape(3)
         if not np.all(np.isfinite(offset)):
             raise ValueError("mount offset_m must be finite")
-        return cls(R_body_cam=R_body_cam_for_mount(preset, rotation_deg), p_body_cam_m=offset,
-                   R_local_marker=R_local_marker_for_placement(placement))
+        return cls(
+            R_body_cam=R_body_cam_for_mount(preset, rotation_deg),
+            p_body_cam_m=offset,
+            R_local_marker=R_local_marker_for_placement(placement),
+        )
 
     @classmethod
     def from_config(cls, mount, placement: str) -> VehicleFrames:

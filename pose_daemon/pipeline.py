@@ -15,7 +15,7 @@ import collections
 import logging
 import threading
 import time
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import TYPE_CHECKING, Callable, Dict, List, Optional, Protocol, Sequence, Tuple
 
 import numpy as np
 
@@ -23,6 +23,9 @@ from .capture.base import Frame, FrameSource
 from .errors import EndOfStream, SourceError
 from .outputs.base import Output, OutputFactory, WrittenHook
 from .result import FrameResult
+
+if TYPE_CHECKING:  # config.py sits below the pipeline; the annotation needs no import at run time
+    from .config import Config
 
 log = logging.getLogger("pose_daemon.pipeline")
 
@@ -95,7 +98,7 @@ class LatencyWindow:
 
     def values_s(self, stage: str) -> np.ndarray:
         """A copy of the stage's samples in the window, seconds."""
-        return self._data[stage][:min(self._count[stage], self._size)].copy()
+        return self._data[stage][: min(self._count[stage], self._size)].copy()
 
     def clear(self) -> None:
         self._count = dict.fromkeys(STAGES, 0)
@@ -165,9 +168,14 @@ class PipelineStats:
     def snapshot(self) -> Dict[str, object]:
         """Totals since start (a copy), for tests and the status line."""
         with self._lock:
-            return {"captured": self.captured, "processed": self.processed,
-                    "detected": self.detected, "written": dict(self.written),
-                    "drops": dict(self.drops), "source_failures": self.source_failures}
+            return {
+                "captured": self.captured,
+                "processed": self.processed,
+                "detected": self.detected,
+                "written": dict(self.written),
+                "drops": dict(self.drops),
+                "source_failures": self.source_failures,
+            }
 
     def status_line(self, source_state: str, output_states: Sequence[str], reset: bool = True) -> str:
         """One line: rates and latency over the window since the last line, drops since start.
@@ -181,8 +189,10 @@ class PipelineStats:
             fps = self._processed_w / dt
             cam_fps = self._captured_w / dt
             rate = 100.0 * self._detected_w / self._processed_w if self._processed_w else 0.0
-            parts = [f"{fps:.1f} fps (camera {cam_fps:.1f})",
-                     f"detected {rate:.0f}% ({self._detected_w}/{self._processed_w})"]
+            parts = [
+                f"{fps:.1f} fps (camera {cam_fps:.1f})",
+                f"detected {rate:.0f}% ({self._detected_w}/{self._processed_w})",
+            ]
             samples = [(stage, self.window.values_s(stage)) for stage in STAGES]
             drops = ", ".join(f"{k} {v}" for k, v in sorted(self.drops.items()) if v) or "none"
             processed = self.processed
@@ -202,6 +212,15 @@ class PipelineStats:
         return "; ".join(parts)
 
 
+class Processor(Protocol):
+    """What the processing thread calls: FrameProcessor (processing.py) is the one in use."""
+
+    def process(self, frame: Frame) -> FrameResult: ...
+
+    def reset(self) -> None:
+        """Forget the track: the next frame starts afresh (the source was reopened)."""
+
+
 class Pipeline:
     """Runs a source through a processor to outputs on three kinds of threads.
 
@@ -219,12 +238,20 @@ class Pipeline:
     frame (the live preview's handoff); it must take O(1) time and never raise.
     """
 
-    def __init__(self, source: FrameSource, processor, outputs: OutputFactory, *,
-                 latency_budget_s: float = 0.1, source_retry_s: float = 0.5, source_retry_max_s: float = 5.0,
-                 clock: Callable[[], float] = time.monotonic,
-                 on_written: Optional[WrittenHook] = None,
-                 on_idle: Optional[Callable[[], None]] = None,
-                 frame_observer: Optional[Callable[[Frame, FrameResult], None]] = None) -> None:
+    def __init__(
+        self,
+        source: FrameSource,
+        processor: Processor,
+        outputs: OutputFactory,
+        *,
+        latency_budget_s: float = 0.1,
+        source_retry_s: float = 0.5,
+        source_retry_max_s: float = 5.0,
+        clock: Callable[[], float] = time.monotonic,
+        on_written: Optional[WrittenHook] = None,
+        on_idle: Optional[Callable[[], None]] = None,
+        frame_observer: Optional[Callable[[Frame, FrameResult], None]] = None,
+    ) -> None:
         self.source = source
         self.frame_observer = frame_observer
         self.processor = processor
@@ -238,8 +265,9 @@ class Pipeline:
         self._stop = threading.Event()
         self._slot = NewestSlot()
         self.finished = threading.Event()  # set when the run ended (end of stream or stop)
-        self.outputs: List[Output] = list(outputs(max_age_s=self.latency_budget_s,
-                                                  on_written=self._written, on_closed=self.end))
+        self.outputs: List[Output] = list(
+            outputs(max_age_s=self.latency_budget_s, on_written=self._written, on_closed=self.end)
+        )
         self.on_idle = on_idle
         self.first_frame = threading.Event()  # set when the first frame was processed
         self._generation = 0
@@ -250,12 +278,19 @@ class Pipeline:
         self._process_thread = threading.Thread(target=self._process, name="process", daemon=True)
 
     @classmethod
-    def from_config(cls, cfg, source: FrameSource, processor, outputs: OutputFactory,
-                    **kwargs) -> Pipeline:
+    def from_config(
+        cls, cfg: Config, source: FrameSource, processor: Processor, outputs: OutputFactory, **kwargs
+    ) -> Pipeline:
         p = cfg.pipeline
-        return cls(source, processor, outputs, latency_budget_s=p.latency_budget_s,
-                   source_retry_s=p.source_retry_s,
-                   source_retry_max_s=p.source_retry_max_s, **kwargs)
+        return cls(
+            source,
+            processor,
+            outputs,
+            latency_budget_s=p.latency_budget_s,
+            source_retry_s=p.source_retry_s,
+            source_retry_max_s=p.source_retry_max_s,
+            **kwargs,
+        )
 
     # ----------------------------------------------------------------- control
 
@@ -301,8 +336,9 @@ class Pipeline:
             self._source_state = state
 
     def status_line(self, reset: bool = True) -> str:
-        return self.stats.status_line(self.source_state, self.processor_state()
-                                      + [self.output_state(o) for o in self.outputs], reset)
+        return self.stats.status_line(
+            self.source_state, self.processor_state() + [self.output_state(o) for o in self.outputs], reset
+        )
 
     def processor_state(self) -> List[str]:
         """The processor's own ``status()`` text (the attitude's freshness), if it has one."""
@@ -316,7 +352,7 @@ class Pipeline:
         return [str(text)] if text else []
 
     def output_state(self, output: Output) -> str:
-        """"name N sent (...)": results written, with the output's own ``status()`` text."""
+        """ "name N sent (...)": results written, with the output's own ``status()`` text."""
         try:
             text = str(output.status())
         except Exception as exc:  # a status text must never take the daemon down
@@ -449,4 +485,3 @@ class Pipeline:
             self._stop.set()
         finally:
             self.finished.set()
-

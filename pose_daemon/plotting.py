@@ -35,8 +35,9 @@ def require_matplotlib() -> Any:
     return matplotlib
 
 
-def new_figure(nrows: int = 1, ncols: int = 1, *, size_in: Tuple[float, float] = (6.4, 4.8),
-               dpi: float = 100.0, **subplot_kw: Any) -> Tuple[Any, Any]:
+def new_figure(
+    nrows: int = 1, ncols: int = 1, *, size_in: Tuple[float, float] = (6.4, 4.8), dpi: float = 100.0, **subplot_kw: Any
+) -> Tuple[Any, Any]:
     """A new figure on an Agg canvas and its axes (one Axes, or an array for a grid)."""
     require_matplotlib()
     from matplotlib.backends.backend_agg import FigureCanvasAgg

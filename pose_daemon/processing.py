@@ -18,7 +18,7 @@ import numpy as np
 
 from .camera import Camera, Marker
 from .capture.base import Frame
-from .config import DetectorConfig, EstimatorConfig
+from .config import Config, DetectorConfig, EstimatorConfig
 from .detect import MarkerDetector
 from .geometry import VehicleFrames
 from .pose.continuity import Track, choose_by_continuity
@@ -42,10 +42,20 @@ def timed(result: FrameResult, stage: str) -> Iterator[None]:
 class FrameProcessor:
     """detect -> estimate -> choose the planar solution, for one marker and one camera."""
 
-    def __init__(self, camera: Camera, marker: Marker, *, method: str = "iterative",
-                 iterations: int = 5, refine: bool = True, detector=None,
-                 frames: Optional[VehicleFrames] = None, prior: Optional[PriorSettings] = None,
-                 attitude_source: Any = None, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        camera: Camera,
+        marker: Marker,
+        *,
+        method: str = "iterative",
+        iterations: int = 5,
+        refine: bool = True,
+        detector=None,
+        frames: Optional[VehicleFrames] = None,
+        prior: Optional[PriorSettings] = None,
+        attitude_source: Any = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         """``frames``: mount and placement (default: forward camera, wall marker); ``prior``:
         the gate and tilt bounds; ``attitude_source``: an ``attitude_at(t_capture_s, t_now_s)``
         (attitude.AutopilotAttitude) asked when a frame carries no attitude of its own."""
@@ -66,26 +76,56 @@ class FrameProcessor:
         self.frames_seen = self.frames_with_attitude = 0
 
     @classmethod
-    def from_models(cls, camera: Camera, marker: Marker, estimator: EstimatorConfig,
-                    detector: DetectorConfig, *, frames: Optional[VehicleFrames] = None,
-                    prior: Optional[PriorSettings] = None, attitude_source: Any = None) -> FrameProcessor:
+    def from_models(
+        cls,
+        camera: Camera,
+        marker: Marker,
+        estimator: EstimatorConfig,
+        detector: DetectorConfig,
+        *,
+        frames: Optional[VehicleFrames] = None,
+        prior: Optional[PriorSettings] = None,
+        attitude_source: Any = None,
+    ) -> FrameProcessor:
         """The processor for a camera and marker model with the [estimator] and [detector]
         keys of a Config (replay takes the camera and marker from the recording); ``frames``,
         ``prior`` and ``attitude_source`` as for the constructor (defaults: its defaults)."""
-        return cls(camera, marker, method=estimator.method, iterations=estimator.iterations,
-                   refine=estimator.refine,
-                   detector=MarkerDetector(marker, max_misses=detector.max_misses,
-                                           min_side_px=detector.min_side_px, camera=camera,
-                                           gamma=detector.gamma),
-                   frames=frames, prior=prior, attitude_source=attitude_source)
+        return cls(
+            camera,
+            marker,
+            method=estimator.method,
+            iterations=estimator.iterations,
+            refine=estimator.refine,
+            detector=MarkerDetector(
+                marker,
+                max_misses=detector.max_misses,
+                min_side_px=detector.min_side_px,
+                camera=camera,
+                gamma=detector.gamma,
+            ),
+            frames=frames,
+            prior=prior,
+            attitude_source=attitude_source,
+        )
 
     @classmethod
-    def from_config(cls, cfg, *, attitude_source: Any = None) -> FrameProcessor:
-        """The processor a Config asks for: its camera, marker, estimator, detector, mount,
-        [attitude] and [gate] keys; ``attitude_source`` as for the constructor."""
-        return cls.from_models(cfg.camera.model(), cfg.marker.model(), cfg.estimator, cfg.detector,
-                               frames=VehicleFrames.from_config(cfg.mount, cfg.marker.placement),
-                               prior=PriorSettings.from_config(cfg), attitude_source=attitude_source)
+    def from_config(cls, cfg: Config, *, attitude_source: Any = None) -> FrameProcessor:
+        """The processor a Config asks for: its camera, marker (or map), estimator, detector,
+        mount, [attitude] and [gate] keys; ``attitude_source`` as for the constructor (not yet
+        for a [map]: MapFrameProcessor takes its own)."""
+        if cfg.map is not None:
+            from .map_processing import MapFrameProcessor
+
+            return MapFrameProcessor.from_config(cfg)  # type: ignore[return-value]
+        return cls.from_models(
+            cfg.camera.model(),
+            cfg.marker.model(),
+            cfg.estimator,
+            cfg.detector,
+            frames=VehicleFrames.from_config(cfg.mount, cfg.placement),
+            prior=PriorSettings.from_config(cfg),
+            attitude_source=attitude_source,
+        )
 
     @property
     def flips(self) -> int:
@@ -128,8 +168,14 @@ class FrameProcessor:
         result.corners = corners
         with timed(result, "estimate"):
             try:
-                pose = estimate_pose(corners, self.camera, self.marker, method=self.method,
-                                     iterations=self.iterations, refine=self.refine)
+                pose = estimate_pose(
+                    corners,
+                    self.camera,
+                    self.marker,
+                    method=self.method,
+                    iterations=self.iterations,
+                    refine=self.refine,
+                )
             except EstimationError as exc:
                 result.error = f"pose: {exc}"
                 self.track.reset()
@@ -142,11 +188,19 @@ class FrameProcessor:
         say), or None with ``result.error`` saying why the pose is withheld. The track follows
         the pose finally sent; a withheld pose leaves it as it was."""
         side_px = float(np.mean(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1)))
-        choice = choose_solution(pose, self.frames, attitude=result.attitude, settings=self.prior,
-                                 side_px=side_px,
-                                 by_continuity=lambda p: choose_by_continuity(p, self.track.normal_ref),
-                                 corners_px=corners, camera=self.camera, marker=self.marker,
-                                 heading=self.heading, corner_sigma_px=self.corner_noise.sigma_px)
+        choice = choose_solution(
+            pose,
+            self.frames,
+            attitude=result.attitude,
+            settings=self.prior,
+            side_px=side_px,
+            by_continuity=lambda p: choose_by_continuity(p, self.track.normal_ref),
+            corners_px=corners,
+            camera=self.camera,
+            marker=self.marker,
+            heading=self.heading,
+            corner_sigma_px=self.corner_noise.sigma_px,
+        )
         self.corner_noise.observe(pose.reprojection_error_px)
         result.choice = choice
         if choice.pose is None:

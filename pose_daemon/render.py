@@ -54,21 +54,21 @@ class Effects:
     marker's dark region as a fraction of the marker's shorter side.
     """
 
-    blur_px: float = 0.8               # defocus: Gaussian sigma, pixels
-    noise_gray: float = 2.0            # sensor noise: Gaussian sigma, grey levels
-    motion_blur_px: float = 0.0        # length of a linear motion smear, pixels
-    motion_blur_angle_deg: Optional[float] = None   # its direction; None = random
-    jpeg_quality: int = 0              # 0 = no compression, else 1..100
-    background: str = "texture"        # "texture" (random smooth pattern) or "plain"
-    lighting_gradient: float = 0.3     # relative brightness change across the frame
-    white: float = 220.0               # grey level of the marker's white paper
-    black: float = 25.0                # grey level of its dark ink
-    plain_gray: float = 128.0          # the "plain" background's grey level
-    quiet_zone: float = 0.25           # white margin around the dark region (see above)
-    supersample: int = 3               # samples per pixel along each axis (>= 1)
-    gamma: Response = 1.0              # camera response: 1.0 linear, a power law or "srgb"
-    sharpen: float = 0.0               # unsharp-mask amount on the encoded image (0 = none)
-    sharpen_px: float = 1.0            # its Gaussian sigma, pixels
+    blur_px: float = 0.8  # defocus: Gaussian sigma, pixels
+    noise_gray: float = 2.0  # sensor noise: Gaussian sigma, grey levels
+    motion_blur_px: float = 0.0  # length of a linear motion smear, pixels
+    motion_blur_angle_deg: Optional[float] = None  # its direction; None = random
+    jpeg_quality: int = 0  # 0 = no compression, else 1..100
+    background: str = "texture"  # "texture" (random smooth pattern) or "plain"
+    lighting_gradient: float = 0.3  # relative brightness change across the frame
+    white: float = 220.0  # grey level of the marker's white paper
+    black: float = 25.0  # grey level of its dark ink
+    plain_gray: float = 128.0  # the "plain" background's grey level
+    quiet_zone: float = 0.25  # white margin around the dark region (see above)
+    supersample: int = 3  # samples per pixel along each axis (>= 1)
+    gamma: Response = 1.0  # camera response: 1.0 linear, a power law or "srgb"
+    sharpen: float = 0.0  # unsharp-mask amount on the encoded image (0 = none)
+    sharpen_px: float = 1.0  # its Gaussian sigma, pixels
 
     def __post_init__(self) -> None:
         for name in ("blur_px", "noise_gray", "motion_blur_px", "lighting_gradient", "quiet_zone"):
@@ -84,15 +84,23 @@ class Effects:
         self.gamma = check_response(self.gamma, "Effects.gamma")
         for name, lowest in (("sharpen", 0.0), ("sharpen_px", 0.1)):
             value = getattr(self, name)
-            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value)
-                                               and value >= lowest):
+            if isinstance(value, bool) or not (
+                isinstance(value, (int, float)) and math.isfinite(value) and value >= lowest
+            ):
                 raise ValueError(f"Effects.{name} must be a number >= {lowest}, got {value!r}")
 
     @classmethod
     def clean(cls, **overrides) -> Effects:
         """No blur, noise, gradient or compression: the bare anti-aliased rendering."""
-        base = dict(blur_px=0.0, noise_gray=0.0, motion_blur_px=0.0, jpeg_quality=0,
-                    lighting_gradient=0.0, gamma=1.0, sharpen=0.0)
+        base = dict(
+            blur_px=0.0,
+            noise_gray=0.0,
+            motion_blur_px=0.0,
+            jpeg_quality=0,
+            lighting_gradient=0.0,
+            gamma=1.0,
+            sharpen=0.0,
+        )
         base.update(overrides)
         return cls(**base)
 
@@ -123,8 +131,7 @@ class TruePose:
 # --------------------------------------------------------------------------- textures
 
 
-def _coverage_matrix(edges_m: np.ndarray, origin_m: float, ppm: float, n_texels: int,
-                     flip: bool) -> np.ndarray:
+def _coverage_matrix(edges_m: np.ndarray, origin_m: float, ppm: float, n_texels: int, flip: bool) -> np.ndarray:
     """(n_texels, n_cells): the length of texel t covered by cell c, in texels.
 
     ``edges_m`` are the cell boundaries along one axis (increasing, metres); texel t spans
@@ -208,10 +215,14 @@ class _TexturePyramid:
     use, so a marker costs memory only for the resolutions it is seen at.
     """
 
-    def __init__(self, levels: List[list], extent_m: Tuple[float, float, float, float],
-                 make: Optional[Callable[[float], Tuple[_Channels, float, float]]] = None) -> None:
-        self.levels = levels          # [texture or None, ppm_x, ppm_y], finest first
-        self.extent_m = extent_m      # x_left, x_right, y_bottom, y_top
+    def __init__(
+        self,
+        levels: List[list],
+        extent_m: Tuple[float, float, float, float],
+        make: Optional[Callable[[float], Tuple[_Channels, float, float]]] = None,
+    ) -> None:
+        self.levels = levels  # [texture or None, ppm_x, ppm_y], finest first
+        self.extent_m = extent_m  # x_left, x_right, y_bottom, y_top
         self._make = make
 
     def pick(self, ppm_wanted: float) -> Tuple[_Channels, float, float]:
@@ -225,8 +236,15 @@ class _TexturePyramid:
         return best[0], best[1], best[2]
 
 
-def _grid_pyramid(values: np.ndarray, x_edges: np.ndarray, y_edges: np.ndarray, white: float,
-                  black: float, finest_ppm: float, coarsest_ppm: float) -> _TexturePyramid:
+def _grid_pyramid(
+    values: np.ndarray,
+    x_edges: np.ndarray,
+    y_edges: np.ndarray,
+    white: float,
+    black: float,
+    finest_ppm: float,
+    coarsest_ppm: float,
+) -> _TexturePyramid:
     grey = black + (white - black) * values
     width_m, height_m = x_edges[-1] - x_edges[0], y_edges[-1] - y_edges[0]
 
@@ -281,8 +299,16 @@ _PYRAMIDS: OrderedDict[tuple, _TexturePyramid] = OrderedDict()
 
 
 def _marker_pyramid(marker: Marker, effects: Effects) -> _TexturePyramid:
-    key = (marker.width, marker.height, marker.type, marker.dictionary, marker.id,
-           effects.quiet_zone, effects.white, effects.black)
+    key = (
+        marker.width,
+        marker.height,
+        marker.type,
+        marker.dictionary,
+        marker.id,
+        effects.quiet_zone,
+        effects.white,
+        effects.black,
+    )
     pyr = _PYRAMIDS.get(key)
     if pyr is None:
         values, xe, ye = marker_texture_grid(marker, effects.quiet_zone)
@@ -328,15 +354,16 @@ def _sample_rays(camera: Camera, roi: Tuple[int, int, int, int], ss: int) -> np.
     per-pixel ones (the undistortion is smooth: at most 0.001 px off, float32 rounding).
     """
     u0, v0, u1, v1 = roi
-    padded = _pixel_rays(camera)[v0:v1 + 2, u0:u1 + 2]
+    padded = _pixel_rays(camera)[v0 : v1 + 2, u0 : u1 + 2]
     if ss == 1:
         return padded[1:-1, 1:-1]
     big = cv2.resize(padded, ((u1 - u0 + 2) * ss, (v1 - v0 + 2) * ss), interpolation=cv2.INTER_LINEAR)
     return big[ss:-ss, ss:-ss]
 
 
-def _plane_roi(camera: Camera, R: np.ndarray, t: np.ndarray,
-               extent_m: Tuple[float, float, float, float]) -> Optional[Tuple[int, int, int, int]]:
+def _plane_roi(
+    camera: Camera, R: np.ndarray, t: np.ndarray, extent_m: Tuple[float, float, float, float]
+) -> Optional[Tuple[int, int, int, int]]:
     """Pixel box (x0, y0, x1, y1), exclusive ends, that holds the plane's image, or None if
     the plane cannot be seen. Falls back to the whole frame when the projection is unreliable
     (plane crossing behind the camera, points far outside the lens's field)."""
@@ -352,8 +379,9 @@ def _plane_roi(camera: Camera, R: np.ndarray, t: np.ndarray,
     norm = pts[:, :2] / pts[:, 2:3]
     if camera.has_distortion:
         # The distortion polynomial folds back far outside the image: trust it only inside.
-        corners = np.array([[0, 0], [camera.width - 1, 0], [camera.width - 1, camera.height - 1],
-                            [0, camera.height - 1]], np.float64)
+        corners = np.array(
+            [[0, 0], [camera.width - 1, 0], [camera.width - 1, camera.height - 1], [0, camera.height - 1]], np.float64
+        )
         lim = np.abs(camera.undistort_normalized(corners)).max(axis=0) * 1.5
         if np.any(np.abs(norm) > lim):
             return full
@@ -369,8 +397,9 @@ def _plane_roi(camera: Camera, R: np.ndarray, t: np.ndarray,
     return (u0, v0, u1, v1)
 
 
-def _render_plane_layer(camera: Camera, pyramid: _TexturePyramid, R: np.ndarray, t: np.ndarray,
-                        ss: int) -> Optional[Tuple[Tuple[int, int, int, int], np.ndarray, np.ndarray]]:
+def _render_plane_layer(
+    camera: Camera, pyramid: _TexturePyramid, R: np.ndarray, t: np.ndarray, ss: int
+) -> Optional[Tuple[Tuple[int, int, int, int], np.ndarray, np.ndarray]]:
     """The plane's premultiplied grey and coverage over its pixel box, or None if unseen."""
     x_left, x_right, y_bottom, y_top = pyramid.extent_m
     roi = _plane_roi(camera, R, t, pyramid.extent_m)
@@ -387,22 +416,34 @@ def _render_plane_layer(camera: Camera, pyramid: _TexturePyramid, R: np.ndarray,
     ppm_wanted = max(camera.fx, camera.fy) * ss / depth
     tex, ppm_x, ppm_y = pyramid.pick(ppm_wanted)
     # Plane metres -> texture coordinates (texel centres at integers, row 0 at the top).
-    A = np.array([[ppm_x, 0.0, -x_left * ppm_x - 0.5],
-                  [0.0, -ppm_y, y_top * ppm_y - 0.5],
-                  [0.0, 0.0, 1.0]])
-    G = A @ Hinv   # normalized image -> texture
+    A = np.array([[ppm_x, 0.0, -x_left * ppm_x - 0.5], [0.0, -ppm_y, y_top * ppm_y - 0.5], [0.0, 0.0, 1.0]])
+    G = A @ Hinv  # normalized image -> texture
     w_ss, h_ss = (u1 - u0) * ss, (v1 - v0) * ss
     if not camera.has_distortion:
         # Sample index -> pixel -> normalized: all affine, so one homography does it all.
-        P = np.array([[1.0 / (ss * camera.fx), 0.0, ((0.5 / ss - 0.5) + u0 - camera.cx) / camera.fx],
-                      [0.0, 1.0 / (ss * camera.fy), ((0.5 / ss - 0.5) + v0 - camera.cy) / camera.fy],
-                      [0.0, 0.0, 1.0]])
+        P = np.array(
+            [
+                [1.0 / (ss * camera.fx), 0.0, ((0.5 / ss - 0.5) + u0 - camera.cx) / camera.fx],
+                [0.0, 1.0 / (ss * camera.fy), ((0.5 / ss - 0.5) + v0 - camera.cy) / camera.fy],
+                [0.0, 0.0, 1.0],
+            ]
+        )
         M = G @ P
         # One channel at a time: OpenCV warps single-channel float images several times faster.
-        layer = np.stack([cv2.warpPerspective(tex[..., k], M, (w_ss, h_ss),
-                                              flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                              borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-                          for k in (0, 1)], axis=-1)
+        layer = np.stack(
+            [
+                cv2.warpPerspective(
+                    tex[..., k],
+                    M,
+                    (w_ss, h_ss),
+                    flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                    borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=0.0,
+                )
+                for k in (0, 1)
+            ],
+            axis=-1,
+        )
         # Samples behind the camera would alias onto the plane through the homography.
         if _crosses_camera(R, t, pyramid):
             rays = _sample_rays(camera, roi, ss)
@@ -419,9 +460,13 @@ def _render_plane_layer(camera: Camera, pyramid: _TexturePyramid, R: np.ndarray,
         behind = _behind(Hinv, rays)
         map_x[behind] = -10.0
         map_y[behind] = -10.0
-        layer = np.stack([cv2.remap(tex[..., k], map_x, map_y, cv2.INTER_LINEAR,
-                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-                          for k in (0, 1)], axis=-1)
+        layer = np.stack(
+            [
+                cv2.remap(tex[..., k], map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+                for k in (0, 1)
+            ],
+            axis=-1,
+        )
     if ss > 1:
         layer = cv2.resize(layer, (u1 - u0, v1 - v0), interpolation=cv2.INTER_AREA)
     return roi, layer[..., 0], layer[..., 1]
@@ -443,8 +488,9 @@ def _behind(Hinv: np.ndarray, rays: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- effects
 
 
-def make_background(rng: np.random.Generator, width: int, height: int, kind: str = "texture",
-                    plain_gray: float = 128.0) -> np.ndarray:
+def make_background(
+    rng: np.random.Generator, width: int, height: int, kind: str = "texture", plain_gray: float = 128.0
+) -> np.ndarray:
     """A background (height, width) float32 in grey levels: "plain" or a random smooth
     "texture" (blobs and streaks at several scales, grey 40..200, no sharp dark quadrilaterals)."""
     if kind == "plain":
@@ -506,17 +552,24 @@ def _apply_effects(img: np.ndarray, effects: Effects, rng: np.random.Generator) 
         img = img * gain
     if effects.motion_blur_px > 0:
         length = float(effects.motion_blur_px)
-        angle_deg = (effects.motion_blur_angle_deg if effects.motion_blur_angle_deg is not None
-                     else rng.uniform(0.0, 180.0))
+        angle_deg = (
+            effects.motion_blur_angle_deg if effects.motion_blur_angle_deg is not None else rng.uniform(0.0, 180.0)
+        )
         size = int(math.ceil(length)) | 1
         size += 2
         kernel = np.zeros((size * 4, size * 4), np.float32)
         c = (size * 4 - 1) / 2.0
         dx, dy = math.cos(math.radians(angle_deg)), math.sin(math.radians(angle_deg))
         half = length * 2.0  # the kernel is drawn at 4x and area-reduced
-        cv2.line(kernel, (int(round((c - dx * half) * 16)), int(round((c - dy * half) * 16))),
-                 (int(round((c + dx * half) * 16)), int(round((c + dy * half) * 16))), 1.0, 1,
-                 cv2.LINE_AA, shift=4)
+        cv2.line(
+            kernel,
+            (int(round((c - dx * half) * 16)), int(round((c - dy * half) * 16))),
+            (int(round((c + dx * half) * 16)), int(round((c + dy * half) * 16))),
+            1.0,
+            1,
+            cv2.LINE_AA,
+            shift=4,
+        )
         kernel = cv2.resize(kernel, (size, size), interpolation=cv2.INTER_AREA)
         kernel /= kernel.sum()
         img = cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REFLECT)
@@ -543,8 +596,9 @@ def _rng(rng: Optional[np.random.Generator]) -> np.random.Generator:
     return rng if rng is not None else np.random.default_rng()
 
 
-def _background(camera: Camera, effects: Effects, rng: np.random.Generator,
-                background: Optional[np.ndarray]) -> np.ndarray:
+def _background(
+    camera: Camera, effects: Effects, rng: np.random.Generator, background: Optional[np.ndarray]
+) -> np.ndarray:
     if background is None:
         return make_background(rng, camera.width, camera.height, effects.background, effects.plain_gray)
     bg = np.asarray(background)
@@ -553,8 +607,15 @@ def _background(camera: Camera, effects: Effects, rng: np.random.Generator,
     return bg.astype(np.float32)
 
 
-def _composite(camera: Camera, pyramid: _TexturePyramid, R: np.ndarray, t: np.ndarray,
-               effects: Effects, rng: np.random.Generator, background: Optional[np.ndarray]) -> np.ndarray:
+def _composite(
+    camera: Camera,
+    pyramid: _TexturePyramid,
+    R: np.ndarray,
+    t: np.ndarray,
+    effects: Effects,
+    rng: np.random.Generator,
+    background: Optional[np.ndarray],
+) -> np.ndarray:
     scene = _to_linear(_background(camera, effects, rng, background), effects)
     if background is not None and scene is background:
         scene = scene.copy()
@@ -581,9 +642,16 @@ def _pose_arrays(rvec, tvec) -> Tuple[np.ndarray, np.ndarray]:
 _DEFAULT_EFFECTS = Effects()
 
 
-def render_marker(camera: Camera, marker: Marker, rvec, tvec, *, effects: Effects = _DEFAULT_EFFECTS,
-                  rng: Optional[np.random.Generator] = None,
-                  background: Optional[np.ndarray] = None) -> RenderedFrame:
+def render_marker(
+    camera: Camera,
+    marker: Marker,
+    rvec,
+    tvec,
+    *,
+    effects: Effects = _DEFAULT_EFFECTS,
+    rng: Optional[np.random.Generator] = None,
+    background: Optional[np.ndarray] = None,
+) -> RenderedFrame:
     """Render ``marker`` at pose (rvec, tvec) (marker frame -> camera frame, metres, radians).
 
     "square": a dark rectangle W x H on a white quiet zone; "aruco": the OpenCV marker of
@@ -592,8 +660,7 @@ def render_marker(camera: Camera, marker: Marker, rvec, tvec, *, effects: Effect
     """
     rng = _rng(rng)
     R, t = _pose_arrays(rvec, tvec)
-    image = _composite(camera, _marker_pyramid(marker, _linear_effects(effects)), R, t, effects, rng,
-                       background)
+    image = _composite(camera, _marker_pyramid(marker, _linear_effects(effects)), R, t, effects, rng, background)
     pts = marker.object_points @ R.T + t
     visible = bool(np.all(pts[:, 2] > 1e-6))
     corners = camera.project(pts)
@@ -605,17 +672,26 @@ def render_marker(camera: Camera, marker: Marker, rvec, tvec, *, effects: Effect
     return RenderedFrame(image=image, corners_px=corners, visible=visible)
 
 
-def render_plane(camera: Camera, texture: np.ndarray, size_m: Sequence[float], rvec, tvec, *,
-                 effects: Effects = _DEFAULT_EFFECTS, rng: Optional[np.random.Generator] = None,
-                 background: Optional[np.ndarray] = None) -> np.ndarray:
+def render_plane(
+    camera: Camera,
+    texture: np.ndarray,
+    size_m: Sequence[float],
+    rvec,
+    tvec,
+    *,
+    effects: Effects = _DEFAULT_EFFECTS,
+    rng: Optional[np.random.Generator] = None,
+    background: Optional[np.ndarray] = None,
+) -> np.ndarray:
     """Render a planar grey ``texture`` (uint8 or float, its grey levels as given) of physical
     size ``size_m`` = (width, height) metres, centred at the plane origin with x right and y
     up like the marker frame (row 0 of the texture at +y), at pose (rvec, tvec)."""
     rng = _rng(rng)
     R, t = _pose_arrays(rvec, tvec)
     # The texture's grey levels are as the camera gives them in focus: rendered in linear light.
-    tex = np.ascontiguousarray(_to_linear(np.asarray(texture, dtype=np.float32), effects)
-                               if not is_linear(effects.gamma) else texture)
+    tex = np.ascontiguousarray(
+        _to_linear(np.asarray(texture, dtype=np.float32), effects) if not is_linear(effects.gamma) else texture
+    )
     size = (float(size_m[0]), float(size_m[1]))
     # Keyed on the content: callers may reuse or mutate one array between calls.
     key = ("plane", tex.shape, str(tex.dtype), size, hash(tex.tobytes()))
@@ -628,13 +704,16 @@ def render_plane(camera: Camera, texture: np.ndarray, size_m: Sequence[float], r
     return _composite(camera, pyr, R, t, effects, rng, background)
 
 
-def render_empty(camera: Camera, *, effects: Effects = _DEFAULT_EFFECTS,
-                 rng: Optional[np.random.Generator] = None,
-                 background: Optional[np.ndarray] = None) -> np.ndarray:
+def render_empty(
+    camera: Camera,
+    *,
+    effects: Effects = _DEFAULT_EFFECTS,
+    rng: Optional[np.random.Generator] = None,
+    background: Optional[np.ndarray] = None,
+) -> np.ndarray:
     """A frame without any marker (false-positive tests)."""
     rng = _rng(rng)
-    return _apply_effects(_to_linear(_background(camera, effects, rng, background), effects).copy(),
-                          effects, rng)
+    return _apply_effects(_to_linear(_background(camera, effects, rng, background), effects).copy(), effects, rng)
 
 
 def aruco_texture(marker: Marker, white: float = 220.0, black: float = 25.0) -> Tuple[np.ndarray, Tuple[float, float]]:
@@ -648,9 +727,16 @@ def aruco_texture(marker: Marker, white: float = 220.0, black: float = 25.0) -> 
     return tex, (marker.width * 1.5, marker.height * 1.5)
 
 
-def render_frame(camera: Camera, marker: Marker, rvec, tvec, *, effects: Effects,
-                 rng: np.random.Generator,
-                 background: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray]:
+def render_frame(
+    camera: Camera,
+    marker: Marker,
+    rvec,
+    tvec,
+    *,
+    effects: Effects,
+    rng: np.random.Generator,
+    background: Optional[np.ndarray] = None,
+) -> Tuple[np.ndarray, np.ndarray]:
     """(image uint8, true corners (4, 2) TL, TR, BR, BL pixels) of the marker at (rvec, tvec).
 
     ArUco markers are drawn from OpenCV's own marker image, so that a detector is judged on
@@ -659,8 +745,9 @@ def render_frame(camera: Camera, marker: Marker, rvec, tvec, *, effects: Effects
     if marker.type == "aruco":
         tex, size = aruco_texture(marker, effects.white, effects.black)
         image = render_plane(camera, tex, size, rvec, tvec, effects=effects, rng=rng, background=background)
-        pts = marker.object_points @ R_from_rvec(np.asarray(rvec, float).reshape(3)).T + \
-            np.asarray(tvec, float).reshape(3)
+        pts = marker.object_points @ R_from_rvec(np.asarray(rvec, float).reshape(3)).T + np.asarray(
+            tvec, float
+        ).reshape(3)
         return image, camera.project(pts)
     frame = render_marker(camera, marker, rvec, tvec, effects=effects, rng=rng, background=background)
     return frame.image, frame.corners_px
@@ -669,8 +756,7 @@ def render_frame(camera: Camera, marker: Marker, rvec, tvec, *, effects: Effects
 # --------------------------------------------------------------------------- poses
 
 
-def _R_cam_marker_facing(ray_cam: np.ndarray, tilt_axis_angle: float, tilt_rad: float,
-                         roll_rad: float) -> np.ndarray:
+def _R_cam_marker_facing(ray_cam: np.ndarray, tilt_axis_angle: float, tilt_rad: float, roll_rad: float) -> np.ndarray:
     """R_cam_marker for a marker on the ray ``ray_cam`` facing the camera, tilted by ``tilt_rad``
     about an in-plane axis at ``tilt_axis_angle`` and turned by ``roll_rad`` in its plane."""
     d = ray_cam / np.linalg.norm(ray_cam)
@@ -684,9 +770,15 @@ def _R_cam_marker_facing(ray_cam: np.ndarray, tilt_axis_angle: float, tilt_rad: 
     return R_cam_unrot @ R_UNROT_MARKER
 
 
-def random_pose(rng: np.random.Generator, camera: Camera, marker: Marker,
-                distance_m: Tuple[float, float] = (0.5, 3.0), max_tilt_deg: float = 60.0,
-                margin_px: float = 4.0, max_tries: int = 1000) -> Tuple[np.ndarray, np.ndarray]:
+def random_pose(
+    rng: np.random.Generator,
+    camera: Camera,
+    marker: Marker,
+    distance_m: Tuple[float, float] = (0.5, 3.0),
+    max_tilt_deg: float = 60.0,
+    margin_px: float = 4.0,
+    max_tries: int = 1000,
+) -> Tuple[np.ndarray, np.ndarray]:
     """A random pose (rvec, tvec) with the whole marker inside the image (``margin_px`` from
     its edges): distance of the marker centre uniform in ``distance_m``, tilt of its face
     away from the line of sight uniform up to ``max_tilt_deg``, any in-plane rotation."""
@@ -698,8 +790,9 @@ def random_pose(rng: np.random.Generator, camera: Camera, marker: Marker,
         v = camera.cy + spread * rng.uniform(-0.5, 0.5) * camera.height
         xn, yn = camera.undistort_normalized(np.array([[u, v]]))[0]
         ray = np.array([xn, yn, 1.0])
-        R = _R_cam_marker_facing(ray, rng.uniform(0, 2 * math.pi), math.radians(rng.uniform(0, max_tilt_deg)),
-                                 rng.uniform(-math.pi, math.pi))
+        R = _R_cam_marker_facing(
+            ray, rng.uniform(0, 2 * math.pi), math.radians(rng.uniform(0, max_tilt_deg)), rng.uniform(-math.pi, math.pi)
+        )
         t = ray / np.linalg.norm(ray) * dist
         pts = marker.object_points @ R.T + t
         if np.any(pts[:, 2] <= 0.05):
@@ -707,12 +800,20 @@ def random_pose(rng: np.random.Generator, camera: Camera, marker: Marker,
         px = camera.project(pts)
         if np.all((px >= margin_px) & (px <= [camera.width - 1 - margin_px, camera.height - 1 - margin_px])):
             return rvec_from_R(R), t
-    raise ValueError(f"no pose keeps a {marker.width} x {marker.height} m marker inside the image at "
-                     f"{distance_m[0]}-{distance_m[1]} m; use a closer distance range")
+    raise ValueError(
+        f"no pose keeps a {marker.width} x {marker.height} m marker inside the image at "
+        f"{distance_m[0]}-{distance_m[1]} m; use a closer distance range"
+    )
 
 
-def trajectory(kind: str, n_frames: int, fps: float, seed: int = 0, camera: Optional[Camera] = None,
-               marker: Optional[Marker] = None) -> List[TruePose]:
+def trajectory(
+    kind: str,
+    n_frames: int,
+    fps: float,
+    seed: int = 0,
+    camera: Optional[Camera] = None,
+    marker: Optional[Marker] = None,
+) -> List[TruePose]:
     """The marker's true pose in the camera frame for ``n_frames`` frames at ``fps``.
 
     "wall": the camera moves in front of a marker on a wall (distance, side-to-side and up and
@@ -730,8 +831,9 @@ def trajectory(kind: str, n_frames: int, fps: float, seed: int = 0, camera: Opti
 class Trajectory:
     """An endless smooth trajectory (see ``trajectory``): ``at(t_s)`` gives the true pose."""
 
-    def __init__(self, kind: str, seed: int = 0, camera: Optional[Camera] = None,
-                 marker: Optional[Marker] = None) -> None:
+    def __init__(
+        self, kind: str, seed: int = 0, camera: Optional[Camera] = None, marker: Optional[Marker] = None
+    ) -> None:
         if kind not in TRAJECTORIES:
             raise ValueError(f"trajectory must be one of {', '.join(TRAJECTORIES)}, got {kind!r}")
         self.kind = kind

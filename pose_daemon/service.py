@@ -136,11 +136,17 @@ class Service:
     default processor; a ``processor`` or ``outputs`` given by the caller is used as it is.
     """
 
-    def __init__(self, cfg: Config, *, source: Optional[FrameSource] = None,
-                 outputs: Optional[OutputFactory] = None, processor=None,
-                 notifier: Optional[SdNotifier] = None,
-                 env: Optional[Mapping[str, str]] = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        cfg: Config,
+        *,
+        source: Optional[FrameSource] = None,
+        outputs: Optional[OutputFactory] = None,
+        processor=None,
+        notifier: Optional[SdNotifier] = None,
+        env: Optional[Mapping[str, str]] = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.cfg = cfg
         self.clock = clock
         if source is None:
@@ -160,8 +166,9 @@ class Service:
             from .preview import FrameTap
 
             tap = FrameTap(processor)
-        self.pipeline = Pipeline.from_config(cfg, source, processor, outputs, clock=clock,
-                                             on_idle=self.idle_collector.run, frame_observer=tap)
+        self.pipeline = Pipeline.from_config(
+            cfg, source, processor, outputs, clock=clock, on_idle=self.idle_collector.run, frame_observer=tap
+        )
         self.outputs: List[Output] = self.pipeline.outputs
         self.preview = self._open_preview(tap) if tap is not None else None
         self.notifier = notifier if notifier is not None else SdNotifier()
@@ -205,8 +212,12 @@ class Service:
         def on_status(_signum, _frame):
             self.request_status()
 
-        for signum, handler in ((signal.SIGTERM, on_stop), (signal.SIGINT, on_stop),
-                                (signal.SIGHUP, on_stop), (signal.SIGUSR1, on_status)):
+        for signum, handler in (
+            (signal.SIGTERM, on_stop),
+            (signal.SIGINT, on_stop),
+            (signal.SIGHUP, on_stop),
+            (signal.SIGUSR1, on_status),
+        ):
             previous[signum] = signal.signal(signum, handler)
         return previous
 
@@ -218,9 +229,12 @@ class Service:
         self.pipeline.start()
         if self.preview is not None:
             self.preview.start()
-        log.info("started: source %s, outputs %s, latency budget %.0f ms", self.cfg.camera.source,
-                 ", ".join(o.name for o in self.outputs) or "none",
-                 self.cfg.pipeline.latency_budget_s * 1e3)
+        log.info(
+            "started: source %s, outputs %s, latency budget %.0f ms",
+            self.cfg.camera.source,
+            ", ".join(o.name for o in self.outputs) or "none",
+            self.cfg.pipeline.latency_budget_s * 1e3,
+        )
         self.notifier.notify("STATUS=waiting for the first frame")
         ready = False
         now = self.clock()

@@ -39,7 +39,7 @@ if [ ! -e "$stamp" ]; then
     "${pip[@]}" install --no-deps -e .
     if [ -n "$extras" ]; then
       # numpy pinned again: a newer matplotlib would otherwise pull numpy 2.
-      "${pip[@]}" install "numpy==1.24.*" "pytest>=7" "ruff>=0.4" "matplotlib>=3.5"
+      "${pip[@]}" install "numpy==1.24.*" "pytest>=7" "ruff>=0.4" "mypy>=1.10" "matplotlib>=3.5"
     fi
   else
     "${pip[@]}" install --upgrade -e ".$extras"

@@ -17,19 +17,20 @@ ARUCO = Marker(0.20, 0.20, type="aruco", dictionary="DICT_4X4_50", id=7)
 DEFAULT_EFFECTS = Effects()
 
 
-def render(marker: Marker, rvec, tvec, *, seed: int, effects: Effects = DEFAULT_EFFECTS,
-           camera: Camera = CAM, background=None):
+def render(
+    marker: Marker, rvec, tvec, *, seed: int, effects: Effects = DEFAULT_EFFECTS, camera: Camera = CAM, background=None
+):
     """(image, true corners TL, TR, BR, BL) for a marker at pose (rvec, tvec).
 
     ArUco markers are drawn from OpenCV's own marker image on a plane, so the detector is
     checked against OpenCV's pattern itself.
     """
-    return render_frame(camera, marker, rvec, tvec, effects=effects, rng=np.random.default_rng(seed),
-                        background=background)
+    return render_frame(
+        camera, marker, rvec, tvec, effects=effects, rng=np.random.default_rng(seed), background=background
+    )
 
 
-def facing_pose(roll_deg: float, distance_m: float = 1.0, tilt_deg: float = 0.0,
-                shift_m=(0.0, 0.0)):
+def facing_pose(roll_deg: float, distance_m: float = 1.0, tilt_deg: float = 0.0, shift_m=(0.0, 0.0)):
     """Marker straight ahead at ``distance_m``, turned by ``roll_deg`` in its plane (image
     clockwise for positive roll) and tilted about its x axis by ``tilt_deg``."""
     R = rot_z(math.radians(roll_deg)) @ rot_x(math.radians(tilt_deg)) @ R_UNROT_MARKER

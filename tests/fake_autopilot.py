@@ -50,22 +50,35 @@ MAV_PARAM_TYPE_INT32 = 6
 MAV_PARAM_TYPE_REAL32 = 9
 
 ARDUPILOT_PARAMS: Dict[str, Tuple[float, int]] = {
-    "VISO_TYPE": (1, MAV_PARAM_TYPE_INT8), "VISO_QUAL_MIN": (0, MAV_PARAM_TYPE_INT8),
-    "VISO_DELAY_MS": (10, MAV_PARAM_TYPE_INT16), "VISO_ORIENT": (0, MAV_PARAM_TYPE_INT8),
-    "VISO_POS_X": (0.0, MAV_PARAM_TYPE_REAL32), "VISO_POS_Y": (0.0, MAV_PARAM_TYPE_REAL32),
+    "VISO_TYPE": (1, MAV_PARAM_TYPE_INT8),
+    "VISO_QUAL_MIN": (0, MAV_PARAM_TYPE_INT8),
+    "VISO_DELAY_MS": (10, MAV_PARAM_TYPE_INT16),
+    "VISO_ORIENT": (0, MAV_PARAM_TYPE_INT8),
+    "VISO_POS_X": (0.0, MAV_PARAM_TYPE_REAL32),
+    "VISO_POS_Y": (0.0, MAV_PARAM_TYPE_REAL32),
     "VISO_POS_Z": (0.0, MAV_PARAM_TYPE_REAL32),
-    "EK3_SRC1_POSXY": (6, MAV_PARAM_TYPE_INT8), "EK3_SRC1_POSZ": (6, MAV_PARAM_TYPE_INT8),
-    "EK3_SRC1_VELXY": (0, MAV_PARAM_TYPE_INT8), "EK3_SRC1_VELZ": (0, MAV_PARAM_TYPE_INT8),
-    "EK3_SRC1_YAW": (6, MAV_PARAM_TYPE_INT8), "GPS1_TYPE": (0, MAV_PARAM_TYPE_INT8),
-    "SERIAL2_PROTOCOL": (2, MAV_PARAM_TYPE_INT8), "SERIAL2_BAUD": (921, MAV_PARAM_TYPE_INT32),
-    "SR2_EXTRA1": (10, MAV_PARAM_TYPE_INT16), "SR2_POSITION": (10, MAV_PARAM_TYPE_INT16),
-    "PLND_ENABLED": (0, MAV_PARAM_TYPE_INT8), "PLND_TYPE": (0, MAV_PARAM_TYPE_INT8),
+    "EK3_SRC1_POSXY": (6, MAV_PARAM_TYPE_INT8),
+    "EK3_SRC1_POSZ": (6, MAV_PARAM_TYPE_INT8),
+    "EK3_SRC1_VELXY": (0, MAV_PARAM_TYPE_INT8),
+    "EK3_SRC1_VELZ": (0, MAV_PARAM_TYPE_INT8),
+    "EK3_SRC1_YAW": (6, MAV_PARAM_TYPE_INT8),
+    "GPS1_TYPE": (0, MAV_PARAM_TYPE_INT8),
+    "SERIAL2_PROTOCOL": (2, MAV_PARAM_TYPE_INT8),
+    "SERIAL2_BAUD": (921, MAV_PARAM_TYPE_INT32),
+    "SR2_EXTRA1": (10, MAV_PARAM_TYPE_INT16),
+    "SR2_POSITION": (10, MAV_PARAM_TYPE_INT16),
+    "PLND_ENABLED": (0, MAV_PARAM_TYPE_INT8),
+    "PLND_TYPE": (0, MAV_PARAM_TYPE_INT8),
 }
 PX4_PARAMS: Dict[str, Tuple[float, int]] = {
-    "EKF2_EV_CTRL": (11, MAV_PARAM_TYPE_INT32), "EKF2_HGT_REF": (3, MAV_PARAM_TYPE_INT32),
-    "EKF2_EV_DELAY": (0.0, MAV_PARAM_TYPE_REAL32), "EKF2_GPS_CTRL": (0, MAV_PARAM_TYPE_INT32),
-    "EKF2_EV_QMIN": (0, MAV_PARAM_TYPE_INT32), "EKF2_EVP_NOISE": (0.1, MAV_PARAM_TYPE_REAL32),
-    "MAV_0_CONFIG": (101, MAV_PARAM_TYPE_INT32), "MAV_0_MODE": (2, MAV_PARAM_TYPE_INT32),
+    "EKF2_EV_CTRL": (11, MAV_PARAM_TYPE_INT32),
+    "EKF2_HGT_REF": (3, MAV_PARAM_TYPE_INT32),
+    "EKF2_EV_DELAY": (0.0, MAV_PARAM_TYPE_REAL32),
+    "EKF2_GPS_CTRL": (0, MAV_PARAM_TYPE_INT32),
+    "EKF2_EV_QMIN": (0, MAV_PARAM_TYPE_INT32),
+    "EKF2_EVP_NOISE": (0.1, MAV_PARAM_TYPE_REAL32),
+    "MAV_0_CONFIG": (101, MAV_PARAM_TYPE_INT32),
+    "MAV_0_MODE": (2, MAV_PARAM_TYPE_INT32),
     "MAV_0_RATE": (0, MAV_PARAM_TYPE_INT32),
 }
 
@@ -78,27 +91,36 @@ def _name(raw: Any) -> str:
 class Tally:
     """What the fake did with what it got."""
 
-    fused: Dict[str, int] = field(default_factory=dict)        # ODOMETRY / VISION_POSITION_ESTIMATE used
-    ignored: Dict[str, int] = field(default_factory=dict)      # by cause, e.g. "ODOMETRY quality"
+    fused: Dict[str, int] = field(default_factory=dict)  # ODOMETRY / VISION_POSITION_ESTIMATE used
+    ignored: Dict[str, int] = field(default_factory=dict)  # by cause, e.g. "ODOMETRY quality"
     origins_refused: int = 0
     origins_taken: int = 0
     origins_wiped: int = 0
-    set_home_position: int = 0                                 # SET_HOME_POSITION (ArduPilot: no handler)
-    landing_targets: List[Any] = field(default_factory=list)   # accepted LANDING_TARGET messages
+    set_home_position: int = 0  # SET_HOME_POSITION (ArduPilot: no handler)
+    landing_targets: List[Any] = field(default_factory=list)  # accepted LANDING_TARGET messages
     landing_refused: int = 0
     timesync_answers: List[Tuple[int, int, int]] = field(default_factory=list)  # (tc1, ts1, our now ns)
-    stamped_by: Dict[str, int] = field(default_factory=dict)   # PX4: "timesync" / "arrival"
-    received: List[Any] = field(default_factory=list)          # every message from the daemon
+    stamped_by: Dict[str, int] = field(default_factory=dict)  # PX4: "timesync" / "arrival"
+    received: List[Any] = field(default_factory=list)  # every message from the daemon
 
 
 class FakeAutopilot:
     """Listens on 127.0.0.1:``port`` (the daemon's ``udpout:127.0.0.1:PORT``)."""
 
-    def __init__(self, kind: str = "ardupilot", *, system: int = 1, ekf_start_s: float = 4.0,
-                 ekf_bootstrap_s: float = 1.0, timesync_s: float = 10.0, heartbeat_s: float = 1.0,
-                 params: Optional[Dict[str, float]] = None,
-                 vehicle_state: Optional[Callable[[float], Tuple[Any, Any]]] = None,
-                 message_interval: bool = True, boot_age_s: float = 5.0) -> None:
+    def __init__(
+        self,
+        kind: str = "ardupilot",
+        *,
+        system: int = 1,
+        ekf_start_s: float = 4.0,
+        ekf_bootstrap_s: float = 1.0,
+        timesync_s: float = 10.0,
+        heartbeat_s: float = 1.0,
+        params: Optional[Dict[str, float]] = None,
+        vehicle_state: Optional[Callable[[float], Tuple[Any, Any]]] = None,
+        message_interval: bool = True,
+        boot_age_s: float = 5.0,
+    ) -> None:
         # ArduPilot's dialect (common.xml and EKF_STATUS_REPORT); PX4 uses only common messages.
         from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
@@ -124,14 +146,14 @@ class FakeAutopilot:
         self.message_interval = message_interval
         self._t_boot = time.monotonic() - boot_age_s
         self.attitudes_sent = 0
-        self.data_stream_requests: List[Tuple[int, int, int]] = []   # (stream id, rate Hz, start_stop)
+        self.data_stream_requests: List[Tuple[int, int, int]] = []  # (stream id, rate Hz, start_stop)
         self.tally = Tally()
         self.origin: Optional[Tuple[int, int, int]] = None
         self.home: Optional[Tuple[int, int, int]] = None
         self.home_set_by: Optional[str] = None
         self.statustexts: List[str] = []
         self.intervals_us: Dict[int, int] = {}
-        self.timesync_offset_ns: Optional[int] = None        # PX4: ours - theirs, once synced
+        self.timesync_offset_ns: Optional[int] = None  # PX4: ours - theirs, once synced
         self._t_first_heartbeat: Optional[float] = None
         self._wipe_at: Optional[float] = None
         self._last_sent: Dict[str, float] = {}
@@ -238,13 +260,16 @@ class FakeAutopilot:
         kind = msg.get_type()
         if kind == "SET_GPS_GLOBAL_ORIGIN":
             if self.kind == "ardupilot" and not self.ekf_running(now):
-                self.tally.origins_refused += 1         # NavEKF3::setOriginLLH: no cores yet
+                self.tally.origins_refused += 1  # NavEKF3::setOriginLLH: no cores yet
                 return
             self.origin = (msg.latitude, msg.longitude, msg.altitude)
             self.tally.origins_taken += 1
             self._text(6, "EKF3 IMU0 origin set" if self.kind == "ardupilot" else "origin set")
-            if (self.kind == "ardupilot" and self._t_first_heartbeat is not None
-                    and now < self._t_first_heartbeat + self.ekf_start_s + self.ekf_bootstrap_s):
+            if (
+                self.kind == "ardupilot"
+                and self._t_first_heartbeat is not None
+                and now < self._t_first_heartbeat + self.ekf_start_s + self.ekf_bootstrap_s
+            ):
                 self._wipe_at = self._t_first_heartbeat + self.ekf_start_s + self.ekf_bootstrap_s
         elif kind == "SET_HOME_POSITION":
             self.tally.set_home_position += 1
@@ -258,7 +283,7 @@ class FakeAutopilot:
             self._landing_target(msg)
         elif kind == "REQUEST_DATA_STREAM":
             self.data_stream_requests.append((msg.req_stream_id, msg.req_message_rate, msg.start_stop))
-            msg_id = {10: 30, 6: 32}.get(msg.req_stream_id)   # EXTRA1: ATTITUDE, POSITION: LOCAL_POSITION_NED
+            msg_id = {10: 30, 6: 32}.get(msg.req_stream_id)  # EXTRA1: ATTITUDE, POSITION: LOCAL_POSITION_NED
             if msg_id is not None:
                 if msg.start_stop and msg.req_message_rate > 0:
                     self.intervals_us[msg_id] = int(1e6 / msg.req_message_rate)
@@ -278,7 +303,7 @@ class FakeAutopilot:
     def _command(self, msg: Any, now: float) -> None:
         cmd = msg.command
         result = 3  # MAV_RESULT_UNSUPPORTED
-        if cmd == 512:   # MAV_CMD_REQUEST_MESSAGE
+        if cmd == 512:  # MAV_CMD_REQUEST_MESSAGE
             wanted = int(msg.param1)
             result = 0
             if wanted == 49 and self.origin is not None:
@@ -295,8 +320,11 @@ class FakeAutopilot:
                 if msg.get_type() == "COMMAND_INT":
                     self.home = (msg.x, msg.y, int(round(msg.z * 1e3)))
                 else:
-                    self.home = (int(round(msg.param5 * 1e7)), int(round(msg.param6 * 1e7)),
-                                 int(round(msg.param7 * 1e3)))
+                    self.home = (
+                        int(round(msg.param5 * 1e7)),
+                        int(round(msg.param6 * 1e7)),
+                        int(round(msg.param7 * 1e3)),
+                    )
                 self.home_set_by = "DO_SET_HOME"
                 result = 0
         self.mav.command_ack_send(cmd, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())

@@ -24,15 +24,15 @@ MAV_FRAME_LOCAL_NED = 1
 MAV_FRAME_BODY_FRD = 12
 MAV_FRAME_LOCAL_FRD = 20
 MAV_ESTIMATOR_TYPE_VISION = 2
-PX4_ACCEPTED_ESTIMATORS = (0, 1, 2, 3, 6)   # UNKNOWN, NAIVE, VISION, VIO, MOCAP
+PX4_ACCEPTED_ESTIMATORS = (0, 1, 2, 3, 6)  # UNKNOWN, NAIVE, VISION, VIO, MOCAP
 MAV_TYPE_ONBOARD_CONTROLLER = 18
 MAV_AUTOPILOT_INVALID = 8
 MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY = 197
 MAVLINK2_MAGIC = 0xFD
 
-EKF_MIN_INTERVAL_S = 0.020      # AP_NavEKF3.h extNavIntervalMin_ms
-HEALTH_TIMEOUT_S = 0.300        # AP_VISUALODOM_TIMEOUT_MS
-HEARTBEAT_MAX_GAP_S = 1.5       # "1 Hz" with some slack for scheduling
+EKF_MIN_INTERVAL_S = 0.020  # AP_NavEKF3.h extNavIntervalMin_ms
+HEALTH_TIMEOUT_S = 0.300  # AP_VISUALODOM_TIMEOUT_MS
+HEARTBEAT_MAX_GAP_S = 1.5  # "1 Hz" with some slack for scheduling
 POSE_TYPES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
 # PX4 reads variances from these covariance indices (x, y, z, roll, pitch, yaw).
 PX4_VARIANCE_INDICES = (0, 6, 11, 15, 18, 20)
@@ -76,9 +76,15 @@ AUTOPILOTS = ("ardupilot", "px4")
 LANDING_TARGET_FRAME = {"ardupilot": MAV_FRAME_BODY_FRD, "px4": MAV_FRAME_LOCAL_NED}
 
 
-def check(received: Sequence[Any], *, component: int = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY,
-          jump_m: float = 0.5, require_heartbeat: bool = True, autopilot: str = "ardupilot",
-          qual_min: int = 0) -> Report:
+def check(
+    received: Sequence[Any],
+    *,
+    component: int = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY,
+    jump_m: float = 0.5,
+    require_heartbeat: bool = True,
+    autopilot: str = "ardupilot",
+    qual_min: int = 0,
+) -> Report:
     """Every rule, over the messages one sender sent, in arrival order.
 
     ``received``: pymavlink messages or ``Received``. ``jump_m``: a position step larger than
@@ -107,8 +113,10 @@ def check(received: Sequence[Any], *, component: int = MAV_COMP_ID_VISUAL_INERTI
             v.append(f"#{i} {kind}: from component {m.get_srcComponent()}, expected {component}")
         if kind == "HEARTBEAT":
             if m.type != MAV_TYPE_ONBOARD_CONTROLLER or m.autopilot != MAV_AUTOPILOT_INVALID:
-                v.append(f"#{i} HEARTBEAT: type {m.type} autopilot {m.autopilot}, expected "
-                         f"ONBOARD_CONTROLLER (18) and INVALID (8)")
+                v.append(
+                    f"#{i} HEARTBEAT: type {m.type} autopilot {m.autopilot}, expected "
+                    f"ONBOARD_CONTROLLER (18) and INVALID (8)"
+                )
             heartbeats.append(item.t_arrival_s)
             continue
         if kind == "TIMESYNC" and m.tc1 < 0:
@@ -116,12 +124,14 @@ def check(received: Sequence[Any], *, component: int = MAV_COMP_ID_VISUAL_INERTI
         if kind not in POSE_TYPES:
             continue
         t_us = _time_us(m)
-        if not 0 < t_us < 2 ** 63:
+        if not 0 < t_us < 2**63:
             v.append(f"#{i} {kind}: time_usec {t_us} out of range")
         if kind == "ODOMETRY":
             if (m.frame_id, m.child_frame_id) != (MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD):
-                v.append(f"#{i} ODOMETRY: frames ({m.frame_id}, {m.child_frame_id}); ArduPilot uses only "
-                         f"LOCAL_FRD (20) / BODY_FRD (12)")
+                v.append(
+                    f"#{i} ODOMETRY: frames ({m.frame_id}, {m.child_frame_id}); ArduPilot uses only "
+                    f"LOCAL_FRD (20) / BODY_FRD (12)"
+                )
             if m.estimator_type != MAV_ESTIMATOR_TYPE_VISION:
                 v.append(f"#{i} ODOMETRY: estimator_type {m.estimator_type}, expected VISION (2)")
             if m.estimator_type not in PX4_ACCEPTED_ESTIMATORS:
@@ -140,8 +150,10 @@ def check(received: Sequence[Any], *, component: int = MAV_COMP_ID_VISUAL_INERTI
                 v.append(f"#{i} ODOMETRY: a pose variance is not positive")
         elif kind == "VISION_POSITION_ESTIMATE":
             if qual_min > 0:
-                v.append(f"#{i} VISION_POSITION_ESTIMATE: no quality field (taken as 0), dropped by a "
-                         f"minimum quality of {qual_min}")
+                v.append(
+                    f"#{i} VISION_POSITION_ESTIMATE: no quality field (taken as 0), dropped by a "
+                    f"minimum quality of {qual_min}"
+                )
             if not _finite([m.x, m.y, m.z, m.roll, m.pitch, m.yaw]):
                 v.append(f"#{i} VISION_POSITION_ESTIMATE: NaN or inf in the pose")
             if not _finite(m.covariance):
@@ -150,8 +162,10 @@ def check(received: Sequence[Any], *, component: int = MAV_COMP_ID_VISUAL_INERTI
                 v.append(f"#{i} VISION_POSITION_ESTIMATE: a variance is not positive")
         else:
             if m.position_valid == 1 and m.frame != lt_frame:
-                v.append(f"#{i} LANDING_TARGET: frame {m.frame} with position_valid; {autopilot} takes a "
-                         f"position only in frame {lt_frame}")
+                v.append(
+                    f"#{i} LANDING_TARGET: frame {m.frame} with position_valid; {autopilot} takes a "
+                    f"position only in frame {lt_frame}"
+                )
             if m.position_valid not in (0, 1):
                 v.append(f"#{i} LANDING_TARGET: position_valid {m.position_valid}, expected 0 or 1")
             if not (math.isfinite(m.distance) and m.distance > 0):
@@ -174,8 +188,9 @@ def check(received: Sequence[Any], *, component: int = MAV_COMP_ID_VISUAL_INERTI
         if step not in (0, 1, -255):
             v.append(f"#{i} {kind}: reset_counter {prev.reset_counter} -> {m.reset_counter} (expected +1)")
         if dt > HEALTH_TIMEOUT_S and step == 0:
-            v.append(f"#{i} {kind}: {dt * 1e3:.0f} ms gap (> 300 ms: the feed went unhealthy) "
-                     f"without a new reset_counter")
+            v.append(
+                f"#{i} {kind}: {dt * 1e3:.0f} ms gap (> 300 ms: the feed went unhealthy) without a new reset_counter"
+            )
         moved = math.dist((m.x, m.y, m.z), (prev.x, prev.y, prev.z))
         if moved > jump_m and step == 0:
             v.append(f"#{i} {kind}: jumped {moved:.2f} m without a new reset_counter")

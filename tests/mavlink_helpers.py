@@ -28,19 +28,27 @@ def mavlink_output(connection: str, frames: g.VehicleFrames, **kw) -> MavlinkOut
     """A MavlinkOutput for CAMERA and MARKER: ``[output.mavlink]`` keys in ``kw`` go into its
     MavlinkOutputConfig, the rest (queue_size, clock, start, ...) to the constructor."""
     keys = {k: kw.pop(k) for k in list(kw) if k in _MAVLINK_KEYS}
-    return MavlinkOutput(MavlinkOutputConfig(connection=connection, **keys), frames, camera=CAMERA,
-                         marker=MARKER, **kw)
+    return MavlinkOutput(MavlinkOutputConfig(connection=connection, **keys), frames, camera=CAMERA, marker=MARKER, **kw)
 
 
 def camera_pose(R_cam_marker: np.ndarray, tvec, err_px: float = 0.2, ambiguity: float = 0.05) -> Pose:
     R = np.asarray(R_cam_marker, dtype=float)
     a, b, c = g.paper_angles_deg_from_R_cam_marker(R)
-    return Pose(rvec=g.rvec_from_R(R), tvec=np.asarray(tvec, dtype=float), R=R, alpha_deg=a, beta_deg=b,
-                gamma_deg=c, reprojection_error_px=err_px, ambiguity_ratio=ambiguity)
+    return Pose(
+        rvec=g.rvec_from_R(R),
+        tvec=np.asarray(tvec, dtype=float),
+        R=R,
+        alpha_deg=a,
+        beta_deg=b,
+        gamma_deg=c,
+        reprojection_error_px=err_px,
+        ambiguity_ratio=ambiguity,
+    )
 
 
-def vehicle_result(frames: g.VehicleFrames, seq: int, t_s: float, p_local, yaw_deg: float = 0.0,
-                   err_px: float = 0.2) -> FrameResult:
+def vehicle_result(
+    frames: g.VehicleFrames, seq: int, t_s: float, p_local, yaw_deg: float = 0.0, err_px: float = 0.2
+) -> FrameResult:
     """The result a camera on this vehicle would give with the vehicle at p_local, heading yaw_deg."""
     R = g.R_from_euler_rpy(0.0, 0.0, np.radians(yaw_deg))
     R_cm, t = frames.camera_pose(g.VehiclePose(np.asarray(p_local, dtype=float), R))

@@ -19,18 +19,32 @@ IMAGE = np.zeros((48, 64), np.uint8)
 
 
 def make_pose(z_m: float = 1.0) -> Pose:
-    return Pose(rvec=np.zeros(3), tvec=np.array([0.0, 0.0, z_m]), R=np.eye(3), alpha_deg=0.0,
-                beta_deg=0.0, gamma_deg=0.0, reprojection_error_px=0.1)
+    return Pose(
+        rvec=np.zeros(3),
+        tvec=np.array([0.0, 0.0, z_m]),
+        R=np.eye(3),
+        alpha_deg=0.0,
+        beta_deg=0.0,
+        gamma_deg=0.0,
+        reprojection_error_px=0.1,
+    )
 
 
 class FakeSource:
     """``frames`` frames, one every ``period_s``; ``fail_at`` read numbers raise SourceError;
     ``old_seqs`` get a capture time ``age_s`` in the past; ``gate``: wait for it between frames."""
 
-    def __init__(self, frames: int, period_s: float = 0.0, *, fail_at: Set[int] = frozenset(),
-                 old_seqs: Set[int] = frozenset(), age_s: float = 0.5,
-                 gate: Optional[threading.Semaphore] = None,
-                 stall: Optional[tuple] = None) -> None:
+    def __init__(
+        self,
+        frames: int,
+        period_s: float = 0.0,
+        *,
+        fail_at: Set[int] = frozenset(),
+        old_seqs: Set[int] = frozenset(),
+        age_s: float = 0.5,
+        gate: Optional[threading.Semaphore] = None,
+        stall: Optional[tuple] = None,
+    ) -> None:
         self.frames = frames
         self.period_s = period_s
         self.fail_at = set(fail_at)
@@ -84,9 +98,12 @@ class FakeSource:
 class FakeProcessor:
     """Detects on frames where ``detect(seq)``; sleeps ``delay(seq)`` seconds; releases ``gate``."""
 
-    def __init__(self, detect: Callable[[int], bool] = lambda s: True,
-                 delay: Callable[[int], float] = lambda s: 0.0,
-                 gate: Optional[threading.Semaphore] = None) -> None:
+    def __init__(
+        self,
+        detect: Callable[[int], bool] = lambda s: True,
+        delay: Callable[[int], float] = lambda s: 0.0,
+        gate: Optional[threading.Semaphore] = None,
+    ) -> None:
         self.detect = detect
         self.delay = delay
         self.gate = gate
@@ -120,9 +137,16 @@ class FakeOutput(QueuedOutput):
     write waits for it; ``fail(seq)``: that write raises; ``write_s``: each write takes this
     long; ``only_ok``: like MAVLink, nothing is written without a pose."""
 
-    def __init__(self, name: str = "fake", *, block: Optional[threading.Event] = None,
-                 fail: Callable[[int], bool] = lambda s: False, write_s: float = 0.0,
-                 only_ok: bool = False, **kwargs) -> None:
+    def __init__(
+        self,
+        name: str = "fake",
+        *,
+        block: Optional[threading.Event] = None,
+        fail: Callable[[int], bool] = lambda s: False,
+        write_s: float = 0.0,
+        only_ok: bool = False,
+        **kwargs,
+    ) -> None:
         self.name = name
         self.block = block
         self.fail = fail

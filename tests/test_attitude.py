@@ -37,7 +37,7 @@ def test_offset_under_asymmetric_jitter_is_within_the_shortest_round_trip():
 
 def test_slow_replies_and_foreign_replies_are_not_used():
     mapper = ClockMapper(max_rtt_s=0.01)
-    assert not _exchange(mapper, 2010.0, 0.03, 0.03)          # round trip 60 ms > 10 ms
+    assert not _exchange(mapper, 2010.0, 0.03, 0.03)  # round trip 60 ms > 10 ms
     assert mapper.rejected_rtt == 1 and mapper.offset_s is None
     # A reply to a request someone else sent: its ts1 is not one of ours.
     assert not mapper.on_reply(5_000_000_000, 42, 11_000_000_000)
@@ -109,7 +109,7 @@ def test_stale_stream_and_holes_give_no_attitude():
         att.on_attitude(1000 + 20 * k, 0.0, 0.0, 0.0, 1.0 + 0.02 * k + OFFSET_S)
     att.on_attitude(1500, 0.0, 0.0, 0.0, 1.5 + OFFSET_S)  # 320 ms hole before it
     t_last_arrival = 1.5 + OFFSET_S
-    assert att.attitude_at(1.3 + OFFSET_S, t_now_s=t_last_arrival + 0.01) is None   # in the hole
+    assert att.attitude_at(1.3 + OFFSET_S, t_now_s=t_last_arrival + 0.01) is None  # in the hole
     assert att.attitude_at(1.1 + OFFSET_S, t_now_s=t_last_arrival + 0.01) is not None
     # The link went quiet: nothing for more than max_age_s, so nothing is trusted.
     assert att.attitude_at(1.5 + OFFSET_S, t_now_s=t_last_arrival + 0.31) is None
@@ -129,8 +129,7 @@ def test_history_keeps_order_and_slerp_takes_the_short_way():
     np.testing.assert_allclose(h.at(0.05), slerp(q[2], q[3], 0.5), atol=1e-12)
     # q and -q are the same rotation: interpolation never swings the long way round.
     mid = slerp(q[1], -q[2], 0.5)
-    assert rotation_angle_deg_3x3(Attitude.from_quaternion(mid).R_local_body,
-                                  R_from_euler_rpy(0.0, 0.0, 0.15)) < 1e-6
+    assert rotation_angle_deg_3x3(Attitude.from_quaternion(mid).R_local_body, R_from_euler_rpy(0.0, 0.0, 0.15)) < 1e-6
 
 
 def test_attitude_refuses_non_finite_angles():
@@ -146,9 +145,13 @@ def test_attitude_source_from_config():
 
     with_link = parse_config('[output.mavlink]\nconnection = "udpin:0.0.0.0:14550"\n')
     assert attitude_connection(with_link) == "udpin:0.0.0.0:14550"
-    assert attitude_connection(parse_config("")) is None          # "mavlink" without a MAVLink output
-    assert attitude_connection(parse_config('[attitude]\nsource = "none"\n'
-                                            '[output.mavlink]\nconnection = "udpin:0.0.0.0:1"\n')) is None
+    assert attitude_connection(parse_config("")) is None  # "mavlink" without a MAVLink output
+    assert (
+        attitude_connection(
+            parse_config('[attitude]\nsource = "none"\n[output.mavlink]\nconnection = "udpin:0.0.0.0:1"\n')
+        )
+        is None
+    )
     with pytest.raises(ConfigError, match=r"\[attitude\] source: expected \"mavlink\" .* not supported yet"):
         parse_config('[attitude]\nsource = "/dev/ttyACM0"\n')
     with pytest.raises(ConfigError, match=r"\[attitude\] source: expected \"mavlink\", \"none\" or a pymavlink"):

@@ -51,18 +51,37 @@ def _all(source):
 def test_synthetic_attitude_is_the_true_body_attitude_with_its_noise_and_lag():
     cfg = parse_config(FLOOR)
     cam, marker = cfg.camera.model(), cfg.marker.model()
-    quiet = SyntheticSource(cam, marker, trajectory="floor", fps=30.0, frames=30, realtime=False,
-                            attitude_noise_deg=0.0, attitude_lag_s=0.0, effects=Effects.clean())
+    quiet = SyntheticSource(
+        cam,
+        marker,
+        trajectory="floor",
+        fps=30.0,
+        frames=30,
+        realtime=False,
+        attitude_noise_deg=0.0,
+        attitude_lag_s=0.0,
+        effects=Effects.clean(),
+    )
     path = Trajectory("floor", 0, cam, marker)
     frames_on = path.frames()
     for frame in _all(quiet):
         # No noise, no lag: exactly the body the true camera pose implies.
         truth = path.at(frame.metadata["trajectory_t_s"])
         from pose_daemon.geometry import R_from_rvec
+
         R_body = frames_on.vehicle_pose(R_from_rvec(truth.rvec), truth.tvec).R_local_body
         assert rotation_angle_deg_3x3(frame.attitude.R_local_body, R_body) < 1e-9
-    noisy = SyntheticSource(cam, marker, trajectory="floor", fps=30.0, frames=200, realtime=False,
-                            attitude_noise_deg=2.0, attitude_lag_s=0.04, effects=Effects.clean())
+    noisy = SyntheticSource(
+        cam,
+        marker,
+        trajectory="floor",
+        fps=30.0,
+        frames=200,
+        realtime=False,
+        attitude_noise_deg=2.0,
+        attitude_lag_s=0.04,
+        effects=Effects.clean(),
+    )
     noisy.open()
     diffs = []
     for _ in range(200):
@@ -99,8 +118,7 @@ def test_recorded_attitude_replays_to_identical_results(tmp_path: Path):
     assert [f.attitude for f in replayed] == [f.attitude for f in live]
     want, got = _process(cfg, live), _process(cfg, replayed)
     assert got == want
-    assert sum('"flip_resolved_by": "attitude"' in line or '"flip_resolved_by": "clear"' in line
-               for line in got) >= 10
+    assert sum('"flip_resolved_by": "attitude"' in line or '"flip_resolved_by": "clear"' in line for line in got) >= 10
 
 
 def test_old_recordings_without_attitude_replay_and_bad_attitude_is_named(tmp_path: Path):
@@ -116,8 +134,11 @@ def test_old_recordings_without_attitude_replay_and_bad_attitude_is_named(tmp_pa
     assert len(frames) == 3 and all(f.attitude is None for f in frames)
     results = [FrameProcessor.from_config(cfg).process(f) for f in frames]
     assert all(r.ok and r.attitude is None for r in results)
-    for bad, word in (([0.1, "x", 0.0], "attitude_rpy_rad"), ([0.1, 0.2], "attitude_rpy_rad"),
-                      ([0.1, float("nan"), 0.0], "finite")):
+    for bad, word in (
+        ([0.1, "x", 0.0], "attitude_rpy_rad"),
+        ([0.1, 0.2], "attitude_rpy_rad"),
+        ([0.1, float("nan"), 0.0], "finite"),
+    ):
         lines = (rec / "index.jsonl").read_text().splitlines()
         entry = json.loads(lines[1])
         entry["attitude_rpy_rad"] = bad
@@ -136,7 +157,10 @@ def test_attitude_stated_sigma_is_optional_in_the_index(tmp_path: Path):
     entry = json.loads((tmp_path / "r" / "index.jsonl").read_text())
     assert entry["attitude_rpy_rad"] == [0.01, -0.02, 1.0] and "attitude_sigma_rad" not in entry
     got = _all(ReplaySource(tmp_path / "r", realtime=False))[0].attitude
-    assert got == Attitude((0.01, -0.02, 1.0)) and rotation_angle_deg_3x3(got.R_local_body, R_from_euler_rpy(0.01, -0.02, 1.0)) < 1e-12
+    assert (
+        got == Attitude((0.01, -0.02, 1.0))
+        and rotation_angle_deg_3x3(got.R_local_body, R_from_euler_rpy(0.01, -0.02, 1.0)) < 1e-12
+    )
 
 
 def test_record_and_replay_commands_carry_the_attitude_through(tmp_path: Path, capsys):

@@ -45,8 +45,8 @@ def test_origin_is_sent_until_the_ekf_keeps_it(monkeypatch):
     finally:
         out.close()
         fc.close()
-    assert fc.tally.origins_refused >= 1      # before EKF3 ran
-    assert fc.home == ORIGIN_E7 and fc.home_set_by == "EKF origin"   # ArduCopter sets home itself
+    assert fc.tally.origins_refused >= 1  # before EKF3 ran
+    assert fc.home == ORIGIN_E7 and fc.home_set_by == "EKF origin"  # ArduCopter sets home itself
     asked = [m for m in of_type(fc.tally.received, "COMMAND_LONG") if m.command == 512]
     assert asked and all(int(m.param1) == 49 for m in asked)
 
@@ -97,8 +97,9 @@ def test_vision_position_estimate_with_a_quality_minimum_is_said_plainly():
     try:
         assert wait_for(lambda: out.autopilot_system == 1, 5.0)
         _stream(out, 20)
-        assert wait_for(lambda: any("VPE has no quality" in m.text
-                                    for m in of_type(fc.tally.received, "STATUSTEXT")), 10.0)
+        assert wait_for(
+            lambda: any("VPE has no quality" in m.text for m in of_type(fc.tally.received, "STATUSTEXT")), 10.0
+        )
         assert wait_for(lambda: fc.tally.fused.get("ODOMETRY", 0) >= 20, 10.0)
     finally:
         out.close()
@@ -113,15 +114,18 @@ def test_px4_takes_the_landing_target_in_local_ned_and_syncs_time():
     # PX4's local origin is not the marker's: the vehicle is at (5, 2, -1.5) NED in PX4's frame
     # and 0.3 m south, 0.2 m east of... i.e. at (0.3, -0.2, -1.5) in the marker's, heading 20 deg.
     yaw = math.radians(20.0)
-    fc = FakeAutopilot("px4", heartbeat_s=0.2, timesync_s=0.3,
-                       vehicle_state=lambda t: ((5.0, 2.0, -1.5), (0.0, 0.0, yaw)))
+    fc = FakeAutopilot(
+        "px4", heartbeat_s=0.2, timesync_s=0.3, vehicle_state=lambda t: ((5.0, 2.0, -1.5), (0.0, 0.0, yaw))
+    )
     out = mavlink_output(fc.connection, DOWN, messages=("ODOMETRY", "LANDING_TARGET"), queue_size=0)
     try:
         assert wait_for(lambda: out.autopilot_system == 1, 5.0)
         assert wait_for(lambda: fc.intervals_us.get(32) == 20_000 and fc.intervals_us.get(30) == 20_000, 5.0)
         _stream(out, 45, p_local=(0.3, -0.2, -1.5), yaw_deg=20.0)
-        assert wait_for(lambda: len(fc.tally.landing_targets) >= 45, 10.0), (fc.tally.landing_refused,
-                                                                              len(fc.tally.landing_targets))
+        assert wait_for(lambda: len(fc.tally.landing_targets) >= 45, 10.0), (
+            fc.tally.landing_refused,
+            len(fc.tally.landing_targets),
+        )
     finally:
         out.close()
         fc.close()
@@ -134,7 +138,9 @@ def test_px4_takes_the_landing_target_in_local_ned_and_syncs_time():
     for m in located:
         assert (m.x, m.y, m.z) == pytest.approx((4.7, 2.2, 0.0), abs=1e-3)
     assert fc.tally.timesync_answers and fc.timesync_offset_ns is not None
-    assert abs(fc.timesync_offset_ns) < 20_000_000   # the same monotonic clock, in ns
+    # The same monotonic clock, in ns: each answer's tc1 lies between the request and its reply
+    # (a bound on the offset itself would depend on how long a loaded machine takes to answer).
+    assert all(ts1 <= tc1 <= t_got for tc1, ts1, t_got in fc.tally.timesync_answers)
     assert fc.tally.stamped_by.get("timesync", 0) > 0
     report = check(fc.tally.received, autopilot="px4")
     assert report.ok, str(report)
@@ -147,8 +153,13 @@ def test_live_attitude_from_an_older_ardupilot_through_request_data_stream():
     from pose_daemon.attitude import AutopilotAttitude
 
     roll, pitch, yaw = math.radians(7.0), math.radians(-4.0), math.radians(50.0)
-    fc = FakeAutopilot("ardupilot", heartbeat_s=0.2, timesync_s=0.0, message_interval=False,
-                       vehicle_state=lambda t: ((0.0, 0.0, -1.5), (roll, pitch, yaw)))
+    fc = FakeAutopilot(
+        "ardupilot",
+        heartbeat_s=0.2,
+        timesync_s=0.0,
+        message_interval=False,
+        vehicle_state=lambda t: ((0.0, 0.0, -1.5), (roll, pitch, yaw)),
+    )
     att = AutopilotAttitude()
     out = mavlink_output(fc.connection, DOWN, queue_size=0)
     out.attach_attitude(att)

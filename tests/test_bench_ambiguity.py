@@ -25,7 +25,7 @@ def test_flights_image_the_marker_at_the_stated_size_and_tilt_into_their_acceler
         p, rpy = bench.vehicle_at(placement, size, float(t), phases)
         R_cm, tvec = frames.camera_pose(VehiclePose(p, R_from_euler_rpy(*rpy)))
         px = bench.CAMERA.project(bench.MARKER.object_points @ R_cm.T + tvec)
-        assert np.all(px > 0) and np.all(px < [639, 479]), (t, px)   # always whole in the image
+        assert np.all(px > 0) and np.all(px < [639, 479]), (t, px)  # always whole in the image
         sides.append(float(np.mean(np.linalg.norm(px - np.roll(px, 1, 0), axis=1))))
         tilts.append(math.degrees(max(abs(rpy[0]), abs(rpy[1]))))
     assert lo * 0.85 <= min(sides) and max(sides) <= hi * 1.15, (min(sides), max(sides))
@@ -33,12 +33,17 @@ def test_flights_image_the_marker_at_the_stated_size_and_tilt_into_their_acceler
 
 
 def test_attitudes_are_the_truth_lagged_and_noisy_on_another_heading_reference():
-    flight = bench.Flight("floor", "20-40", None, t_s=[i / 30 for i in range(300)],
-                          rpy_rad=[(0.1 * math.sin(i / 30), 0.0, 0.0) for i in range(300)])
+    flight = bench.Flight(
+        "floor",
+        "20-40",
+        None,
+        t_s=[i / 30 for i in range(300)],
+        rpy_rad=[(0.1 * math.sin(i / 30), 0.0, 0.0) for i in range(300)],
+    )
     atts = bench._attitudes(flight, 0.0, 0.0, 0)
     assert atts[10].rpy_rad == pytest.approx((0.1 * math.sin(10 / 30), 0.0, bench.YAW_REFERENCE_OFFSET_RAD))
     lagged = bench._attitudes(flight, 0.0, 0.1, 0)
-    assert lagged[60].rpy_rad[0] == pytest.approx(0.1 * math.sin(57 / 30), abs=1e-9)   # 3 frames = 100 ms
+    assert lagged[60].rpy_rad[0] == pytest.approx(0.1 * math.sin(57 / 30), abs=1e-9)  # 3 frames = 100 ms
     noisy = bench._attitudes(flight, 2.0, 0.0, 0)
     d = np.degrees([n.rpy_rad[1] for n in noisy])
     assert np.std(d) == pytest.approx(2.0, rel=0.2) and noisy[0].sigma_rad == pytest.approx(math.radians(2.0))

@@ -20,25 +20,30 @@ from pose_daemon.geometry import R_from_rvec, rot_x, rot_y, rot_z, rvec_from_R
 from pose_daemon.render import Effects, render_empty, render_plane
 from pose_daemon.tools import calibrate as cal
 
-TRUE = Camera(fx=520.0, fy=515.0, cx=322.0, cy=236.0, dist=(-0.25, 0.08, 0.0, 0.0, 0.0),
-              width=640, height=480)
+TRUE = Camera(fx=520.0, fy=515.0, cx=322.0, cy=236.0, dist=(-0.25, 0.08, 0.0, 0.0, 0.0), width=640, height=480)
 CHESSBOARD = "chessboard:11x8:0.03"
 CHARUCO = "charuco:7x5:0.05:0.03:DICT_4X4_50"
 # A real camera's defocus and sensor noise.
 EFFECTS = Effects(blur_px=1.0, noise_gray=2.0, background="plain")
 
 
-def board_pose(u_px: float, v_px: float, z_m: float, tilt_x_rad: float, tilt_y_rad: float,
-               roll_rad: float):
+def board_pose(u_px: float, v_px: float, z_m: float, tilt_x_rad: float, tilt_y_rad: float, roll_rad: float):
     """(rvec, tvec) of a board facing the camera, its centre seen at pixel (u, v), z_m away."""
     n = TRUE.undistort_normalized(np.array([[u_px, v_px]]))[0]
     R_cam_board = rot_z(roll_rad) @ rot_y(tilt_y_rad) @ rot_x(tilt_x_rad) @ rot_x(np.pi)
     return rvec_from_R(R_cam_board), np.array([n[0] * z_m, n[1] * z_m, z_m])
 
 
-def render_views(board: str, camera: Camera = TRUE, anchors=(0.0, 0.5, 1.0), z_m=(0.65, 0.75),
-                 tilt_deg: float = 25.0, margin_px: float = 12.0,
-                 effects: Effects = EFFECTS, seed: int = 0) -> List[np.ndarray]:
+def render_views(
+    board: str,
+    camera: Camera = TRUE,
+    anchors=(0.0, 0.5, 1.0),
+    z_m=(0.65, 0.75),
+    tilt_deg: float = 25.0,
+    margin_px: float = 12.0,
+    effects: Effects = EFFECTS,
+    seed: int = 0,
+) -> List[np.ndarray]:
     """18 views on a 3x3 grid of the image, twice, tilted about both axes: a board at anchor
     0 / 1 has its squares ``margin_px`` from the image's left / right (top / bottom) edge, so
     the board's corners reach the image's corners where distortion is; between them the
@@ -46,8 +51,10 @@ def render_views(board: str, camera: Camera = TRUE, anchors=(0.0, 0.5, 1.0), z_m
     spec = cal.parse_board(board)
     texture, size_m = cal.board_image(spec, 40), cal.board_image_size_m(spec)
     w2, h2 = spec.size_m[0] / 2, spec.size_m[1] / 2
-    outline = np.array([[x, y, 0.0] for x in np.linspace(-w2, w2, 9) for y in (-h2, h2)]
-                       + [[x, y, 0.0] for y in np.linspace(-h2, h2, 7) for x in (-w2, w2)])
+    outline = np.array(
+        [[x, y, 0.0] for x in np.linspace(-w2, w2, 9) for y in (-h2, h2)]
+        + [[x, y, 0.0] for y in np.linspace(-h2, h2, 7) for x in (-w2, w2)]
+    )
     size = np.array([camera.width, camera.height], dtype=float)
     images = []
     targets = [(fu, fv) for fv in anchors for fu in anchors] * 2
@@ -57,15 +64,19 @@ def render_views(board: str, camera: Camera = TRUE, anchors=(0.0, 0.5, 1.0), z_m
         roll = np.radians(10 * (i % 5 - 2))
         anchor = np.array([fu, fv])
         centre = 0.5 * size
-        for _ in range(6):   # move the board until its outline sits where the anchor says
+        for _ in range(6):  # move the board until its outline sits where the anchor says
             rvec, tvec = board_pose(centre[0], centre[1], z_m[i % 2], a, b, roll)
             pts = camera.project(outline @ R_from_rvec(rvec).T + tvec)
             lo, hi = pts.min(axis=0), pts.max(axis=0)
-            want_lo = np.where(anchor == 0.0, margin_px, np.where(anchor == 1.0, size - margin_px - (hi - lo),
-                                                                  anchor * size - 0.5 * (hi - lo)))
+            want_lo = np.where(
+                anchor == 0.0,
+                margin_px,
+                np.where(anchor == 1.0, size - margin_px - (hi - lo), anchor * size - 0.5 * (hi - lo)),
+            )
             centre = centre + (want_lo - lo)
-        images.append(render_plane(camera, texture, size_m, rvec, tvec, effects=effects,
-                                   rng=np.random.default_rng(seed + i)))
+        images.append(
+            render_plane(camera, texture, size_m, rvec, tvec, effects=effects, rng=np.random.default_rng(seed + i))
+        )
     return images
 
 
@@ -93,8 +104,9 @@ CHARUCO_SEEDS = (0, 100, 200)
 def charuco_seed_views():
     # A ChArUco board is found with only part of it in view, but its markers must stay large
     # enough to decode: the board does not need to hug the image edges.
-    return {seed: render_views(CHARUCO, anchors=(0.25, 0.5, 0.75), z_m=(0.55, 0.65), seed=seed)
-            for seed in CHARUCO_SEEDS}
+    return {
+        seed: render_views(CHARUCO, anchors=(0.25, 0.5, 0.75), z_m=(0.55, 0.65), seed=seed) for seed in CHARUCO_SEEDS
+    }
 
 
 @pytest.fixture(scope="module")
@@ -170,16 +182,22 @@ def test_outlier_flagged_then_dropped(chessboard_views, tmp_path, capsys):
     other = Camera(fx=600.0, fy=600.0, cx=300.0, cy=250.0, width=640, height=480)
     spec = cal.parse_board(CHESSBOARD)
     rvec, tvec = board_pose(300, 250, 0.6, 0.4, -0.3, 0.1)
-    bad = render_plane(other, cal.board_image(spec, 40), cal.board_image_size_m(spec), rvec, tvec,
-                       effects=EFFECTS, rng=np.random.default_rng(99))
+    bad = render_plane(
+        other,
+        cal.board_image(spec, 40),
+        cal.board_image_size_m(spec),
+        rvec,
+        tvec,
+        effects=EFFECTS,
+        rng=np.random.default_rng(99),
+    )
     folder = write_folder(tmp_path / "views", list(chessboard_views) + [bad])
     code, stdout, _ = run_cli([folder, "--board", CHESSBOARD, "--out", tmp_path / "a.toml"], capsys)
     assert code == 0
     flagged = [line for line in stdout.splitlines() if "OUTLIER" in line]
     assert len(flagged) == 1 and "view18.png" in flagged[0]
     assert "--drop-outliers" in stdout
-    code, stdout, _ = run_cli([folder, "--board", CHESSBOARD, "--drop-outliers", "--out", tmp_path / "b.toml"],
-                              capsys)
+    code, stdout, _ = run_cli([folder, "--board", CHESSBOARD, "--drop-outliers", "--out", tmp_path / "b.toml"], capsys)
     assert code == 0
     assert "dropping 1 outlier view(s)" in stdout
     assert "over 18 views" in stdout.split("dropping")[1]
@@ -223,8 +241,9 @@ def test_mislocated_corners_left_out_of_the_fit(chessboard_detected):
     assert result.outliers == [m for m, _ in MISLOCATED]
 
 
-def test_cli_recovers_lens_despite_mislocated_corners(chessboard_dir, chessboard_detected, tmp_path, capsys,
-                                                      monkeypatch):
+def test_cli_recovers_lens_despite_mislocated_corners(
+    chessboard_dir, chessboard_detected, tmp_path, capsys, monkeypatch
+):
     by_name = {v.name: v for v in with_mislocated_corners(chessboard_detected)}
     monkeypatch.setattr(cal.BoardDetector, "detect", lambda self, gray, name="": by_name[name])
     out = tmp_path / "camera.toml"
@@ -262,8 +281,9 @@ def test_live_source_stops_at_view_target(chessboard_views, tmp_path, capsys):
     config = tmp_path / "live.toml"
     config.write_text(f'[camera]\nsource = "replay:{rec}"\nfps = 500.0\n')
     saved = tmp_path / "saved"
-    code, stdout, stderr = run_cli(["--config", config, "--board", CHESSBOARD, "--views", 12,
-                                    "--save-views", saved], capsys)
+    code, stdout, stderr = run_cli(
+        ["--config", config, "--board", CHESSBOARD, "--views", 12, "--save-views", saved], capsys
+    )
     assert code == 0, stderr
     kept = re.findall(r"kept view\s+(\d+)/12 .*coverage (\d+)%", stdout)
     assert [int(k) for k, _ in kept] == list(range(1, 13))
@@ -336,15 +356,18 @@ def test_poor_coverage(tmp_path, capsys):
     one_line_error(err, "poor coverage", "need 50%")
 
 
-@pytest.mark.parametrize("spec, fragment", [
-    ("chessboard:9x6", "expected chessboard:COLSxROWS:SQUARE_M"),
-    ("chessboard:9by6:0.03", "expected chessboard:COLSxROWS:SQUARE_M"),
-    ("chessboard:6x6:0.03", "COLS different from ROWS"),
-    ("chessboard:9x6:-1", "positive number of metres"),
-    ("charuco:9x7:0.03:0.04:DICT_4X4_50", "smaller than the square"),
-    ("charuco:9x7:0.03:0.02:DICT_NOPE", "unknown ArUco dictionary 'DICT_NOPE'"),
-    ("circles:9x6:0.03", "expected chessboard:"),
-])
+@pytest.mark.parametrize(
+    "spec, fragment",
+    [
+        ("chessboard:9x6", "expected chessboard:COLSxROWS:SQUARE_M"),
+        ("chessboard:9by6:0.03", "expected chessboard:COLSxROWS:SQUARE_M"),
+        ("chessboard:6x6:0.03", "COLS different from ROWS"),
+        ("chessboard:9x6:-1", "positive number of metres"),
+        ("charuco:9x7:0.03:0.04:DICT_4X4_50", "smaller than the square"),
+        ("charuco:9x7:0.03:0.02:DICT_NOPE", "unknown ArUco dictionary 'DICT_NOPE'"),
+        ("circles:9x6:0.03", "expected chessboard:"),
+    ],
+)
 def test_bad_board_spec(spec, fragment, tmp_path, capsys):
     code, _, err = run_cli([tmp_path, "--board", spec], capsys)
     assert code == 2
@@ -389,8 +412,9 @@ path = "-"
 
 @pytest.mark.pi
 def test_update_camera_text_keeps_everything_else():
-    cam = Camera(fx=521.25, fy=514.5, cx=321.75, cy=236.125, dist=(-0.25, 0.08, 1e-4, -2e-4, 0.0),
-                 width=640, height=480)
+    cam = Camera(
+        fx=521.25, fy=514.5, cx=321.75, cy=236.125, dist=(-0.25, 0.08, 1e-4, -2e-4, 0.0), width=640, height=480
+    )
     new = cal.update_camera_text(CONFIG, cam)
     cfg = parse_config(new)
     got = cfg.camera
@@ -415,9 +439,9 @@ def test_update_camera_text_keeps_everything_else():
 @pytest.mark.pi
 def test_update_camera_text_adds_missing_keys_and_table():
     cam = Camera(fx=500.5, fy=501.5, cx=320.0, cy=240.0, width=640, height=480)
-    text = "[camera]\nsource = \"picamera2\"\n\n# the marker\n[marker]\nwidth = 0.2\n"
+    text = '[camera]\nsource = "picamera2"\n\n# the marker\n[marker]\nwidth = 0.2\n'
     new = cal.update_camera_text(text, cam)
-    assert new.startswith("[camera]\nsource = \"picamera2\"\nwidth = 640\n")
+    assert new.startswith('[camera]\nsource = "picamera2"\nwidth = 640\n')
     assert new.endswith("\n\n# the marker\n[marker]\nwidth = 0.2\n")
     assert parse_config(new).camera.fy == 501.5
     new = cal.update_camera_text("# nothing yet\n[marker]\nwidth = 0.2\n", cam)
@@ -442,7 +466,7 @@ def test_config_updated_in_place(chessboard_dir, tmp_path, capsys):
     cfg = load_config(config)
     assert cfg.camera.source == "opencv:0" and cfg.marker.placement == "floor"
     assert_close_to_truth(cfg.camera.model())
-    assert [p.name for p in tmp_path.iterdir()] == ["robot.toml"]   # no temporary file left
+    assert [p.name for p in tmp_path.iterdir()] == ["robot.toml"]  # no temporary file left
 
 
 def test_broken_config_is_not_rewritten(chessboard_dir, tmp_path, capsys):
@@ -452,7 +476,6 @@ def test_broken_config_is_not_rewritten(chessboard_dir, tmp_path, capsys):
     assert code == 2
     one_line_error(err, "broken.toml", "fx")
     assert config.read_text() == "[camera]\nfx = -3\n"
-
 
 
 class ListSource:
@@ -470,6 +493,7 @@ class ListSource:
             raise KeyboardInterrupt
         if self.pos >= len(self.images):
             from pose_daemon.errors import EndOfStream
+
             raise EndOfStream("end")
         self.pos += 1
         return Frame(image=self.images[self.pos - 1], t_capture_s=self.pos / 30.0, seq=self.pos - 1)
@@ -494,8 +518,14 @@ def test_seconds_limit_ends_live_collection(chessboard_views):
     source = ListSource(list(chessboard_views))
     lines: List[str] = []
     # A camera at 1 frame per second: the clock is the number of frames read so far.
-    views, _, _ = views_from_source(source, cal.parse_board(CHESSBOARD), seconds=5.0,
-                                    say=lines.append, name="camera", clock=lambda: float(source.pos))
+    views, _, _ = views_from_source(
+        source,
+        cal.parse_board(CHESSBOARD),
+        seconds=5.0,
+        say=lines.append,
+        name="camera",
+        clock=lambda: float(source.pos),
+    )
     assert len(views) == 5 and source.pos == 5
     # A status line every 5 s, whether or not the board is in view (here at the 5th frame).
     status = [x for x in lines if "frame(s), board seen in" in x]
@@ -519,14 +549,17 @@ def _accuracy_report(seeds: int = 6) -> None:
             cam = result.camera
             pts = np.concatenate([v.image_points for v in views])
             box = (*pts.min(axis=0), *pts.max(axis=0))
-            errors = " ".join(f"{k} {(getattr(cam, k) / getattr(TRUE, k) - 1) * 100:+.3f}%"
-                              for k in ("fx", "fy", "cx", "cy"))
-            print(f"{board} seed {seed:3d}: {len(views)}/{len(images)} views, RMS {result.rms_px:.3f} px, "
-                  f"{errors}, distortion {cal.distortion_difference_px(TRUE, cam):.3f} px "
-                  f"({cal.distortion_difference_px(TRUE, cam, box_px=box):.3f} px where corners were seen), "
-                  f"{result.rejected_corners} corner(s) left out, "
-                  f"detect {(t1 - t0) / len(images) * 1000:.0f} ms/view, calibrate {(t2 - t1) * 1000:.0f} ms",
-                  flush=True)
+            errors = " ".join(
+                f"{k} {(getattr(cam, k) / getattr(TRUE, k) - 1) * 100:+.3f}%" for k in ("fx", "fy", "cx", "cy")
+            )
+            print(
+                f"{board} seed {seed:3d}: {len(views)}/{len(images)} views, RMS {result.rms_px:.3f} px, "
+                f"{errors}, distortion {cal.distortion_difference_px(TRUE, cam):.3f} px "
+                f"({cal.distortion_difference_px(TRUE, cam, box_px=box):.3f} px where corners were seen), "
+                f"{result.rejected_corners} corner(s) left out, "
+                f"detect {(t1 - t0) / len(images) * 1000:.0f} ms/view, calibrate {(t2 - t1) * 1000:.0f} ms",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":
@@ -538,5 +571,6 @@ def test_an_image_of_another_dtype_is_a_clear_error_not_a_silent_cast(tmp_path: 
     assert cv2.imwrite(str(tmp_path / "a.tiff"), image)
     code, _, err = run_cli([tmp_path, "--board", CHESSBOARD], capsys)
     assert code == 2
-    assert err.strip().splitlines()[-1] == (f"pose-daemon: error: {tmp_path / 'a.tiff'}: image must be uint8 "
-                                            "(or uint16) grey levels, got dtype float32")
+    assert err.strip().splitlines()[-1] == (
+        f"pose-daemon: error: {tmp_path / 'a.tiff'}: image must be uint8 (or uint16) grey levels, got dtype float32"
+    )

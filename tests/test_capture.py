@@ -52,8 +52,11 @@ def test_source_kinds_and_unknown_source() -> None:
     assert parse_source("replay:/tmp/rec") == ("replay", "/tmp/rec")
     pipeline = "v4l2src ! videoconvert ! appsink"
     assert parse_source(pipeline) == ("gstreamer", pipeline)
-    for bad, expected in (("webcam", SOURCE_FORMS), ("video:", SOURCE_FORMS),
-                          ("opencv:front", '"opencv:N" with a camera index N or a device path')):
+    for bad, expected in (
+        ("webcam", SOURCE_FORMS),
+        ("video:", SOURCE_FORMS),
+        ("opencv:front", '"opencv:N" with a camera index N or a device path'),
+    ):
         with pytest.raises(ValueError) as info:
             parse_source(bad)
         assert str(info.value) == expected
@@ -68,8 +71,14 @@ def test_synthetic_source_follows_the_trajectory_with_truth() -> None:
     source.open()
     frames = [source.read() for _ in range(3)]
     source.close()
-    truth = trajectory(cfg.synthetic.trajectory, 3, cfg.camera.fps, seed=cfg.synthetic.seed,
-                       camera=cfg.camera.model(), marker=cfg.marker.model())
+    truth = trajectory(
+        cfg.synthetic.trajectory,
+        3,
+        cfg.camera.fps,
+        seed=cfg.synthetic.seed,
+        camera=cfg.camera.model(),
+        marker=cfg.marker.model(),
+    )
     for i, f in enumerate(frames):
         assert f.seq == i and f.image.shape == (cfg.camera.height, cfg.camera.width)
         assert f.t_capture_s - frames[0].t_capture_s == pytest.approx(i / cfg.camera.fps)
@@ -83,8 +92,9 @@ def test_synthetic_source_follows_the_trajectory_with_truth() -> None:
 
 def test_synthetic_source_paces_in_real_time_and_ends() -> None:
     clock = FakeClock()
-    source = SyntheticSource(CAM, Marker(0.2), fps=20.0, frames=3, effects=Effects.clean(),
-                             clock=clock, sleep=clock.sleep)
+    source = SyntheticSource(
+        CAM, Marker(0.2), fps=20.0, frames=3, effects=Effects.clean(), clock=clock, sleep=clock.sleep
+    )
     with pytest.raises(SourceError):
         source.read()
     source.open()
@@ -97,20 +107,20 @@ def test_synthetic_source_paces_in_real_time_and_ends() -> None:
 
 def test_synthetic_source_behind_by_more_than_a_frame_restarts_its_schedule() -> None:
     clock = FakeClock()
-    source = SyntheticSource(CAM, Marker(0.2), fps=20.0, frames=6, effects=Effects.clean(),
-                             clock=clock, sleep=clock.sleep)
+    source = SyntheticSource(
+        CAM, Marker(0.2), fps=20.0, frames=6, effects=Effects.clean(), clock=clock, sleep=clock.sleep
+    )
     source.open()
-    frames = [source.read()]            # due at 100.0
-    clock.t += 1.0                      # a slow first render: 19 frame periods lost
-    frames.append(source.read())        # stamped now, not at its missed 100.05
-    frames.append(source.read())        # one period later, on the new schedule
-    clock.t += 0.08                     # 101.13: behind 101.1 by less than a period, kept
+    frames = [source.read()]  # due at 100.0
+    clock.t += 1.0  # a slow first render: 19 frame periods lost
+    frames.append(source.read())  # stamped now, not at its missed 100.05
+    frames.append(source.read())  # one period later, on the new schedule
+    clock.t += 0.08  # 101.13: behind 101.1 by less than a period, kept
     frames.append(source.read())
-    clock.t += 0.0701                   # 101.2001: behind 101.15 by just over a period
+    clock.t += 0.0701  # 101.2001: behind 101.15 by just over a period
     frames.append(source.read())
     frames.append(source.read())
-    assert [f.t_capture_s for f in frames] == pytest.approx([100.0, 101.0, 101.05, 101.1, 101.2001, 101.2501],
-                                                            abs=1e-9)
+    assert [f.t_capture_s for f in frames] == pytest.approx([100.0, 101.0, 101.05, 101.1, 101.2001, 101.2501], abs=1e-9)
     assert clock.sleeps == pytest.approx([0.05, 0.05])
     assert source.restarts == 2
     # The trajectory goes on frame by frame: no frame's truth is skipped.
@@ -132,13 +142,17 @@ class _FakeRequest:
         stride = (w + 63) // 64 * 64  # rows padded, as libcamera does
         yuv = np.full((h * 3 // 2, stride), 128, np.uint8)
         yuv[:h, :w] = self.cam.y_plane
-        yuv[:h, w:] = 255   # padding that must not leak into the frame
+        yuv[:h, w:] = 255  # padding that must not leak into the frame
         return yuv
 
     def get_metadata(self) -> dict:
         self.cam.frame += 1
-        return {"SensorTimestamp": 5_000_000_000 + self.cam.frame * 33_333_333,
-                "ExposureTime": 4000, "AnalogueGain": 2.0, "Lux": 100.0}
+        return {
+            "SensorTimestamp": 5_000_000_000 + self.cam.frame * 33_333_333,
+            "ExposureTime": 4000,
+            "AnalogueGain": 2.0,
+            "Lux": 100.0,
+        }
 
     def release(self) -> None:
         self.released = True
@@ -196,11 +210,11 @@ class _FakePicamera2:
     def capture_request(self, wait=None, signal_function=None, flush=None):
         """As picamera2's: a job run by the camera's event loop; ``wait`` True/None blocks, a
         number blocks at most that many seconds (TimeoutError), False gives the job."""
-        time.sleep(0.002)   # a camera delivers frames at its own pace
+        time.sleep(0.002)  # a camera delivers frames at its own pace
         job = _FakeJob()
         stall_after = _FakePicamera2.stall_after.get(_FakePicamera2.instances.index(self))
         if stall_after is not None and self.frame >= stall_after:
-            self.jobs.append(job)   # a stalled camera: the job never completes
+            self.jobs.append(job)  # a stalled camera: the job never completes
         else:
             job.future.set_result(_FakeRequest(self))
         if wait is None:
@@ -246,16 +260,20 @@ def test_picamera2_y_plane_fixed_exposure_and_sensor_time(fake_picamera2) -> Non
     cam = fake_picamera2.instances[0]
     assert cam.started
     assert cam.config["lores"] == {"size": (600, 400), "format": "YUV420"}
-    assert cam.config["controls"] == {"FrameDurationLimits": (40000, 40000), "AeEnable": False,
-                                      "ExposureTime": 4000, "AnalogueGain": 2.0}
+    assert cam.config["controls"] == {
+        "FrameDurationLimits": (40000, 40000),
+        "AeEnable": False,
+        "ExposureTime": 4000,
+        "AnalogueGain": 2.0,
+    }
     f0, f1 = source.read(), source.read()
     assert f0.image.shape == (400, 600) and f0.image.dtype == np.uint8
-    assert np.array_equal(f0.image, cam.y_plane)   # the Y plane only, no stride padding
+    assert np.array_equal(f0.image, cam.y_plane)  # the Y plane only, no stride padding
     assert f0.t_capture_s == pytest.approx(5.033333333)
     assert f1.t_capture_s - f0.t_capture_s == pytest.approx(0.033333333)
     assert (f0.seq, f1.seq) == (0, 1)
     assert f0.metadata["ExposureTime"] == 4000 and "Lux" not in f0.metadata
-    assert cam.released == 2   # every request goes back to the camera
+    assert cam.released == 2  # every request goes back to the camera
     source.close()
     assert cam.closed
 
@@ -268,7 +286,7 @@ def test_picamera2_auto_exposure_and_failures(fake_picamera2, monkeypatch) -> No
         source.open()
     with pytest.raises(SourceError, match="cannot start camera 1"):
         Picamera2Source(640, 480, camera_index=1).open()
-    monkeypatch.setitem(sys.modules, "picamera2", None)   # not installed
+    monkeypatch.setitem(sys.modules, "picamera2", None)  # not installed
     with pytest.raises(SourceError, match="picamera2 module is not installed"):
         Picamera2Source(640, 480).open()
 
@@ -283,7 +301,7 @@ def test_picamera2_stalled_camera_is_a_source_error_not_a_hang(fake_picamera2) -
         source.read()
     # picamera2's own timeout, longer for the first frame after start.
     assert cam.waits == [3.0, 0.05, 0.05]
-    assert cam.flushes == 1 and cam.jobs == []   # the hung job cancelled: stop() can run
+    assert cam.flushes == 1 and cam.jobs == []  # the hung job cancelled: stop() can run
     source.close()
     assert cam.closed and not cam.started
     # The default: four frame periods, at least a second.
@@ -296,18 +314,24 @@ def test_picamera2_stall_in_the_pipeline_becomes_a_reopen(fake_picamera2, caplog
 
     from pose_daemon.pipeline import Pipeline
 
-    fake_picamera2.stall_after = {0: 3}   # the first camera stalls; the reopened one works
+    fake_picamera2.stall_after = {0: 3}  # the first camera stalls; the reopened one works
     # The timeout is far above what a loaded machine takes to hand over a frame, so only the
     # stalled camera times out.
     source = Picamera2Source(64, 48, fps=30.0, read_timeout_s=0.5)
     # The fake's sensor time stamps start at 5 s: no latency budget applies here.
-    pipeline = Pipeline(source, FakeProcessor(), outputs_of(FakeOutput), latency_budget_s=1e9,
-                        source_retry_s=0.01, source_retry_max_s=0.01)
+    pipeline = Pipeline(
+        source,
+        FakeProcessor(),
+        outputs_of(FakeOutput),
+        latency_budget_s=1e9,
+        source_retry_s=0.01,
+        source_retry_max_s=0.01,
+    )
     (out,) = pipeline.outputs
     caplog.set_level("WARNING", logger="pose_daemon.pipeline")
     pipeline.start()
     try:
-        deadline = time.monotonic() + 30.0   # a bound a loaded machine cannot reach, not a measure
+        deadline = time.monotonic() + 30.0  # a bound a loaded machine cannot reach, not a measure
         while time.monotonic() < deadline:
             # More results than the first camera gave frames: the reopened one delivers.
             if len(out.got) > 3:
@@ -319,8 +343,8 @@ def test_picamera2_stall_in_the_pipeline_becomes_a_reopen(fake_picamera2, caplog
     assert first.closed and first.flushes == 1 and second.frame >= 1
     assert pipeline.stats.snapshot()["source_failures"] == 1
     assert [r.getMessage() for r in caplog.records if r.name == "pose_daemon.pipeline"] == [
-        "source failed: source picamera2: no frame from camera 0 within 0.5 s (camera stalled); "
-        "reopening in 0.0 s"]
+        "source failed: source picamera2: no frame from camera 0 within 0.5 s (camera stalled); reopening in 0.0 s"
+    ]
     assert len(out.got) > 3 and len(fake_picamera2.instances) == 2
 
 
@@ -330,8 +354,7 @@ def test_picamera2_stall_in_the_pipeline_becomes_a_reopen(fake_picamera2, caplog
 def _frames(n: int, seed: int = 1):
     marker = Marker(0.2)
     poses = trajectory("wall", n, 30.0, seed=seed, camera=CAM, marker=marker)
-    return [render_marker(CAM, marker, p.rvec, p.tvec, rng=np.random.default_rng(i)).image
-            for i, p in enumerate(poses)]
+    return [render_marker(CAM, marker, p.rvec, p.tvec, rng=np.random.default_rng(i)).image for i, p in enumerate(poses)]
 
 
 def test_video_file_written_by_videowriter(tmp_path: Path) -> None:
@@ -342,8 +365,11 @@ def test_video_file_written_by_videowriter(tmp_path: Path) -> None:
     for img in images:
         writer.write(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
     writer.release()
-    for source in (open_source(_camera_cfg(f"video:{path}"), realtime=False),
-                   OpenCVSource(str(path), "video"), ReplaySource(path, realtime=False)):
+    for source in (
+        open_source(_camera_cfg(f"video:{path}"), realtime=False),
+        OpenCVSource(str(path), "video"),
+        ReplaySource(path, realtime=False),
+    ):
         source.open()
         got = []
         while True:
@@ -356,7 +382,7 @@ def test_video_file_written_by_videowriter(tmp_path: Path) -> None:
         assert [f.t_capture_s for f in got] == pytest.approx([i / 15.0 for i in range(12)])
         for f, img in zip(got, images):
             assert f.image.shape == (480, 640) and f.image.ndim == 2
-            assert np.abs(f.image.astype(int) - img).mean() < 3.0   # MJPG is lossy
+            assert np.abs(f.image.astype(int) - img).mean() < 3.0  # MJPG is lossy
 
 
 def test_missing_video_and_camera_are_source_errors(tmp_path: Path) -> None:
@@ -372,7 +398,7 @@ def test_folder_sorted_by_name_with_a_corrupt_frame_skipped(tmp_path: Path, capl
     images = _frames(5)
     for i, img in enumerate(images):
         cv2.imwrite(str(tmp_path / f"img_{i:02d}.png"), img)
-    (tmp_path / "img_02.png").write_bytes(b"\x89PNG\r\n\x1a\n broken")   # corrupt, in the middle
+    (tmp_path / "img_02.png").write_bytes(b"\x89PNG\r\n\x1a\n broken")  # corrupt, in the middle
     (tmp_path / "notes.txt").write_text("not an image")
     source = open_source(_camera_cfg(f"replay:{tmp_path}", fps=10.0), realtime=False)
     source.open()
@@ -386,7 +412,7 @@ def test_folder_sorted_by_name_with_a_corrupt_frame_skipped(tmp_path: Path, capl
     assert [f.seq for f in got] == [0, 1, 3, 4]
     assert [f.t_capture_s for f in got] == pytest.approx([0.0, 0.1, 0.3, 0.4])
     for f in got:
-        assert np.array_equal(f.image, images[f.seq])   # PNG: lossless
+        assert np.array_equal(f.image, images[f.seq])  # PNG: lossless
     assert [Path(p).name for p, _ in source.skipped] == ["img_02.png"]
     assert "img_02.png" in caplog.text and "corrupt" in caplog.text
 
@@ -482,20 +508,23 @@ def test_as_gray_is_the_one_conversion_of_sources_detector_and_calibration() -> 
     grey = (np.arange(12 * 16) % 256).astype(np.uint8).reshape(12, 16)
     assert np.array_equal(as_gray(grey), grey)
     assert np.array_equal(as_gray(grey[:, :, None]), grey)
-    assert np.array_equal(as_gray(grey.astype(np.uint16) << 8 | 0xFF), grey)   # the top byte
+    assert np.array_equal(as_gray(grey.astype(np.uint16) << 8 | 0xFF), grey)  # the top byte
     bgr = np.dstack([grey, grey, grey])
     assert np.array_equal(as_gray(bgr), grey)
     assert np.array_equal(as_gray(np.dstack([bgr, np.full_like(grey, 7)])), grey)
 
 
-@pytest.mark.parametrize("image, message", [
-    (np.zeros((4, 4), np.float32), "uint8 (or uint16) grey levels, got dtype float32"),
-    (np.zeros((4, 4), np.int32), "got dtype int32"),
-    (np.zeros((4, 4, 2), np.uint8), "got shape (4, 4, 2)"),
-    (np.zeros((2, 4, 4, 3), np.uint8), "got shape (2, 4, 4, 3)"),
-    (np.zeros((0, 4), np.uint8), "image is empty"),
-    ([[0, 1]], "must be a numpy array, got list"),
-])
+@pytest.mark.parametrize(
+    "image, message",
+    [
+        (np.zeros((4, 4), np.float32), "uint8 (or uint16) grey levels, got dtype float32"),
+        (np.zeros((4, 4), np.int32), "got dtype int32"),
+        (np.zeros((4, 4, 2), np.uint8), "got shape (4, 4, 2)"),
+        (np.zeros((2, 4, 4, 3), np.uint8), "got shape (2, 4, 4, 3)"),
+        (np.zeros((0, 4), np.uint8), "image is empty"),
+        ([[0, 1]], "must be a numpy array, got list"),
+    ],
+)
 def test_as_gray_refuses_what_it_cannot_convert(image, message: str) -> None:
     from pose_daemon.capture.base import as_gray
 
@@ -514,7 +543,8 @@ def test_a_float_image_in_a_replay_folder_is_skipped_by_name(tmp_path: Path) -> 
     with pytest.raises(EndOfStream):
         source.read()
     assert [(Path(f).name, why) for f, why in source.skipped] == [
-        ("001.tiff", "image must be uint8 (or uint16) grey levels, got dtype float32")]
+        ("001.tiff", "image must be uint8 (or uint16) grey levels, got dtype float32")
+    ]
 
 
 def _recording(path: Path, times_s):
@@ -543,7 +573,8 @@ def test_replay_cuts_an_absurd_step_of_the_index_and_says_so(tmp_path: Path, cap
     assert max(clock.sleeps) <= MAX_GAP_S
     # On this run's clock the frames keep their recorded spacing around the cut steps.
     assert [f.t_capture_s for f in frames] == pytest.approx(
-        [50.0, 50.1, 50.1 + period, 50.2 + period, 50.2 + 2 * period, 50.3 + 2 * period])
+        [50.0, 50.1, 50.1 + period, 50.2 + period, 50.2 + 2 * period, 50.3 + 2 * period]
+    )
     assert [f.metadata["t_recorded_s"] for f in frames] == pytest.approx(times)
     assert source.gaps_cut == 2
     warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
@@ -564,8 +595,9 @@ def test_index_entry_outside_the_recording_folder_is_refused(tmp_path: Path, fil
     index.write_text("".join(lines))
     with pytest.raises(SourceError) as err:
         read_index(rec)
-    assert str(err.value) == (f'{index}:2: frame file "{file}" lies outside the recording folder '
-                              "(absolute, or with ..)")
+    assert str(err.value) == (
+        f'{index}:2: frame file "{file}" lies outside the recording folder (absolute, or with ..)'
+    )
     with pytest.raises(SourceError, match="lies outside"):
         ReplaySource(rec).open()
 

@@ -25,8 +25,7 @@ def test_no_command_prints_help_and_exits_2(capsys):
 
 
 def test_unknown_command_is_one_line_and_exit_2():
-    res = subprocess.run([sys.executable, "-m", "pose_daemon", "fly"], capture_output=True,
-                         text=True, timeout=60)
+    res = subprocess.run([sys.executable, "-m", "pose_daemon", "fly"], capture_output=True, text=True, timeout=60)
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()
     assert lines[-1].startswith("pose-daemon: error: argument COMMAND: invalid choice: 'fly'")
@@ -34,25 +33,34 @@ def test_unknown_command_is_one_line_and_exit_2():
 
 
 def test_missing_config_file_is_one_line_and_exit_2(tmp_path):
-    res = subprocess.run([sys.executable, "-m", "pose_daemon", "run", "--config",
-                          str(tmp_path / "nope.toml")], capture_output=True, text=True, timeout=60)
+    res = subprocess.run(
+        [sys.executable, "-m", "pose_daemon", "run", "--config", str(tmp_path / "nope.toml")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert res.returncode == 2
     assert "Traceback" not in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and "nope.toml" in res.stderr
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "pose_daemon", *args], capture_output=True,
-                          text=True, timeout=60)
+    return subprocess.run([sys.executable, "-m", "pose_daemon", *args], capture_output=True, text=True, timeout=60)
 
 
 CONFIG_COMMANDS = [("check-config",), ("run", "--config")]
 
 
 @pytest.mark.parametrize("command", CONFIG_COMMANDS)
-@pytest.mark.parametrize("text", ["a = " + "[" * 400 + "\n", "a = " + "[" * 1000 + "]" * 1000 + "\n",
-                                  "a = " + "{b = " * 1000 + "\n",
-                                  "[camera]\ndist = " + "[" * 450 + "]" * 450 + "\n"])
+@pytest.mark.parametrize(
+    "text",
+    [
+        "a = " + "[" * 400 + "\n",
+        "a = " + "[" * 1000 + "]" * 1000 + "\n",
+        "a = " + "{b = " * 1000 + "\n",
+        "[camera]\ndist = " + "[" * 450 + "]" * 450 + "\n",
+    ],
+)
 def test_deeply_nested_toml_is_one_line_and_exit_2(tmp_path, command, text):
     # The TOML reader recurses once per level, and so did the error message's rendering of
     # the value: a RecursionError must not become a traceback.
@@ -73,10 +81,16 @@ def test_a_fifo_or_folder_as_config_is_refused_without_reading_it(tmp_path, comm
     os.mkfifo(fifo)
     res = _cli(*command, str(fifo))
     assert (res.returncode, res.stdout, res.stderr) == (
-        2, "", f"pose-daemon: error: {fifo}: cannot read config: not a regular file (a FIFO)\n")
+        2,
+        "",
+        f"pose-daemon: error: {fifo}: cannot read config: not a regular file (a FIFO)\n",
+    )
     res = _cli(*command, str(tmp_path))
     assert (res.returncode, res.stdout, res.stderr) == (
-        2, "", f"pose-daemon: error: {tmp_path}: cannot read config: not a regular file (a directory)\n")
+        2,
+        "",
+        f"pose-daemon: error: {tmp_path}: cannot read config: not a regular file (a directory)\n",
+    )
 
 
 def test_argparse_only_in_the_command_line():

@@ -63,7 +63,7 @@ def test_pi_config_loads():
 
 
 def test_defaults_fill_missing_keys_and_sections():
-    cfg = parse_config("[camera]\nsource = \"opencv:0\"\nfx = 600\n", "c.toml")
+    cfg = parse_config('[camera]\nsource = "opencv:0"\nfx = 600\n', "c.toml")
     assert cfg.camera.fx == 600.0 and isinstance(cfg.camera.fx, float)
     assert cfg.camera.source_kind == "opencv" and cfg.camera.source_arg == "0"
     assert cfg.estimator.iterations == 5 and cfg.estimator.refine is True
@@ -76,85 +76,128 @@ def test_defaults_fill_missing_keys_and_sections():
 
 
 def test_models():
-    cfg = parse_config('[camera]\nfx = 600.0\nfy = 610.0\ndist = [0.1, -0.2, 0.0, 0.0]\n'
-                       '[marker]\ntype = "aruco"\ndictionary = "DICT_4X4_50"\nid = 7\nwidth = 0.15\n',
-                       "c.toml")
+    cfg = parse_config(
+        "[camera]\nfx = 600.0\nfy = 610.0\ndist = [0.1, -0.2, 0.0, 0.0]\n"
+        '[marker]\ntype = "aruco"\ndictionary = "DICT_4X4_50"\nid = 7\nwidth = 0.15\n',
+        "c.toml",
+    )
     cam = cfg.camera.model()
     assert cam.K[0, 0] == 600.0 and cam.K[1, 1] == 610.0
     assert cam.dist == (0.1, -0.2, 0.0, 0.0, 0.0)
     marker = cfg.marker.model()
     assert (marker.width, marker.height, marker.type, marker.dictionary, marker.id) == (
-        0.15, 0.15, "aruco", "DICT_4X4_50", 7)
+        0.15,
+        0.15,
+        "aruco",
+        "DICT_4X4_50",
+        7,
+    )
 
 
 def test_marker_placement_drives_the_synthetic_trajectory():
     cfg = parse_config('[marker]\nplacement = "floor"\n', "c.toml")
     assert cfg.synthetic.trajectory == "floor"
     assert _error('[marker]\nplacement = "floor"\n[synthetic]\ntrajectory = "wall"\n') == (
-        'config.toml: [synthetic] trajectory: expected "floor" (the [marker] placement), got "wall"')
+        'config.toml: [synthetic] trajectory: expected "floor" (the [marker] placement), got "wall"'
+    )
 
 
-@pytest.mark.parametrize("text, expected", [
-    # wrong type
-    ('[camera]\nfx = "abc"\n', 'config.toml: [camera] fx: expected a number > 0, got "abc"'),
-    ('[camera]\nwidth = 640.5\n', "config.toml: [camera] width: expected an integer in [16, 8192], got 640.5"),
-    ('[estimator]\nrefine = 1\n', "config.toml: [estimator] refine: expected true or false, got 1"),
-    ('[camera]\nsource = 0\n', "config.toml: [camera] source: expected a non-empty string, got 0"),
-    ('[camera]\ndist = [0, 0, "x", 0, 0]\n',
-     'config.toml: [camera] dist: expected a list of 4 or 5 or 8 numbers, got [0, 0, "x", 0, 0]'),
-    ('camera = 3\n', "config.toml: camera: expected a table [camera], got 3"),
-    # out of range
-    ("[camera]\nfx = -1.0\n", "config.toml: [camera] fx: expected a number > 0, got -1.0"),
-    ("[camera]\nfx = nan\n", "config.toml: [camera] fx: expected a number > 0, got nan"),
-    ("[camera]\ncy = 480.0\n",
-     "config.toml: [camera] cy: expected a number in [0, 480) (inside the image height), got 480.0"),
-    ("[pipeline]\nlatency_budget_s = 0\n",
-     "config.toml: [pipeline] latency_budget_s: expected a number in (0, 10], got 0"),
-    ("[estimator]\niterations = 0\n",
-     "config.toml: [estimator] iterations: expected an integer in [1, 100], got 0"),
-    ("[synthetic]\njpeg_quality = 101\n",
-     "config.toml: [synthetic] jpeg_quality: expected an integer in [0, 100], got 101"),
-    ("[mount]\noffset_m = [0.0, 0.0]\n",
-     "config.toml: [mount] offset_m: expected a list of 3 numbers, each in [-100, 100], got [0.0, 0.0]"),
-    ("[output.mavlink]\nsource_component = 256\n",
-     "config.toml: [output.mavlink] source_component: expected an integer in [1, 255], got 256"),
-    # choices
-    ('[marker]\ntype = "circle"\n',
-     'config.toml: [marker] type: expected one of "square", "aruco", got "circle"'),
-    ('[output.mavlink]\nmessages = ["ODOMETRY", "ODOMETRY"]\n',
-     'config.toml: [output.mavlink] messages: expected a list of strings, each one of "ODOMETRY", '
-     '"VISION_POSITION_ESTIMATE", "LANDING_TARGET", not empty, no repeats, got ["ODOMETRY", "ODOMETRY"]'),
-    ('[output.mavlink]\nmessages = []\n',
-     'config.toml: [output.mavlink] messages: expected a list of strings, each one of "ODOMETRY", '
-     '"VISION_POSITION_ESTIMATE", "LANDING_TARGET", not empty, no repeats, got []'),
-    ('[camera]\nsource = "webcam"\n',
-     'config.toml: [camera] source: expected "picamera2", "synthetic", "opencv:N", "video:PATH", '
-     '"replay:PATH" or a GStreamer pipeline ("... ! appsink"), got "webcam"'),
-    ('[camera]\nsource = "opencv:front"\n',
-     'config.toml: [camera] source: expected "opencv:N" with a camera index N or a device path, '
-     'got "opencv:front"'),
-    # unknown keys and sections
-    ("[camera]\nfps2 = 30\n",
-     "config.toml: [camera] fps2: unknown key (expected one of source, width, height, fx, fy, cx, cy, "
-     "dist, fps, exposure_us, analogue_gain)"),
-    ("[cam]\nfx = 1\n",
-     "config.toml: [cam]: unknown section (expected one of camera, marker, estimator, detector, "
-     "synthetic, pipeline, mount, attitude, gate, logging, preview, output)"),
-    ("[output.udp]\nport = 1\n",
-     "config.toml: [output.udp]: unknown output (expected one of mavlink, serial, jsonl)"),
-    ("[output.jsonl]\nfile = \"x\"\n",
-     "config.toml: [output.jsonl] file: unknown key (expected one of path)"),
-    # cross-key rules
-    ('[marker]\ntype = "aruco"\nid = 3\n',
-     'config.toml: [marker] dictionary: expected a dictionary name such as "DICT_4X4_50" '
-     '(needed when type = "aruco")'),
-    ('[marker]\ntype = "aruco"\ndictionary = "DICT_4X4_51"\nid = 3\n',
-     'config.toml: [marker] dictionary: expected an OpenCV ArUco dictionary name such as '
-     '"DICT_4X4_50", got "DICT_4X4_51"'),
-    ('[marker]\nid = 3\n', 'config.toml: [marker] id: expected no id unless type = "aruco", got 3'),
-    ("[pipeline]\nsource_retry_s = 2.0\nsource_retry_max_s = 1.0\n",
-     "config.toml: [pipeline] source_retry_max_s: expected a number >= source_retry_s (2), got 1.0"),
-])
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        # wrong type
+        ('[camera]\nfx = "abc"\n', 'config.toml: [camera] fx: expected a number > 0, got "abc"'),
+        ("[camera]\nwidth = 640.5\n", "config.toml: [camera] width: expected an integer in [16, 8192], got 640.5"),
+        ("[estimator]\nrefine = 1\n", "config.toml: [estimator] refine: expected true or false, got 1"),
+        ("[camera]\nsource = 0\n", "config.toml: [camera] source: expected a non-empty string, got 0"),
+        (
+            '[camera]\ndist = [0, 0, "x", 0, 0]\n',
+            'config.toml: [camera] dist: expected a list of 4 or 5 or 8 numbers, got [0, 0, "x", 0, 0]',
+        ),
+        ("camera = 3\n", "config.toml: camera: expected a table [camera], got 3"),
+        # out of range
+        ("[camera]\nfx = -1.0\n", "config.toml: [camera] fx: expected a number > 0, got -1.0"),
+        ("[camera]\nfx = nan\n", "config.toml: [camera] fx: expected a number > 0, got nan"),
+        (
+            "[camera]\ncy = 480.0\n",
+            "config.toml: [camera] cy: expected a number in [0, 480) (inside the image height), got 480.0",
+        ),
+        (
+            "[pipeline]\nlatency_budget_s = 0\n",
+            "config.toml: [pipeline] latency_budget_s: expected a number in (0, 10], got 0",
+        ),
+        (
+            "[estimator]\niterations = 0\n",
+            "config.toml: [estimator] iterations: expected an integer in [1, 100], got 0",
+        ),
+        (
+            "[synthetic]\njpeg_quality = 101\n",
+            "config.toml: [synthetic] jpeg_quality: expected an integer in [0, 100], got 101",
+        ),
+        (
+            "[mount]\noffset_m = [0.0, 0.0]\n",
+            "config.toml: [mount] offset_m: expected a list of 3 numbers, each in [-100, 100], got [0.0, 0.0]",
+        ),
+        (
+            "[output.mavlink]\nsource_component = 256\n",
+            "config.toml: [output.mavlink] source_component: expected an integer in [1, 255], got 256",
+        ),
+        # choices
+        ('[marker]\ntype = "circle"\n', 'config.toml: [marker] type: expected one of "square", "aruco", got "circle"'),
+        (
+            '[output.mavlink]\nmessages = ["ODOMETRY", "ODOMETRY"]\n',
+            'config.toml: [output.mavlink] messages: expected a list of strings, each one of "ODOMETRY", '
+            '"VISION_POSITION_ESTIMATE", "LANDING_TARGET", not empty, no repeats, got ["ODOMETRY", "ODOMETRY"]',
+        ),
+        (
+            "[output.mavlink]\nmessages = []\n",
+            'config.toml: [output.mavlink] messages: expected a list of strings, each one of "ODOMETRY", '
+            '"VISION_POSITION_ESTIMATE", "LANDING_TARGET", not empty, no repeats, got []',
+        ),
+        (
+            '[camera]\nsource = "webcam"\n',
+            'config.toml: [camera] source: expected "picamera2", "synthetic", "opencv:N", "video:PATH", '
+            '"replay:PATH" or a GStreamer pipeline ("... ! appsink"), got "webcam"',
+        ),
+        (
+            '[camera]\nsource = "opencv:front"\n',
+            'config.toml: [camera] source: expected "opencv:N" with a camera index N or a device path, '
+            'got "opencv:front"',
+        ),
+        # unknown keys and sections
+        (
+            "[camera]\nfps2 = 30\n",
+            "config.toml: [camera] fps2: unknown key (expected one of source, width, height, fx, fy, cx, cy, "
+            "dist, fps, exposure_us, analogue_gain)",
+        ),
+        (
+            "[cam]\nfx = 1\n",
+            "config.toml: [cam]: unknown section (expected one of camera, marker, estimator, detector, "
+            "synthetic, pipeline, mount, attitude, gate, logging, preview, output, map)",
+        ),
+        (
+            "[output.udp]\nport = 1\n",
+            "config.toml: [output.udp]: unknown output (expected one of mavlink, serial, jsonl)",
+        ),
+        ('[output.jsonl]\nfile = "x"\n', "config.toml: [output.jsonl] file: unknown key (expected one of path)"),
+        # cross-key rules
+        (
+            '[marker]\ntype = "aruco"\nid = 3\n',
+            'config.toml: [marker] dictionary: expected a dictionary name such as "DICT_4X4_50" '
+            '(needed when type = "aruco")',
+        ),
+        (
+            '[marker]\ntype = "aruco"\ndictionary = "DICT_4X4_51"\nid = 3\n',
+            "config.toml: [marker] dictionary: expected an OpenCV ArUco dictionary name such as "
+            '"DICT_4X4_50", got "DICT_4X4_51"',
+        ),
+        ("[marker]\nid = 3\n", 'config.toml: [marker] id: expected no id unless type = "aruco", got 3'),
+        (
+            "[pipeline]\nsource_retry_s = 2.0\nsource_retry_max_s = 1.0\n",
+            "config.toml: [pipeline] source_retry_max_s: expected a number >= source_retry_s (2), got 1.0",
+        ),
+    ],
+)
 def test_every_error_is_one_line_with_file_key_expectation(text, expected):
     assert _error(text) == expected
 
@@ -195,8 +238,7 @@ def test_reference_covers_every_key():
 
 
 def _cli(*args: str):
-    return subprocess.run([sys.executable, "-m", "pose_daemon", *args], capture_output=True,
-                          text=True, timeout=60)
+    return subprocess.run([sys.executable, "-m", "pose_daemon", *args], capture_output=True, text=True, timeout=60)
 
 
 def test_check_config_cli(tmp_path):
@@ -219,12 +261,13 @@ def test_check_config_checks_the_mavlink_connection_string(tmp_path):
     bad.write_text('[output.mavlink]\nconnection = "udpout:localhost"\n')
     res = _cli("check-config", str(bad))
     assert res.returncode == 2
-    assert res.stderr == (f"pose-daemon: error: {bad}: [output.mavlink] connection: expected "
-                          "udpout:HOST:PORT with a port in 1..65535, got 'udpout:localhost'\n")
+    assert res.stderr == (
+        f"pose-daemon: error: {bad}: [output.mavlink] connection: expected "
+        "udpout:HOST:PORT with a port in 1..65535, got 'udpout:localhost'\n"
+    )
 
 
-@pytest.mark.parametrize("kind, what", [("video", "a video file"),
-                                        ("replay", "a recording, image folder or video")])
+@pytest.mark.parametrize("kind, what", [("video", "a video file"), ("replay", "a recording, image folder or video")])
 def test_check_config_refuses_a_missing_video_or_recording_as_run_does(tmp_path, kind, what):
     source = f"{kind}:{tmp_path / 'clip'}"
     path = tmp_path / "c.toml"
@@ -232,8 +275,10 @@ def test_check_config_refuses_a_missing_video_or_recording_as_run_does(tmp_path,
     # The text alone is valid (`replay PATH --config c.toml` ignores the source) ...
     assert load_config(path).camera.source == source
     # ... but check-config refuses it with run's line: the daemon could never start.
-    expected = (f"pose-daemon: error: {path}: [camera] source: expected {what} that exists, "
-                f'got "{source}" (no such file or folder)\n')
+    expected = (
+        f"pose-daemon: error: {path}: [camera] source: expected {what} that exists, "
+        f'got "{source}" (no such file or folder)\n'
+    )
     for args in (["check-config", str(path)], ["run", "--config", str(path)]):
         res = _cli(*args)
         assert (res.returncode, res.stdout, res.stderr) == (2, "", expected)
@@ -246,14 +291,16 @@ def test_aruco_id_outside_its_dictionary_is_a_config_error():
     base = '[marker]\ntype = "aruco"\ndictionary = "DICT_4X4_50"\n'
     assert parse_config(base + "id = 49\n", "config.toml").marker.id == 49
     assert _error(base + "id = 50\n") == (
-        'config.toml: [marker] id: expected an integer in [0, 49] (the ids of DICT_4X4_50), got 50')
+        "config.toml: [marker] id: expected an integer in [0, 49] (the ids of DICT_4X4_50), got 50"
+    )
 
 
 def test_unknown_estimator_method_is_a_config_error():
     # Otherwise every frame of a running daemon fails with no pose.
     assert parse_config('[estimator]\nmethod = "paper"\n', "config.toml").estimator.method == "paper"
     assert _error('[estimator]\nmethod = "foo"\n') == (
-        'config.toml: [estimator] method: expected one of "iterative", "paper", got "foo"')
+        'config.toml: [estimator] method: expected one of "iterative", "paper", got "foo"'
+    )
 
 
 def _rule(cls: type, key: str):
@@ -275,11 +322,13 @@ def test_every_list_of_choices_is_its_owners():
     assert _rule(EstimatorConfig, "method").choices is METHODS
 
 
-@pytest.mark.parametrize("first", ["pose_daemon.outputs.mavlink", "pose_daemon.pose.loop",
-                                   "pose_daemon.capture", "pose_daemon.config"])
+@pytest.mark.parametrize(
+    "first", ["pose_daemon.outputs.mavlink", "pose_daemon.pose.loop", "pose_daemon.capture", "pose_daemon.config"]
+)
 def test_config_and_the_owners_of_its_choices_import_in_any_order(first):
     # config imports from these modules; one importing config back would be a cycle that
     # breaks whichever is imported first.
-    res = subprocess.run([sys.executable, "-c", f"import {first}; import pose_daemon.config"],
-                         capture_output=True, text=True, timeout=60)
+    res = subprocess.run(
+        [sys.executable, "-c", f"import {first}; import pose_daemon.config"], capture_output=True, text=True, timeout=60
+    )
     assert res.returncode == 0, res.stderr

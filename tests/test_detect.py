@@ -24,11 +24,11 @@ def test_corners_on_random_rendered_frames(marker: Marker) -> None:
         assert corners is not None, f"frame {i}: marker not found"
         assert corners.shape == (4, 2) and corners.dtype == np.float64
         if marker.type == "square":
-            corners = aligned(corners, truth)   # labels of a plain square: see the turn tests
+            corners = aligned(corners, truth)  # labels of a plain square: see the turn tests
         errors.append(corners - truth)
     err = np.concatenate(errors)
     assert float(np.abs(err).max()) < 0.3
-    assert float(np.sqrt(np.mean(np.sum(err ** 2, axis=1)))) < 0.1
+    assert float(np.sqrt(np.mean(np.sum(err**2, axis=1)))) < 0.1
     # No systematic offset: neither a shift nor a growth/shrink of the outline.
     assert np.all(np.abs(err.mean(axis=0)) < 0.03)
 
@@ -44,8 +44,7 @@ def test_corners_on_a_few_frames(marker: Marker) -> None:
 
 
 def test_lens_distortion_fitted_in_undistorted_pixels() -> None:
-    cam = Camera(fx=250.0, fy=250.0, cx=159.5, cy=119.5, dist=(-0.35, 0.12, 0.0, 0.0, 0.0),
-                 width=320, height=240)
+    cam = Camera(fx=250.0, fy=250.0, cx=159.5, cy=119.5, dist=(-0.35, 0.12, 0.0, 0.0, 0.0), width=320, height=240)
     rvec, tvec = facing_pose(20, 0.5, 30, shift_m=(0.12, 0.05))
     image, truth = render(SQUARE, rvec, tvec, seed=3, camera=cam)
     with_model = MarkerDetector(SQUARE, camera=cam).detect(image)
@@ -62,8 +61,7 @@ def test_a_speck_against_a_side_does_not_pull_it(marker: Marker) -> None:
     top = truth[1] - truth[0]
     normal_out = np.array([top[1], -top[0]]) / np.linalg.norm(top)
     centre = truth[0] + 0.35 * top + 2.0 * normal_out
-    cv2.circle(image, (int(round(centre[0] * 16)), int(round(centre[1] * 16))), 32, 40, -1,
-               cv2.LINE_AA, 4)
+    cv2.circle(image, (int(round(centre[0] * 16)), int(round(centre[1] * 16))), 32, 40, -1, cv2.LINE_AA, 4)
     corners = MarkerDetector(marker).detect(image)
     assert corners is not None and rms(corners, truth) < 0.04
 
@@ -105,10 +103,16 @@ def test_aruco_orientation_from_its_pattern(roll: float) -> None:
     assert rms(corners, truth) < 0.15
 
 
-@pytest.mark.parametrize("dictionary, marker_id", [
-    ("DICT_5X5_100", 42), ("DICT_6X6_250", 100), ("DICT_7X7_50", 3), ("DICT_APRILTAG_36h11", 5),
-    ("DICT_ARUCO_ORIGINAL", 9),
-])
+@pytest.mark.parametrize(
+    "dictionary, marker_id",
+    [
+        ("DICT_5X5_100", 42),
+        ("DICT_6X6_250", 100),
+        ("DICT_7X7_50", 3),
+        ("DICT_APRILTAG_36h11", 5),
+        ("DICT_ARUCO_ORIGINAL", 9),
+    ],
+)
 def test_aruco_dictionaries(dictionary: str, marker_id: int) -> None:
     marker = Marker(0.2, type="aruco", dictionary=dictionary, id=marker_id)
     image, truth = render(marker, *facing_pose(200, 0.9, 45), seed=1)
@@ -177,6 +181,45 @@ def test_tracked_frames_follow_and_jumps_fall_back_to_a_search() -> None:
     image, truth = render(SQUARE, *facing_pose(6, 1.0, 20, shift_m=(-0.30, 0.2)), seed=73)
     corners = detector.detect(image)
     assert detector.last_stage == "roi" and rms(corners, truth) < 0.15
+
+
+def _inside(points: np.ndarray, region) -> bool:
+    x0, y0, x1, y1 = region
+    return bool(((points >= [x0, y0]) & (points <= [x1 - 1, y1 - 1])).all())
+
+
+def test_last_search_records_the_steps_and_regions_searched() -> None:
+    detector = MarkerDetector(SQUARE)
+    assert detector.last_search is None
+    image, truth = render(SQUARE, *facing_pose(5, 1.0, 20), seed=70)
+    detector.detect(image)
+    # No track: the whole frame, no regions.
+    first = detector.last_search
+    assert (first.stage, first.steps, first.regions, first.full) == ("full", ("full",), (), "done")
+    image, truth = render(SQUARE, *facing_pose(6, 1.01, 20, shift_m=(0.003, 0.0)), seed=71)
+    detector.detect(image)
+    tracked = detector.last_search
+    assert tracked.stage == "follow" and tracked.steps == ("follow",) and tracked.full is None
+    ((step, box),) = tracked.regions
+    x0, y0, x1, y1 = box
+    assert step == "follow" and _inside(truth, box)
+    # Tight: the bounding box of the corners plus the edge profiles' reach, not more.
+    assert x0 >= truth[:, 0].min() - 8 and x1 <= truth[:, 0].max() + 8
+    assert y0 >= truth[:, 1].min() - 8 and y1 <= truth[:, 1].max() + 8
+    # The marker jumps across the image: the regions around the track miss it, the whole
+    # frame finds it.
+    image, truth = render(SQUARE, *facing_pose(6, 1.0, 20, shift_m=(-0.35, 0.2)), seed=72)
+    detector.detect(image)
+    jumped = detector.last_search
+    assert (jumped.stage, jumped.full) == ("full", "done") and jumped.steps[-1] == "full"
+    assert jumped.regions and not any(_inside(truth, box) for _, box in jumped.regions)
+    # A moderate move: the region search around the prediction finds it (the jump's velocity
+    # predicts corners off the image, so the follow step did not run).
+    image, truth = render(SQUARE, *facing_pose(6, 1.0, 20, shift_m=(-0.30, 0.2)), seed=73)
+    detector.detect(image)
+    moved = detector.last_search
+    assert moved.stage == "roi" and moved.steps == ("roi",) and moved.full is None
+    assert moved.predicted_px is None and _inside(truth, dict(moved.regions)["roi"])
 
 
 @pytest.mark.parametrize("marker", [SQUARE, ARUCO], ids=["square", "aruco"])
@@ -279,7 +322,7 @@ def test_rectangle_of_the_wrong_shape_is_rejected() -> None:
 
 
 def test_too_small_marker_is_not_reported() -> None:
-    image, _ = render(SQUARE, *facing_pose(0, 4.0), seed=94)   # about 12 px sides
+    image, _ = render(SQUARE, *facing_pose(0, 4.0), seed=94)  # about 12 px sides
     assert MarkerDetector(SQUARE, min_side_px=10).detect(image) is not None
     assert MarkerDetector(SQUARE, min_side_px=20).detect(image) is None
 
@@ -305,13 +348,16 @@ def test_colour_and_wide_images_give_the_same_corners(upright) -> None:
     assert rms(grey, truth) < 0.15
 
 
-@pytest.mark.parametrize("bad, message", [
-    (np.zeros((240, 320), np.float32), "dtype float32"),
-    (np.zeros(100, np.uint8), "shape (100,)"),
-    (np.zeros((0, 320), np.uint8), "empty"),
-    (np.zeros((240, 320, 2), np.uint8), "shape (240, 320, 2)"),
-    ([[0, 1], [2, 3]], "numpy array"),
-])
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        (np.zeros((240, 320), np.float32), "dtype float32"),
+        (np.zeros(100, np.uint8), "shape (100,)"),
+        (np.zeros((0, 320), np.uint8), "empty"),
+        (np.zeros((240, 320, 2), np.uint8), "shape (240, 320, 2)"),
+        ([[0, 1], [2, 3]], "numpy array"),
+    ],
+)
 def test_bad_images_raise_a_clear_error(bad, message: str) -> None:
     with pytest.raises(ValueError) as info:
         MarkerDetector(SQUARE).detect(bad)
@@ -329,13 +375,16 @@ def test_tiny_images_have_no_marker() -> None:
     assert MarkerDetector(SQUARE).detect(np.full((6, 6), 128, np.uint8)) is None
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    (dict(max_misses=-1), "max_misses"),
-    (dict(max_misses=2.5), "max_misses"),
-    (dict(min_side_px=0.0), "min_side_px"),
-    (dict(min_contrast=float("nan")), "min_contrast"),
-    (dict(camera="cam"), "camera"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(max_misses=-1), "max_misses"),
+        (dict(max_misses=2.5), "max_misses"),
+        (dict(min_side_px=0.0), "min_side_px"),
+        (dict(min_contrast=float("nan")), "min_contrast"),
+        (dict(camera="cam"), "camera"),
+    ],
+)
 def test_bad_options_raise(kwargs, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         MarkerDetector(SQUARE, **kwargs)

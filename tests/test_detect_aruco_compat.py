@@ -17,7 +17,7 @@ pytestmark = pytest.mark.pi
 def _sheet(marker_id: int, side_px: int = 120, rotate: int = 0) -> np.ndarray:
     d = aruco_compat.get_dictionary("DICT_4X4_50")
     sheet = np.full((300, 300), 255, np.uint8)
-    sheet[90:90 + side_px, 90:90 + side_px] = np.rot90(aruco_compat.marker_image(d, marker_id, side_px), rotate)
+    sheet[90 : 90 + side_px, 90 : 90 + side_px] = np.rot90(aruco_compat.marker_image(d, marker_id, side_px), rotate)
     return sheet
 
 
@@ -54,7 +54,7 @@ def test_parameters_and_refinement_choice() -> None:
 
 def test_marker_image_and_bits_agree() -> None:
     d = aruco_compat.get_dictionary("DICT_5X5_100")
-    image = aruco_compat.marker_image(d, 42, 70)           # 7 cells of 10 px
+    image = aruco_compat.marker_image(d, 42, 70)  # 7 cells of 10 px
     cells = image[5::10, 5::10] > 127
     assert not cells[0].any() and not cells[-1].any() and not cells[:, 0].any() and not cells[:, -1].any()
     np.testing.assert_array_equal(cells[1:-1, 1:-1], aruco_compat.marker_bits(d, 42).astype(bool))
@@ -100,8 +100,9 @@ def test_charuco_board_image_is_found_corner_for_corner() -> None:
 
 
 def test_charuco_finder_without_a_board_gives_empty_results() -> None:
-    board = aruco_compat.charuco_board(type("Spec", (), dict(cols=4, rows=3, square_m=0.04, marker_m=0.03,
-                                                               dictionary="DICT_4X4_50")))
+    board = aruco_compat.charuco_board(
+        type("Spec", (), dict(cols=4, rows=3, square_m=0.04, marker_m=0.03, dictionary="DICT_4X4_50"))
+    )
     corners, ids = aruco_compat.CharucoFinder(board).detect(np.full((200, 200), 200, np.uint8))
     assert corners.shape == (0, 2) and ids.shape == (0,)
 
@@ -121,6 +122,9 @@ def test_cv2_aruco_is_used_in_aruco_compat_alone() -> None:
 
     package = pathlib.Path(aruco_compat.__file__).resolve().parent.parent
     pattern = re.compile(r"\bcv2\s*\.\s*aruco\b|from\s+cv2\s+import\s+aruco|import\s+cv2\.aruco")
-    offenders = [path.relative_to(package).as_posix() for path in sorted(package.rglob("*.py"))
-                 if path.name != "aruco_compat.py" and pattern.search(path.read_text(encoding="utf-8"))]
+    offenders = [
+        path.relative_to(package).as_posix()
+        for path in sorted(package.rglob("*.py"))
+        if path.name != "aruco_compat.py" and pattern.search(path.read_text(encoding="utf-8"))
+    ]
     assert offenders == []

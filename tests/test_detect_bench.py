@@ -51,11 +51,14 @@ def test_bench_table_is_readable(capsys) -> None:
     assert "corner RMS" in out and "Pi 2 (x20)" in out and "anchor: ArUco subpix + IPPE_SQUARE" in out
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--frames", "0"], "--frames must be at least 1, got 0"),
-    (["--empty", "-1"], "--empty must be 0 or more, got -1"),
-    (["--repeat", "0"], "--repeat must be at least 1, got 0"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--frames", "0"], "--frames must be at least 1, got 0"),
+        (["--empty", "-1"], "--empty must be 0 or more, got -1"),
+        (["--repeat", "0"], "--repeat must be at least 1, got 0"),
+    ],
+)
 def test_bench_argument_errors_exit_2(args, message: str, capsys) -> None:
     assert main(["bench", "detector", *args]) == 2
     err = capsys.readouterr().err

@@ -58,6 +58,7 @@ def test_time_cap_leaves_the_rest_of_the_search_to_the_next_frame() -> None:
         if found is not None:
             break
         assert capped.last_search_deferred and capped.last_stage is None
+        assert capped.last_search.full == "deferred" and capped.last_search.stage is None
     assert results[-1] is not None and float(np.abs(results[-1] - truth).max()) < 0.5
     assert capped.search_deferrals == len(results) - 1 >= 2
     assert not capped.last_search_deferred
@@ -91,12 +92,15 @@ def test_no_cap_never_defers_and_an_ample_cap_gives_the_same_corners() -> None:
     assert free.search_deferrals == 0 and ample.search_deferrals == 0
 
 
-@pytest.mark.parametrize("bad, message", [
-    ({"search_budget_ms": 0.0}, "search_budget_ms must be a number > 0 or None"),
-    ({"search_budget_ms": "fast"}, "search_budget_ms must be a number > 0 or None"),
-    ({"clock": 3.0}, "clock must be a callable"),
-    ({"search_threads": 0}, "search_threads must be an integer in \\[1, 64\\] or None"),
-])
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        ({"search_budget_ms": 0.0}, "search_budget_ms must be a number > 0 or None"),
+        ({"search_budget_ms": "fast"}, "search_budget_ms must be a number > 0 or None"),
+        ({"clock": 3.0}, "clock must be a callable"),
+        ({"search_threads": 0}, "search_threads must be an integer in \\[1, 64\\] or None"),
+    ],
+)
 def test_bad_cap_options_raise(bad, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         MarkerDetector(ARUCO, **bad)

@@ -23,7 +23,7 @@ def test_fit_from_a_pixel_off_reaches_the_true_corners(frame) -> None:
     assert fit is not None
     assert rms(fit.corners, truth) < 0.05
     assert fit.residual_px < 0.1 and fit.valid_fraction > 0.9
-    assert 150 < fit.contrast < 230       # white 220 and ink 25 under the lighting gradient
+    assert 150 < fit.contrast < 230  # white 220 and ink 25 under the lighting gradient
 
 
 @pytest.mark.parametrize("inner, outer", [(1.5, 3.0), (3.0, 1.5), (2.0, 2.0)])
@@ -58,8 +58,9 @@ def test_quads_are_clockwise_and_within_a_pixel(frame) -> None:
 
 
 def test_no_quads_in_a_smooth_empty_scene() -> None:
-    image, _ = render(SQUARE, *facing_pose(0, 50.0), seed=801,
-                      effects=Effects(background="plain", lighting_gradient=0.5))
+    image, _ = render(
+        SQUARE, *facing_pose(0, 50.0), seed=801, effects=Effects(background="plain", lighting_gradient=0.5)
+    )
     assert find_quads(image, min_side_px=10, block_px=25) == []
 
 

@@ -18,8 +18,9 @@ def _errors(marker: Marker, gamma, detector_gamma, blurs=(0.8, 1.2, 1.5), per_bl
     for blur in blurs:
         for i in range(per_blur):
             rvec, tvec = random_pose(rng, CAM, marker, distance_m=(0.4, 1.0), max_tilt_deg=45)
-            image, truth = render(marker, rvec, tvec, seed=int(blur * 10) + i,
-                                  effects=Effects(blur_px=blur, gamma=gamma))
+            image, truth = render(
+                marker, rvec, tvec, seed=int(blur * 10) + i, effects=Effects(blur_px=blur, gamma=gamma)
+            )
             corners = MarkerDetector(marker, gamma=detector_gamma).detect(image)
             if corners is None:
                 misses += 1
@@ -35,8 +36,8 @@ def _errors(marker: Marker, gamma, detector_gamma, blurs=(0.8, 1.2, 1.5), per_bl
 def test_gamma_encoded_blurred_frames_give_unbiased_corners(marker: Marker, gamma) -> None:
     sizes, err, misses = _errors(marker, gamma, gamma)
     assert misses == 0
-    assert abs(float(sizes.mean())) <= 0.002            # |mean size bias| <= 0.2 %
-    assert float(np.sqrt(np.mean(np.sum(err ** 2, axis=1)))) <= 0.1
+    assert abs(float(sizes.mean())) <= 0.002  # |mean size bias| <= 0.2 %
+    assert float(np.sqrt(np.mean(np.sum(err**2, axis=1)))) <= 0.1
 
 
 def test_the_cause_half_way_levels_of_encoded_edges_shrink_the_marker() -> None:

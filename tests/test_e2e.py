@@ -61,7 +61,8 @@ class RecordingSource:
 
 
 def config(placement: str, preset: str, offset, outputs: str):
-    return parse_config(f"""
+    return parse_config(
+        f"""
 [camera]
 source = "synthetic"
 width = 320
@@ -80,7 +81,9 @@ offset_m = {list(offset)}
 [pipeline]
 latency_budget_s = 0.5
 {outputs}
-""", "e2e.toml")
+""",
+        "e2e.toml",
+    )
 
 
 def run_pipeline(cfg, images):
@@ -103,20 +106,27 @@ def assert_close_to_truth(p, R, truth: g.VehiclePose, distance_m: float):
 
 def test_wall_marker_forward_camera_over_udp_and_serial(tmp_path):
     peer = UdpPeer()
-    cfg = config("wall", "forward", (0.15, 0.0, -0.05), f"""
+    cfg = config(
+        "wall",
+        "forward",
+        (0.15, 0.0, -0.05),
+        f"""
 [output.mavlink]
 connection = "udpout:127.0.0.1:{peer.port}"
 messages = ["ODOMETRY", "VISION_POSITION_ESTIMATE"]
 wait_heartbeat = false
 [output.serial]
-port = "{tmp_path / 'ttyMCU'}"
+port = "{tmp_path / "ttyMCU"}"
 [output.jsonl]
-path = "{tmp_path / 'poses.jsonl'}"
-""")
+path = "{tmp_path / "poses.jsonl"}"
+""",
+    )
     camera, marker = cfg.camera.model(), cfg.marker.model()
     truth = render.trajectory("wall", N_FRAMES, FPS, seed=3, camera=camera, marker=marker)
-    images = [render.render_marker(camera, marker, p.rvec, p.tvec, rng=np.random.default_rng(i)).image
-              for i, p in enumerate(truth)]
+    images = [
+        render.render_marker(camera, marker, p.rvec, p.tvec, rng=np.random.default_rng(i)).image
+        for i, p in enumerate(truth)
+    ]
     frames = g.VehicleFrames.from_config(cfg.mount, cfg.marker.placement)
     truth_vehicle = [frames.vehicle_pose(g.R_from_rvec(p.rvec), p.tvec) for p in truth]
     pty = VanishingPty(str(tmp_path / "ttyMCU"))
@@ -149,8 +159,12 @@ path = "{tmp_path / 'poses.jsonl'}"
         assert_close_to_truth((m.x, m.y, m.z), _R_from_q(m.q), truth_vehicle[i], float(np.linalg.norm(truth[i].tvec)))
     for m in of_type(msgs, "VISION_POSITION_ESTIMATE"):
         i = frame_of[m.usec]
-        assert_close_to_truth((m.x, m.y, m.z), g.R_from_euler_rpy(m.roll, m.pitch, m.yaw), truth_vehicle[i],
-                              float(np.linalg.norm(truth[i].tvec)))
+        assert_close_to_truth(
+            (m.x, m.y, m.z),
+            g.R_from_euler_rpy(m.roll, m.pitch, m.yaw),
+            truth_vehicle[i],
+            float(np.linalg.norm(truth[i].tvec)),
+        )
     report = check(msgs, jump_m=cfg.output.mavlink.jump_m)
     assert report.ok, str(report)
     # The plain serial line: checksums verified by the parser, same poses.
@@ -170,34 +184,47 @@ path = "{tmp_path / 'poses.jsonl'}"
 
 def _R_from_q(q) -> np.ndarray:
     w, x, y, z = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def test_floor_marker_down_camera_landing_target_over_a_serial_mavlink_link(tmp_path):
     """A drone circling 1.2 m over a floor marker, turning: ODOMETRY + LANDING_TARGET on a pty."""
     pty = VanishingPty(str(tmp_path / "ttyFC"))
-    cfg = config("floor", "down", (0.08, 0.0, 0.05), f"""
+    cfg = config(
+        "floor",
+        "down",
+        (0.08, 0.0, 0.05),
+        f"""
 [output.mavlink]
 connection = "{pty.path}"
 baud = 921600
 messages = ["ODOMETRY", "LANDING_TARGET"]
 wait_heartbeat = false
-""")
+""",
+    )
     camera, marker = cfg.camera.model(), cfg.marker.model()
     frames = g.VehicleFrames.from_config(cfg.mount, cfg.marker.placement)
     motion = []
     for k in range(N_FRAMES):
         a = 2 * np.pi * k / N_FRAMES
         p = np.array([0.12 * np.cos(a), 0.12 * np.sin(a), -1.2 + 0.1 * np.sin(2 * a)])
-        motion.append(g.VehiclePose(p, g.R_from_euler_rpy(np.radians(3 * np.sin(a)), np.radians(-2.0),
-                                                          np.radians(40.0 + 90.0 * k / N_FRAMES))))
+        motion.append(
+            g.VehiclePose(
+                p,
+                g.R_from_euler_rpy(np.radians(3 * np.sin(a)), np.radians(-2.0), np.radians(40.0 + 90.0 * k / N_FRAMES)),
+            )
+        )
     cam_poses = [frames.camera_pose(v) for v in motion]
-    images = [render.render_marker(camera, marker, g.rvec_from_R(R), t, rng=np.random.default_rng(i)).image
-              for i, (R, t) in enumerate(cam_poses)]
+    images = [
+        render.render_marker(camera, marker, g.rvec_from_R(R), t, rng=np.random.default_rng(i)).image
+        for i, (R, t) in enumerate(cam_poses)
+    ]
     chunks = []
     reading = threading.Event()
 
@@ -241,18 +268,26 @@ def test_service_runs_a_recording_to_its_end_and_closes_the_outputs(tmp_path, ca
     from pose_daemon.service import Service
 
     peer = UdpPeer()
-    cfg = config("wall", "forward", (0.0, 0.0, 0.0), f"""
+    cfg = config(
+        "wall",
+        "forward",
+        (0.0, 0.0, 0.0),
+        f"""
 [output.mavlink]
 connection = "udpout:127.0.0.1:{peer.port}"
 wait_heartbeat = false
 [output.jsonl]
-path = "{tmp_path / 'poses.jsonl'}"
-""")
+path = "{tmp_path / "poses.jsonl"}"
+""",
+    )
     camera, marker = cfg.camera.model(), cfg.marker.model()
     truth = render.trajectory("wall", 30, FPS, seed=5, camera=camera, marker=marker)
-    source = RecordingSource([render.render_marker(camera, marker, p.rvec, p.tvec,
-                                                   rng=np.random.default_rng(i)).image
-                              for i, p in enumerate(truth)])
+    source = RecordingSource(
+        [
+            render.render_marker(camera, marker, p.rvec, p.tvec, rng=np.random.default_rng(i)).image
+            for i, p in enumerate(truth)
+        ]
+    )
     service = Service(cfg, source=source)
     with caplog.at_level(logging.INFO):
         assert service.run() == 0
@@ -308,33 +343,42 @@ preset = "forward"
 offset_m = [0.1, 0.0, 0.0]
 """
     rec_cfg = tmp_path / "record.toml"
-    rec_cfg.write_text(camera_toml.replace("[camera]", '[camera]\nsource = "synthetic"')
-                       + "[synthetic]\nseed = 7\n")
+    rec_cfg.write_text(camera_toml.replace("[camera]", '[camera]\nsource = "synthetic"') + "[synthetic]\nseed = 7\n")
     rec = tmp_path / "rec"
     cli = [sys.executable, "-m", "pose_daemon"]
-    done = subprocess.run(cli + ["record", "--config", str(rec_cfg), "--out", str(rec), "--frames", "45",
-                                 "--quiet"], capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        cli + ["record", "--config", str(rec_cfg), "--out", str(rec), "--frames", "45", "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr
     peer = UdpPeer()
     run_cfg = tmp_path / "run.toml"
-    run_cfg.write_text(camera_toml.replace("[camera]", f'[camera]\nsource = "replay:{rec}"') + f"""
+    run_cfg.write_text(
+        camera_toml.replace("[camera]", f'[camera]\nsource = "replay:{rec}"')
+        + f"""
 [output.mavlink]
 connection = "udpout:127.0.0.1:{peer.port}"
 messages = ["ODOMETRY", "VISION_POSITION_ESTIMATE"]
 wait_heartbeat = false
 [output.jsonl]
-path = "{tmp_path / 'poses.jsonl'}"
-""")
-    proc = subprocess.Popen(cli + ["run", "--config", str(run_cfg)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+path = "{tmp_path / "poses.jsonl"}"
+"""
+    )
+    proc = subprocess.Popen(
+        cli + ["run", "--config", str(run_cfg)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     msgs = peer.collect(60.0, until=lambda ms: proc.poll() is not None)
     msgs = peer.collect(0.3)
     peer.close()
     _, err = proc.communicate(timeout=10)
     assert proc.returncode == 0, err[-2000:]
     # Which frame each message is: the JSON lines give (frame, capture time).
-    by_time = {round(r["t"] * 1e6): r["frame"] for r in
-               (json.loads(s) for s in (tmp_path / "poses.jsonl").read_text().splitlines())}
+    by_time = {
+        round(r["t"] * 1e6): r["frame"]
+        for r in (json.loads(s) for s in (tmp_path / "poses.jsonl").read_text().splitlines())
+    }
     truth = {e["seq"]: e for e in (json.loads(s) for s in (rec / "index.jsonl").read_text().splitlines())}
     cfg = parse_config(run_cfg.read_text(), "run.toml")
     frames = g.VehicleFrames.from_config(cfg.mount, cfg.marker.placement)
@@ -370,7 +414,7 @@ class LiveRenderingSource:
         self.camera, self.marker, self.frames, self.motion = camera, marker, frames, motion
         self.n_frames, self.period_s = n_frames, 1.0 / fps
         self.ready = lambda: True
-        self.truth: dict = {}   # seq -> (t_capture_s, VehiclePose)
+        self.truth: dict = {}  # seq -> (t_capture_s, VehiclePose)
 
     def open(self) -> None:
         from mavlink_helpers import wait_for
@@ -386,8 +430,9 @@ class LiveRenderingSource:
         self._next += self.period_s
         vehicle = self.motion(t)
         R_cm, tvec = self.frames.camera_pose(vehicle)
-        image = render.render_marker(self.camera, self.marker, g.rvec_from_R(R_cm), tvec,
-                                     rng=np.random.default_rng(self._i)).image
+        image = render.render_marker(
+            self.camera, self.marker, g.rvec_from_R(R_cm), tvec, rng=np.random.default_rng(self._i)
+        ).image
         time.sleep(max(0.0, t - time.monotonic()))
         self.truth[self._i] = (t, vehicle)
         frame = Frame(image=image, t_capture_s=t, seq=self._i)
@@ -415,22 +460,29 @@ def test_service_takes_the_live_attitude_from_the_autopilot_and_resolves_flips_w
         # Tilted and wobbling, heading slowly swinging: a hover 2.4 m up, ~0.9 m to the side of
         # the marker (seen ~20 deg off its normal, ~23 px across).
         s = t - t0
-        return (np.radians(9.0 + 4.0 * np.sin(2 * np.pi * s / 3.0)), np.radians(-6.0 + 3.0 * np.cos(2 * np.pi * s / 4.0)),
-                np.radians(30.0 + 5.0 * np.sin(2 * np.pi * s / 6.0)))
+        return (
+            np.radians(9.0 + 4.0 * np.sin(2 * np.pi * s / 3.0)),
+            np.radians(-6.0 + 3.0 * np.cos(2 * np.pi * s / 4.0)),
+            np.radians(30.0 + 5.0 * np.sin(2 * np.pi * s / 6.0)),
+        )
 
     def motion(t: float) -> g.VehiclePose:
         s = t - t0
         p = np.array([0.15 * np.sin(2 * np.pi * s / 5.0), 0.9 + 0.15 * np.cos(2 * np.pi * s / 7.0), -2.4])
         return g.VehiclePose(p, g.R_from_euler_rpy(*rpy(t)))
 
-    fake = FakeAutopilot("ardupilot", vehicle_state=lambda t: (motion(t).p_local_body_m, rpy(t)),
-                         timesync_s=0.0)
+    fake = FakeAutopilot("ardupilot", vehicle_state=lambda t: (motion(t).p_local_body_m, rpy(t)), timesync_s=0.0)
     try:
-        cfg = config("floor", "down", (0.0, 0.0, 0.0), f"""
+        cfg = config(
+            "floor",
+            "down",
+            (0.0, 0.0, 0.0),
+            f"""
 [output.mavlink]
 connection = "{fake.connection}"
 messages = ["ODOMETRY"]
-""")
+""",
+        )
         assert cfg.attitude.source == "mavlink"
         camera, marker = cfg.camera.model(), cfg.marker.model()
         frames = g.VehicleFrames.from_config(cfg.mount, cfg.marker.placement)

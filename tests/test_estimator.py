@@ -28,15 +28,17 @@ def _random_pose(rng, d_min=0.5, d_max=4.0, tilt_max_deg=60.0):
     axis /= np.linalg.norm(axis)
     tilt = math.radians(rng.uniform(0.0, tilt_max_deg))
     spin = rng.uniform(-math.pi, math.pi)
-    R = (geometry.R_from_rvec(axis * tilt) @ geometry.R_from_rvec(np.array([0.0, 0.0, spin]))
-         @ np.diag([1.0, -1.0, -1.0]))
+    R = (
+        geometry.R_from_rvec(axis * tilt)
+        @ geometry.R_from_rvec(np.array([0.0, 0.0, spin]))
+        @ np.diag([1.0, -1.0, -1.0])
+    )
     t = np.array([rng.uniform(-0.25, 0.25) * d, rng.uniform(-0.18, 0.18) * d, d])
     return R, t
 
 
 def _project(R, t, camera: Camera, marker: Marker) -> np.ndarray:
-    img, _ = cv2.projectPoints(marker.object_points, cv2.Rodrigues(R)[0], t, camera.K,
-                               camera.dist_coeffs)
+    img, _ = cv2.projectPoints(marker.object_points, cv2.Rodrigues(R)[0], t, camera.K, camera.dist_coeffs)
     return img.reshape(4, 2)
 
 
@@ -125,8 +127,9 @@ def test_noisy_corners_match_opencv_maximum_likelihood(camera, marker, rng):
     for _, _, img in _cases(rng, camera, marker, 30):
         noisy = img + rng.normal(scale=0.5, size=(4, 2))
         pose = estimate_pose(noisy, camera, marker)
-        ok, rvecs, tvecs, errs = cv2.solvePnPGeneric(marker.object_points, noisy, camera.K, None,
-                                                     flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        ok, rvecs, tvecs, errs = cv2.solvePnPGeneric(
+            marker.object_points, noisy, camera.K, None, flags=cv2.SOLVEPNP_IPPE_SQUARE
+        )
         best = None
         for rv, tv in zip(rvecs, tvecs):
             rv, tv = cv2.solvePnPRefineLM(marker.object_points, noisy, camera.K, None, rv.copy(), tv.copy())
@@ -136,8 +139,7 @@ def test_noisy_corners_match_opencv_maximum_likelihood(camera, marker, rng):
                 best = (e, cv2.Rodrigues(rv)[0], tv.ravel())
         # Same minimum of the same cost: equal errors, equal poses.
         assert pose.reprojection_error_px <= best[0] + 1e-6
-        assert geometry.rotation_angle_deg(pose.R, best[1]) < 1e-3 or \
-            abs(pose.reprojection_error_px - best[0]) < 1e-6
+        assert geometry.rotation_angle_deg(pose.R, best[1]) < 1e-3 or abs(pose.reprojection_error_px - best[0]) < 1e-6
 
 
 def _assert_batch_equals_estimate_pose(imgs, camera, marker, **opts):
@@ -158,10 +160,12 @@ def _assert_batch_equals_estimate_pose(imgs, camera, marker, **opts):
         assert pose.reprojection_error_px == pytest.approx(batch.reprojection_error_px[i], rel=1e-5, abs=1e-9)
         assert pose.ambiguity_ratio == pytest.approx(batch.ambiguity_ratio[i], rel=1e-4, abs=1e-9)
         assert (pose.alpha_deg, pose.beta_deg, pose.gamma_deg) == pytest.approx(
-            (batch.alpha_deg[i], batch.beta_deg[i], batch.gamma_deg[i]), abs=1e-5)
+            (batch.alpha_deg[i], batch.beta_deg[i], batch.gamma_deg[i]), abs=1e-5
+        )
         if pose.alternative is not None:
             assert pose.alternative.reprojection_error_px == pytest.approx(
-                batch.alternative_error_px[i], rel=1e-4, abs=1e-9)
+                batch.alternative_error_px[i], rel=1e-4, abs=1e-9
+            )
     return batch
 
 
@@ -193,20 +197,23 @@ GOOD = [[300.0, 200.0], [340.0, 202.0], [338.0, 241.0], [299.0, 239.0]]
 
 
 @pytest.mark.pi
-@pytest.mark.parametrize("corners, message", [
-    ([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]], "shape"),
-    ([[1.0, 2.0, 3.0]] * 4, "shape"),
-    ("abc", "shape|numbers"),
-    ([[300.0, 200.0], [np.nan, 202.0], [338.0, 241.0], [299.0, 239.0]], "NaN"),
-    ([[300.0, 200.0], [340.0, np.inf], [338.0, 241.0], [299.0, 239.0]], "NaN or infinity"),
-    ([[300.0, 200.0], [300.0, 200.0], [338.0, 241.0], [299.0, 239.0]], "repeated"),
-    ([[300.0, 200.0]] * 4, "same point"),
-    ([[300.0, 200.0], [320.0, 200.0], [340.0, 200.0], [299.0, 239.0]], "collinear"),
-    ([[300.0, 200.0], [320.0, 210.0], [340.0, 220.0], [360.0, 230.0]], "zero area"),
-    ([[300.0, 200.0], [338.0, 241.0], [340.0, 202.0], [299.0, 239.0]], "bow-tie"),
-    ([[300.0, 200.0], [340.0, 202.0], [310.0, 212.0], [299.0, 239.0]], "non-convex"),
-    ([[299.0, 239.0], [338.0, 241.0], [340.0, 202.0], [300.0, 200.0]], "behind the camera"),
-])
+@pytest.mark.parametrize(
+    "corners, message",
+    [
+        ([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]], "shape"),
+        ([[1.0, 2.0, 3.0]] * 4, "shape"),
+        ("abc", "shape|numbers"),
+        ([[300.0, 200.0], [np.nan, 202.0], [338.0, 241.0], [299.0, 239.0]], "NaN"),
+        ([[300.0, 200.0], [340.0, np.inf], [338.0, 241.0], [299.0, 239.0]], "NaN or infinity"),
+        ([[300.0, 200.0], [300.0, 200.0], [338.0, 241.0], [299.0, 239.0]], "repeated"),
+        ([[300.0, 200.0]] * 4, "same point"),
+        ([[300.0, 200.0], [320.0, 200.0], [340.0, 200.0], [299.0, 239.0]], "collinear"),
+        ([[300.0, 200.0], [320.0, 210.0], [340.0, 220.0], [360.0, 230.0]], "zero area"),
+        ([[300.0, 200.0], [338.0, 241.0], [340.0, 202.0], [299.0, 239.0]], "bow-tie"),
+        ([[300.0, 200.0], [340.0, 202.0], [310.0, 212.0], [299.0, 239.0]], "non-convex"),
+        ([[299.0, 239.0], [338.0, 241.0], [340.0, 202.0], [300.0, 200.0]], "behind the camera"),
+    ],
+)
 def test_bad_input_is_named(camera, marker, corners, message):
     with pytest.raises(EstimationError, match=message):
         estimate_pose(corners, camera, marker)
@@ -250,9 +257,10 @@ def test_corners_nearly_edge_on_never_give_nan(camera, marker, rng):
 def test_weak_perspective_pair_brackets_the_planar_ambiguity(camera, marker, rng):
     for R, t, img in _cases(rng, camera, marker, 10):
         n = camera.undistort_normalized(img)
-        pair = [(np.reshape(Rw, (3, 3)), np.array(tw))
-                for Rw, tw in weak_perspective_pair(n[:, 0].tolist(), n[:, 1].tolist(),
-                                                    marker.width, marker.height)]
+        pair = [
+            (np.reshape(Rw, (3, 3)), np.array(tw))
+            for Rw, tw in weak_perspective_pair(n[:, 0].tolist(), n[:, 1].tolist(), marker.width, marker.height)
+        ]
         for Ra, _ in pair:
             assert np.allclose(Ra.T @ Ra, np.eye(3), atol=1e-12) and np.linalg.det(Ra) > 0
         # One of the two is a fair first guess of the true pose (the affine model's error).

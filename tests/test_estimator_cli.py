@@ -29,15 +29,20 @@ def test_estimate_lines_from_a_file(tmp_path, capsys):
     camera, marker = _default_models()
     good = _corners(camera, marker)
     src = tmp_path / "corners.jsonl"
-    src.write_text("\n".join([
-        json.dumps({"corners": good, "frame": 7, "t": 1.5}),
-        json.dumps({"corners": good[:3]}),
-        "{broken",
-        "",
-        json.dumps({"frame": 9}),
-        json.dumps({"corners": [good[0], good[2], good[1], good[3]], "frame": 10}),
-        json.dumps([1, 2]),
-    ]) + "\n")
+    src.write_text(
+        "\n".join(
+            [
+                json.dumps({"corners": good, "frame": 7, "t": 1.5}),
+                json.dumps({"corners": good[:3]}),
+                "{broken",
+                "",
+                json.dumps({"frame": 9}),
+                json.dumps({"corners": [good[0], good[2], good[1], good[3]], "frame": 10}),
+                json.dumps([1, 2]),
+            ]
+        )
+        + "\n"
+    )
     assert main(["estimate", str(src)]) == 0
     lines = [json.loads(s) for s in capsys.readouterr().out.splitlines()]
     assert len(lines) == 6
@@ -46,8 +51,16 @@ def test_estimate_lines_from_a_file(tmp_path, capsys):
     expected = estimate_pose(good, camera, marker)
     assert np.allclose(first["tvec"], expected.tvec, atol=1e-12)
     assert np.allclose(first["tvec"], (0.05, -0.02, 1.2), atol=1e-8)
-    for key in ("rvec", "camera_position", "alpha_deg", "beta_deg", "gamma_deg",
-                "reprojection_error_px", "ambiguity_ratio", "corners"):
+    for key in (
+        "rvec",
+        "camera_position",
+        "alpha_deg",
+        "beta_deg",
+        "gamma_deg",
+        "reprojection_error_px",
+        "ambiguity_ratio",
+        "corners",
+    ):
         assert key in first
     assert lines[1] == {"ok": False, "error": lines[1]["error"]} and "shape (4, 2)" in lines[1]["error"]
     assert lines[2]["ok"] is False and lines[2]["error"].startswith("line 3: not JSON")
@@ -58,9 +71,11 @@ def test_estimate_lines_from_a_file(tmp_path, capsys):
 
 def test_estimate_with_config_and_method(tmp_path, capsys):
     cfg = tmp_path / "cam.toml"
-    cfg.write_text('[camera]\nsource = "synthetic"\nwidth = 640\nheight = 480\nfx = 500.0\nfy = 500.0\n'
-                   'cx = 320.0\ncy = 240.0\n[marker]\nwidth = 0.3\nheight = 0.15\n'
-                   '[estimator]\nmethod = "paper"\n')
+    cfg.write_text(
+        '[camera]\nsource = "synthetic"\nwidth = 640\nheight = 480\nfx = 500.0\nfy = 500.0\n'
+        "cx = 320.0\ncy = 240.0\n[marker]\nwidth = 0.3\nheight = 0.15\n"
+        '[estimator]\nmethod = "paper"\n'
+    )
     camera = Camera(fx=500.0, fy=500.0, cx=320.0, cy=240.0)
     marker = Marker(0.3, 0.15)
     src = tmp_path / "in.jsonl"
@@ -86,9 +101,14 @@ def test_estimate_user_errors_exit_2(tmp_path, capsys):
 
 def test_estimate_reads_stdin_as_a_subprocess():
     camera, marker = _default_models()
-    text = json.dumps({"corners": _corners(camera, marker), "id": "a"}) + "\n" + '{"corners": [[0, 0], [0, 0], [0, 0], [0, 0]]}\n'
-    proc = subprocess.run([sys.executable, "-m", "pose_daemon", "estimate"], input=text,
-                          capture_output=True, text=True, timeout=60)
+    text = (
+        json.dumps({"corners": _corners(camera, marker), "id": "a"})
+        + "\n"
+        + '{"corners": [[0, 0], [0, 0], [0, 0], [0, 0]]}\n'
+    )
+    proc = subprocess.run(
+        [sys.executable, "-m", "pose_daemon", "estimate"], input=text, capture_output=True, text=True, timeout=60
+    )
     assert proc.returncode == 0, proc.stderr
     out = [json.loads(s) for s in io.StringIO(proc.stdout)]
     assert out[0]["ok"] is True and out[0]["id"] == "a"

@@ -22,8 +22,7 @@ def _loop_one(img, area=1.0, method="iterative", iterations=1, **kw):
     return np.array(R), np.array(p), used
 
 
-ROTATIONS = [(geometry.rot_z, "gamma_step_rad"), (geometry.rot_y, "beta_step_rad"),
-             (geometry.rot_x, "alpha_step_rad")]
+ROTATIONS = [(geometry.rot_z, "gamma_step_rad"), (geometry.rot_y, "beta_step_rad"), (geometry.rot_x, "alpha_step_rad")]
 
 
 @pytest.mark.parametrize("f", [1.0, 600.0])
@@ -105,6 +104,7 @@ def test_shipped_table_is_what_the_script_generates():
     fresh = build_table()
     import json
     from importlib import resources
+
     shipped = json.loads(resources.files("pose_daemon").joinpath("data", "paper_table.json").read_text())
     # atol: coefficients that are zero in exact arithmetic come out as +-5e-12 rounding noise
     # that differs between machines (Debian armhf under QEMU gives other noise than x86-64).

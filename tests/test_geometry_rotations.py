@@ -77,7 +77,8 @@ def test_float_forms_match_the_array_forms(rng):
         assert np.abs(np.array(t3) - A @ p).max() < 1e-15
         # Angles over the whole sphere, beta beyond +-90 deg included.
         assert g.paper_angles_deg_from_R_cam_marker_f(R9) == pytest.approx(
-            g.paper_angles_deg_from_R_cam_marker(np.reshape(R9, (3, 3))), abs=1e-12)
+            g.paper_angles_deg_from_R_cam_marker(np.reshape(R9, (3, 3))), abs=1e-12
+        )
 
 
 def test_one_matrix_and_stacks_give_the_same_quaternions_and_angles(rng):
@@ -95,7 +96,11 @@ def test_one_matrix_and_stacks_give_the_same_quaternions_and_angles(rng):
             assert isinstance(single, float) and abs(single - angle[i - 1]) < 1e-9
     # The quaternion's rotation is R itself.
     w, x, y, z = q[5]
-    Rq = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                   [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    Rq = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
     assert np.abs(Rq - R[5]).max() < 1e-12

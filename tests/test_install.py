@@ -39,8 +39,14 @@ def test_unit_is_notify_with_watchdog_restart_and_unprivileged_user():
     assert u[("Service", "User")] == ["pose-daemon"]
     assert u[("Service", "SupplementaryGroups")] == ["video dialout"]
     assert u[("Service", "CapabilityBoundingSet")] == [""]
-    for key in ("NoNewPrivileges", "ProtectHome", "PrivateTmp", "ProtectKernelTunables",
-                "RestrictSUIDSGID", "LockPersonality"):
+    for key in (
+        "NoNewPrivileges",
+        "ProtectHome",
+        "PrivateTmp",
+        "ProtectKernelTunables",
+        "RestrictSUIDSGID",
+        "LockPersonality",
+    ):
         assert u[("Service", key)] == ["yes"], key
     assert u[("Service", "ProtectSystem")] == ["strict"]
     assert u[("Service", "DevicePolicy")] == ["closed"]
@@ -55,11 +61,11 @@ def test_unit_is_notify_with_watchdog_restart_and_unprivileged_user():
     assert u[("Install", "WantedBy")] == ["multi-user.target"]
 
 
-@pytest.mark.skipif(shutil.which("systemd-analyze") is None,
-                    reason="systemd-analyze missing: scripts/check-unit.sh installs it in CI")
+@pytest.mark.skipif(
+    shutil.which("systemd-analyze") is None, reason="systemd-analyze missing: scripts/check-unit.sh installs it in CI"
+)
 def test_unit_exposure_score_is_at_most_2_5():
-    res = subprocess.run([str(ROOT / "scripts" / "check-unit.sh")], capture_output=True, text=True,
-                         timeout=120)
+    res = subprocess.run([str(ROOT / "scripts" / "check-unit.sh")], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stdout + res.stderr
     score = float(res.stdout.split("exposure ")[1].split()[0])
     assert score <= 2.5
@@ -69,21 +75,21 @@ def test_unit_exposure_score_is_at_most_2_5():
 def test_check_unit_fails_on_a_weak_unit(tmp_path):
     weak = tmp_path / "weak.service"
     weak.write_text("[Service]\nType=notify\nExecStart=/bin/true\n")
-    res = subprocess.run([str(ROOT / "scripts" / "check-unit.sh"), str(weak)], capture_output=True,
-                         text=True, timeout=120)
+    res = subprocess.run(
+        [str(ROOT / "scripts" / "check-unit.sh"), str(weak)], capture_output=True, text=True, timeout=120
+    )
     assert res.returncode == 1
     assert "is worse than 2.5" in res.stderr
 
 
 def _dry_run(*args: str) -> str:
-    res = subprocess.run(["bash", str(INSTALL), "--dry-run", *args], capture_output=True, text=True,
-                         timeout=60)
+    res = subprocess.run(["bash", str(INSTALL), "--dry-run", *args], capture_output=True, text=True, timeout=60)
     assert res.returncode == 0, res.stderr
     return res.stdout
 
 
 def _commands(out: str):
-    return [line[len("would run: "):] for line in out.splitlines() if line.startswith("would run: ")]
+    return [line[len("would run: ") :] for line in out.splitlines() if line.startswith("would run: ")]
 
 
 def test_install_dry_run_lists_every_step_and_changes_nothing(tmp_path):
@@ -98,12 +104,18 @@ def test_install_dry_run_lists_every_step_and_changes_nothing(tmp_path):
     assert pips[0].endswith(" pymavlink") and pips[1].endswith(f" {ROOT}")
     assert any(c.startswith("useradd --system --user-group") and c.endswith(" pose-daemon") for c in cmds)
     assert "usermod -a -G video\\,dialout pose-daemon" in cmds
-    assert (f"install -m 0640 -o root -g pose-daemon {ROOT}/config/pose-daemon.toml "
-            f"{tmp_path}/etc/pose-daemon/pose-daemon.toml") in cmds
-    assert (f"install -m 0644 {ROOT}/systemd/pose-daemon.service "
-            f"{tmp_path}/etc/systemd/system/pose-daemon.service") in cmds
-    assert cmds[-3:] == ["systemctl daemon-reload", "systemctl enable pose-daemon.service",
-                         "systemctl restart pose-daemon.service"]
+    assert (
+        f"install -m 0640 -o root -g pose-daemon {ROOT}/config/pose-daemon.toml "
+        f"{tmp_path}/etc/pose-daemon/pose-daemon.toml"
+    ) in cmds
+    assert (
+        f"install -m 0644 {ROOT}/systemd/pose-daemon.service {tmp_path}/etc/systemd/system/pose-daemon.service"
+    ) in cmds
+    assert cmds[-3:] == [
+        "systemctl daemon-reload",
+        "systemctl enable pose-daemon.service",
+        "systemctl restart pose-daemon.service",
+    ]
     assert list(tmp_path.iterdir()) == []  # a dry run writes nothing
 
 
@@ -128,8 +140,7 @@ def test_install_frees_the_serial_console_and_is_idempotent(tmp_path):
     again = _dry_run("--root", str(tmp_path), "--no-start")
     assert not [c for c in _commands(again) if c.startswith("sed -i")]
     assert f"no serial console in {cmdline}" in again and "UART already enabled" in again
-    assert not [c for c in _commands(_dry_run("--root", str(tmp_path), "--no-serial"))
-                if c.startswith("sed")]
+    assert not [c for c in _commands(_dry_run("--root", str(tmp_path), "--no-serial")) if c.startswith("sed")]
 
 
 def _service_group() -> None:
@@ -138,8 +149,10 @@ def _service_group() -> None:
     subprocess.run(["groupadd", "-f", "--system", "pose-daemon"], check=True, capture_output=True)
 
 
-@pytest.mark.skipif(os.geteuid() != 0 or shutil.which("groupadd") is None,
-                    reason="sets file owners: needs root (CI has it) and groupadd")
+@pytest.mark.skipif(
+    os.geteuid() != 0 or shutil.which("groupadd") is None,
+    reason="sets file owners: needs root (CI has it) and groupadd",
+)
 def test_installed_config_is_readable_by_the_service_group_only(tmp_path):
     # The config may hold the MAVLink signing key: 0640 root:pose-daemon in a 0750 folder.
     import grp
@@ -188,7 +201,6 @@ def test_install_needs_root_or_dry_run():
 
 
 def test_install_rejects_unknown_arguments():
-    res = subprocess.run(["bash", str(INSTALL), "--frobnicate"], capture_output=True, text=True,
-                         timeout=30)
+    res = subprocess.run(["bash", str(INSTALL), "--frobnicate"], capture_output=True, text=True, timeout=30)
     assert res.returncode == 2
     assert res.stderr == "install-pi.sh: unknown argument --frobnicate (see --help)\n"

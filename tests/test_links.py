@@ -24,8 +24,7 @@ def small_tmpfs(tmp_path):
     """A real 64 KiB tmpfs (root only): a disk that fills up."""
     mnt = tmp_path / "disk"
     mnt.mkdir()
-    proc = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mnt)],
-                          capture_output=True, text=True)
+    proc = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mnt)], capture_output=True, text=True)
     if proc.returncode != 0:
         if os.environ.get("CI"):
             pytest.fail(f"cannot mount a tmpfs in CI: {proc.stderr.strip()}")
@@ -47,7 +46,7 @@ def _fill(path, leave_bytes: int) -> None:
 def test_jsonl_on_a_full_disk_never_leaves_a_broken_line(small_tmpfs):
     path = small_tmpfs / "poses.jsonl"
     filler = small_tmpfs / "filler"
-    _fill(str(filler), 4096)   # one page left: the lines fill it, one is cut at the edge
+    _fill(str(filler), 4096)  # one page left: the lines fill it, one is cut at the edge
     out = JsonlOutput(JsonlOutputConfig(path=str(path)), queue_size=0, retry_s=0.0, retry_max_s=0.0)
     try:
         k = 0
@@ -55,9 +54,9 @@ def test_jsonl_on_a_full_disk_never_leaves_a_broken_line(small_tmpfs):
             out.submit(vehicle_result(WALL, k, 10.0 + k / 30, (-2.0, 0.01 * k, 0.0)))
             k += 1
         assert k < 200, "the disk never filled"
-        for j in range(3):                        # more lines while it is full
+        for j in range(3):  # more lines while it is full
             out.submit(lost_result(k + j, 20.0 + j))
-        filler.unlink()                           # space again
+        filler.unlink()  # space again
         assert wait_for(lambda: out.link_up, 5.0), out.status()
         for j in range(5):
             out.submit(vehicle_result(WALL, 1000 + j, 30.0 + j / 30, (-2.0, 0.0, 0.0)))
@@ -65,7 +64,7 @@ def test_jsonl_on_a_full_disk_never_leaves_a_broken_line(small_tmpfs):
         out.close()
     text = path.read_text()
     assert text.endswith("\n")
-    frames = [json.loads(line)["frame"] for line in text.splitlines()]   # every line is a whole object
+    frames = [json.loads(line)["frame"] for line in text.splitlines()]  # every line is a whole object
     assert frames[-5:] == [1000, 1001, 1002, 1003, 1004]
     assert frames == sorted(frames) and len(frames) >= 6
     assert out.stats()["dropped"].get("link_down", 0) >= 1
@@ -90,8 +89,14 @@ def test_with_a_signing_key_only_correctly_signed_messages_are_believed():
 
     key = hashlib.sha256(b"correct horse battery staple").digest()
     peer = UdpPeer(signing_key=key)
-    out = mavlink_output(f"udpout:127.0.0.1:{peer.port}", WALL, wait_heartbeat=True, queue_size=0,
-                         signing_key="correct horse battery staple", origin=(47.397742, 8.545594, 488.0))
+    out = mavlink_output(
+        f"udpout:127.0.0.1:{peer.port}",
+        WALL,
+        wait_heartbeat=True,
+        queue_size=0,
+        signing_key="correct horse battery staple",
+        origin=(47.397742, 8.545594, 488.0),
+    )
     t = [50.0]
 
     def poses(n):
@@ -101,7 +106,7 @@ def test_with_a_signing_key_only_correctly_signed_messages_are_believed():
 
     try:
         assert peer.collect(2.0, until=lambda ms: bool(of_type(ms, "HEARTBEAT")))
-        peer.send(autopilot_heartbeat(system=1))                                # unsigned
+        peer.send(autopilot_heartbeat(system=1))  # unsigned
         peer.send(_signed_heartbeat(hashlib.sha256(b"wrong").digest(), system=1))  # another key
         assert wait_for(lambda: out.stats()["ignored"].get("bad_signature", 0) >= 2, 3.0), out.status()
         poses(5)
@@ -109,7 +114,7 @@ def test_with_a_signing_key_only_correctly_signed_messages_are_believed():
         assert out.autopilot_system is None
         assert not of_type(msgs, "ODOMETRY") and not of_type(msgs, "SET_GPS_GLOBAL_ORIGIN")
         assert "ignored bad_signature=2" in out.status()
-        peer.send(_signed_heartbeat(key, system=1))                             # the autopilot
+        peer.send(_signed_heartbeat(key, system=1))  # the autopilot
         assert wait_for(lambda: out.autopilot_system == 1, 3.0), out.status()
         poses(3)
         msgs = peer.collect(2.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 3)
@@ -141,7 +146,7 @@ def test_a_flood_of_junk_datagrams_does_not_starve_the_pose_stream():
         rng = __import__("random").Random(7)
         junk = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
-            while not stop.is_set() and sent_junk[0] < 400:   # at most 4 s of it
+            while not stop.is_set() and sent_junk[0] < 400:  # at most 4 s of it
                 junk.sendto(rng.randbytes(65507), addr)
                 sent_junk[0] += 1
                 time.sleep(0.01)
@@ -154,10 +159,10 @@ def test_a_flood_of_junk_datagrams_does_not_starve_the_pose_stream():
         flooder = threading.Thread(target=flood, args=(daemon_addr,), daemon=True)
         flooder.start()
         submitted = 0
-        for k in range(60):                       # 2 s of poses at 30 Hz
+        for k in range(60):  # 2 s of poses at 30 Hz
             out.submit(vehicle_result(WALL, k, 100.0 + k / 30, (-2.0, 0.0, 0.0)))
             submitted += 1
-            if k == 30:                           # a real message amid the junk
+            if k == 30:  # a real message amid the junk
                 ap = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
                 peer.send(ap.system_time_encode(0, 4321).pack(ap))
             time.sleep(1 / 30)
@@ -195,8 +200,7 @@ def test_a_serial_port_is_held_by_one_daemon_only(tmp_path, caplog):
     pty = VanishingPty(str(tmp_path / "ttyMCU"))
     first = PlainSerialOutput(SerialOutputConfig(port=pty.path), WALL, queue_size=0)
     caplog.set_level("WARNING", logger="pose_daemon.outputs")
-    second = PlainSerialOutput(SerialOutputConfig(port=pty.path, retry_s=0.05, retry_max_s=0.1), WALL,
-                               queue_size=0)
+    second = PlainSerialOutput(SerialOutputConfig(port=pty.path, retry_s=0.05, retry_max_s=0.1), WALL, queue_size=0)
     fc = mavlink_output(pty.path, WALL, wait_heartbeat=False, queue_size=0, retry_s=0.05, retry_max_s=0.1)
     try:
         assert first.link_up and not second.link_up and not fc.link_up
@@ -204,7 +208,7 @@ def test_a_serial_port_is_held_by_one_daemon_only(tmp_path, caplog):
             second.submit(vehicle_result(WALL, k, 200.0 + k / 30, (-3.0, 0.0, 0.0)))
             first.submit(vehicle_result(WALL, k, 100.0 + k / 30, (-2.0, 0.0, 0.0)))
         data = pty.read(1.0, until=lambda b: b.count(b"\r\n") >= 5)
-        wait_for(lambda: False, 0.3)               # the second's retries: still one line each
+        wait_for(lambda: False, 0.3)  # the second's retries: still one line each
         refused = second.status()
     finally:
         second.close()
@@ -215,7 +219,7 @@ def test_a_serial_port_is_held_by_one_daemon_only(tmp_path, caplog):
     assert [f["t_us"] for f in lines] == [round((100.0 + k / 30) * 1e6) for k in range(5)]
     assert "in use by another process" in refused and second.stats()["dropped"] == {"link_down": 5}
     warnings = [r.getMessage() for r in caplog.records if "in use by another process" in r.getMessage()]
-    assert len(warnings) == 2, warnings            # one line for each refused output, not one per retry
+    assert len(warnings) == 2, warnings  # one line for each refused output, not one per retry
 
 
 def test_a_second_udpin_daemon_on_one_port_is_warned_about(caplog):
@@ -254,16 +258,22 @@ def test_the_age_is_checked_again_right_before_the_bytes_go_out():
     object.__setattr__(frames, "clock", clock)
     object.__setattr__(frames, "step", step)
     peer = UdpPeer()
-    out = mavlink_output(f"udpout:127.0.0.1:{peer.port}", frames, wait_heartbeat=False, queue_size=0,
-                         max_age_s=0.1, clock=lambda: clock[0])
+    out = mavlink_output(
+        f"udpout:127.0.0.1:{peer.port}",
+        frames,
+        wait_heartbeat=False,
+        queue_size=0,
+        max_age_s=0.1,
+        clock=lambda: clock[0],
+    )
     try:
-        out.submit(vehicle_result(WALL, 0, clock[0] - 0.06, (-2.0, 0.0, 0.0)))   # on time: sent
-        step[0] = 0.08    # captured 30 ms ago, fine when its write starts; 110 ms once encoded
+        out.submit(vehicle_result(WALL, 0, clock[0] - 0.06, (-2.0, 0.0, 0.0)))  # on time: sent
+        step[0] = 0.08  # captured 30 ms ago, fine when its write starts; 110 ms once encoded
         out.submit(vehicle_result(WALL, 1, clock[0] - 0.03, (-2.0, 0.0, 0.0)))
-        step[0] = -1.0    # the clock goes back a second while it is encoded: no check to trust
+        step[0] = -1.0  # the clock goes back a second while it is encoded: no check to trust
         out.submit(vehicle_result(WALL, 2, clock[0] - 0.03, (-2.0, 0.0, 0.0)))
         step[0], clock[0] = 0.0, 500.2
-        out.submit(vehicle_result(WALL, 3, clock[0] - 0.01, (-2.0, 0.0, 0.0)))   # on time again
+        out.submit(vehicle_result(WALL, 3, clock[0] - 0.01, (-2.0, 0.0, 0.0)))  # on time again
         msgs = peer.collect(2.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 2)
         msgs = peer.collect(0.3)
     finally:
@@ -290,12 +300,11 @@ class _SlowStream(__import__("io").StringIO):
 def test_the_last_check_keeps_a_margin_for_how_long_sends_take():
     clock = [100.0]
     stream = _SlowStream(clock, 0.06)
-    out = JsonlOutput(JsonlOutputConfig(path="-"), queue_size=0, max_age_s=0.1, clock=lambda: clock[0],
-                      stream=stream)
+    out = JsonlOutput(JsonlOutputConfig(path="-"), queue_size=0, max_age_s=0.1, clock=lambda: clock[0], stream=stream)
     try:
-        out.submit(lost_result(0, clock[0]))            # leaves 60 ms after capture: on time
-        out.submit(lost_result(1, clock[0] - 0.06))     # 60 ms old: 120 ms when through, late
-        out.submit(lost_result(2, clock[0] - 0.03))     # 30 ms old: 90 ms when through
+        out.submit(lost_result(0, clock[0]))  # leaves 60 ms after capture: on time
+        out.submit(lost_result(1, clock[0] - 0.06))  # 60 ms old: 120 ms when through, late
+        out.submit(lost_result(2, clock[0] - 0.03))  # 30 ms old: 90 ms when through
     finally:
         out.close()
     assert [json.loads(s)["frame"] for s in stream.getvalue().splitlines()] == [0, 2]
@@ -333,7 +342,7 @@ class _TcpAutopilot:
         self.server.listen(8)
         self.server.settimeout(0.05)
         self.port = self.server.getsockname()[1]
-        self.conns = []          # [socket, parser, bytes its kernel held at resume (or None)]
+        self.conns = []  # [socket, parser, bytes its kernel held at resume (or None)]
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._accept, daemon=True)
@@ -378,7 +387,7 @@ class _TcpAutopilot:
                     data = sock.recv(65536)
                 except (BlockingIOError, InterruptedError):
                     break
-                except OSError:          # reset by the daemon: what was queued is gone
+                except OSError:  # reset by the daemon: what was queued is gone
                     break
                 if not data:
                     break
@@ -406,8 +415,16 @@ def test_a_tcp_peer_that_stops_reading_never_gets_a_late_pose_from_our_buffers()
 
     ap = _TcpAutopilot()
     clock = [1000.0]
-    out = mavlink_output(f"tcp:127.0.0.1:{ap.port}", WALL, wait_heartbeat=False, queue_size=0,
-                         max_age_s=BUDGET_S, clock=lambda: clock[0], retry_s=0.2, retry_max_s=1.0)
+    out = mavlink_output(
+        f"tcp:127.0.0.1:{ap.port}",
+        WALL,
+        wait_heartbeat=False,
+        queue_size=0,
+        max_age_s=BUDGET_S,
+        clock=lambda: clock[0],
+        retry_s=0.2,
+        retry_max_s=1.0,
+    )
     late, on_time, held_late = [], [], []
 
     def frame(k):
@@ -422,18 +439,18 @@ def test_a_tcp_peer_that_stops_reading_never_gets_a_late_pose_from_our_buffers()
 
     try:
         assert wait_for(lambda: out.link_up, 5.0), out.status()
-        for k in range(30):                          # reading
+        for k in range(30):  # reading
             frame(k)
             wait_for(lambda: bool(ap.conns), 1.0)
             read_and_judge()
         reading = len(on_time)
-        for k in range(30, 30 + 20 * FPS):           # 20 s not reading
+        for k in range(30, 30 + 20 * FPS):  # 20 s not reading
             frame(k)
             if k % 10 == 0:
-                wait_for(lambda: False, 0.002)       # let the output's thread reopen the link
+                wait_for(lambda: False, 0.002)  # let the output's thread reopen the link
         stalled_status = out.status()
         held = ap.note_held()
-        for k in range(30 + 20 * FPS, 30 + 22 * FPS):   # reading again
+        for k in range(30 + 20 * FPS, 30 + 22 * FPS):  # reading again
             frame(k)
             wait_for(lambda: False, 0.005)
             read_and_judge()
@@ -442,7 +459,7 @@ def test_a_tcp_peer_that_stops_reading_never_gets_a_late_pose_from_our_buffers()
         ap.close()
     assert reading >= 25
     assert late == [], (len(late), max(late), len(held_late), held)
-    assert len(on_time) >= reading + 30          # the stream came back after the stall
+    assert len(on_time) >= reading + 30  # the stream came back after the stall
     assert "dropped" in stalled_status and "flushed=" in stalled_status, stalled_status
 
 
@@ -458,8 +475,9 @@ def test_a_pty_nobody_reads_never_gives_a_late_line_when_read_again(tmp_path):
 
     port = VanishingPty(str(tmp_path / "ttyACM0"))
     clock = [2000.0]
-    out = PlainSerialOutput(SerialOutputConfig(port=port.path), WALL, queue_size=0, max_age_s=BUDGET_S,
-                            clock=lambda: clock[0])
+    out = PlainSerialOutput(
+        SerialOutputConfig(port=port.path), WALL, queue_size=0, max_age_s=BUDGET_S, clock=lambda: clock[0]
+    )
     buf, held = [b""], [0]
     late, on_time, held_late = [], [], []
 
@@ -484,7 +502,7 @@ def test_a_pty_nobody_reads_never_gives_a_late_line_when_read_again(tmp_path):
                     try:
                         f = parse_pose_line(line.decode("ascii") + "\r\n")
                     except ValueError:
-                        continue                        # a line cut by a discard: fails its checksum
+                        continue  # a line cut by a discard: fails its checksum
                     age = clock[0] - f["t_us"] / 1e6
                     (held_late if was_held and age > BUDGET_S else late if age > BUDGET_S else on_time).append(age)
 
@@ -493,7 +511,7 @@ def test_a_pty_nobody_reads_never_gives_a_late_line_when_read_again(tmp_path):
             frame(k)
             read_and_judge()
         reading = len(on_time)
-        for k in range(30, 30 + 12 * FPS):          # 12 s nobody reads
+        for k in range(30, 30 + 12 * FPS):  # 12 s nobody reads
             frame(k)
         held[0] = _fionread(port.master)
         for k in range(30 + 12 * FPS, 30 + 14 * FPS):
@@ -517,8 +535,10 @@ def test_socket_links_keep_a_small_kernel_send_buffer():
     server = socket.socket()
     server.bind(("127.0.0.1", 0))
     server.listen(1)
-    outs = [mavlink_output(f"udpout:127.0.0.1:{peer.port}", WALL, wait_heartbeat=False, queue_size=0),
-            mavlink_output(f"tcp:127.0.0.1:{server.getsockname()[1]}", WALL, wait_heartbeat=False, queue_size=0)]
+    outs = [
+        mavlink_output(f"udpout:127.0.0.1:{peer.port}", WALL, wait_heartbeat=False, queue_size=0),
+        mavlink_output(f"tcp:127.0.0.1:{server.getsockname()[1]}", WALL, wait_heartbeat=False, queue_size=0),
+    ]
     try:
         assert all(wait_for(lambda o=o: o.link_up, 5.0) for o in outs)
         sizes = [o._link.conn.port.getsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF) for o in outs]
@@ -527,4 +547,4 @@ def test_socket_links_keep_a_small_kernel_send_buffer():
             o.close()
         peer.close()
         server.close()
-    assert all(s <= 2 * 4096 for s in sizes), sizes   # Linux doubles what is asked for
+    assert all(s <= 2 * 4096 for s in sizes), sizes  # Linux doubles what is asked for

@@ -27,8 +27,9 @@ from pose_daemon.tools import marker_sheet
 
 TOLERANCE_MM = 0.2
 
-needs_pdftoppm = pytest.mark.skipif(shutil.which("pdftoppm") is None,
-                                    reason="pdftoppm (poppler-utils) is not installed")
+needs_pdftoppm = pytest.mark.skipif(
+    shutil.which("pdftoppm") is None, reason="pdftoppm (poppler-utils) is not installed"
+)
 
 
 def _marker_box(gray: np.ndarray) -> Tuple[int, int, int, int]:
@@ -52,9 +53,9 @@ def _side_mm(gray: np.ndarray, dpi: float, border_cells: int) -> Tuple[float, fl
     pad = 4  # pixels of white either side: catches the anti-aliased edge, not the cut line
     darkness = 1.0 - gray.astype(np.float64) / 255.0
     band = slice(int(y0 + 0.25 * cell), int(y0 + 0.75 * cell))
-    width_px = darkness[band, x0 - pad:x1 + pad].sum(axis=1).mean()
+    width_px = darkness[band, x0 - pad : x1 + pad].sum(axis=1).mean()
     band = slice(int(x0 + 0.25 * cell), int(x0 + 0.75 * cell))
-    height_px = darkness[y0 - pad:y1 + pad, band].sum(axis=0).mean()
+    height_px = darkness[y0 - pad : y1 + pad, band].sum(axis=0).mean()
     mm_per_px = 25.4 / dpi
     return width_px * mm_per_px, height_px * mm_per_px
 
@@ -69,8 +70,7 @@ def _decode(gray: np.ndarray, dictionary: str) -> List[int]:
 
 def _pdftoppm(pdf: Path, dpi: int) -> np.ndarray:
     stem = pdf.with_suffix("")
-    subprocess.run(["pdftoppm", "-r", str(dpi), "-gray", "-singlefile", str(pdf), str(stem)],
-                   check=True, timeout=60)
+    subprocess.run(["pdftoppm", "-r", str(dpi), "-gray", "-singlefile", str(pdf), str(stem)], check=True, timeout=60)
     img = cv2.imread(str(stem) + ".pgm", cv2.IMREAD_GRAYSCALE)
     assert img is not None
     return img
@@ -83,16 +83,32 @@ def _run_marker(args: List[str], capsys) -> Tuple[int, str, str]:
 
 
 @needs_pdftoppm
-@pytest.mark.parametrize("size_m, dictionary, marker_id, paper", [
-    (0.15, "DICT_4X4_50", 7, "a4"),
-    (0.083, "DICT_6X6_250", 201, "letter"),
-])
-def test_pdf_rasterised_by_pdftoppm_has_true_size_and_decodes(tmp_path: Path, capsys, size_m: float,
-                                                             dictionary: str, marker_id: int,
-                                                             paper: str) -> None:
+@pytest.mark.parametrize(
+    "size_m, dictionary, marker_id, paper",
+    [
+        (0.15, "DICT_4X4_50", 7, "a4"),
+        (0.083, "DICT_6X6_250", 201, "letter"),
+    ],
+)
+def test_pdf_rasterised_by_pdftoppm_has_true_size_and_decodes(
+    tmp_path: Path, capsys, size_m: float, dictionary: str, marker_id: int, paper: str
+) -> None:
     pdf = tmp_path / "m.pdf"
-    code, out, err = _run_marker(["--size", str(size_m), "--dictionary", dictionary, "--id", str(marker_id),
-                                  "--paper", paper, "--out", str(pdf)], capsys)
+    code, out, err = _run_marker(
+        [
+            "--size",
+            str(size_m),
+            "--dictionary",
+            dictionary,
+            "--id",
+            str(marker_id),
+            "--paper",
+            paper,
+            "--out",
+            str(pdf),
+        ],
+        capsys,
+    )
     assert code == 0, err
     dpi = 300
     gray = _pdftoppm(pdf, dpi)
@@ -130,8 +146,7 @@ def test_pdf_square_marker_and_scale_bar_measure_true(tmp_path: Path, capsys) ->
     dark = row > 0.05
     edges = np.flatnonzero(np.diff(dark.astype(np.int8)))
     runs = [(edges[i] + 1, edges[i + 1] + 1) for i in range(0, len(edges) - 1, 2)]
-    centroids_mm = [float((row[a:b] * np.arange(a, b)).sum() / row[a:b].sum()) * 25.4 / dpi
-                    for a, b in runs]
+    centroids_mm = [float((row[a:b] * np.arange(a, b)).sum() / row[a:b].sum()) * 25.4 / dpi for a, b in runs]
     assert len(centroids_mm) == 6, runs
     assert abs(centroids_mm[1] - (bar_x + 25.0)) < TOLERANCE_MM
     assert abs(centroids_mm[4] - centroids_mm[1] - 60.0) < TOLERANCE_MM
@@ -146,7 +161,7 @@ def test_png_at_given_dpi_has_true_size_resolution_tag_and_decodes(tmp_path: Pat
     assert code == 0, err
     data = png.read_bytes()
     i = data.index(b"pHYs")
-    ppm_x, ppm_y, unit = struct.unpack(">IIB", data[i + 4:i + 13])
+    ppm_x, ppm_y, unit = struct.unpack(">IIB", data[i + 4 : i + 13])
     assert unit == 1 and abs(ppm_x - dpi / 0.0254) <= 0.5 and ppm_x == ppm_y  # whole pixels per metre
     gray = cv2.imread(str(png), cv2.IMREAD_GRAYSCALE)
     assert gray.shape == (round(297 / 25.4 * dpi), round(210 / 25.4 * dpi))
@@ -158,18 +173,17 @@ def test_png_at_given_dpi_has_true_size_resolution_tag_and_decodes(tmp_path: Pat
 
 def _svg_rects(path_d: str) -> List[Tuple[float, float, float, float]]:
     nums = r"(-?[\d.]+)"
-    return [tuple(float(v) for v in m) for m in
-            re.findall(rf"M{nums} {nums}h{nums}v{nums}h-?[\d.]+z", path_d)]
+    return [tuple(float(v) for v in m) for m in re.findall(rf"M{nums} {nums}h{nums}v{nums}h-?[\d.]+z", path_d)]
 
 
 def test_svg_is_in_millimetres_and_its_shapes_decode(tmp_path: Path, capsys) -> None:
     svg = tmp_path / "m.svg"
-    code, _, _ = _run_marker(["--size", "0.14", "--dictionary", "DICT_5X5_100", "--id", "63", "--paper",
-                              "letter", "--out", str(svg)], capsys)
+    code, _, _ = _run_marker(
+        ["--size", "0.14", "--dictionary", "DICT_5X5_100", "--id", "63", "--paper", "letter", "--out", str(svg)], capsys
+    )
     assert code == 0
     root = ET.parse(svg).getroot()
-    assert (root.get("width"), root.get("height"), root.get("viewBox")) == \
-        ("215.9mm", "279.4mm", "0 0 215.9 279.4")
+    assert (root.get("width"), root.get("height"), root.get("viewBox")) == ("215.9mm", "279.4mm", "0 0 215.9 279.4")
     paths = [el for el in root.iter() if el.tag.endswith("path")]
     black = _svg_rects(paths[0].get("d"))
     assert paths[0].get("fill") == "#000000" and paths[1].get("fill") == "#ffffff"
@@ -179,7 +193,7 @@ def test_svg_is_in_millimetres_and_its_shapes_decode(tmp_path: Path, capsys) -> 
     img = np.full((int(279.4 * k), int(215.9 * k)), 255, np.uint8)
     for el, value in ((paths[0], 0), (paths[1], 255)):
         for x, y, w, h in _svg_rects(el.get("d")):
-            img[int(round(y * k)):int(round((y + h) * k)), int(round(x * k)):int(round((x + w) * k))] = value
+            img[int(round(y * k)) : int(round((y + h) * k)), int(round(x * k)) : int(round((x + w) * k))] = value
     assert _decode(img, "DICT_5X5_100") == [63]
 
 
@@ -199,17 +213,20 @@ def test_largest_size_reported_is_the_largest_that_fits(capsys) -> None:
                 marker_sheet.layout(kind, (largest_mm + 1) / 1000.0, dictionary=dictionary, paper=paper)
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--size", "0.25"], "a 250 mm marker does not fit on a4 paper"),
-    (["--size", "0.2", "--type", "square", "--paper", "letter"], "does not fit on letter paper"),
-    (["--size", "0"], "--size must be a positive number of metres"),
-    (["--size", "nan"], "--size must be a positive number of metres"),
-    (["--size", "0.1", "--dictionary", "DICT_9X9_1"], "unknown ArUco dictionary 'DICT_9X9_1'"),
-    (["--size", "0.1", "--id", "50"], "id 50 is not in DICT_4X4_50 (ids 0..49)"),
-    (["--size", "0.1", "--id", "-1"], "id -1 is not in DICT_4X4_50"),
-    (["--size", "0.1", "--type", "square", "--id", "3"], "--dictionary and --id apply to --type aruco only"),
-    (["--size", "0.1", "--dpi", "20"], "--dpi must be between 50 and 1200"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--size", "0.25"], "a 250 mm marker does not fit on a4 paper"),
+        (["--size", "0.2", "--type", "square", "--paper", "letter"], "does not fit on letter paper"),
+        (["--size", "0"], "--size must be a positive number of metres"),
+        (["--size", "nan"], "--size must be a positive number of metres"),
+        (["--size", "0.1", "--dictionary", "DICT_9X9_1"], "unknown ArUco dictionary 'DICT_9X9_1'"),
+        (["--size", "0.1", "--id", "50"], "id 50 is not in DICT_4X4_50 (ids 0..49)"),
+        (["--size", "0.1", "--id", "-1"], "id -1 is not in DICT_4X4_50"),
+        (["--size", "0.1", "--type", "square", "--id", "3"], "--dictionary and --id apply to --type aruco only"),
+        (["--size", "0.1", "--dpi", "20"], "--dpi must be between 50 and 1200"),
+    ],
+)
 def test_bad_arguments_exit_2_with_one_line(tmp_path: Path, capsys, args: List[str], message: str) -> None:
     out_file = tmp_path / "m.png"
     code, out, err = _run_marker(args + ["--out", str(out_file)], capsys)
@@ -229,8 +246,9 @@ def test_bad_output_paths_exit_2(tmp_path: Path, capsys) -> None:
 
 
 @pytest.mark.parametrize("kind_args", [["--id", "7"], ["--type", "square"]])
-def test_sheet_seen_by_a_camera_gives_the_pose_with_the_printed_config_lines(tmp_path: Path, capsys,
-                                                                            kind_args: List[str]) -> None:
+def test_sheet_seen_by_a_camera_gives_the_pose_with_the_printed_config_lines(
+    tmp_path: Path, capsys, kind_args: List[str]
+) -> None:
     """The sheet as printed (the PNG), rendered at a known pose; the daemon's detector and
     estimator, configured with the lines the command printed, find the marker's pose."""
     from pose_daemon import Camera, MarkerDetector, estimate_pose
@@ -242,16 +260,21 @@ def test_sheet_seen_by_a_camera_gives_the_pose_with_the_printed_config_lines(tmp
     marker = parse_config(out).marker.model()
     sheet = marker_sheet.layout(marker.type, 0.15, dictionary=marker.dictionary, marker_id=marker.id)
     texture = cv2.imread(str(png), cv2.IMREAD_GRAYSCALE)
-    camera = Camera(fx=600.0, fy=600.0, cx=319.5, cy=239.5, dist=(-0.05, 0.01, 0.0, 0.0, 0.0),
-                    width=640, height=480)
+    camera = Camera(fx=600.0, fy=600.0, cx=319.5, cy=239.5, dist=(-0.05, 0.01, 0.0, 0.0, 0.0), width=640, height=480)
     # Page facing the camera 0.7 m away, turned 20 deg about its vertical axis.
     R = cv2.Rodrigues(np.array([0.0, np.radians(20.0), 0.0]))[0] @ np.diag([1.0, -1.0, -1.0])
     x, y, w, h = sheet.marker_rect
     centre_on_page_m = np.array([x + w / 2 - sheet.width_mm / 2, sheet.height_mm / 2 - (y + h / 2), 0.0]) / 1e3
     t_page = np.array([0.0, 0.09, 0.7])
-    image = render_plane(camera, texture, (sheet.width_mm / 1e3, sheet.height_mm / 1e3),
-                         cv2.Rodrigues(R)[0].ravel(), t_page, effects=Effects(blur_px=0.8, noise_gray=2.0),
-                         rng=np.random.default_rng(5))
+    image = render_plane(
+        camera,
+        texture,
+        (sheet.width_mm / 1e3, sheet.height_mm / 1e3),
+        cv2.Rodrigues(R)[0].ravel(),
+        t_page,
+        effects=Effects(blur_px=0.8, noise_gray=2.0),
+        rng=np.random.default_rng(5),
+    )
     t_marker = t_page + R @ centre_on_page_m
     corners = MarkerDetector(marker, camera=camera).detect(image)
     assert corners is not None

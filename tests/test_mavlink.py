@@ -51,7 +51,7 @@ def test_encoding_round_trip_with_time_usec_beyond_32_bits():
     mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
     # Facing a wall marker 2 m ahead, 0.5 m to its right (tests/test_frames.py works it out).
     pose = camera_pose(np.diag([1.0, -1.0, -1.0]), [-0.5, 0.0, 2.0], err_px=0.3, ambiguity=0.0)
-    for t_s in (np.float64(2 ** 31 / 1e6 + 0.000001), 2 ** 32 / 1e6 + 0.123457, 1.0e9 + 0.25):
+    for t_s in (np.float64(2**31 / 1e6 + 0.000001), 2**32 / 1e6 + 0.123457, 1.0e9 + 0.25):
         t_us = time_usec_from_s(t_s)
         assert type(t_us) is int and t_us == int(round(float(t_s) * 1e6))
         inputs = PoseMessageInputs.from_pose(t_us, pose, WALL, fx_px=500.0, marker_width_m=0.2, reset_counter=7)
@@ -86,8 +86,9 @@ def test_quality_and_covariance_follow_residual_and_a_real_flip_risk():
     R = g.R_from_euler_rpy(0.0, math.radians(20.0), 0.0) @ np.diag([1.0, -1.0, -1.0])
 
     def with_alt(pose, R_alt, ratio):
-        return dataclasses.replace(pose, alternative=camera_pose(R_alt, pose.tvec, pose.reprojection_error_px),
-                                   ambiguity_ratio=ratio)
+        return dataclasses.replace(
+            pose, alternative=camera_pose(R_alt, pose.tvec, pose.reprojection_error_px), ambiguity_ratio=ratio
+        )
 
     def odo(pose):
         inputs = PoseMessageInputs.from_pose(1, pose, WALL, fx_px=500.0, marker_width_m=0.2)
@@ -110,8 +111,10 @@ def test_quality_and_covariance_follow_residual_and_a_real_flip_risk():
     assert all(c[k] > 0 for k in (0, 6, 11, 15, 18, 20))
     assert odo(noisy).pose_covariance[0] > 50 * c[0]
     assert odo(flip).pose_covariance[0] > 50 * c[0]
-    assert odo(level).pose_covariance[0] < 2 * odo(camera_pose(np.diag([1.0, -1.0, -1.0]), [0, 0, 1.0], 0.1)
-                                                     ).pose_covariance[0]
+    assert (
+        odo(level).pose_covariance[0]
+        < 2 * odo(camera_pose(np.diag([1.0, -1.0, -1.0]), [0, 0, 1.0], 0.1)).pose_covariance[0]
+    )
     far = odo(camera_pose(R, [0, 0, 4.0], 0.1))
     assert far.pose_covariance[0] > 10 * c[0]
 
@@ -125,8 +128,9 @@ class _CountingFrames(g.VehicleFrames):
 
 
 def test_each_pose_is_converted_to_the_vehicle_once_for_all_its_messages():
-    frames = _CountingFrames(R_body_cam=WALL.R_body_cam, p_body_cam_m=WALL.p_body_cam_m,
-                             R_local_marker=WALL.R_local_marker)
+    frames = _CountingFrames(
+        R_body_cam=WALL.R_body_cam, p_body_cam_m=WALL.p_body_cam_m, R_local_marker=WALL.R_local_marker
+    )
     object.__setattr__(frames, "calls", [])
     peer = UdpPeer()
     out = output(f"udpout:127.0.0.1:{peer.port}", frames=frames, messages=ALL)
@@ -154,22 +158,22 @@ def test_stream_over_udp_keeps_every_autopilot_rule():
         script.append(vehicle_result(WALL, seq, t, (x, y, -0.1), yaw_deg=5.0))
         seq += 1
 
-    for k in range(10):                       # 30 Hz
+    for k in range(10):  # 30 Hz
         pose_at(t0 + k / 30, -2.0 + 0.01 * k)
     t = t0 + 9 / 30
-    for k in range(1, 7):                     # 100 Hz: every other one is within 20 ms
+    for k in range(1, 7):  # 100 Hz: every other one is within 20 ms
         pose_at(t + 0.01 * k, -1.9)
     t += 0.06
-    for k in range(1, 16):                    # 0.5 s without the marker
+    for k in range(1, 16):  # 0.5 s without the marker
         script.append(lost_result(seq, t + k / 30))
         seq += 1
     t += 15 / 30
-    for k in range(1, 6):                     # found again
+    for k in range(1, 6):  # found again
         pose_at(t + k / 30, -1.8)
     t += 5 / 30
-    pose_at(t + 1 / 30, -0.7)                 # a 1.1 m jump
+    pose_at(t + 1 / 30, -0.7)  # a 1.1 m jump
     t += 1 / 30
-    pose_at(t + 0.4, -0.7)                    # a 0.4 s gap (frames dropped upstream)
+    pose_at(t + 0.4, -0.7)  # a 0.4 s gap (frames dropped upstream)
     for r in script:
         out.submit(r)
     msgs = peer.collect(3.0, until=lambda ms: len(of_type(ms, "LANDING_TARGET")) >= 20)
@@ -205,8 +209,9 @@ def test_acceptance_check_catches_broken_streams():
     cov = [0.01 if i in (0, 6, 11, 15, 18, 20) else 0.0 for i in range(21)]
 
     def odo(t_us, x=0.0, frame=20, est=2, quality=50, reset=0, q=(1.0, 0.0, 0.0, 0.0)):
-        m = mav.odometry_encode(t_us, frame, 12, x, 0.0, 0.0, list(q), *([math.nan] * 6), cov,
-                                [math.nan] * 21, reset, est, quality)
+        m = mav.odometry_encode(
+            t_us, frame, 12, x, 0.0, 0.0, list(q), *([math.nan] * 6), cov, [math.nan] * 21, reset, est, quality
+        )
         return parser().parse_buffer(m.pack(mav))[0]
 
     hb = parser().parse_buffer(mav.heartbeat_encode(18, 8, 0, 0, 4).pack(mav))[0]
@@ -231,15 +236,16 @@ def test_acceptance_check_catches_broken_streams():
 
 def test_waits_for_the_autopilot_then_sends_origin_and_home():
     peer = UdpPeer()
-    out = output(f"udpout:127.0.0.1:{peer.port}", wait_heartbeat=True, origin=(47.397742, 8.545594, 488.0),
-                 set_home=True)
+    out = output(
+        f"udpout:127.0.0.1:{peer.port}", wait_heartbeat=True, origin=(47.397742, 8.545594, 488.0), set_home=True
+    )
     frames_t = iter(10.0 + k / 30 for k in range(1000))
     for _ in range(5):
         out.submit(vehicle_result(WALL, 0, next(frames_t), (-2.0, 0.0, 0.0)))
     msgs = peer.collect(0.3, until=lambda ms: bool(of_type(ms, "HEARTBEAT")))
     assert of_type(msgs, "HEARTBEAT") and not of_type(msgs, "ODOMETRY")
     assert "waiting for the autopilot" in out.status()
-    peer.send(autopilot_heartbeat(mav_type=6, autopilot=8))   # a ground station is not an autopilot
+    peer.send(autopilot_heartbeat(mav_type=6, autopilot=8))  # a ground station is not an autopilot
     peer.collect(0.2)
     assert out.autopilot_system is None
     peer.send(autopilot_heartbeat(system=3))
@@ -256,7 +262,8 @@ def test_waits_for_the_autopilot_then_sends_origin_and_home():
     origins = of_type(msgs, "SET_GPS_GLOBAL_ORIGIN")
     assert len(origins) >= 2
     assert {(o.target_system, o.latitude, o.longitude, o.altitude) for o in origins} == {
-        (3, 473977420, 85455940, 488000)}
+        (3, 473977420, 85455940, 488000)
+    }
     asked = [m for m in of_type(msgs, "COMMAND_LONG") if m.command == 512]
     assert len(asked) >= 2 and {(m.target_system, int(m.param1)) for m in asked} == {(3, 49)}
     # No SET_HOME_POSITION (ArduPilot has no handler), and no DO_SET_HOME before the origin holds.
@@ -303,7 +310,7 @@ def test_signed_stream_verifies_only_with_the_key():
 
     mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
     mav.signing.secret_key, mav.signing.sign_outgoing, mav.signing.link_id = key, True, 0
-    mav.signing.timestamp = 10 ** 9
+    mav.signing.timestamp = 10**9
     data = mav.heartbeat_encode(18, 8, 0, 0, 4).pack(mav)
     assert [m.get_type() for m in wrong.parse_buffer(data) or []] != ["HEARTBEAT"]
     assert [m.get_type() for m in parser(signing_key=key).parse_buffer(data)] == ["HEARTBEAT"]
@@ -328,23 +335,33 @@ def test_serial_link_over_a_pty_vanishes_and_comes_back(tmp_path):
 
     try:
         send(5)
-        first = parser().parse_buffer(port.read(2.0, until=lambda b: len(of_type(parser().parse_buffer(b) or [], "ODOMETRY")) >= 5)) or []
+        first = (
+            parser().parse_buffer(
+                port.read(2.0, until=lambda b: len(of_type(parser().parse_buffer(b) or [], "ODOMETRY")) >= 5)
+            )
+            or []
+        )
         assert len(of_type(first, "ODOMETRY")) == 5 and of_type(first, "HEARTBEAT")
         port.vanish()
-        send(3)                                   # written into a dead port: link fails
+        send(3)  # written into a dead port: link fails
         assert wait_for(lambda: not out.link_up, 1.0)
         assert "down" in out.status()
-        send(3)                                   # dropped while the port is gone
+        send(3)  # dropped while the port is gone
         port.appear()
         assert wait_for(lambda: out.link_up, 3.0), out.status()
         send(5)
-        second = parser().parse_buffer(port.read(2.0, until=lambda b: len(of_type(parser().parse_buffer(b) or [], "ODOMETRY")) >= 5)) or []
+        second = (
+            parser().parse_buffer(
+                port.read(2.0, until=lambda b: len(of_type(parser().parse_buffer(b) or [], "ODOMETRY")) >= 5)
+            )
+            or []
+        )
     finally:
         out.close()
         port.close()
     odo = of_type(second, "ODOMETRY")
     assert len(odo) == 5 and [m.text for m in of_type(second, "STATUSTEXT")] == ["pose-daemon link reopened"]
-    assert odo[0].reset_counter == 1   # the gap of the outage starts a new track
+    assert odo[0].reset_counter == 1  # the gap of the outage starts a new track
     s = out.stats()
     assert s["opens"] == 2 and s["link_failures"] == 1 and s["dropped"]["link_down"] >= 3
     assert check(first + second).ok, str(check(first + second))
@@ -362,7 +379,7 @@ def test_tcp_link_reconnects_after_the_peer_closes():
         msgs = parser().parse_buffer(conn.recv(4096)) or []
         assert of_type(msgs, "HEARTBEAT")
         conn.close()
-        conn2, _ = server.accept()            # the output noticed and came back
+        conn2, _ = server.accept()  # the output noticed and came back
         conn2.settimeout(2.0)
         data = b""
         while b"reopened" not in data:
@@ -414,10 +431,23 @@ def test_mavproxy_ground_station_receives_the_stream(tmp_path):
     port = probe.getsockname()[1]
     probe.close()
     tlog = tmp_path / "gcs.tlog"
-    proc = subprocess.Popen([sys.executable, exe, f"--master=udpin:127.0.0.1:{port}", "--daemon",
-                             "--non-interactive", "--nowait", "--default-modules=", f"--logfile={tlog}",
-                             f"--state-basedir={tmp_path}"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            env={**os.environ, "MAVLINK20": "1"}, cwd=tmp_path)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            exe,
+            f"--master=udpin:127.0.0.1:{port}",
+            "--daemon",
+            "--non-interactive",
+            "--nowait",
+            "--default-modules=",
+            f"--logfile={tlog}",
+            f"--state-basedir={tmp_path}",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        env={**os.environ, "MAVLINK20": "1"},
+        cwd=tmp_path,
+    )
     out = output(f"udpout:127.0.0.1:{port}")
     try:
         # Stream at 30 Hz until MAVProxy has detected us (it answers with its own HEARTBEAT).
@@ -491,10 +521,25 @@ def test_acceptance_checker_command_line(tmp_path, capsys):
     assert main([str(good)]) == 0
     assert "accepted: HEARTBEAT 1, ODOMETRY 10, STATUSTEXT 1" in capsys.readouterr().out
     mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
-    bad = tmp_path / "bad.bin"   # ODOMETRY in MAV_FRAME_LOCAL_NED: ArduPilot would drop it
-    bad.write_bytes(good.read_bytes() + mav.odometry_encode(
-        80_000_000, 1, 12, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], *([math.nan] * 6), [0.01] * 21,
-        [math.nan] * 21, 0, 2, 50).pack(mav))
+    bad = tmp_path / "bad.bin"  # ODOMETRY in MAV_FRAME_LOCAL_NED: ArduPilot would drop it
+    bad.write_bytes(
+        good.read_bytes()
+        + mav.odometry_encode(
+            80_000_000,
+            1,
+            12,
+            0.0,
+            0.0,
+            0.0,
+            [1.0, 0.0, 0.0, 0.0],
+            *([math.nan] * 6),
+            [0.01] * 21,
+            [math.nan] * 21,
+            0,
+            2,
+            50,
+        ).pack(mav)
+    )
     assert main([str(bad)]) == 1
     assert "frames (1, 12)" in capsys.readouterr().out
 
@@ -511,7 +556,7 @@ def test_origin_sent_again_when_the_autopilot_stops_reporting_it(monkeypatch):
         assert wait_for(lambda: out.origin_state == "held", 5.0)
         assert fc.tally.origins_taken == 1
         with fc._lock:
-            fc.origin = None                      # the EKF was reset
+            fc.origin = None  # the EKF was reset
         assert wait_for(lambda: fc.tally.origins_taken == 2 and out.origin_state == "held", 6.0), out.stats()
     finally:
         out.close()
@@ -537,8 +582,9 @@ def test_odometry_quality_leaves_out_the_flip_risk_only_when_the_attitude_chose(
     at_risk = pose_quality(pose, 500.0, 0.2)
     assert resolved > at_risk
     peer = UdpPeer()
-    out = mavlink_output(f"udpout:127.0.0.1:{peer.port}", WALL, wait_heartbeat=False, messages=("ODOMETRY",),
-                         queue_size=0)
+    out = mavlink_output(
+        f"udpout:127.0.0.1:{peer.port}", WALL, wait_heartbeat=False, messages=("ODOMETRY",), queue_size=0
+    )
     try:
         t0 = time.monotonic()
         for k, by in enumerate(("attitude", "continuity", "clear", "attitude")):

@@ -37,7 +37,8 @@ def test_jsonl_appends_one_flushed_object_per_line(tmp_path):
 
 def test_open_outputs_builds_what_the_config_asks(tmp_path):
     pty = VanishingPty(str(tmp_path / "ttyX"))
-    cfg = parse_config(f"""
+    cfg = parse_config(
+        f"""
 [marker]
 placement = "floor"
 [mount]
@@ -51,8 +52,10 @@ jump_m = 0.8
 port = "{pty.path}"
 baud = 57600
 [output.jsonl]
-path = "{tmp_path / 'p.jsonl'}"
-""", "t.toml")
+path = "{tmp_path / "p.jsonl"}"
+""",
+        "t.toml",
+    )
     outs = open_outputs(cfg)
     try:
         assert [type(o) for o in outs] == [MavlinkOutput, PlainSerialOutput, JsonlOutput]
@@ -63,12 +66,12 @@ path = "{tmp_path / 'p.jsonl'}"
         assert m.messages == ("LANDING_TARGET", "ODOMETRY") and m.cfg.jump_m == 0.8 and s.cfg.baud == 57600
         assert m.fx_px == cfg.camera.fx and m.marker_width_m == m.marker_height_m == cfg.marker.width
         assert m.frames.marker_in_body([0.0, 0.0, 1.5]).tolist() == [0.1, 0.0, 1.55]
-        assert all(o.link_up for o in outs)   # quick links are open before the first submit
+        assert all(o.link_up for o in outs)  # quick links are open before the first submit
     finally:
         for o in outs:
             o.close()
         pty.close()
-    assert open_outputs(parse_config("[camera]\nsource = \"synthetic\"\n")) == []
+    assert open_outputs(parse_config('[camera]\nsource = "synthetic"\n')) == []
 
 
 class _StuckStream(io.StringIO):
@@ -88,11 +91,15 @@ class _StuckStream(io.StringIO):
 def test_queued_mode_never_blocks_and_counts_drops():
     stream = _StuckStream()
     written = []
-    out = JsonlOutput(JsonlOutputConfig(path="-"), queue_size=4, stream=stream,
-                      on_written=lambda name, result, t: written.append((result.seq, t)))
+    out = JsonlOutput(
+        JsonlOutputConfig(path="-"),
+        queue_size=4,
+        stream=stream,
+        on_written=lambda name, result, t: written.append((result.seq, t)),
+    )
     out.submit(vehicle_result(WALL, 0, time.monotonic(), (-2.0, 0.0, 0.0)))
-    assert stream.entered.wait(2)          # the writer thread is now stuck in write()
-    for k in range(1, 51):                  # these return although nothing can be written
+    assert stream.entered.wait(2)  # the writer thread is now stuck in write()
+    for k in range(1, 51):  # these return although nothing can be written
         out.submit(vehicle_result(WALL, k, time.monotonic(), (-2.0, 0.0, 0.0)))
     s = out.stats()
     assert s["submitted"] == 51 and s["written"] == 0 and s["queued"] == 4 and s["dropped"] == {"queue_full": 46}
@@ -126,7 +133,7 @@ def test_results_older_than_max_age_are_dropped_not_sent_late(tmp_path):
     path = tmp_path / "p.jsonl"
     out = JsonlOutput(JsonlOutputConfig(path=str(path)), queue_size=4, max_age_s=0.1)  # the latency budget
     now = time.monotonic()
-    out.submit(lost_result(0, now - 0.5))   # captured half a second ago: too late
+    out.submit(lost_result(0, now - 0.5))  # captured half a second ago: too late
     out.submit(lost_result(1, now))
     out.close()
     assert [json.loads(s)["frame"] for s in path.read_text().splitlines()] == [1]
@@ -142,9 +149,11 @@ def test_a_pose_with_nan_is_never_sent(tmp_path):
     good = vehicle_result(WALL, 1, 5.1, (-2.0, 0.0, 0.0))
     peer = UdpPeer()
     pty = VanishingPty(str(tmp_path / "tty"))
-    outs = [mavlink_output(f"udpout:127.0.0.1:{peer.port}", WALL, wait_heartbeat=False, queue_size=0),
-            PlainSerialOutput(SerialOutputConfig(port=pty.path), WALL, queue_size=0),
-            JsonlOutput(JsonlOutputConfig(path=str(tmp_path / "p.jsonl")), queue_size=0)]
+    outs = [
+        mavlink_output(f"udpout:127.0.0.1:{peer.port}", WALL, wait_heartbeat=False, queue_size=0),
+        PlainSerialOutput(SerialOutputConfig(port=pty.path), WALL, queue_size=0),
+        JsonlOutput(JsonlOutputConfig(path=str(tmp_path / "p.jsonl")), queue_size=0),
+    ]
     try:
         for o in outs:
             o.submit(bad)

@@ -36,7 +36,7 @@ def test_both_methods_reach_the_papers_error_on_a_coarse_grid() -> None:
     paper = run_sweep(method="paper", iterations=10, step_deg=10.0)
     iterative = run_sweep(method="iterative", iterations=10, step_deg=10.0)
     for r in (paper, iterative):
-        assert r.count == 9 ** 3 and r.failed == 0
+        assert r.count == 9**3 and r.failed == 0
         assert r.e_image.max() < PAPER_E_IMAGE
     # Without any correction the image is far off; the loop is what brings it down.
     assert paper.by_iteration[0, 0] > 10.0
@@ -96,11 +96,14 @@ def test_progress_bar_writes_tenths_to_a_pipe() -> None:
     assert lines[-1].startswith("sweep [" + "#" * 30 + "] 100.0%  1,000/1,000")
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["paper", "sweep", "--step-deg", "0"], "--step-deg must be > 0"),
-    (["paper", "sweep", "--limit", "-3"], "--limit must be >= 1"),
-    (["paper", "sweep", "--limit", "many"], "--limit must be a number"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["paper", "sweep", "--step-deg", "0"], "--step-deg must be > 0"),
+        (["paper", "sweep", "--limit", "-3"], "--limit must be >= 1"),
+        (["paper", "sweep", "--limit", "many"], "--limit must be a number"),
+    ],
+)
 def test_sweep_bad_arguments_exit_2(argv, message, capsys) -> None:
     with pytest.raises(SystemExit) as exc:
         main(argv)
@@ -111,5 +114,7 @@ def test_sweep_bad_arguments_exit_2(argv, message, capsys) -> None:
 def test_a_sweep_too_large_for_memory_is_refused_before_it_starts(capsys) -> None:
     assert main(["paper", "sweep", "--step-deg", "0.2"]) == 2
     err = capsys.readouterr().err
-    assert err == ("pose-daemon: error: --step-deg 0.2 gives 91,125,000 orientations, more than "
-                   "20,000,000; use a larger step or --limit\n")
+    assert err == (
+        "pose-daemon: error: --step-deg 0.2 gives 91,125,000 orientations, more than "
+        "20,000,000; use a larger step or --limit\n"
+    )

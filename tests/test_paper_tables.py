@@ -26,11 +26,10 @@ def test_final_pose_equals_the_papers_by_iteration_4(case: int, method: str) -> 
         assert result.final[key] == pytest.approx(expected, abs=0.01), key
     row4 = result.rows[3]
     expected = PAPER_FINAL[case]
-    assert np.allclose(row4["accumulated_deg"],
-                       [expected["alpha_deg"], expected["beta_deg"], expected["gamma_deg"]],
-                       atol=0.01)
-    assert np.allclose([row4["x"], row4["y"], row4["z"]],
-                       [expected["x"], expected["y"], expected["z"]], atol=0.01)
+    assert np.allclose(
+        row4["accumulated_deg"], [expected["alpha_deg"], expected["beta_deg"], expected["gamma_deg"]], atol=0.01
+    )
+    assert np.allclose([row4["x"], row4["y"], row4["z"]], [expected["x"], expected["y"], expected["z"]], atol=0.01)
     converged = first_converged_iteration(result)
     assert converged is not None and converged <= 4
 
@@ -43,8 +42,7 @@ def test_first_iteration_is_far_from_the_answer(case: int) -> None:
     first = np.array(result.rows[0]["accumulated_deg"])
     assert np.max(np.abs(first - [c.alpha_deg, c.beta_deg, c.gamma_deg])) > 1.0
     # the step corrections shrink towards zero
-    steps = [max(abs(r["gamma_deg"]), abs(r["beta_deg"]), abs(r["alpha_deg"]))
-             for r in result.rows]
+    steps = [max(abs(r["gamma_deg"]), abs(r["beta_deg"]), abs(r["alpha_deg"])) for r in result.rows]
     assert steps[-1] < 1e-2 < steps[0]
 
 
@@ -66,10 +64,10 @@ def test_case_image_matches_an_independent_pinhole_projection() -> None:
     R = geometry.R_cam_unrot_from_paper_angles(*np.radians([c.alpha_deg, c.beta_deg, c.gamma_deg]))
     s = 20.0
     corners = np.array(c.position) + np.array(
-        [[-s / 2, -s / 2, 0], [s / 2, -s / 2, 0], [s / 2, s / 2, 0], [-s / 2, s / 2, 0]])
+        [[-s / 2, -s / 2, 0], [s / 2, -s / 2, 0], [s / 2, s / 2, 0], [-s / 2, s / 2, 0]]
+    )
     d = corners @ R.T
-    assert np.allclose(case_image(c, focal_px=600.0, side=s), 600.0 * d[:, :2] / d[:, 2:],
-                       atol=1e-9)
+    assert np.allclose(case_image(c, focal_px=600.0, side=s), 600.0 * d[:, :2] / d[:, 2:], atol=1e-9)
 
 
 @pytest.mark.parametrize("method", ["paper", "iterative"])
@@ -92,21 +90,23 @@ def test_table_readable_output_and_iterations_option(capsys) -> None:
     text = capsys.readouterr().out
     assert text.startswith("Case 1: alpha 40.10, beta 28.65, gamma -40.10 deg at (0, 0, 100)")
     lines = text.splitlines()
-    ours = lines[:lines.index("the pose is within 0.01 of the paper's from iteration 2 on")]
+    ours = lines[: lines.index("the pose is within 0.01 of the paper's from iteration 2 on")]
     rows = [ln for ln in ours if ln[:2].strip().isdigit()]
     assert [int(r.split()[0]) for r in rows] == [1, 2, 3]
     # the paper's printed table follows for comparison
-    printed = lines[lines.index(next(ln for ln in lines if ln.startswith("the paper's Table I "))):]
-    assert printed[2].split() == ["1", "13.68", "12.07", "72.06", "96.8", "89.8", "91.9",
-                                  "-50.99", "22.92", "25.21"]
+    printed = lines[lines.index(next(ln for ln in lines if ln.startswith("the paper's Table I "))) :]
+    assert printed[2].split() == ["1", "13.68", "12.07", "72.06", "96.8", "89.8", "91.9", "-50.99", "22.92", "25.21"]
     assert any(ln.startswith("final") for ln in lines)
     assert any(ln.startswith("paper") for ln in lines)
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["paper", "table1", "--iterations", "0"], "--iterations must be >= 1"),
-    (["paper", "table1", "--method", "magic"], "invalid choice"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["paper", "table1", "--iterations", "0"], "--iterations must be >= 1"),
+        (["paper", "table1", "--method", "magic"], "invalid choice"),
+    ],
+)
 def test_table_bad_arguments_exit_2(argv, message, capsys) -> None:
     with pytest.raises(SystemExit) as exc:
         main(argv)

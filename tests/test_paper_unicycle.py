@@ -100,11 +100,14 @@ def test_unicycle_readable_output(capsys) -> None:
     assert "max heading error" in text and "pixel noise 0.25 px" in text
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["paper", "unicycle", "--noise-px", "-1"], "--noise-px must be >= 0"),
-    (["paper", "unicycle", "--dt", "0"], "--dt must be > 0"),
-    (["paper", "unicycle", "--kv", "nan"], "--kv must be > 0"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["paper", "unicycle", "--noise-px", "-1"], "--noise-px must be >= 0"),
+        (["paper", "unicycle", "--dt", "0"], "--dt must be > 0"),
+        (["paper", "unicycle", "--kv", "nan"], "--kv must be > 0"),
+    ],
+)
 def test_unicycle_bad_arguments_exit_2(argv, message, capsys) -> None:
     with pytest.raises(SystemExit) as exc:
         main(argv)

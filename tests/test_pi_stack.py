@@ -32,10 +32,10 @@ SQUARE = Marker(width=0.2, height=0.2)
 
 # (capture time in seconds, the same in integer microseconds), up to 31 years of uptime.
 TIMES = [
-    (2147.483648, 2 ** 31),
-    (2147.483649, 2 ** 31 + 1),
-    (4294.967296, 2 ** 32),
-    (4294.967297, 2 ** 32 + 1),
+    (2147.483648, 2**31),
+    (2147.483649, 2**31 + 1),
+    (4294.967296, 2**32),
+    (4294.967297, 2**32 + 1),
     (3_000_000.123456, 3_000_000_123_456),
     (1.0e9 + 0.25, 1_000_000_000_250_000),
 ]
@@ -54,8 +54,9 @@ def test_time_usec_is_an_exact_python_int(t_s: float, t_us: int) -> None:
 def _square_frame(t_capture_s, seq) -> Frame:
     # Marker 1 m straight ahead, facing the camera.
     rvec, tvec = g.rvec_from_R(g.R_UNROT_MARKER), np.array([0.05, -0.03, 1.0])
-    rendered = render_marker(CAM, SQUARE, rvec, tvec, effects=Effects.clean(supersample=2),
-                             rng=np.random.default_rng(3))
+    rendered = render_marker(
+        CAM, SQUARE, rvec, tvec, effects=Effects.clean(supersample=2), rng=np.random.default_rng(3)
+    )
     assert rendered.visible
     return Frame(rendered.image, t_capture_s, seq)
 
@@ -66,13 +67,13 @@ def test_capture_time_and_frame_number_past_32_bits_reach_every_output() -> None
     after boot: the JSON line, the $POSE line and the MAVLink messages carry both exactly."""
     from pymavlink.dialects.v20 import common as mavlink2
 
-    seq, t_s, t_us = np.int64(2 ** 32 + 7), np.float64(3_000_000.123456), 3_000_000_123_456
+    seq, t_s, t_us = np.int64(2**32 + 7), np.float64(3_000_000.123456), 3_000_000_123_456
     result = FrameProcessor(CAM, SQUARE).process(_square_frame(t_s, seq))
     assert result.ok, result.error
     assert result.pose.tvec == pytest.approx([0.05, -0.03, 1.0], abs=0.01)
 
     d = json.loads(json.dumps(result.to_json_dict(), allow_nan=False))
-    assert d["frame"] == 2 ** 32 + 7 and type(d["frame"]) is int
+    assert d["frame"] == 2**32 + 7 and type(d["frame"]) is int
     assert d["t"] == 3_000_000.123456
 
     line = pose_line(result, WALL)
@@ -80,8 +81,14 @@ def test_capture_time_and_frame_number_past_32_bits_reach_every_output() -> None
     assert parse_pose_line(line)["t_us"] == t_us
 
     mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
-    inputs = PoseMessageInputs.from_pose(time_usec_from_s(result.t_capture_s), result.pose, WALL, fx_px=CAM.fx,
-                                         marker_width_m=SQUARE.width, reset_counter=0)
+    inputs = PoseMessageInputs.from_pose(
+        time_usec_from_s(result.t_capture_s),
+        result.pose,
+        WALL,
+        fx_px=CAM.fx,
+        marker_width_m=SQUARE.width,
+        reset_counter=0,
+    )
     msgs = encode_pose_messages(mav, ("ODOMETRY", "VISION_POSITION_ESTIMATE"), inputs)
     wire = b"".join(m.pack(mav) for m in msgs)
     rx = mavlink2.MAVLink(None)
@@ -94,7 +101,7 @@ def test_capture_time_and_frame_number_past_32_bits_reach_every_output() -> None
 
 @pytest.mark.pi
 def test_lost_frame_past_32_bits_keeps_its_time() -> None:
-    seq, t_us = 2 ** 31 + 3, 4_294_967_297
+    seq, t_us = 2**31 + 3, 4_294_967_297
     lost = FrameResult(seq=seq, t_capture_s=t_us / 1e6, error="no marker")
     assert lost.to_json_dict()["frame"] == seq
     parsed = parse_pose_line(pose_line(lost, WALL))
@@ -106,7 +113,7 @@ def test_lost_frame_past_32_bits_keeps_its_time() -> None:
 def test_recording_replays_times_and_numbers_past_32_bits_exactly(tmp_path) -> None:
     """A recording made ~35 days after boot, numbered past 2^32: replayed as fast as it reads,
     every frame keeps its recorded number and capture time to the microsecond."""
-    first_seq, t0_s = 2 ** 32 + 5, 3_000_000.123456
+    first_seq, t0_s = 2**32 + 5, 3_000_000.123456
     with RecordingWriter(tmp_path / "rec", CAM, SQUARE, source="synthetic", fps=30.0) as writer:
         base = _square_frame(t0_s, first_seq)
         for k in range(3):
@@ -123,8 +130,11 @@ def test_recording_replays_times_and_numbers_past_32_bits_exactly(tmp_path) -> N
     finally:
         source.close()
     assert [f.seq for f in frames] == [first_seq, first_seq + 1, first_seq + 2]
-    assert [time_usec_from_s(f.t_capture_s) for f in frames] == [3_000_000_123_456, 3_000_000_156_789,
-                                                                 3_000_000_190_123]
+    assert [time_usec_from_s(f.t_capture_s) for f in frames] == [
+        3_000_000_123_456,
+        3_000_000_156_789,
+        3_000_000_190_123,
+    ]
     processor = FrameProcessor(CAM, SQUARE)
     lines = [json.loads(json.dumps(processor.process(f).to_json_dict())) for f in frames]
     assert [d["frame"] for d in lines] == [first_seq, first_seq + 1, first_seq + 2]

@@ -96,9 +96,15 @@ def test_slow_output_never_blocks_capture_processing_or_other_outputs():
     source = FakeSource(frames=200, period_s=0.001)
     proc = FakeProcessor()
     # A queue deep enough that the fast output keeps up on a loaded machine.
-    p = Pipeline(source, proc, outputs_of(functools.partial(FakeOutput, "fast", queue_size=32),
-                                          functools.partial(FakeOutput, "slow", block=release, queue_size=32)),
-                 latency_budget_s=5.0)
+    p = Pipeline(
+        source,
+        proc,
+        outputs_of(
+            functools.partial(FakeOutput, "fast", queue_size=32),
+            functools.partial(FakeOutput, "slow", block=release, queue_size=32),
+        ),
+        latency_budget_s=5.0,
+    )
     fast, slow = p.outputs
     p.start()
     deadline = time.monotonic() + 10
@@ -124,10 +130,15 @@ def test_slow_output_never_blocks_capture_processing_or_other_outputs():
 
 def test_failing_output_is_counted_and_the_others_go_on():
     gate = threading.Semaphore(0)
-    p = Pipeline(FakeSource(frames=10, gate=gate), FakeProcessor(gate=gate),
-                 outputs_of(functools.partial(FakeOutput, "bad", fail=lambda s: s % 2 == 0, queue_size=16),
-                            functools.partial(FakeOutput, "good", queue_size=16)),
-                 latency_budget_s=5.0)
+    p = Pipeline(
+        FakeSource(frames=10, gate=gate),
+        FakeProcessor(gate=gate),
+        outputs_of(
+            functools.partial(FakeOutput, "bad", fail=lambda s: s % 2 == 0, queue_size=16),
+            functools.partial(FakeOutput, "good", queue_size=16),
+        ),
+        latency_budget_s=5.0,
+    )
     bad, good = p.outputs
     _run(p)
     assert [g[0] for g in good.got] == list(range(10))
@@ -150,10 +161,15 @@ class _RaisingOutput(FakeOutput):
 
 def test_an_output_whose_submit_raises_is_counted_and_the_others_go_on():
     gate = threading.Semaphore(0)
-    p = Pipeline(FakeSource(frames=10, gate=gate), FakeProcessor(gate=gate),
-                 outputs_of(functools.partial(_RaisingOutput, "bad", queue_size=16),
-                            functools.partial(FakeOutput, "good", queue_size=16)),
-                 latency_budget_s=5.0)
+    p = Pipeline(
+        FakeSource(frames=10, gate=gate),
+        FakeProcessor(gate=gate),
+        outputs_of(
+            functools.partial(_RaisingOutput, "bad", queue_size=16),
+            functools.partial(FakeOutput, "good", queue_size=16),
+        ),
+        latency_budget_s=5.0,
+    )
     bad, good = p.outputs
     _run(p)
     assert [g[0] for g in good.got] == list(range(10))
@@ -166,8 +182,14 @@ def test_source_failure_mid_run_reopens_with_backoff_and_resets_the_track():
     gate = threading.Semaphore(0)
     source = FakeSource(frames=20, gate=gate, fail_at={6, 7})
     proc = FakeProcessor(gate=gate)
-    p = Pipeline(source, proc, outputs_of(functools.partial(FakeOutput, queue_size=16)), latency_budget_s=5.0,
-                 source_retry_s=0.2, source_retry_max_s=0.3)
+    p = Pipeline(
+        source,
+        proc,
+        outputs_of(functools.partial(FakeOutput, queue_size=16)),
+        latency_budget_s=5.0,
+        source_retry_s=0.2,
+        source_retry_max_s=0.3,
+    )
     (out,) = p.outputs
     t0 = time.monotonic()
     p.start()
@@ -193,8 +215,7 @@ def test_status_line_counts():
     gate = threading.Semaphore(0)
     source = FakeSource(frames=10, gate=gate)
     proc = FakeProcessor(detect=lambda s: s % 2 == 0, gate=gate)
-    p = Pipeline(source, proc, outputs_of(functools.partial(FakeOutput, "jsonl", queue_size=16)),
-                 latency_budget_s=5.0)
+    p = Pipeline(source, proc, outputs_of(functools.partial(FakeOutput, "jsonl", queue_size=16)), latency_budget_s=5.0)
     (out,) = p.outputs
     _run(p)
     line = p.status_line()
@@ -211,8 +232,12 @@ def test_status_line_counts():
 
 def test_stop_is_prompt_even_with_a_blocked_output():
     block = threading.Event()
-    p = Pipeline(FakeSource(frames=10**6, period_s=0.001), FakeProcessor(),
-                 outputs_of(functools.partial(FakeOutput, "stuck", block=block)), latency_budget_s=5.0)
+    p = Pipeline(
+        FakeSource(frames=10**6, period_s=0.001),
+        FakeProcessor(),
+        outputs_of(functools.partial(FakeOutput, "stuck", block=block)),
+        latency_budget_s=5.0,
+    )
     (stuck,) = p.outputs
     p.start()
     assert p.first_frame.wait(5.0)
@@ -231,9 +256,13 @@ def test_stop_is_prompt_even_with_a_blocked_output():
 def test_outputs_that_write_in_their_own_thread_report_bytes_written_latency():
     gate = threading.Semaphore(0)
     written = []
-    p = Pipeline(FakeSource(frames=5, gate=gate), FakeProcessor(gate=gate),
-                 outputs_of(functools.partial(FakeOutput, "queued", write_s=0.02)),
-                 latency_budget_s=60.0, on_written=lambda name, r, t: written.append((name, r.seq, t)))
+    p = Pipeline(
+        FakeSource(frames=5, gate=gate),
+        FakeProcessor(gate=gate),
+        outputs_of(functools.partial(FakeOutput, "queued", write_s=0.02)),
+        latency_budget_s=60.0,
+        on_written=lambda name, r, t: written.append((name, r.seq, t)),
+    )
     (out,) = p.outputs
     # The output is built with the budget, one no loaded machine reaches: none is dropped late.
     assert out.max_age_s == 60.0
@@ -283,8 +312,13 @@ def _garbage_run(collect_when_idle: bool):
     gc.set_threshold(400, 10, 10)
     gc.callbacks.append(note)
     try:
-        p = Pipeline(FakeSource(frames=30, period_s=0.01, gate=gate), proc, outputs_of(FakeOutput),
-                     latency_budget_s=5.0, on_idle=collector.run if collector is not None else None)
+        p = Pipeline(
+            FakeSource(frames=30, period_s=0.01, gate=gate),
+            proc,
+            outputs_of(FakeOutput),
+            latency_budget_s=5.0,
+            on_idle=collector.run if collector is not None else None,
+        )
         (out,) = p.outputs
         _run(p)
         frozen = gc.get_freeze_count() - frozen_before
@@ -298,8 +332,8 @@ def _garbage_run(collect_when_idle: bool):
 
 def test_garbage_is_collected_between_frames_not_inside_them():
     collector, proc, frozen = _garbage_run(collect_when_idle=True)
-    assert collector.frozen and frozen > 1000   # start-up objects frozen after frame 0
-    assert sum(collector.collections) >= 3      # 60+ new objects a frame, collected from 200
+    assert collector.frozen and frozen > 1000  # start-up objects frozen after frame 0
+    assert sum(collector.collections) >= 3  # 60+ new objects a frame, collected from 200
     assert proc.collections_inside == 0
     # Without it, the automatic collector runs at 400 objects, often in the middle of a frame.
     collector, proc, frozen = _garbage_run(collect_when_idle=False)

@@ -53,12 +53,14 @@ def test_bench_source_plays_its_frames_forth_and_back_at_its_rate():
 
 
 def test_bench_pipeline_measures_the_preview_with_one_viewer(capsys):
-    assert main(["bench", "pipeline", "--frames", "60", "--distinct", "3", "--fps", "30",
-                 "--preview", "watch"]) == 0
+    assert main(["bench", "pipeline", "--frames", "60", "--distinct", "3", "--fps", "30", "--preview", "watch"]) == 0
     out = capsys.readouterr().out
     assert re.search(r"CPU: [\d.]+ ms per processed frame", out)
-    m = re.search(r"preview \(watch\): (\d+) frames annotated and encoded, (\d+) sent, \d+ skipped; "
-                  r"the viewer received (\d+) frames, [\d.]+ MB; viewer thread CPU [\d.]+ ms per frame sent", out)
+    m = re.search(
+        r"preview \(watch\): (\d+) frames annotated and encoded, (\d+) sent, \d+ skipped; "
+        r"the viewer received (\d+) frames, [\d.]+ MB; viewer thread CPU [\d.]+ ms per frame sent",
+        out,
+    )
     assert m, out
     encoded, sent, received = int(m[1]), int(m[2]), int(m[3])
     # 2 s at the default 5 fps: a few frames, each encoded once and received.

@@ -39,8 +39,7 @@ def _track(seed: int, n: int = 300, noise_px: float = 0.3, lost_at=()):
         a, b = np.radians(20 + 5 * np.sin(i / 30)), np.radians(10 * np.cos(i / 40))
         R_true = np.diag([1.0, -1.0, -1.0]) @ R_from_rvec(np.array([a, b, 0.0]))
         t = np.array([0.05 + 0.1 * np.sin(i / 50), -0.02, 1.5])
-        img, _ = cv2.projectPoints(MARKER.object_points, rvec_from_R(R_true), t, CAMERA.K,
-                                   CAMERA.dist_coeffs)
+        img, _ = cv2.projectPoints(MARKER.object_points, rvec_from_R(R_true), t, CAMERA.K, CAMERA.dist_coeffs)
         truths.append(R_true)
         corners.append(None if i in lost_at else img.reshape(4, 2) + rng.normal(0, noise_px, (4, 2)))
     return truths, corners
@@ -59,8 +58,10 @@ def test_continuity_picks_the_right_planar_solution_whenever_one_is_right(seed):
     proc = FrameProcessor(CAMERA, MARKER, detector=ScriptedDetector(corners))
     tracked = [proc.process(Frame(IMAGE, i / 30.0, i)).pose for i in range(len(corners))]
     # Frames where neither solution is within 10 deg: noise, no choice can help.
-    hopeless = sum(min(float(rotation_angle_deg(p.R, R)), float(rotation_angle_deg(p.alternative.R, R))) > 10.0
-                   for p, R in zip(raw, truths))
+    hopeless = sum(
+        min(float(rotation_angle_deg(p.R, R)), float(rotation_angle_deg(p.alternative.R, R))) > 10.0
+        for p, R in zip(raw, truths)
+    )
     raw_wrong, tracked_wrong = _wrong(raw, truths), _wrong(tracked, truths)
     assert raw_wrong >= hopeless + 10  # the estimator alone often picks the mirror pose here
     assert tracked_wrong <= hopeless + 3, (raw_wrong, tracked_wrong, hopeless)
@@ -87,8 +88,9 @@ def test_unambiguous_pose_is_never_overridden():
     # A large marker close up: the alternative fits far worse.
     big = Marker(0.5, 0.5)
     R = np.diag([1.0, -1.0, -1.0]) @ R_from_rvec(np.array([0.5, 0.2, 0.1]))
-    img, _ = cv2.projectPoints(big.object_points, rvec_from_R(R), np.array([0.0, 0.0, 1.0]),
-                               CAMERA.K, CAMERA.dist_coeffs)
+    img, _ = cv2.projectPoints(
+        big.object_points, rvec_from_R(R), np.array([0.0, 0.0, 1.0]), CAMERA.K, CAMERA.dist_coeffs
+    )
     pose = estimate_pose(img.reshape(4, 2), CAMERA, big)
     assert pose.ambiguity_ratio < 0.1
     opposite = pose.alternative.R[:, 2]  # a track that points at the alternative

@@ -52,8 +52,9 @@ def daemon_log(tmp_path_factory) -> Path:
             result = FrameResult(seq=i, t_capture_s=t, error="no marker", latency_s=lat / 1e3)
         else:
             corners = camera.project(marker.object_points @ R.T - R @ c)
-            result = FrameResult(seq=i, t_capture_s=t, corners=corners,
-                                 pose=estimate_pose(corners, camera, marker), latency_s=lat / 1e3)
+            result = FrameResult(
+                seq=i, t_capture_s=t, corners=corners, pose=estimate_pose(corners, camera, marker), latency_s=lat / 1e3
+            )
         out.submit(result)
     out.close()
     return path
@@ -100,8 +101,9 @@ def test_cli_writes_the_figure_and_prints_the_summary(daemon_log: Path, tmp_path
     assert main(["plot", str(daemon_log), "--out", str(out)]) == 0
     err = capsys.readouterr().err
     assert err.count("\n") == 1
-    assert (f"wrote {out}: 60 frames over 1.97 s, pose in 46 (76.7 %), 3 gap(s), longest 0.333 s; "
-            "latency median") in err
+    assert (
+        f"wrote {out}: 60 frames over 1.97 s, pose in 46 (76.7 %), 3 gap(s), longest 0.333 s; latency median"
+    ) in err
     image = cv2.imread(str(out))
     assert image is not None and image.shape[1] > 1000 and image.shape[0] > 700
     # Not a blank canvas: the plotted lines put many colours on it.
@@ -121,20 +123,27 @@ def test_replay_output_plots(tmp_path: Path, capsys) -> None:
 
 def test_estimate_output_without_times_plots_against_frame_index(tmp_path: Path, capsys) -> None:
     log = tmp_path / "est.jsonl"
-    rows = [{"ok": True, "camera_position": [0.1 * i, 0.0, 1.0], "alpha_deg": 1.0, "beta_deg": 2.0,
-             "gamma_deg": 3.0, "id": i} for i in range(5)]
+    rows = [
+        {
+            "ok": True,
+            "camera_position": [0.1 * i, 0.0, 1.0],
+            "alpha_deg": 1.0,
+            "beta_deg": 2.0,
+            "gamma_deg": 3.0,
+            "id": i,
+        }
+        for i in range(5)
+    ]
     rows.insert(2, {"ok": False, "error": "corners are collinear"})
     log.write_text("".join(json.dumps(r) + "\n" for r in rows))
     series = plot_tool.read_poses(log)
     assert not series.has_time and list(series.t_s) == [0, 1, 2, 3, 4, 5]
     assert plot_tool.make_figure(series).axes[0].get_xlabel() == "frame"
     assert main(["plot", str(log), "--out", str(tmp_path / "e.png")]) == 0
-    assert "6 frames over 5.00 frames, pose in 5 (83.3 %), 1 gap(s), longest 1.000 frames" \
-        in capsys.readouterr().err
+    assert "6 frames over 5.00 frames, pose in 5 (83.3 %), 1 gap(s), longest 1.000 frames" in capsys.readouterr().err
 
 
-def test_truncated_last_line_of_a_killed_daemon_is_skipped_and_said(daemon_log: Path, tmp_path: Path,
-                                                                     capsys) -> None:
+def test_truncated_last_line_of_a_killed_daemon_is_skipped_and_said(daemon_log: Path, tmp_path: Path, capsys) -> None:
     log = tmp_path / "killed.jsonl"
     text = daemon_log.read_text()
     log.write_text(text + text.splitlines()[5][:40])
@@ -152,21 +161,30 @@ def _bad(tmp_path: Path, name: str, content) -> Path:
     return p
 
 
-@pytest.mark.parametrize("make, message", [
-    (lambda d: d / "missing.jsonl", "missing.jsonl: no such file"),
-    (lambda d: d, "is a directory, expected a JSON lines file"),
-    (lambda d: _bad(d, "empty.jsonl", ""), "empty.jsonl: is empty, expected per-frame JSON lines"),
-    (lambda d: _bad(d, "blank.jsonl", "\n  \n"), "blank.jsonl: is empty"),
-    (lambda d: _bad(d, "bin.jsonl", b"\x89PNG\r\n\x1a\n\x00\x00"),
-     "bin.jsonl: no per-frame JSON object in 3 line(s) (line 1: not JSON)"),
-    (lambda d: _bad(d, "list.jsonl", "[1, 2, 3]\n"), "(line 1: not a JSON object)"),
-    (lambda d: _bad(d, "nok.jsonl", '{"frame": 0, "t": 1.0}\n'), '(line 1: no "ok": true/false)'),
-    (lambda d: _bad(d, "nopos.jsonl", '{"ok": true, "t": 1.0}\n'),
-     '(line 1: "ok": true without a "camera_position" of 3 numbers)'),
-    (lambda d: _bad(d, "nan.jsonl", '{"ok": true, "t": 1.0, "camera_position": [NaN, 0, 1]}\n'),
-     '"ok": true without a "camera_position" of 3 numbers'),
-    (lambda d: _bad(d, "t.jsonl", '{"ok": false, "t": "noon"}\n'), '(line 1: "t" is not a number)'),
-])
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        (lambda d: d / "missing.jsonl", "missing.jsonl: no such file"),
+        (lambda d: d, "is a directory, expected a JSON lines file"),
+        (lambda d: _bad(d, "empty.jsonl", ""), "empty.jsonl: is empty, expected per-frame JSON lines"),
+        (lambda d: _bad(d, "blank.jsonl", "\n  \n"), "blank.jsonl: is empty"),
+        (
+            lambda d: _bad(d, "bin.jsonl", b"\x89PNG\r\n\x1a\n\x00\x00"),
+            "bin.jsonl: no per-frame JSON object in 3 line(s) (line 1: not JSON)",
+        ),
+        (lambda d: _bad(d, "list.jsonl", "[1, 2, 3]\n"), "(line 1: not a JSON object)"),
+        (lambda d: _bad(d, "nok.jsonl", '{"frame": 0, "t": 1.0}\n'), '(line 1: no "ok": true/false)'),
+        (
+            lambda d: _bad(d, "nopos.jsonl", '{"ok": true, "t": 1.0}\n'),
+            '(line 1: "ok": true without a "camera_position" of 3 numbers)',
+        ),
+        (
+            lambda d: _bad(d, "nan.jsonl", '{"ok": true, "t": 1.0, "camera_position": [NaN, 0, 1]}\n'),
+            '"ok": true without a "camera_position" of 3 numbers',
+        ),
+        (lambda d: _bad(d, "t.jsonl", '{"ok": false, "t": "noon"}\n'), '(line 1: "t" is not a number)'),
+    ],
+)
 def test_bad_logs_exit_2_with_one_line(tmp_path: Path, capsys, make, message: str) -> None:
     log = make(tmp_path)
     out = tmp_path / "out.png"
@@ -176,19 +194,22 @@ def test_bad_logs_exit_2_with_one_line(tmp_path: Path, capsys, make, message: st
     assert not out.exists()
 
 
-@pytest.mark.parametrize("out_name, message", [
-    ("plot.txt", "must end in one of .png, .pdf, .svg"),
-    ("nodir/plot.png", "directory"),
-])
-def test_bad_output_path_exits_2_before_reading(daemon_log: Path, tmp_path: Path, capsys, out_name: str,
-                                                message: str) -> None:
+@pytest.mark.parametrize(
+    "out_name, message",
+    [
+        ("plot.txt", "must end in one of .png, .pdf, .svg"),
+        ("nodir/plot.png", "directory"),
+    ],
+)
+def test_bad_output_path_exits_2_before_reading(
+    daemon_log: Path, tmp_path: Path, capsys, out_name: str, message: str
+) -> None:
     assert main(["plot", str(daemon_log), "--out", str(tmp_path / out_name)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and message in err
 
 
-def test_without_matplotlib_says_how_to_install(daemon_log: Path, tmp_path: Path, capsys,
-                                                monkeypatch) -> None:
+def test_without_matplotlib_says_how_to_install(daemon_log: Path, tmp_path: Path, capsys, monkeypatch) -> None:
     for name in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")]:
         monkeypatch.delitem(sys.modules, name)
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # import now raises ImportError
@@ -201,11 +222,12 @@ def test_unknown_placement_is_refused() -> None:
         plot_tool.top_view_axes("ceiling")
 
 
-def test_config_gives_placement_and_latency_budget(daemon_log: Path, tmp_path: Path, capsys,
-                                                   monkeypatch) -> None:
+def test_config_gives_placement_and_latency_budget(daemon_log: Path, tmp_path: Path, capsys, monkeypatch) -> None:
     config = tmp_path / "floor.toml"
-    config.write_text('[marker]\ntype = "square"\nwidth = 0.2\nheight = 0.2\nplacement = "floor"\n\n'
-                      '[pipeline]\nlatency_budget_s = 0.025\n')
+    config.write_text(
+        '[marker]\ntype = "square"\nwidth = 0.2\nheight = 0.2\nplacement = "floor"\n\n'
+        "[pipeline]\nlatency_budget_s = 0.025\n"
+    )
     seen = []
     real = plot_tool.make_figure
 
@@ -216,8 +238,12 @@ def test_config_gives_placement_and_latency_budget(daemon_log: Path, tmp_path: P
     monkeypatch.setattr(plot_tool, "make_figure", spy)
     assert main(["plot", str(daemon_log), "--out", str(tmp_path / "f.png"), "--config", str(config)]) == 0
     assert seen[-1]["placement"] == "floor" and seen[-1]["latency_budget_ms"] == pytest.approx(25.0)
-    assert main(["plot", str(daemon_log), "--out", str(tmp_path / "f.png"), "--config", str(config),
-                 "--placement", "wall"]) == 0
+    assert (
+        main(
+            ["plot", str(daemon_log), "--out", str(tmp_path / "f.png"), "--config", str(config), "--placement", "wall"]
+        )
+        == 0
+    )
     assert seen[-1]["placement"] == "wall"
     config.write_text("[marker]\nplacement = 3\n")
     assert main(["plot", str(daemon_log), "--out", str(tmp_path / "f.png"), "--config", str(config)]) == 2

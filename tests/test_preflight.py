@@ -44,10 +44,17 @@ def _run(capsys, *argv) -> tuple:
 
 
 def test_ardupilot_problems_are_fixed_by_apply(tmp_path, capsys):
-    fc = FakeAutopilot("ardupilot", ekf_start_s=0.0, heartbeat_s=0.2,
-                       params={"VISO_QUAL_MIN": 10, "EK3_SRC1_POSXY": 3, "VISO_DELAY_MS": 0})
-    cfg = _config(tmp_path, fc.connection, 'messages = ["ODOMETRY", "VISION_POSITION_ESTIMATE"]\n'
-                  'origin = [47.397742, 8.545594, 488.0]')
+    fc = FakeAutopilot(
+        "ardupilot",
+        ekf_start_s=0.0,
+        heartbeat_s=0.2,
+        params={"VISO_QUAL_MIN": 10, "EK3_SRC1_POSXY": 3, "VISO_DELAY_MS": 0},
+    )
+    cfg = _config(
+        tmp_path,
+        fc.connection,
+        'messages = ["ODOMETRY", "VISION_POSITION_ESTIMATE"]\norigin = [47.397742, 8.545594, 488.0]',
+    )
     try:
         code, lines = _run(capsys, "--config", cfg)
         assert code == 1
@@ -56,7 +63,7 @@ def test_ardupilot_problems_are_fixed_by_apply(tmp_path, capsys):
         assert any(re.match(r"FIX: VISO_DELAY_MS = [1-9][0-9]*$", ln) for ln in lines), lines
         assert "OK VISO_TYPE = 1" in lines and "OK GPS_GLOBAL_ORIGIN reported" in lines
         assert any(ln.startswith("PROBLEM EKF3 does not use the feed") for ln in lines)
-        assert fc.param("EK3_SRC1_POSXY") == 3            # nothing set without --apply
+        assert fc.param("EK3_SRC1_POSXY") == 3  # nothing set without --apply
         code, lines = _run(capsys, "--config", cfg, "--apply")
         assert "OK EK3_SRC1_POSXY = 6 set" in lines and "OK VISO_QUAL_MIN = 0 set" in lines
         assert fc.param("EK3_SRC1_POSXY") == 6 and fc.param("VISO_QUAL_MIN") == 0 and fc.param("VISO_DELAY_MS") > 0
@@ -66,10 +73,12 @@ def test_ardupilot_problems_are_fixed_by_apply(tmp_path, capsys):
         code, lines = _run(capsys, "--config", cfg)
     finally:
         fc.close()
-    assert code == 0, [ln for ln in lines if not ln.startswith('OK ')]
+    assert code == 0, [ln for ln in lines if not ln.startswith("OK ")]
     assert not [ln for ln in lines if not ln.startswith("OK ")], lines
     assert [ln for ln in lines if ln.startswith("OK EKF3 uses the feed")] in (
-        ["OK EKF3 uses the feed (flags 0x39)"], ["OK EKF3 uses the feed"]), lines
+        ["OK EKF3 uses the feed (flags 0x39)"],
+        ["OK EKF3 uses the feed"],
+    ), lines
 
 
 def test_px4_integer_parameters_are_set_bytewise(tmp_path, capsys):

@@ -49,7 +49,7 @@ def _cfg(tmp_path: Path, fps: float = 5.0, width: int = 640, extra: str = ""):
 @pytest.fixture(scope="module")
 def processed():
     """Real frames of the wall trajectory with their real processing results."""
-    cfg = parse_config("[camera]\nsource = \"synthetic\"\n", "c.toml")
+    cfg = parse_config('[camera]\nsource = "synthetic"\n', "c.toml")
     camera, marker = cfg.camera.model(), cfg.marker.model()
     processor = FrameProcessor.from_config(cfg)
     poses = trajectory("wall", 8, fps=10.0, seed=1, camera=camera, marker=marker)
@@ -87,6 +87,7 @@ class Feeder:
             while not self._stop.is_set():
                 self.feed()
                 time.sleep(pause_s)
+
         self._thread = threading.Thread(target=run, daemon=True)
         self._thread.start()
 
@@ -121,8 +122,9 @@ def _get(server, path, **kw):
 
 
 def _post(server, path, header=True):
-    req = urllib.request.Request(server.url.rstrip("/") + path, data=b"", method="POST",
-                                 headers={"X-Pose-Daemon": "1"} if header else {})
+    req = urllib.request.Request(
+        server.url.rstrip("/") + path, data=b"", method="POST", headers={"X-Pose-Daemon": "1"} if header else {}
+    )
     try:
         with urllib.request.urlopen(req, timeout=10) as resp:
             return resp.status, json.loads(resp.read())
@@ -149,8 +151,13 @@ def test_preview_is_off_unless_present_and_its_keys_are_checked(tmp_path):
     assert cfg.preview.address == ("127.0.0.1", 8080)
     assert parse_config('[preview]\nlisten = "[::1]:9000"\n', "c.toml").preview.address == ("::1", 9000)
     assert "[preview]" in cfg.to_toml() and "[preview]" not in parse_config("", "c.toml").to_toml()
-    for text, key in (('listen = "127.0.0.1"', "listen"), ('listen = "h:70000"', "listen"),
-                      ("max_fps = 0", "max_fps"), ("max_width = 10", "max_width"), ("port = 1", "port")):
+    for text, key in (
+        ('listen = "127.0.0.1"', "listen"),
+        ('listen = "h:70000"', "listen"),
+        ("max_fps = 0", "max_fps"),
+        ("max_width = 10", "max_width"),
+        ("port = 1", "port"),
+    ):
         with pytest.raises(ConfigError) as err:
             parse_config(f"[preview]\n{text}\n", "c.toml")
         msg = str(err.value)
@@ -173,16 +180,16 @@ def test_status_json_is_the_status_and_the_last_per_frame_object(served):
     assert data["last"] == json.loads(json.dumps(last_result.to_json_dict()))
     s = data["status"]
     assert s["frames"] == 20 and s["detected"] == 20 and s["detected_pct"] == 100.0
-    assert s["fps"] == pytest.approx(30.0, rel=0.01)   # from the frames' capture times
+    assert s["fps"] == pytest.approx(30.0, rel=0.01)  # from the frames' capture times
     assert s["latency_ms"]["detect"][0] == pytest.approx(1.0)
-    assert "frames 20, drops none" in s["line"]     # the status line, as the journal has it
+    assert "frames 20, drops none" in s["line"]  # the status line, as the journal has it
     assert s["warnings"] == [] and s["source"] == "starting"
     hist = json.loads(_get(server, "/history.json")[2])
     assert len(hist["t"]) == 20 and hist["t"][-1] == 0.0
     assert hist["z"][-1] == pytest.approx(float(last_result.pose.camera_position[2]), abs=1e-4)
     status, ctype, page = _get(server, "/")
     assert ctype.startswith("text/html") and b"/stream.mjpg" in page
-    assert b"http://" not in page and b"https://" not in page   # no external assets
+    assert b"http://" not in page and b"https://" not in page  # no external assets
     with pytest.raises(urllib.error.HTTPError) as err:
         _get(server, "/nothing")
     assert err.value.code == 404
@@ -201,7 +208,7 @@ def test_nothing_is_encoded_while_nobody_watches_and_a_snapshot_is_capped_in_wid
     assert ctype == "image/jpeg" and image.shape == (240, 320, 3)
     assert server.counts["encoded"] == 1
     _get(server, "/snapshot.jpg")
-    assert server.counts["encoded"] == 1   # the same frame is encoded once
+    assert server.counts["encoded"] == 1  # the same frame is encoded once
 
 
 def _read_parts(sock_file, n):
@@ -262,7 +269,7 @@ def test_the_stream_sends_the_newest_annotated_frame_and_counts_what_it_skips(se
         b, g, r = (img[:, :, i].astype(int) for i in range(3))
         assert np.count_nonzero((g > 180) & (r < 90) & (b < 90)) > 100
     assert server.counts["frames_sent"] >= 4
-    assert server.counts["frames_skipped"] > 0      # fed far faster than 10 fps: newest wins
+    assert server.counts["frames_skipped"] > 0  # fed far faster than 10 fps: newest wins
     assert _wait(lambda: server.counts["viewers"] == 0)
 
 
@@ -270,14 +277,14 @@ def test_a_viewer_that_stops_reading_is_dropped_and_holds_up_nothing(served):
     server, feeder = served(fps=30.0)
     feeder.start(pause_s=0.01)
     try:
-        stalled, sf = _open_stream(server, rcvbuf=4096)   # reads the headers, then nothing
+        stalled, sf = _open_stream(server, rcvbuf=4096)  # reads the headers, then nothing
         reader, rf = _open_stream(server)
         assert _wait(lambda: server.counts["viewers"] == 2)
         fed_before = server.tap.frames
         # The stalled viewer fills its socket buffers, then its send times out.
         assert _wait(lambda: server.counts["viewers_dropped"] == 1, timeout_s=120)
-        assert server.tap.frames > fed_before + 10         # the feeder never waited
-        parts = _read_parts(rf, 3)                          # the other viewer is still served
+        assert server.tap.frames > fed_before + 10  # the feeder never waited
+        parts = _read_parts(rf, 3)  # the other viewer is still served
         assert len(parts) == 3
         assert _wait(lambda: server.counts["viewers"] == 1)
         for sock in (rf, reader, sf, stalled):
@@ -289,7 +296,7 @@ def test_a_viewer_that_stops_reading_is_dropped_and_holds_up_nothing(served):
 
 def test_snapshot_and_record_write_into_the_data_directory_in_the_recording_format(served, tmp_path):
     server, feeder = served()
-    assert _post(server, "/snapshot")[0] == 409          # no frame yet
+    assert _post(server, "/snapshot")[0] == 409  # no frame yet
     feeder.feed(3)
     code, body = _post(server, "/snapshot", header=False)
     assert code == 403 and "X-Pose-Daemon" in body["error"]
@@ -303,14 +310,14 @@ def test_snapshot_and_record_write_into_the_data_directory_in_the_recording_form
     assert _post(server, "/record?seconds=0")[0] == 400
     code, body = _post(server, "/record?seconds=0.5")
     assert code == 200
-    assert _post(server, "/record?seconds=1")[0] == 409   # one recording at a time
-    feeder.feed(30)                                        # 1 s of frames at 30 fps
+    assert _post(server, "/record?seconds=1")[0] == 409  # one recording at a time
+    feeder.feed(30)  # 1 s of frames at 30 fps
     rec = server.recorder
     assert rec.join(30) and rec.done.is_set()
     path = Path(body["recording"])
     assert path.parent == tmp_path / "data" / "recordings" and recording.is_recording(path)
     entries = recording.read_index(path)
-    assert len(entries) == 15 and rec.dropped == 0        # frames within 0.5 s of the first
+    assert len(entries) == 15 and rec.dropped == 0  # frames within 0.5 s of the first
     src = ReplaySource(path)
     src.open()
     first = src.read()
@@ -352,17 +359,34 @@ def test_each_cause_of_a_missing_pose_gives_its_warning(processed):
     assert _codes(last=lost, history=[lost_r]) == ["no_marker"]
     small, small_r = _tapped(processed, corners_scale=0.1)
     assert _codes(last=small, history=[small_r]) == ["marker_small"]
-    texts = evaluate(Context(last=lost, history=[small_r, lost_r], source_state="ok", since_frame_s=0.0,
-                             recent_drops={}, outputs=[]))
+    texts = evaluate(
+        Context(last=lost, history=[small_r, lost_r], source_state="ok", since_frame_s=0.0, recent_drops={}, outputs=[])
+    )
     assert "last seen" in texts[0].text and "bigger marker" in texts[0].text
     bad, _ = _tapped(processed, ok=False, error="pose: corners are collinear")
     assert _codes(last=bad) == ["pose_failed"]
     assert _codes(source_state="failed (camera unplugged), reopening in 0.5 s") == ["source"]
     assert _codes(since_frame_s=3.0) == ["stalled"]
     assert _codes(recent_drops={"late": 2}) == ["late"]
+    assert _codes(recent_drops={"gated": 3, "inconsistent": 1}) == ["withheld"]
+    from pose_daemon.attitude import Attitude
+    from pose_daemon.preview.tap import Tapped
+
+    frame = tracked.frame
+    without = Tapped(frame, dataclasses.replace(r, attitude=None), None)
+    with_att = Tapped(frame, dataclasses.replace(r, attitude=Attitude((0.0, 0.0, 0.0), 0.01)), None)
+    assert _codes(last=without, history=[r], attitude_expected=True) == ["attitude_stale"]
+    assert _codes(last=with_att, history=[r], attitude_expected=True) == []
+    assert _codes(last=without, history=[r]) == []  # no live attitude configured: nothing to miss
     assert _codes(recent_drops={"full[mavlink]": 1}) == ["output_drops"]
-    mav = {"name": "mavlink", "link_up": True, "link": "up, waiting for the autopilot's HEARTBEAT",
-           "wait_heartbeat": True, "autopilot": None, "connection": "/dev/serial0"}
+    mav = {
+        "name": "mavlink",
+        "link_up": True,
+        "link": "up, waiting for the autopilot's HEARTBEAT",
+        "wait_heartbeat": True,
+        "autopilot": None,
+        "connection": "/dev/serial0",
+    }
     assert _codes(outputs=[mav]) == ["autopilot_not_heard"]
     assert _codes(outputs=[dict(mav, autopilot=1)]) == []
     assert _codes(outputs=[dict(mav, link_up=False, link="down (no such device)")]) == ["output_down"]
@@ -386,6 +410,7 @@ def test_the_mavlink_output_that_waits_for_the_autopilot_shows_on_the_page(tmp_p
         def codes():
             server._warnings_cache = (-1e18, [])
             return [w["code"] for w in json.loads(_get(server, "/status.json")[2])["status"]["warnings"]]
+
         assert _wait(lambda: "autopilot_not_heard" in codes(), timeout_s=20)
     finally:
         server.stop()
@@ -436,13 +461,24 @@ def test_the_annotated_frame_shows_the_rejected_solution_and_the_warnings(proces
     cfg = parse_config("", "c.toml")
     frame, result = processed[3]
     assert result.pose.alternative is not None
-    plain = annotate_live(frame.image, dataclasses.replace(result, pose=dataclasses.replace(
-        result.pose, alternative=None)), cfg.camera.model(), cfg.marker.model())
-    live = annotate_live(frame.image, result, cfg.camera.model(), cfg.marker.model(),
-                         detector_step="follow", warnings=["marker too small"])
+    plain = annotate_live(
+        frame.image,
+        dataclasses.replace(result, pose=dataclasses.replace(result.pose, alternative=None)),
+        cfg.camera.model(),
+        cfg.marker.model(),
+    )
+    live = annotate_live(
+        frame.image,
+        result,
+        cfg.camera.model(),
+        cfg.marker.model(),
+        detector_step="follow",
+        warnings=["marker too small"],
+    )
 
     def count(image, colour):
         return int(np.count_nonzero(np.all(np.abs(image.astype(int) - colour) < 40, axis=2)))
+
     assert count(live, REJECTED_COLOUR) > count(plain, REJECTED_COLOUR) + 50
     assert count(live, WARNING_COLOUR) > 50 and count(plain, WARNING_COLOUR) == 0
 
@@ -452,12 +488,60 @@ def test_a_request_naming_another_host_is_refused(served):
 
     server, feeder = served()
     feeder.feed(2)
-    for host, ok in (("127.0.0.1:8080", True), ("[::1]:8080", True), ("localhost:8080", True),
-                     ("robot.local:8080", True), ("192.168.1.20", True), ("evil.example:8080", False),
-                     ("", False), (None, False)):
+    for host, ok in (
+        ("127.0.0.1:8080", True),
+        ("[::1]:8080", True),
+        ("localhost:8080", True),
+        ("robot.local:8080", True),
+        ("192.168.1.20", True),
+        ("evil.example:8080", False),
+        ("", False),
+        (None, False),
+    ):
         assert host_allowed(host, "127.0.0.1") is ok, host
     s = socket.create_connection(("127.0.0.1", server.port), timeout=10)
     s.sendall(b"GET /snapshot.jpg HTTP/1.0\r\nHost: evil.example:8080\r\n\r\n")
     reply = s.makefile("rb").read()
     s.close()
     assert reply.split()[1] == b"403" and b"unexpected Host" in reply
+
+
+def test_the_annotated_frame_outlines_the_detector_search_regions(processed):
+    from pose_daemon.detect.detector import MarkerDetector
+    from pose_daemon.draw import SEARCH_COLOUR, annotate_live
+
+    cfg = parse_config('[camera]\nsource = "synthetic"\n', "c.toml")
+    camera, marker = cfg.camera.model(), cfg.marker.model()
+    detector = MarkerDetector(marker, camera=camera)
+    (frame0, result0), (frame1, result1) = processed[0], processed[1]
+    detector.detect(frame0.image)
+    whole = detector.last_search
+    detector.detect(frame1.image)
+    tracked = detector.last_search
+    assert whole.full == "done" and tracked.stage == "follow"
+    ((step, (x0, y0, x1, y1)),) = tracked.regions
+
+    def is_search(pixels):
+        return np.all(pixels == SEARCH_COLOUR, axis=-1)
+
+    plain = annotate_live(frame1.image, result1, camera, marker)
+    live = annotate_live(frame1.image, result1, camera, marker, search=tracked)
+    outline = np.concatenate([live[y0, x0:x1], live[y1 - 1, x0:x1], live[y0:y1, x0], live[y0:y1, x1 - 1]])
+    assert is_search(outline).mean() > 0.9  # the corner rings may cross it here and there
+    assert not is_search(plain).any()
+    inside = live[y0 + 1 : y1 - 1, x0 + 1 : x1 - 1]
+    assert is_search(inside).mean() < 0.05  # an outline, not a filled box
+    # A whole-frame search is named at the top right; the processing thread's record reaches
+    # the preview through the tap.
+    full = annotate_live(frame0.image, result0, camera, marker, search=whole)
+    w = full.shape[1]
+
+    def near(image):  # anti-aliased text: near the colour
+        return int(np.count_nonzero(np.all(np.abs(image.astype(int) - SEARCH_COLOUR) < 40, axis=2)))
+
+    assert near(full[:30, w // 2 :]) > 50 and not is_search(full[30:]).any()
+    assert near(annotate_live(frame0.image, result0, camera, marker)[:30, w // 2 :]) == 0
+    processor = FrameProcessor.from_config(cfg)
+    tap = FrameTap(processor)
+    tap(frame0, processor.process(frame0))
+    assert tap.latest.search is processor.detector.last_search and tap.latest.search.full == "done"

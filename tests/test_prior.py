@@ -61,8 +61,10 @@ def _views(placement: str, n: int, seed: int):
 def _hopeless(pose, R_cm) -> bool:
     """Neither planar solution within 10 deg of the truth: corner noise, no choice can help."""
     alt = pose.alternative
-    return min(rotation_angle_deg_3x3(pose.R, R_cm),
-               rotation_angle_deg_3x3(alt.R, R_cm) if alt is not None else 180.0) > 10
+    return (
+        min(rotation_angle_deg_3x3(pose.R, R_cm), rotation_angle_deg_3x3(alt.R, R_cm) if alt is not None else 180.0)
+        > 10
+    )
 
 
 def _side(corners) -> float:
@@ -82,9 +84,18 @@ def test_attitude_picks_the_right_solution_where_the_estimator_flips(placement, 
         r, p, y = (float(v) for v in euler_rpy_from_R(R_lb))
         # Yaw on another reference on purpose (1 rad off): the heading is learnt, not given.
         att = Attitude((r + math.radians(0.5), p - math.radians(0.5), y + 1.0), math.radians(0.5))
-        choice = choose_solution(pose, frames, attitude=att, settings=settings, side_px=_side(corners),
-                                 by_continuity=_keep, heading=heading, corners_px=corners, camera=CAMERA,
-                                 marker=MARKER)
+        choice = choose_solution(
+            pose,
+            frames,
+            attitude=att,
+            settings=settings,
+            side_px=_side(corners),
+            by_continuity=_keep,
+            heading=heading,
+            corners_px=corners,
+            camera=CAMERA,
+            marker=MARKER,
+        )
         if choice.pose is None:
             withheld += 1
             continue
@@ -95,7 +106,7 @@ def test_attitude_picks_the_right_solution_where_the_estimator_flips(placement, 
             hopeless += 1
         else:
             chosen_wrong += error > 10
-    assert raw_wrong >= 80, raw_wrong       # 20-30 px markers: the estimator alone flips half the time
+    assert raw_wrong >= 80, raw_wrong  # 20-30 px markers: the estimator alone flips half the time
     assert heading.offset_rad == pytest.approx(-1.0, abs=math.radians(2))
     if polish:
         # Pulled towards the attitude's down and heading, even hopeless frames come out right.
@@ -113,8 +124,14 @@ def test_an_attitude_that_fits_neither_solution_is_inconsistent(placement):
     pose = estimate_pose(corners, CAMERA, MARKER)
     side = float(np.mean(np.linalg.norm(corners - np.roll(corners, 1, 0), axis=1)))
     # The vehicle claims to be rolled 60 deg: no solution puts down there.
-    choice = choose_solution(pose, frames, attitude=Attitude((math.radians(60), 0.0, 0.0), 0.01),
-                             settings=PriorSettings(), side_px=side, by_continuity=_keep)
+    choice = choose_solution(
+        pose,
+        frames,
+        attitude=Attitude((math.radians(60), 0.0, 0.0), 0.01),
+        settings=PriorSettings(),
+        side_px=side,
+        by_continuity=_keep,
+    )
     assert choice.pose is None and choice.withheld == "inconsistent" and "deg from the attitude" in choice.reason
 
 
@@ -126,8 +143,9 @@ def test_tilt_prior_rules_out_the_steep_solution():
         if _hopeless(pose, R_cm):
             continue
         wrong_raw += rotation_angle_deg_3x3(pose.R, R_cm) > 10
-        choice = choose_solution(pose, frames, attitude=None, settings=settings, side_px=_side(corners),
-                                 by_continuity=_keep)
+        choice = choose_solution(
+            pose, frames, attitude=None, settings=settings, side_px=_side(corners), by_continuity=_keep
+        )
         if choice.pose is not None:
             wrong += rotation_angle_deg_3x3(choice.pose.R, R_cm) > 10
             resolved += choice.resolved_by == "tilt"
@@ -142,12 +160,19 @@ def test_gate_withholds_a_rectangle_that_is_no_square_and_scales_with_size():
     c = np.array([[230.0, 210.0], [410.0, 210.0], [410.0, 270.0], [230.0, 270.0]])
     pose = estimate_pose(c, CAMERA, MARKER)
     side = float(np.mean(np.linalg.norm(c - np.roll(c, 1, 0), axis=1)))
-    choice = choose_solution(pose, VehicleFrames.from_settings(), attitude=None, settings=s, side_px=side,
-                             by_continuity=_keep)
+    choice = choose_solution(
+        pose, VehicleFrames.from_settings(), attitude=None, settings=s, side_px=side, by_continuity=_keep
+    )
     assert pose.reprojection_error_px > gate_bound_px(s, side)
     assert choice.pose is None and choice.withheld == "gated"
-    off = choose_solution(pose, VehicleFrames.from_settings(), attitude=None, settings=PriorSettings(gate=False),
-                          side_px=side, by_continuity=_keep)
+    off = choose_solution(
+        pose,
+        VehicleFrames.from_settings(),
+        attitude=None,
+        settings=PriorSettings(gate=False),
+        side_px=side,
+        by_continuity=_keep,
+    )
     assert off.pose is pose and off.withheld is None
 
 
@@ -165,8 +190,7 @@ class _Scripted:
 def test_processor_uses_the_frames_attitude_records_the_choice_and_withholds():
     views = _views("floor", 40, seed=5)
     frames = views[0][0]
-    proc = FrameProcessor(CAMERA, MARKER, detector=_Scripted([v[3] for v in views] + [views[0][3]]),
-                          frames=frames)
+    proc = FrameProcessor(CAMERA, MARKER, detector=_Scripted([v[3] for v in views] + [views[0][3]]), frames=frames)
     image = np.zeros((480, 640), np.uint8)
     wrong = sent = 0
     for i, (_, R_lb, R_cm, _) in enumerate(views):
@@ -206,9 +230,16 @@ def test_a_long_rectangle_that_fits_an_oblique_square_is_gated_by_the_view_angle
     pose = estimate_pose(c, CAMERA, MARKER)
     side = _side(c)
     assert pose.reprojection_error_px < gate_bound_px(PriorSettings(), side)  # the RMS gate alone lets it by
-    choice = choose_solution(pose, VehicleFrames.from_settings(), attitude=None, settings=PriorSettings(),
-                             side_px=side, by_continuity=_keep)
+    choice = choose_solution(
+        pose, VehicleFrames.from_settings(), attitude=None, settings=PriorSettings(), side_px=side, by_continuity=_keep
+    )
     assert choice.pose is None and choice.withheld == "gated" and "off its face" in choice.reason
-    anyway = choose_solution(pose, VehicleFrames.from_settings(), attitude=None,
-                             settings=PriorSettings(max_view_deg=0.0), side_px=side, by_continuity=_keep)
+    anyway = choose_solution(
+        pose,
+        VehicleFrames.from_settings(),
+        attitude=None,
+        settings=PriorSettings(max_view_deg=0.0),
+        side_px=side,
+        by_continuity=_keep,
+    )
     assert anyway.pose is not None

@@ -11,8 +11,9 @@ from pose_daemon.render import Effects, render_marker
 
 def test_wrong_size_and_empty_frames_become_frame_errors_and_processing_goes_on(camera, marker):
     processor = FrameProcessor(camera, marker)
-    rendered = render_marker(camera, marker, np.array([np.pi, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]),
-                             effects=Effects.clean())
+    rendered = render_marker(
+        camera, marker, np.array([np.pi, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]), effects=Effects.clean()
+    )
     bad = [np.zeros((240, 320), np.uint8), np.zeros((0, 0), np.uint8), np.zeros((480, 640), np.float64)]
     for seq, image in enumerate(bad):
         result = processor.process(Frame(image=image, t_capture_s=float(seq), seq=seq))

@@ -26,9 +26,12 @@ def test_expected_error_matches_the_estimators_scatter(tilt_deg, distance_m):
     t = np.array([0.05, 0.0, distance_m])
     corners = CAMERA.project(MARKER.object_points @ R.T + t)
     c_true = -R.T @ t
-    centres = np.array([-p.R.T @ p.tvec for p in
-                        (estimate_pose(corners + rng.normal(0.0, 0.25, corners.shape), CAMERA, MARKER)
-                         for _ in range(200))])
+    centres = np.array(
+        [
+            -p.R.T @ p.tvec
+            for p in (estimate_pose(corners + rng.normal(0.0, 0.25, corners.shape), CAMERA, MARKER) for _ in range(200))
+        ]
+    )
     empirical = math.sqrt(float(np.mean(np.sum((centres - c_true) ** 2, axis=1))))
     cov, _ = solve_covariance(camera_pose(R, t, 0.25), CAMERA.fx, MARKER.width)
     assert math.sqrt(float(np.trace(cov))) == pytest.approx(empirical, rel=0.3)
@@ -41,7 +44,7 @@ def test_a_level_camera_over_a_floor_square_gets_a_high_quality():
     corners = CAMERA.project(MARKER.object_points @ R_cm.T + t)
     pose = estimate_pose(corners + np.random.default_rng(0).normal(0, 0.1, corners.shape), CAMERA, MARKER)
     assert pose.alternative is not None and pose.ambiguity_ratio > 0.99
-    old = 100.0 / (1.0 + pose.reprojection_error_px ** 2) * (1.0 - pose.ambiguity_ratio)
+    old = 100.0 / (1.0 + pose.reprojection_error_px**2) * (1.0 - pose.ambiguity_ratio)
     assert old < 1 and pose_quality(pose, CAMERA.fx, MARKER.width) >= 70
 
 

@@ -50,8 +50,8 @@ def test_record_then_replay_gives_identical_frames_and_times(tmp_path: Path, cap
     source.close()
     assert len(replayed) == 6
     for rep, orig, entry in zip(replayed, live, index):
-        assert np.array_equal(rep.image, orig.image)            # lossless
-        assert rep.t_capture_s == entry["t_capture_s"]           # times exactly as recorded
+        assert np.array_equal(rep.image, orig.image)  # lossless
+        assert rep.t_capture_s == entry["t_capture_s"]  # times exactly as recorded
         assert rep.seq == orig.seq
         np.testing.assert_allclose(rep.metadata["true_tvec"], orig.metadata["true_tvec"], rtol=0, atol=1e-12)
         np.testing.assert_allclose(rep.metadata["true_corners"], orig.metadata["true_corners"], atol=1e-9)
@@ -61,15 +61,17 @@ def test_record_then_replay_gives_identical_frames_and_times(tmp_path: Path, cap
 
 def test_record_seconds_limit_and_config(tmp_path: Path, capsys) -> None:
     config = tmp_path / "c.toml"
-    config.write_text('[camera]\nsource = "synthetic"\nwidth = 320\nheight = 240\nfx = 300.0\nfy = 300.0\n'
-                      'cx = 159.5\ncy = 119.5\nfps = 10.0\n'
-                      '[marker]\ntype = "aruco"\nwidth = 0.15\nheight = 0.15\ndictionary = "DICT_4X4_50"\nid = 3\n')
+    config.write_text(
+        '[camera]\nsource = "synthetic"\nwidth = 320\nheight = 240\nfx = 300.0\nfy = 300.0\n'
+        "cx = 159.5\ncy = 119.5\nfps = 10.0\n"
+        '[marker]\ntype = "aruco"\nwidth = 0.15\nheight = 0.15\ndictionary = "DICT_4X4_50"\nid = 3\n'
+    )
     out = tmp_path / "rec"
     assert main(["record", "--config", str(config), "--out", str(out), "--seconds", "0.5", "--quiet"]) == 0
     err = capsys.readouterr().err
     assert "%" not in err
     index = read_index(out)
-    assert len(index) == 5          # 0.0 .. 0.4 s at 10 fps
+    assert len(index) == 5  # 0.0 .. 0.4 s at 10 fps
     meta = read_meta(out)
     assert meta["camera"]["width"] == 320 and meta["marker"]["id"] == 3 and meta["fps"] == 10.0
     assert json.loads((out / "index.jsonl").read_text().splitlines()[0])["seq"] == 0

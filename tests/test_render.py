@@ -22,8 +22,9 @@ from pose_daemon.render import (
 
 CAM = Camera(fx=600.0, fy=600.0, cx=319.5, cy=239.5, width=640, height=480)
 # A wide-angle lens with strong barrel distortion, like the Pi camera's wide modules.
-CAM_DIST = Camera(fx=420.0, fy=420.0, cx=322.0, cy=236.0, dist=(-0.28, 0.09, 0.001, -0.0008, -0.012),
-                  width=640, height=480)
+CAM_DIST = Camera(
+    fx=420.0, fy=420.0, cx=322.0, cy=236.0, dist=(-0.28, 0.09, 0.001, -0.0008, -0.012), width=640, height=480
+)
 ARUCO = Marker(0.2, 0.2, type="aruco", dictionary="DICT_4X4_50", id=7)
 SQUARE = Marker(0.2, 0.2)
 WHITE, BLACK = 220.0, 25.0
@@ -64,7 +65,7 @@ def test_aruco_detector_finds_the_rendered_corners_without_offset(camera: Camera
     # No systematic offset; per-corner scatter is the detector's own (cornerSubPix on
     # L-shaped corners), about 0.2 px on these frames.
     assert np.all(np.abs(e.mean(axis=0)) < 0.03), e.mean(axis=0)
-    assert np.sqrt((e ** 2).sum(axis=1).mean()) < 0.3
+    assert np.sqrt((e**2).sum(axis=1).mean()) < 0.3
     assert np.abs(e).max() < 0.8
 
 
@@ -73,8 +74,9 @@ def test_chessboard_saddles_land_on_their_projections(camera: Camera) -> None:
     # Saddle points are what cornerSubPix finds without bias: a sharp check of the renderer's
     # geometry (pixel-centre convention, distortion, plane mapping) to a few hundredths of a px.
     squares, sq_px = (9, 7), 40
-    board = np.kron((np.indices(squares[::-1]).sum(axis=0) % 2) * (WHITE - BLACK) + BLACK,
-                    np.ones((sq_px, sq_px))).astype(np.uint8)
+    board = np.kron(
+        (np.indices(squares[::-1]).sum(axis=0) % 2) * (WHITE - BLACK) + BLACK, np.ones((sq_px, sq_px))
+    ).astype(np.uint8)
     margin = sq_px
     texture = np.full((board.shape[0] + 2 * margin, board.shape[1] + 2 * margin), WHITE, np.uint8)
     texture[margin:-margin, margin:-margin] = board
@@ -90,12 +92,17 @@ def test_chessboard_saddles_land_on_their_projections(camera: Camera) -> None:
         rvec, tvec = random_pose(rng, camera, Marker(size_m[0], size_m[1]), (0.55, 0.8), 35)
         image = render_plane(camera, texture, size_m, rvec, tvec, effects=Effects.clean(), rng=rng)
         truth = camera.project(grid @ R_from_rvec(rvec).T + tvec)
-        refined = cv2.cornerSubPix(image, truth.astype(np.float32).reshape(-1, 1, 2).copy(), (5, 5), (-1, -1),
-                                   (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4))
+        refined = cv2.cornerSubPix(
+            image,
+            truth.astype(np.float32).reshape(-1, 1, 2).copy(),
+            (5, 5),
+            (-1, -1),
+            (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4),
+        )
         all_err.append(refined.reshape(-1, 2) - truth)
     e = np.concatenate(all_err)
     assert np.all(np.abs(e.mean(axis=0)) < 0.01), e.mean(axis=0)
-    assert np.sqrt((e ** 2).sum(axis=1).mean()) < 0.08
+    assert np.sqrt((e**2).sum(axis=1).mean()) < 0.08
     assert np.abs(e).max() < 0.25
 
 
@@ -122,8 +129,8 @@ def test_square_marker_has_its_dark_region_and_white_quiet_zone() -> None:
     np.testing.assert_allclose(c, [[259.5, 179.5], [379.5, 179.5], [379.5, 299.5], [259.5, 299.5]], atol=1e-9)
     img = frame.image
     assert img[240, 320] == round(BLACK)
-    assert img[240, 259 - 10] == round(WHITE)                 # quiet zone: 0.25 x 120 px = 30 px
-    assert img[240, 259 - 40] == 128                          # plain background beyond it
+    assert img[240, 259 - 10] == round(WHITE)  # quiet zone: 0.25 x 120 px = 30 px
+    assert img[240, 259 - 40] == 128  # plain background beyond it
     # An edge on a pixel boundary (259.5, between columns 259 and 260): the anti-aliasing
     # filter (one pixel box plus a fraction of a pixel of texture filtering) is symmetric.
     assert img[240, 258] == round(WHITE) and img[240, 261] == round(BLACK)
@@ -145,7 +152,9 @@ def test_aruco_orientation_follows_the_pose() -> None:
 def test_marker_behind_or_turned_away_is_not_visible() -> None:
     away = render_marker(CAM, SQUARE, [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], effects=Effects.clean())
     assert not away.visible  # its back faces the camera
-    behind = render_marker(CAM, SQUARE, [math.pi, 0.0, 0.0], [0.0, 0.0, -1.0], effects=Effects.clean(background="plain"))
+    behind = render_marker(
+        CAM, SQUARE, [math.pi, 0.0, 0.0], [0.0, 0.0, -1.0], effects=Effects.clean(background="plain")
+    )
     assert not behind.visible
     assert np.all(behind.image == 128)
     off = render_marker(CAM, SQUARE, [math.pi, 0.0, 0.0], [2.0, 0.0, 1.0], effects=Effects.clean())
@@ -159,23 +168,31 @@ def test_effects_and_seeds() -> None:
     c = render_marker(CAM, SQUARE, rvec, tvec, rng=np.random.default_rng(5)).image
     assert np.array_equal(a, b) and not np.array_equal(a, c)
     clean = render_marker(CAM, SQUARE, rvec, tvec, effects=Effects.clean(background="plain")).image
-    noisy = render_marker(CAM, SQUARE, rvec, tvec, rng=np.random.default_rng(1),
-                          effects=Effects.clean(background="plain", noise_gray=4.0)).image
+    noisy = render_marker(
+        CAM, SQUARE, rvec, tvec, rng=np.random.default_rng(1), effects=Effects.clean(background="plain", noise_gray=4.0)
+    ).image
     diff = noisy.astype(float) - clean
     assert 3.5 < diff[200:280, 280:360].std() < 4.5  # inside the dark square
     blurred = render_marker(CAM, SQUARE, rvec, tvec, effects=Effects.clean(background="plain", blur_px=2.0)).image
     # Blur spreads the edge: the pixel just outside darkens, the one just inside lightens.
     assert blurred[240, 257] < clean[240, 257] - 20 and blurred[240, 262] > clean[240, 262] + 20
     jpeg = render_marker(CAM, SQUARE, rvec, tvec, effects=Effects.clean(jpeg_quality=30)).image
-    assert jpeg.shape == (480, 640) and not np.array_equal(jpeg, render_marker(
-        CAM, SQUARE, rvec, tvec, effects=Effects.clean()).image)
-    moving = render_marker(CAM, SQUARE, rvec, tvec, effects=Effects.clean(
-        background="plain", motion_blur_px=8.0, motion_blur_angle_deg=0.0)).image
+    assert jpeg.shape == (480, 640) and not np.array_equal(
+        jpeg, render_marker(CAM, SQUARE, rvec, tvec, effects=Effects.clean()).image
+    )
+    moving = render_marker(
+        CAM,
+        SQUARE,
+        rvec,
+        tvec,
+        effects=Effects.clean(background="plain", motion_blur_px=8.0, motion_blur_angle_deg=0.0),
+    ).image
     # Horizontal smear: vertical edges spread, horizontal edges stay sharp.
     assert moving[240, 262] > clean[240, 262] + 25
     assert abs(int(moving[200, 320]) - int(clean[200, 320])) <= 2
-    lit = render_empty(CAM, effects=Effects.clean(background="plain", lighting_gradient=0.4),
-                       rng=np.random.default_rng(0))
+    lit = render_empty(
+        CAM, effects=Effects.clean(background="plain", lighting_gradient=0.4), rng=np.random.default_rng(0)
+    )
     assert (lit.max() - lit.min()) / 128.0 == pytest.approx(0.4, abs=0.02)
 
 
@@ -187,8 +204,13 @@ def test_a_gamma_camera_blurs_in_linear_light_then_encodes(gamma) -> None:
     fx = dict(background="plain", plain_gray=180.0, blur_px=2.0)
     encoded = render_marker(CAM, SQUARE, rvec, tvec, effects=Effects.clean(gamma=gamma, **fx)).image
     white, black, grey = decode(np.array([WHITE, BLACK, 180.0]), gamma).tolist()
-    linear = render_marker(CAM, SQUARE, rvec, tvec, effects=Effects.clean(
-        white=white, black=black, background="plain", plain_gray=grey, blur_px=2.0)).image
+    linear = render_marker(
+        CAM,
+        SQUARE,
+        rvec,
+        tvec,
+        effects=Effects.clean(white=white, black=black, background="plain", plain_gray=grey, blur_px=2.0),
+    ).image
     # Rounded to 8 bits in between: the encoding's slope in the darks magnifies that step.
     expected = encode(linear.astype(float), gamma)
     assert np.abs(encoded - expected).max() <= 0.6 * (encode(np.array([1.0]), gamma)[0] - 0.0) + 1.0
@@ -213,8 +235,13 @@ def test_sharpening_overshoots_both_sides_of_an_edge() -> None:
 
 def test_motion_blur_of_8_px_spreads_the_edge_over_8_px() -> None:
     rvec, tvec = [math.pi, 0.0, 0.0], [0.0, 0.0, 1.0]
-    img = render_marker(CAM, SQUARE, rvec, tvec, effects=Effects.clean(
-        background="plain", plain_gray=220.0, motion_blur_px=8.0, motion_blur_angle_deg=0.0)).image
+    img = render_marker(
+        CAM,
+        SQUARE,
+        rvec,
+        tvec,
+        effects=Effects.clean(background="plain", plain_gray=220.0, motion_blur_px=8.0, motion_blur_angle_deg=0.0),
+    ).image
     row = img[240, 240:280].astype(float)
     level = (row - BLACK) / (WHITE - BLACK)
     # A linear ramp across the smear: 10 %..90 % takes 0.8 of its length.
@@ -275,16 +302,19 @@ def test_render_is_cheap_and_right_on_the_pi_stack() -> None:
     np.testing.assert_allclose(corners[0].reshape(4, 2), frame.corners_px, atol=0.6)
 
 
-@pytest.mark.parametrize("bad, message", [
-    ({"blur_px": -1.0}, "blur_px must be a number >= 0"),
-    ({"noise_gray": float("nan")}, "noise_gray must be a number >= 0"),
-    ({"jpeg_quality": 101}, "jpeg_quality must be 0"),
-    ({"background": "stars"}, "background must be 'texture' or 'plain'"),
-    ({"supersample": 0}, "supersample must be >= 1"),
-    ({"gamma": "cinema"}, "gamma must be a number in \\[0.2, 5\\] or 'srgb'"),
-    ({"gamma": 0.0}, "gamma must be a number in \\[0.2, 5\\] or 'srgb'"),
-    ({"sharpen": -0.5}, "sharpen must be a number >= 0"),
-])
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        ({"blur_px": -1.0}, "blur_px must be a number >= 0"),
+        ({"noise_gray": float("nan")}, "noise_gray must be a number >= 0"),
+        ({"jpeg_quality": 101}, "jpeg_quality must be 0"),
+        ({"background": "stars"}, "background must be 'texture' or 'plain'"),
+        ({"supersample": 0}, "supersample must be >= 1"),
+        ({"gamma": "cinema"}, "gamma must be a number in \\[0.2, 5\\] or 'srgb'"),
+        ({"gamma": 0.0}, "gamma must be a number in \\[0.2, 5\\] or 'srgb'"),
+        ({"sharpen": -0.5}, "sharpen must be a number >= 0"),
+    ],
+)
 def test_bad_effects_are_refused(bad, message) -> None:
     with pytest.raises(ValueError, match=message):
         Effects(**bad)

@@ -51,8 +51,9 @@ def test_replay_writes_one_object_per_frame_and_the_accuracy_summary(recording: 
     corner_med, corner_p95 = s["corner error px"]
     assert 0.0 < corner_med <= corner_p95 < 0.3
     # The printed figures are those of the JSON rows against the index.
-    errs = [np.sqrt(((np.array(r["corners"]) - e["true_corners"]) ** 2).sum(axis=1).mean())
-            for r, e in zip(rows, index)]
+    errs = [
+        np.sqrt(((np.array(r["corners"]) - e["true_corners"]) ** 2).sum(axis=1).mean()) for r, e in zip(rows, index)
+    ]
     assert corner_med == pytest.approx(np.median(errs), abs=1.5e-3)
     assert s["rotation error deg"][0] < 0.5 and s["translation error mm"][0] < 5.0
 
@@ -79,10 +80,9 @@ def test_replay_skips_corrupt_and_missing_frames_and_goes_on(recording: Path, tm
 
     rec = tmp_path / "rec"
     shutil.copytree(recording, rec)
-    (rec / "frames" / "000005.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 40)   # corrupt
-    (rec / "frames" / "000009.png").write_bytes(
-        (recording / "frames" / "000009.png").read_bytes()[:100])                   # truncated
-    (rec / "frames" / "000011.png").unlink()                                          # missing
+    (rec / "frames" / "000005.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 40)  # corrupt
+    (rec / "frames" / "000009.png").write_bytes((recording / "frames" / "000009.png").read_bytes()[:100])  # truncated
+    (rec / "frames" / "000011.png").unlink()  # missing
     out = tmp_path / "poses.jsonl"
     assert main(["replay", str(rec), "--out", str(out)]) == 0
     err = capsys.readouterr().err
@@ -101,14 +101,20 @@ def test_replay_of_a_plain_folder_uses_the_config(recording: Path, tmp_path: Pat
     captured = capsys.readouterr()
     rows = [json.loads(line) for line in captured.out.splitlines()]
     assert [r["frame"] for r in rows] == [0, 1, 2] and all(r["ok"] for r in rows)
-    assert "accuracy" not in captured.err   # no truth in a plain folder
+    assert "accuracy" not in captured.err  # no truth in a plain folder
 
 
-@pytest.mark.parametrize("make, message", [
-    (lambda d: d / "missing", "no such file or folder"),
-    (lambda d: (d / "notes.txt").write_text("x") and d / "notes.txt", "not a recording, a folder of images or a video"),
-    (lambda d: (d / "empty").mkdir() or d / "empty", "not a recording"),
-])
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        (lambda d: d / "missing", "no such file or folder"),
+        (
+            lambda d: (d / "notes.txt").write_text("x") and d / "notes.txt",
+            "not a recording, a folder of images or a video",
+        ),
+        (lambda d: (d / "empty").mkdir() or d / "empty", "not a recording"),
+    ],
+)
 def test_replay_bad_paths_exit_2_with_one_line(tmp_path: Path, capsys, make, message) -> None:
     path = make(tmp_path)
     assert main(["replay", str(path)]) == 2
@@ -130,9 +136,9 @@ def test_replay_says_when_the_recording_overrides_the_config(recording: Path, tm
     assert main(["replay", str(recording), "--config", str(other), "--out", str(tmp_path / "a.jsonl")]) == 0
     err = capsys.readouterr().err
     assert f"note: {recording} has its own [camera] and [marker], used instead of those of {other}" in err
-    assert _summary(err)["rate"] == 100.0   # the recording's square and camera were used
+    assert _summary(err)["rate"] == 100.0  # the recording's square and camera were used
     same = tmp_path / "same.toml"
-    same.write_text("[camera]\nfx = 500.0\n")   # what the recording holds: nothing to say
+    same.write_text("[camera]\nfx = 500.0\n")  # what the recording holds: nothing to say
     assert main(["replay", str(recording), "--config", str(same), "--out", str(tmp_path / "b.jsonl")]) == 0
     assert "note:" not in capsys.readouterr().err
 
@@ -142,8 +148,13 @@ def _cli(*args: str):
     import subprocess
     import sys
 
-    return subprocess.run([sys.executable, "-m", "pose_daemon", *args], capture_output=True, text=True,
-                          timeout=120, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    return subprocess.run(
+        [sys.executable, "-m", "pose_daemon", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+    )
 
 
 def test_unplayable_video_is_one_line_without_ffmpegs_own(tmp_path: Path) -> None:
@@ -163,8 +174,9 @@ def test_replay_of_a_damaged_video_says_how_many_frames_were_lost(tmp_path: Path
     rows = (tmp_path / "poses.jsonl").read_text().splitlines()
     assert res.returncode == 0 and 0 < len(rows) < 90
     # One line saying what was lost, and none of FFmpeg's per-packet complaints.
-    assert res.stderr == (f"pose-daemon: {90 - len(rows)} of 90 frames of {path} could not be "
-                          "decoded: a damaged video\n")
+    assert res.stderr == (
+        f"pose-daemon: {90 - len(rows)} of 90 frames of {path} could not be decoded: a damaged video\n"
+    )
 
 
 def test_replay_refuses_an_index_entry_outside_the_recording(recording: Path, tmp_path: Path) -> None:
@@ -182,6 +194,8 @@ def test_replay_refuses_an_index_entry_outside_the_recording(recording: Path, tm
     ann = tmp_path / "ann"
     res = _cli("replay", str(rec), "--annotate", str(ann))
     assert res.returncode == 2 and res.stdout == ""
-    assert res.stderr == (f'pose-daemon: error: {index}:3: frame file "../secret.png" lies outside the '
-                          "recording folder (absolute, or with ..)\n")
+    assert res.stderr == (
+        f'pose-daemon: error: {index}:3: frame file "../secret.png" lies outside the '
+        "recording folder (absolute, or with ..)\n"
+    )
     assert not ann.exists() or list(ann.iterdir()) == []

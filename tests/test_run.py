@@ -41,14 +41,24 @@ def _config(tmp_path, body: str):
 
 def test_run_config_error_is_one_line_exit_2(tmp_path):
     bad = _config(tmp_path, "[pipeline]\nlatency_budget_s = -1\n")
-    res = subprocess.run([sys.executable, "-m", "pose_daemon", "run", "--config", str(bad)],
-                         capture_output=True, text=True, timeout=60, env=ENV)
+    res = subprocess.run(
+        [sys.executable, "-m", "pose_daemon", "run", "--config", str(bad)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=ENV,
+    )
     assert res.returncode == 2
-    assert res.stderr == (f"pose-daemon: error: {bad}: [pipeline] latency_budget_s: "
-                          "expected a number in (0, 10], got -1\n")
-    missing = subprocess.run([sys.executable, "-m", "pose_daemon", "run", "--config",
-                              str(tmp_path / "nope.toml")], capture_output=True, text=True,
-                             timeout=60, env=ENV)
+    assert res.stderr == (
+        f"pose-daemon: error: {bad}: [pipeline] latency_budget_s: expected a number in (0, 10], got -1\n"
+    )
+    missing = subprocess.run(
+        [sys.executable, "-m", "pose_daemon", "run", "--config", str(tmp_path / "nope.toml")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=ENV,
+    )
     assert missing.returncode == 2 and "nope.toml: cannot read config" in missing.stderr
     assert "Traceback" not in res.stderr + missing.stderr
 
@@ -63,7 +73,9 @@ def _udp_sink():
 def test_run_synthetic_finite_source_streams_and_exits_0(tmp_path):
     sink = _udp_sink()
     port = sink.getsockname()[1]
-    cfg = _config(tmp_path, f"""
+    cfg = _config(
+        tmp_path,
+        f"""
 {SMALL_CAMERA}
 [synthetic]
 frames = 75
@@ -74,9 +86,15 @@ connection = "udpout:127.0.0.1:{port}"
 wait_heartbeat = false
 [output.jsonl]
 path = "-"
-""")
-    res = subprocess.run([sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
-                         capture_output=True, text=True, timeout=120, env=ENV)
+""",
+    )
+    res = subprocess.run(
+        [sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=ENV,
+    )
     assert res.returncode == 0, res.stderr
     lines = [json.loads(line) for line in res.stdout.splitlines()]
     # The renderer's first frames come late (warm-up) and are dropped as such, never sent late.
@@ -124,6 +142,7 @@ class _Lines:
     def wait_for(self, text: str, count: int = 1, timeout_s: float = 60.0) -> None:
         """Until ``count`` lines hold ``text``; the timeout only ends a test whose daemon never
         writes them (as does the end of the pipe)."""
+
         def seen() -> int:
             return sum(1 for line in self.lines if line is not None and text in line)
 
@@ -137,15 +156,23 @@ class _Lines:
 
 
 def test_sigusr1_status_then_sigterm_under_load_exits_0_within_2_s(tmp_path):
-    cfg = _config(tmp_path, f"""
+    cfg = _config(
+        tmp_path,
+        f"""
 {SMALL_CAMERA}
 [pipeline]
 status_interval_s = 1000.0
 [output.jsonl]
 path = "-"
-""")
-    proc = subprocess.Popen([sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+""",
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=ENV,
+    )
     out, err = _Lines(proc.stdout), _Lines(proc.stderr)
     try:
         # Each step waits for the daemon's answer to the one before, never for a guessed time:
@@ -181,19 +208,28 @@ def test_run_default_config_is_the_demo():
     assert load_config_or_default(None) == Config.default()
 
 
-@pytest.mark.parametrize("source, expected", [
-    ("video:{tmp}/nope.mp4", "a video file that exists"),
-    ("replay:{tmp}/no-recording", "a recording, image folder or video that exists"),
-])
+@pytest.mark.parametrize(
+    "source, expected",
+    [
+        ("video:{tmp}/nope.mp4", "a video file that exists"),
+        ("replay:{tmp}/no-recording", "a recording, image folder or video that exists"),
+    ],
+)
 def test_run_with_a_missing_video_or_recording_exits_2_at_once(tmp_path, source, expected):
     # Reopening it every few seconds, as for an unplugged camera, would never end.
     source = source.format(tmp=tmp_path)
     cfg = _config(tmp_path, f'[camera]\nsource = "{source}"\n')
-    res = subprocess.run([sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
-                         capture_output=True, text=True, timeout=20, env=ENV)
+    res = subprocess.run(
+        [sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
+        capture_output=True,
+        text=True,
+        timeout=20,
+        env=ENV,
+    )
     assert res.returncode == 2
-    assert res.stderr == (f'pose-daemon: error: {cfg}: [camera] source: expected {expected}, '
-                          f'got "{source}" (no such file or folder)\n')
+    assert res.stderr == (
+        f'pose-daemon: error: {cfg}: [camera] source: expected {expected}, got "{source}" (no such file or folder)\n'
+    )
 
 
 # Holds `pose-daemon run` (the `python -m pose_daemon` entry, via runpy) at the first import of
@@ -236,23 +272,31 @@ def _notify_lines(sock):
             return lines
 
 
-@pytest.mark.parametrize("module, signum", [
-    ("numpy", signal.SIGINT),                     # the command modules load numpy, OpenCV
-    ("cv2", signal.SIGTERM),
-    ("pose_daemon.service", signal.SIGHUP),       # config read, the service module loading
-    ("pose_daemon.capture.synthetic", signal.SIGTERM),  # inside Service(): the source
-    ("pose_daemon.pose.estimator", signal.SIGINT),      # inside Service(): the estimator's tables
-    ("pose_daemon.pose.estimator", signal.SIGHUP),
-])
+@pytest.mark.parametrize(
+    "module, signum",
+    [
+        ("numpy", signal.SIGINT),  # the command modules load numpy, OpenCV
+        ("cv2", signal.SIGTERM),
+        ("pose_daemon.service", signal.SIGHUP),  # config read, the service module loading
+        ("pose_daemon.capture.synthetic", signal.SIGTERM),  # inside Service(): the source
+        ("pose_daemon.pose.estimator", signal.SIGINT),  # inside Service(): the estimator's tables
+        ("pose_daemon.pose.estimator", signal.SIGHUP),
+    ],
+)
 def test_stop_signal_during_start_up_is_a_clean_stop_with_stopping_1(tmp_path, module, signum):
     cfg = _config(tmp_path, '[camera]\nsource = "synthetic"\n[output.jsonl]\npath = "-"\n')
     notify, notify_path = _notify_socket(tmp_path)
     ready_r, ready_w = os.pipe()
     go_r, go_w = os.pipe()
     env = dict(ENV, NOTIFY_SOCKET=notify_path)
-    proc = subprocess.Popen([sys.executable, "-c", _GATED_DAEMON, module, str(ready_w), str(go_r),
-                             "run", "--config", str(cfg)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env, pass_fds=(ready_w, go_r))
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _GATED_DAEMON, module, str(ready_w), str(go_r), "run", "--config", str(cfg)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        pass_fds=(ready_w, go_r),
+    )
     os.close(ready_w)
     os.close(go_r)
     try:
@@ -281,9 +325,14 @@ def test_sigusr1_during_start_up_does_not_kill_the_daemon(tmp_path):
     cfg = _config(tmp_path, '[camera]\nsource = "synthetic"\n[output.jsonl]\npath = "-"\n')
     ready_r, ready_w = os.pipe()
     go_r, go_w = os.pipe()
-    proc = subprocess.Popen([sys.executable, "-c", _GATED_DAEMON, "cv2", str(ready_w), str(go_r),
-                             "run", "--config", str(cfg)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=ENV, pass_fds=(ready_w, go_r))
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _GATED_DAEMON, "cv2", str(ready_w), str(go_r), "run", "--config", str(cfg)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=ENV,
+        pass_fds=(ready_w, go_r),
+    )
     os.close(ready_w)
     os.close(go_r)
     err = _Lines(proc.stderr)
@@ -310,9 +359,13 @@ def test_sighup_after_start_up_stops_cleanly_with_stopping_1(tmp_path):
     # SIGHUP (a terminal that hung up, kill -HUP) stops like SIGTERM: exit 0, STOPPING=1.
     cfg = _config(tmp_path, '[camera]\nsource = "synthetic"\n[output.jsonl]\npath = "-"\n')
     notify, notify_path = _notify_socket(tmp_path)
-    proc = subprocess.Popen([sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=dict(ENV, NOTIFY_SOCKET=notify_path))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=dict(ENV, NOTIFY_SOCKET=notify_path),
+    )
     try:
         assert proc.stdout.readline()  # a pose written: the service runs
         proc.send_signal(signal.SIGHUP)
@@ -333,9 +386,25 @@ def test_run_with_stdout_closed_says_so_and_stops(tmp_path):
     # that stdout is closed (the run ends, as when stdout's reader goes away), not count an
     # AttributeError per frame.
     cfg = _config(tmp_path, '[camera]\nsource = "synthetic"\n[output.jsonl]\npath = "-"\n')
-    res = subprocess.run(["bash", "-c", 'exec >&- && exec "$@"', "bash", sys.executable, "-m",
-                          "pose_daemon", "run", "--config", str(cfg)], capture_output=False,
-                         stderr=subprocess.PIPE, text=True, timeout=60, env=ENV)
+    res = subprocess.run(
+        [
+            "bash",
+            "-c",
+            'exec >&- && exec "$@"',
+            "bash",
+            sys.executable,
+            "-m",
+            "pose_daemon",
+            "run",
+            "--config",
+            str(cfg),
+        ],
+        capture_output=False,
+        stderr=subprocess.PIPE,
+        text=True,
+        timeout=60,
+        env=ENV,
+    )
     assert res.returncode == 0, res.stderr
     assert "stopping: jsonl output closed: stdout is closed" in res.stderr
     assert "AttributeError" not in res.stderr and "Traceback" not in res.stderr
@@ -353,8 +422,9 @@ def _recording_with_times(tmp_path, times_s):
     rec = tmp_path / "rec"
     with RecordingWriter(rec, cam, Marker(0.2), fps=30.0) as w:
         for i, t in enumerate(times_s):
-            img = render_marker(cam, Marker(0.2), np.array([np.pi, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]),
-                                effects=Effects.clean()).image
+            img = render_marker(
+                cam, Marker(0.2), np.array([np.pi, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]), effects=Effects.clean()
+            ).image
             w.write(Frame(image=img, t_capture_s=t, seq=i))
     return rec
 
@@ -362,10 +432,17 @@ def _recording_with_times(tmp_path, times_s):
 def test_run_on_a_recording_whose_index_jumps_1e6_s_does_not_sleep_and_says_so(tmp_path):
     times = [5.0 + i / 30 for i in range(5)] + [1e6 + 5.0 + i / 30 for i in range(5)]
     rec = _recording_with_times(tmp_path, times)
-    cfg = _config(tmp_path, f'[camera]\nsource = "replay:{rec}"\n[output.jsonl]\npath = "-"\n'
-                            '[pipeline]\nlatency_budget_s = 10.0\n')
-    res = subprocess.run([sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
-                         capture_output=True, text=True, timeout=60, env=ENV)
+    cfg = _config(
+        tmp_path,
+        f'[camera]\nsource = "replay:{rec}"\n[output.jsonl]\npath = "-"\n[pipeline]\nlatency_budget_s = 10.0\n',
+    )
+    res = subprocess.run(
+        [sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=ENV,
+    )
     assert res.returncode == 0, res.stderr
     assert f"{rec}: frame 5 is recorded 1e+06 s after the previous one; replayed 0.033 s after it" in res.stderr
     assert "stopping: end of stream" in res.stderr
@@ -379,10 +456,17 @@ def test_run_on_a_damaged_video_says_how_many_frames_were_lost(tmp_path):
     from test_capture import _damaged_video
 
     path = _damaged_video(tmp_path / "damaged.mp4")
-    cfg = _config(tmp_path, f'[camera]\nsource = "video:{path}"\n[output.jsonl]\npath = "-"\n'
-                            '[pipeline]\nlatency_budget_s = 10.0\n')
-    res = subprocess.run([sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
-                         capture_output=True, text=True, timeout=60, env=ENV)
+    cfg = _config(
+        tmp_path,
+        f'[camera]\nsource = "video:{path}"\n[output.jsonl]\npath = "-"\n[pipeline]\nlatency_budget_s = 10.0\n',
+    )
+    res = subprocess.run(
+        [sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=ENV,
+    )
     assert res.returncode == 0, res.stderr
 
     sent = [json.loads(line)["frame"] for line in res.stdout.splitlines()]

@@ -22,8 +22,12 @@ def test_run_stops_cleanly_when_the_reader_of_stdout_goes_away(tmp_path):
     line saying why once its reader closed the pipe, instead of logging a broken pipe for ever."""
     cfg = tmp_path / "daemon.toml"
     cfg.write_text('[camera]\nsource = "synthetic"\nfps = 30.0\n[output.jsonl]\npath = "-"\n')
-    proc = subprocess.Popen([sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=ENV,
+    )
     try:
         lines = [proc.stdout.readline() for _ in range(2)]
         proc.stdout.close()
@@ -41,7 +45,8 @@ def test_run_stops_cleanly_when_the_reader_of_stdout_goes_away(tmp_path):
     assert waited_s < 5.0
     stops = [line for line in err.splitlines() if "stopping:" in line]
     assert len(stops) == 1 and stops[0].endswith(
-        "stopping: jsonl output closed: stdout closed by its reader (broken pipe)"), err
+        "stopping: jsonl output closed: stdout closed by its reader (broken pipe)"
+    ), err
     assert "link failed" not in err and "Traceback" not in err and "Exception ignored" not in err, err
 
 
@@ -64,13 +69,23 @@ def test_a_link_that_opens_but_fails_at_once_is_reopened_after_a_doubling_pause(
     5, 5 s with retry_s 0.5, retry_max_s 5), not stay at retry_s because the open worked."""
     clock = [100.0]
     stream = FailingFile()
-    out = JsonlOutput(JsonlOutputConfig(path="disk.jsonl"), queue_size=0, retry_s=0.5, retry_max_s=5.0,
-                      clock=lambda: clock[0], start=False, stream=stream)
+    out = JsonlOutput(
+        JsonlOutputConfig(path="disk.jsonl"),
+        queue_size=0,
+        retry_s=0.5,
+        retry_max_s=5.0,
+        clock=lambda: clock[0],
+        start=False,
+        stream=stream,
+    )
     out._try_open(clock[0])
     reopen_at = []
     for i in range(7):
-        out._handle(FrameResult(seq=i, t_capture_s=clock[0], corners=None, pose=None, error="no marker",
-                                stage_s={}, latency_s=0.0))
+        out._handle(
+            FrameResult(
+                seq=i, t_capture_s=clock[0], corners=None, pose=None, error="no marker", stage_s={}, latency_s=0.0
+            )
+        )
         assert not out.link_up
         reopen_at.append(round(out._next_open_t - clock[0], 3))
         clock[0] = out._next_open_t
@@ -80,6 +95,7 @@ def test_a_link_that_opens_but_fails_at_once_is_reopened_after_a_doubling_pause(
     assert stream.writes == 7
     # After a link stayed up retry_max_s, a new failure starts again from retry_s.
     clock[0] += 5.0
-    out._handle(FrameResult(seq=9, t_capture_s=clock[0], corners=None, pose=None, error="no marker",
-                            stage_s={}, latency_s=0.0))
+    out._handle(
+        FrameResult(seq=9, t_capture_s=clock[0], corners=None, pose=None, error="no marker", stage_s={}, latency_s=0.0)
+    )
     assert round(out._next_open_t - clock[0], 3) == 0.5

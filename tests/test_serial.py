@@ -25,11 +25,18 @@ def xor_hex(text: str) -> str:
 @pytest.mark.pi
 def test_line_format_fields_and_checksum():
     # Facing a wall marker 2 m ahead, 0.5 m right of it; capture time past 2^32 us.
-    r = FrameResult(seq=3, t_capture_s=4295.123456,
-                    pose=camera_pose(np.diag([1.0, -1.0, -1.0]), [-0.5, 0.0, 2.0], err_px=0.3, ambiguity=0.0))
+    r = FrameResult(
+        seq=3,
+        t_capture_s=4295.123456,
+        pose=camera_pose(np.diag([1.0, -1.0, -1.0]), [-0.5, 0.0, 2.0], err_px=0.3, ambiguity=0.0),
+    )
     line = pose_line(r, WALL)
-    assert line == "$POSE,4295123456,-2.0000,0.5000,0.0000,0.00,0.00,0.00,89*" + xor_hex(
-        "POSE,4295123456,-2.0000,0.5000,0.0000,0.00,0.00,0.00,89") + "\r\n"
+    assert (
+        line
+        == "$POSE,4295123456,-2.0000,0.5000,0.0000,0.00,0.00,0.00,89*"
+        + xor_hex("POSE,4295123456,-2.0000,0.5000,0.0000,0.00,0.00,0.00,89")
+        + "\r\n"
+    )
     assert nmea_checksum("POSE,1") == xor_hex("POSE,1")
     fields = parse_pose_line(line)
     assert fields["t_us"] == 4295123456 and fields["quality"] == 89
@@ -56,8 +63,9 @@ def _lines(data: bytes):
 
 def test_lines_over_a_pty_port_that_vanishes_and_comes_back(tmp_path):
     port = VanishingPty(str(tmp_path / "ttyMCU"))
-    out = PlainSerialOutput(SerialOutputConfig(port=port.path, baud=115200, retry_s=0.05, retry_max_s=0.2), WALL,
-                            queue_size=0)
+    out = PlainSerialOutput(
+        SerialOutputConfig(port=port.path, baud=115200, retry_s=0.05, retry_max_s=0.2), WALL, queue_size=0
+    )
     t = [100.0]
 
     def send(n, lost=False):

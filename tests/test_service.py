@@ -154,9 +154,15 @@ def test_ready_watchdog_only_while_frames_flow_status_and_stopping(listener):
     clock = MainThreadClock()
     gate = threading.Semaphore(0)
     source = ScriptedSource(clock, gate)
-    svc = Service(_cfg(), source=source, outputs=outputs_of(StampedOutput),
-                  processor=FakeProcessor(gate=gate), notifier=SdNotifier(path),
-                  env={"WATCHDOG_USEC": "200000"}, clock=clock)
+    svc = Service(
+        _cfg(),
+        source=source,
+        outputs=outputs_of(StampedOutput),
+        processor=FakeProcessor(gate=gate),
+        notifier=SdNotifier(path),
+        env={"WATCHDOG_USEC": "200000"},
+        clock=clock,
+    )
     (out,) = svc.outputs
     source.svc, source.out = svc, out
     assert svc.run() == 0
@@ -181,8 +187,14 @@ def test_ready_watchdog_only_while_frames_flow_status_and_stopping(listener):
 
 def test_no_watchdog_without_watchdog_usec(listener):
     path, lst = listener
-    svc = Service(_cfg(), source=FakeSource(frames=20, period_s=0.005), outputs=outputs_of(FakeOutput),
-                  processor=FakeProcessor(), notifier=SdNotifier(path), env={})
+    svc = Service(
+        _cfg(),
+        source=FakeSource(frames=20, period_s=0.005),
+        outputs=outputs_of(FakeOutput),
+        processor=FakeProcessor(),
+        notifier=SdNotifier(path),
+        env={},
+    )
     assert svc.run() == 0
     time.sleep(0.05)
     texts = [line for _, line in lst.lines()]
@@ -192,10 +204,17 @@ def test_no_watchdog_without_watchdog_usec(listener):
 def test_sigterm_stops_cleanly_and_sigusr1_logs_status(listener, caplog):
     path, _ = listener
     caplog.set_level("INFO", logger="pose_daemon")
-    svc = Service(_cfg(interval_s=100.0), source=FakeSource(frames=10**6, period_s=0.002),
-                  outputs=outputs_of(FakeOutput), processor=FakeProcessor(), notifier=SdNotifier(path), env={})
+    svc = Service(
+        _cfg(interval_s=100.0),
+        source=FakeSource(frames=10**6, period_s=0.002),
+        outputs=outputs_of(FakeOutput),
+        processor=FakeProcessor(),
+        notifier=SdNotifier(path),
+        env={},
+    )
     previous = svc.install_signal_handlers()
     try:
+
         def send():
             time.sleep(0.3)
             os.kill(os.getpid(), signal.SIGUSR1)
@@ -223,14 +242,21 @@ def test_crashing_source_exits_1(listener):
         def read(self):
             raise ZeroDivisionError("bug")
 
-    svc = Service(_cfg(), source=Broken(frames=5), outputs=outputs_of(FakeOutput), processor=FakeProcessor(),
-                  notifier=SdNotifier(path), env={})
+    svc = Service(
+        _cfg(),
+        source=Broken(frames=5),
+        outputs=outputs_of(FakeOutput),
+        processor=FakeProcessor(),
+        notifier=SdNotifier(path),
+        env={},
+    )
     assert svc.run() == 1
     assert svc.stop_reason == "source crashed: ZeroDivisionError: bug"
 
 
 def test_watchdog_keeps_pinging_while_the_marker_is_out_of_view(listener):
     path, lst = listener
+
     class Source(FakeSource):
         # Frames (no marker in any) until the service has pinged 4 times, then the end: the
         # test waits for the pings, not for the seconds they would take on a quiet machine.
@@ -239,10 +265,14 @@ def test_watchdog_keeps_pinging_while_the_marker_is_out_of_view(listener):
                 raise EndOfStream()
             return super().read()
 
-    svc = Service(_cfg(), source=Source(frames=10**5, period_s=0.01),
-                  outputs=outputs_of(functools.partial(FakeOutput, only_ok=True)),  # nothing without a pose
-                  processor=FakeProcessor(detect=lambda s: False), notifier=SdNotifier(path),
-                  env={"WATCHDOG_USEC": "200000"})
+    svc = Service(
+        _cfg(),
+        source=Source(frames=10**5, period_s=0.01),
+        outputs=outputs_of(functools.partial(FakeOutput, only_ok=True)),  # nothing without a pose
+        processor=FakeProcessor(detect=lambda s: False),
+        notifier=SdNotifier(path),
+        env={"WATCHDOG_USEC": "200000"},
+    )
     (out,) = svc.outputs
     assert svc.run() == 0
     _wait_for(lambda: "STOPPING=1" in [line for _, line in lst.lines()])

@@ -47,7 +47,6 @@ def quiet_opencv() -> Iterator[None]:
         put(level)
 
 
-
 def _has_gstreamer() -> bool:
     for line in cv2.getBuildInformation().splitlines():
         if line.strip().startswith("GStreamer:"):
@@ -64,9 +63,16 @@ class OpenCVSource:
     frames the container still holds when decoding stops early (a damaged middle): the
     EndOfStream at the end then says how many were lost (``EndOfStream.lost``)."""
 
-    def __init__(self, target: Union[int, str], kind: str = "camera", *, width: int = 0,
-                 height: int = 0, fps: float = 0.0,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        target: Union[int, str],
+        kind: str = "camera",
+        *,
+        width: int = 0,
+        height: int = 0,
+        fps: float = 0.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         if kind not in ("camera", "video", "gstreamer"):
             raise ValueError(f"unknown OpenCV source kind {kind!r}")
         self.target, self.kind = target, kind
@@ -134,8 +140,7 @@ class OpenCVSource:
             gray = as_gray(image)
         except ValueError as exc:
             raise SourceError(f"{self.name}: frame {self._seq}: {exc}") from None
-        frame = Frame(image=gray, t_capture_s=float(t), seq=self._seq,
-                      metadata={"source": self.name})
+        frame = Frame(image=gray, t_capture_s=float(t), seq=self._seq, metadata={"source": self.name})
         self._seq += 1
         return frame
 
@@ -147,8 +152,10 @@ class OpenCVSource:
             self._seq = self.frame_count
         lost = ""
         if self.lost:
-            lost = (f"{self.lost} of {max(self.frame_count, self._seq)} frames of {self.target} "
-                    "could not be decoded: a damaged video")
+            lost = (
+                f"{self.lost} of {max(self.frame_count, self._seq)} frames of {self.target} "
+                "could not be decoded: a damaged video"
+            )
         raise EndOfStream(f"end of video {self.target}", lost=lost)
 
     def close(self) -> None:

@@ -48,15 +48,24 @@ class Picamera2Source:
     0 = automatic; ``read_timeout_s``: how long a read waits for a frame before SourceError
     (default: the longer of STALL_MIN_S and STALL_FRAMES frame periods)."""
 
-    def __init__(self, width: int, height: int, *, fps: float = 30.0, exposure_us: int = 0,
-                 analogue_gain: float = 0.0, camera_index: int = 0,
-                 read_timeout_s: Optional[float] = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        width: int,
+        height: int,
+        *,
+        fps: float = 30.0,
+        exposure_us: int = 0,
+        analogue_gain: float = 0.0,
+        camera_index: int = 0,
+        read_timeout_s: Optional[float] = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.width, self.height, self.fps = int(width), int(height), float(fps)
         self.exposure_us, self.analogue_gain = int(exposure_us), float(analogue_gain)
         self.camera_index = camera_index
-        self.read_timeout_s = (float(read_timeout_s) if read_timeout_s is not None
-                               else max(STALL_MIN_S, STALL_FRAMES / self.fps))
+        self.read_timeout_s = (
+            float(read_timeout_s) if read_timeout_s is not None else max(STALL_MIN_S, STALL_FRAMES / self.fps)
+        )
         self._clock = clock
         self._cam: Any = None
         self._seq = 0
@@ -78,15 +87,19 @@ class Picamera2Source:
         try:
             from picamera2 import Picamera2
         except ImportError as exc:
-            raise SourceError("source picamera2: the picamera2 module is not installed "
-                              "(on Raspberry Pi OS: sudo apt install python3-picamera2)") from exc
+            raise SourceError(
+                "source picamera2: the picamera2 module is not installed "
+                "(on Raspberry Pi OS: sudo apt install python3-picamera2)"
+            ) from exc
         try:
             cam = Picamera2(self.camera_index)
             # The main stream must exist; the lores stream (<= main) gives YUV420 cheaply.
             config = cam.create_video_configuration(
                 main={"size": (self.width, self.height)},
                 lores={"size": (self.width, self.height), "format": "YUV420"},
-                buffer_count=4, controls=self.controls())
+                buffer_count=4,
+                controls=self.controls(),
+            )
             cam.configure(config)
             cam.start()
         except Exception as exc:  # picamera2 raises RuntimeError/IndexError/... for no camera
@@ -95,8 +108,10 @@ class Picamera2Source:
         self._seq = 0
         self._timed_wait = _wait_takes_timeout(cam)
         if not self._timed_wait:
-            log.warning("picamera2 without wait(job, timeout=...): a stalled camera is noticed only "
-                        "by the systemd watchdog (update python3-picamera2)")
+            log.warning(
+                "picamera2 without wait(job, timeout=...): a stalled camera is noticed only "
+                "by the systemd watchdog (update python3-picamera2)"
+            )
 
     def read(self) -> Frame:
         if self._cam is None:
@@ -108,15 +123,19 @@ class Picamera2Source:
         finally:
             request.release()
         # YUV420 planar: the first `height` rows are Y (rows may be padded to a stride).
-        image = np.ascontiguousarray(yuv[:self.height, :self.width])
+        image = np.ascontiguousarray(yuv[: self.height, : self.width])
         if image.shape != (self.height, self.width):
-            raise SourceError(f"source picamera2: frame is {image.shape[1]}x{image.shape[0]}, "
-                              f"expected {self.width}x{self.height}")
+            raise SourceError(
+                f"source picamera2: frame is {image.shape[1]}x{image.shape[0]}, expected {self.width}x{self.height}"
+            )
         ts_ns: Optional[int] = metadata.get("SensorTimestamp")
         t = ts_ns / 1e9 if ts_ns else self._clock()
-        frame = Frame(image=image, t_capture_s=float(t), seq=self._seq,
-                      metadata={k: metadata[k] for k in ("ExposureTime", "AnalogueGain", "SensorTimestamp")
-                                if k in metadata})
+        frame = Frame(
+            image=image,
+            t_capture_s=float(t),
+            seq=self._seq,
+            metadata={k: metadata[k] for k in ("ExposureTime", "AnalogueGain", "SensorTimestamp") if k in metadata},
+        )
         self._seq += 1
         return frame
 
@@ -135,8 +154,9 @@ class Picamera2Source:
                     cam.cancel_all_and_flush()
                 except Exception as exc:  # the camera is being given up anyway
                     log.warning("picamera2 cancel_all_and_flush failed: %s", exc)
-            raise SourceError(f"source picamera2: no frame from camera {self.camera_index} within "
-                              f"{timeout_s:g} s (camera stalled)") from None
+            raise SourceError(
+                f"source picamera2: no frame from camera {self.camera_index} within {timeout_s:g} s (camera stalled)"
+            ) from None
         except Exception as exc:
             raise SourceError(f"source picamera2: capture failed: {exc}") from exc
 

@@ -1,16 +1,16 @@
 """The recording format: a folder of lossless PNG frames with an index, the camera and marker.
 
-    DIR/recording.json   {"format": "pose-daemon-recording", "version": 1, "camera": {fx, fy,
-                          cx, cy, dist, width, height}, "marker": {type, width, height,
-                          dictionary, id}, "source": "...", "fps": 30.0, "created_utc": "..."}
-    DIR/index.jsonl      one line per frame: {"seq": 0, "file": "frames/000000.png",
-                          "t_capture_s": 12.345678} plus, from the synthetic source, the
-                          truth: "true_rvec", "true_tvec" (marker in camera frame, rad / m),
-                          "true_corners" ([[u, v] x 4], px, TL TR BR BL); and when the
-                          frame had one, the vehicle's attitude: "attitude_rpy_rad" ([roll,
-                          pitch, yaw], body FRD in local NED, Z-Y-X) and optionally
-                          "attitude_sigma_rad" (interface.md)
-    DIR/frames/NNNNNN.png  8-bit grey frames
+DIR/recording.json   {"format": "pose-daemon-recording", "version": 1, "camera": {fx, fy,
+                      cx, cy, dist, width, height}, "marker": {type, width, height,
+                      dictionary, id}, "source": "...", "fps": 30.0, "created_utc": "..."}
+DIR/index.jsonl      one line per frame: {"seq": 0, "file": "frames/000000.png",
+                      "t_capture_s": 12.345678} plus, from the synthetic source, the
+                      truth: "true_rvec", "true_tvec" (marker in camera frame, rad / m),
+                      "true_corners" ([[u, v] x 4], px, TL TR BR BL); and when the
+                      frame had one, the vehicle's attitude: "attitude_rpy_rad" ([roll,
+                      pitch, yaw], body FRD in local NED, Z-Y-X) and optionally
+                      "attitude_sigma_rad" (interface.md)
+DIR/frames/NNNNNN.png  8-bit grey frames
 """
 
 from __future__ import annotations
@@ -44,30 +44,54 @@ def is_recording(path: Union[str, Path]) -> bool:
 
 
 def camera_to_dict(camera: Camera) -> Dict[str, Any]:
-    return {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
-            "dist": list(camera.dist), "width": camera.width, "height": camera.height}
+    return {
+        "fx": camera.fx,
+        "fy": camera.fy,
+        "cx": camera.cx,
+        "cy": camera.cy,
+        "dist": list(camera.dist),
+        "width": camera.width,
+        "height": camera.height,
+    }
 
 
 def marker_to_dict(marker: Marker) -> Dict[str, Any]:
-    return {"type": marker.type, "width": marker.width, "height": marker.height,
-            "dictionary": marker.dictionary, "id": marker.id}
+    return {
+        "type": marker.type,
+        "width": marker.width,
+        "height": marker.height,
+        "dictionary": marker.dictionary,
+        "id": marker.id,
+    }
 
 
 class RecordingWriter:
     """Writes frames into a new recording folder (which must not hold a recording already)."""
 
-    def __init__(self, path: Union[str, Path], camera: Camera, marker: Optional[Marker] = None, *,
-                 source: str = "", fps: float = 0.0) -> None:
+    def __init__(
+        self,
+        path: Union[str, Path],
+        camera: Camera,
+        marker: Optional[Marker] = None,
+        *,
+        source: str = "",
+        fps: float = 0.0,
+    ) -> None:
         self.path = Path(path)
         if is_recording(self.path):
             raise SourceError(f"{self.path} already holds a recording; choose a new folder")
         if self.path.exists() and not self.path.is_dir():
             raise SourceError(f"{self.path} exists and is not a folder")
         (self.path / "frames").mkdir(parents=True, exist_ok=True)
-        meta = {"format": FORMAT, "version": VERSION, "camera": camera_to_dict(camera),
-                "marker": marker_to_dict(marker) if marker is not None else None,
-                "source": source, "fps": fps,
-                "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        meta = {
+            "format": FORMAT,
+            "version": VERSION,
+            "camera": camera_to_dict(camera),
+            "marker": marker_to_dict(marker) if marker is not None else None,
+            "source": source,
+            "fps": fps,
+            "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
         (self.path / META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
         self._index = open(self.path / INDEX_FILE, "w")
         self.count = 0
@@ -76,8 +100,7 @@ class RecordingWriter:
         name = f"frames/{frame.seq:06d}.png"
         if not cv2.imwrite(str(self.path / name), frame.image):
             raise SourceError(f"cannot write {self.path / name}")
-        entry: Dict[str, Any] = {"seq": int(frame.seq), "file": name,
-                                 "t_capture_s": float(frame.t_capture_s)}
+        entry: Dict[str, Any] = {"seq": int(frame.seq), "file": name, "t_capture_s": float(frame.t_capture_s)}
         for key in TRUTH_KEYS:
             if key in frame.metadata:
                 entry[key] = np.asarray(frame.metadata[key], dtype=np.float64).tolist()
@@ -148,7 +171,7 @@ def read_index(path: Union[str, Path]) -> List[Dict[str, Any]]:
     The exception is an unfinished last line (no line end): a recording cut off by a power
     loss ends that way, and the frames before it are still good, so that line is skipped."""
     index_path = Path(path) / INDEX_FILE
-    entries = []
+    entries: List[Dict[str, Any]] = []
     try:
         text = index_path.read_text()
     except (OSError, UnicodeDecodeError) as exc:
@@ -161,8 +184,10 @@ def read_index(path: Union[str, Path]) -> List[Dict[str, Any]]:
             entry = json.loads(line)
             entry["file"] = str(entry["file"])
             if _outside(entry["file"]):
-                raise SourceError(f"{index_path}:{n}: frame file {json.dumps(entry['file'])} lies outside "
-                                  "the recording folder (absolute, or with ..)")
+                raise SourceError(
+                    f"{index_path}:{n}: frame file {json.dumps(entry['file'])} lies outside "
+                    "the recording folder (absolute, or with ..)"
+                )
             entry["t_capture_s"] = float(entry["t_capture_s"])
             entry["seq"] = int(entry.get("seq", len(entries)))
             entry["attitude"] = attitude_from_entry(entry)
@@ -183,9 +208,13 @@ def attitude_from_entry(entry: Dict[str, Any]) -> Optional[Attitude]:
             raise ValueError(f"{ATTITUDE_SIGMA_KEY} without {ATTITUDE_KEY}")
         return None
     rpy, sigma = entry[ATTITUDE_KEY], entry.get(ATTITUDE_SIGMA_KEY)
-    if (not isinstance(rpy, list) or len(rpy) != 3
-            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in rpy)):
+    if (
+        not isinstance(rpy, list)
+        or len(rpy) != 3
+        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in rpy)
+    ):
         raise ValueError(f"{ATTITUDE_KEY} must be [roll, pitch, yaw] in radians, got {rpy!r}")
     if sigma is not None and (isinstance(sigma, bool) or not isinstance(sigma, (int, float))):
         raise ValueError(f"{ATTITUDE_SIGMA_KEY} must be a number of radians, got {sigma!r}")
-    return Attitude(tuple(float(v) for v in rpy), None if sigma is None else float(sigma))
+    roll, pitch, yaw = (float(v) for v in rpy)
+    return Attitude((roll, pitch, yaw), None if sigma is None else float(sigma))

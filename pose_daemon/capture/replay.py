@@ -29,7 +29,7 @@ MAX_GAP_S = 5.0
 
 
 def replay_kind(path: Union[str, Path]) -> str:
-    """"recording", "folder" or "video"; SourceError (one line) for anything else."""
+    """ "recording", "folder" or "video"; SourceError (one line) for anything else."""
     p = Path(path)
     if not p.exists():
         raise SourceError(f"{p}: no such file or folder")
@@ -41,8 +41,7 @@ def replay_kind(path: Union[str, Path]) -> str:
         raise SourceError(f"{p}: not a recording (no {recording.INDEX_FILE}) and holds no images")
     if p.suffix.lower() in VIDEO_EXTENSIONS:
         return "video"
-    raise SourceError(f"{p}: not a recording, a folder of images or a video file "
-                      f"({', '.join(VIDEO_EXTENSIONS)})")
+    raise SourceError(f"{p}: not a recording, a folder of images or a video file ({', '.join(VIDEO_EXTENSIONS)})")
 
 
 class ReplaySource:
@@ -57,13 +56,20 @@ class ReplaySource:
     A frame that cannot be read is logged, listed in ``skipped`` and passed over.
     """
 
-    def __init__(self, path: Union[str, Path], *, realtime: bool = True, fps: float = 30.0,
-                 video: bool = False, clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep) -> None:
+    def __init__(
+        self,
+        path: Union[str, Path],
+        *,
+        realtime: bool = True,
+        fps: float = 30.0,
+        video: bool = False,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
         self.path = Path(path)
         self.realtime, self.fps = realtime, float(fps) if fps > 0 else 30.0
         self._clock, self._sleep = clock, sleep
-        self._force_video = video   # any file OpenCV can play, whatever its name
+        self._force_video = video  # any file OpenCV can play, whatever its name
         self.kind = ""
         self.meta: Dict[str, Any] = {}
         self.skipped: List[Tuple[str, str]] = []
@@ -98,8 +104,7 @@ class ReplaySource:
                 self.fps = float(self.meta["fps"])
         elif self.kind == "folder":
             files = sorted(c.name for c in self.path.iterdir() if c.suffix.lower() in IMAGE_EXTENSIONS)
-            self._entries = [{"seq": i, "file": name, "t_capture_s": i / self.fps}
-                             for i, name in enumerate(files)]
+            self._entries = [{"seq": i, "file": name, "t_capture_s": i / self.fps} for i, name in enumerate(files)]
         else:
             self._video = OpenCVSource(str(self.path), "video", fps=self.fps, clock=self._clock)
             self._video.open()
@@ -132,8 +137,13 @@ class ReplaySource:
             for key in recording.TRUTH_KEYS:
                 if key in entry:
                     metadata[key] = np.asarray(entry[key], dtype=np.float64)
-            return Frame(image=gray, t_capture_s=entry["t_capture_s"], seq=entry["seq"],
-                         metadata=metadata, attitude=entry.get("attitude"))
+            return Frame(
+                image=gray,
+                t_capture_s=entry["t_capture_s"],
+                seq=entry["seq"],
+                metadata=metadata,
+                attitude=entry.get("attitude"),
+            )
         raise EndOfStream(f"end of {self.path}")
 
     def read(self) -> Frame:
@@ -142,15 +152,21 @@ class ReplaySource:
         frame = self._next_frame()
         if self.realtime:
             t_rec = frame.t_capture_s
-            if self._t_first is None:
+            if self._t_first is None or self._t_last is None:
                 self._t_first = t_rec
-            elif not 0.0 <= t_rec - self._t_last <= MAX_GAP_S:  # type: ignore[operator]
+            elif not 0.0 <= t_rec - self._t_last <= MAX_GAP_S:
                 step_s = 1.0 / self.fps
-                log.warning("%s: frame %d is recorded %.6g s after the previous one; replayed "
-                            "%.3f s after it (steps over %.0f s or backwards are cut)", self.path,
-                            frame.seq, t_rec - self._t_last, step_s, MAX_GAP_S)  # type: ignore[operator]
+                log.warning(
+                    "%s: frame %d is recorded %.6g s after the previous one; replayed "
+                    "%.3f s after it (steps over %.0f s or backwards are cut)",
+                    self.path,
+                    frame.seq,
+                    t_rec - self._t_last,
+                    step_s,
+                    MAX_GAP_S,
+                )
                 # Move the time base so that the frames after it keep their recorded spacing.
-                self._t_first += (t_rec - self._t_last) - step_s  # type: ignore[operator]
+                self._t_first += (t_rec - self._t_last) - step_s
                 self.gaps_cut += 1
             self._t_last = t_rec
             t_run = self._t0 + (t_rec - self._t_first)

@@ -20,8 +20,9 @@ __all__ = ["SOURCE_FORMS", "SOURCE_KINDS", "open_source", "parse_source"]
 #: Every kind ``parse_source`` returns.
 SOURCE_KINDS = ("picamera2", "synthetic", "opencv", "video", "replay", "gstreamer")
 #: The accepted forms, as the config reference and error messages show them.
-SOURCE_FORMS = ('"picamera2", "synthetic", "opencv:N", "video:PATH", "replay:PATH" '
-                'or a GStreamer pipeline ("... ! appsink")')
+SOURCE_FORMS = (
+    '"picamera2", "synthetic", "opencv:N", "video:PATH", "replay:PATH" or a GStreamer pipeline ("... ! appsink")'
+)
 _WORDS = ("picamera2", "synthetic")
 _PREFIXES = ("opencv:", "video:", "replay:")
 
@@ -39,7 +40,7 @@ def parse_source(source: str) -> Tuple[str, str]:
         return s, ""
     for prefix in _PREFIXES:
         if s.startswith(prefix) and len(s) > len(prefix):
-            kind, arg = prefix[:-1], s[len(prefix):]
+            kind, arg = prefix[:-1], s[len(prefix) :]
             if kind == "opencv" and not (arg.isdigit() or arg.startswith("/")):
                 raise ValueError('"opencv:N" with a camera index N or a device path')
             return kind, arg
@@ -48,14 +49,14 @@ def parse_source(source: str) -> Tuple[str, str]:
     raise ValueError(SOURCE_FORMS)
 
 
-def open_source(camera: CameraConfig, cfg: Optional[Config] = None, *,
-                realtime: bool = True) -> FrameSource:
+def open_source(camera: CameraConfig, cfg: Optional[Config] = None, *, realtime: bool = True) -> FrameSource:
     """The frame source ``camera.source`` names, constructed but not opened.
 
     ``camera``: the [camera] section; ``cfg``: the whole config (its ``marker``, ``synthetic``
     and ``mount`` sections are used by the synthetic source, the mount for its simulated
-    attitude). ``realtime`` False: replay and synthetic frames as fast as they can be read. SourceError for a source string that
-    ``parse_source`` refuses (config validation refuses it first).
+    attitude). ``realtime`` False: replay and synthetic frames as fast as they can be read.
+    SourceError for a source string that ``parse_source`` refuses (config validation refuses
+    it first).
     """
     try:
         kind, arg = parse_source(camera.source)
@@ -68,18 +69,38 @@ def open_source(camera: CameraConfig, cfg: Optional[Config] = None, *,
         if cfg is None:
             raise SourceError("the synthetic source needs the whole config (marker, synthetic)")
         syn = cfg.synthetic
-        effects = Effects(blur_px=syn.blur_px, noise_gray=syn.noise_gray,
-                          motion_blur_px=syn.motion_blur_px, jpeg_quality=syn.jpeg_quality)
-        return SyntheticSource(camera.model(), cfg.marker.model(), trajectory=syn.trajectory,
-                               seed=syn.seed, fps=camera.fps, frames=syn.frames, effects=effects,
-                               realtime=realtime, attitude=syn.attitude,
-                               attitude_noise_deg=syn.attitude_noise_deg, attitude_lag_s=syn.attitude_lag_s,
-                               frames_on_vehicle=VehicleFrames.from_config(cfg.mount, cfg.marker.placement))
+        effects = Effects(
+            blur_px=syn.blur_px,
+            noise_gray=syn.noise_gray,
+            motion_blur_px=syn.motion_blur_px,
+            jpeg_quality=syn.jpeg_quality,
+        )
+        marker_map = cfg.map.model() if cfg.map is not None else None
+        return SyntheticSource(
+            camera.model(),
+            cfg.marker.model(),
+            trajectory=syn.trajectory,
+            seed=syn.seed,
+            fps=camera.fps,
+            frames=syn.frames,
+            effects=effects,
+            realtime=realtime,
+            attitude=syn.attitude,
+            attitude_noise_deg=syn.attitude_noise_deg,
+            attitude_lag_s=syn.attitude_lag_s,
+            frames_on_vehicle=VehicleFrames.from_config(cfg.mount, cfg.placement),
+            marker_map=marker_map,
+        )
     if kind == "picamera2":
         from .picamera2 import Picamera2Source
 
-        return Picamera2Source(camera.width, camera.height, fps=camera.fps,
-                               exposure_us=camera.exposure_us, analogue_gain=camera.analogue_gain)
+        return Picamera2Source(
+            camera.width,
+            camera.height,
+            fps=camera.fps,
+            exposure_us=camera.exposure_us,
+            analogue_gain=camera.analogue_gain,
+        )
     if kind in ("replay", "video"):
         from .replay import ReplaySource
 

@@ -6,15 +6,16 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Callable, Optional
+from typing import Callable, Optional, Tuple
 
 import numpy as np
 
 from ..attitude import Attitude
 from ..camera import Camera, Marker
 from ..errors import EndOfStream, SourceError
-from ..geometry import VehicleFrames
-from ..render import Effects, Trajectory, make_background, render_marker
+from ..geometry import R_from_rvec, VehicleFrames
+from ..render import TRAJECTORY_MOUNTS, Effects, Trajectory, make_background, render_marker
+from ..render_map import MapTrajectory, render_map
 from .base import Frame
 
 
@@ -38,12 +39,26 @@ class SyntheticSource:
     sigma; for a camera on ``frames`` (default: the trajectory's mount and placement).
     """
 
-    def __init__(self, camera: Camera, marker: Marker, *, trajectory: str = "wall", seed: int = 0,
-                 fps: float = 30.0, frames: int = 0, effects: Optional[Effects] = None,
-                 realtime: bool = True, clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep, attitude: bool = True,
-                 attitude_noise_deg: float = 0.5, attitude_lag_s: float = 0.0,
-                 frames_on_vehicle: Optional[VehicleFrames] = None) -> None:
+    def __init__(
+        self,
+        camera: Camera,
+        marker: Marker,
+        *,
+        trajectory: str = "wall",
+        seed: int = 0,
+        fps: float = 30.0,
+        frames: int = 0,
+        effects: Optional[Effects] = None,
+        realtime: bool = True,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+        attitude: bool = True,
+        attitude_noise_deg: float = 0.5,
+        attitude_lag_s: float = 0.0,
+        frames_on_vehicle: Optional[VehicleFrames] = None,
+        marker_map=None,
+        height_m: Optional[Tuple[float, float]] = None,
+    ) -> None:
         if fps <= 0:
             raise SourceError(f"synthetic source: fps must be positive, got {fps}")
         if not (attitude_noise_deg >= 0 and attitude_lag_s >= 0):
@@ -51,8 +66,19 @@ class SyntheticSource:
         self.attitude = attitude
         self.attitude_noise_deg, self.attitude_lag_s = float(attitude_noise_deg), float(attitude_lag_s)
         self.camera, self.marker = camera, marker
-        self.path = Trajectory(trajectory, seed, camera, marker)
-        self.vehicle_frames = frames_on_vehicle if frames_on_vehicle is not None else self.path.frames()
+        #: A MarkerMap: the whole map is rendered and the trajectory flies over it (render_map);
+        #: the truth is then the map's pose and ``true_marker_corners`` {id: (4, 2)}.
+        self.marker_map = marker_map
+        if marker_map is not None:
+            self.path = MapTrajectory(trajectory, marker_map, seed, height_m or (0.8, 2.5))
+        else:
+            self.path = Trajectory(trajectory, seed, camera, marker)
+        # The vehicle the camera rides on, for the attitude an autopilot would report.
+        self.vehicle_frames = (
+            frames_on_vehicle
+            if frames_on_vehicle is not None
+            else VehicleFrames.from_settings(TRAJECTORY_MOUNTS[trajectory], placement=trajectory)
+        )
         self._attitude_rng: Optional[np.random.Generator] = None
         self.seed, self.fps, self.frames = seed, float(fps), int(frames)
         self.effects = effects if effects is not None else Effects()
@@ -68,8 +94,9 @@ class SyntheticSource:
         self._rng = np.random.default_rng(self.seed)
         self._attitude_rng = np.random.default_rng([self.seed, 1])
         # One background for the whole run: a camera on a robot sees the same room.
-        self._background = make_background(self._rng, self.camera.width, self.camera.height,
-                                           self.effects.background, self.effects.plain_gray)
+        self._background = make_background(
+            self._rng, self.camera.width, self.camera.height, self.effects.background, self.effects.plain_gray
+        )
         self._seq = 0
         self._t0 = self._clock()
 
@@ -90,24 +117,69 @@ class SyntheticSource:
                 t_capture = now
                 self.restarts += 1
         truth = self.path.at(t_traj)
-        rendered = render_marker(self.camera, self.marker, truth.rvec, truth.tvec,
-                                 effects=self.effects, rng=self._rng, background=self._background)
-        frame = Frame(image=rendered.image, t_capture_s=t_capture, seq=self._seq,
-                      metadata={"true_rvec": truth.rvec, "true_tvec": truth.tvec,
-                                "true_corners": rendered.corners_px, "visible": rendered.visible,
-                                "trajectory_t_s": t_traj},
-                      attitude=self._attitude(t_traj))
+        if self.marker_map is not None:
+            frame = self._map_frame(truth, t_capture, t_traj)
+            self._seq += 1
+            return frame
+        rendered = render_marker(
+            self.camera,
+            self.marker,
+            truth.rvec,
+            truth.tvec,
+            effects=self.effects,
+            rng=self._rng,
+            background=self._background,
+        )
+        frame = Frame(
+            image=rendered.image,
+            t_capture_s=t_capture,
+            seq=self._seq,
+            metadata={
+                "true_rvec": truth.rvec,
+                "true_tvec": truth.tvec,
+                "true_corners": rendered.corners_px,
+                "visible": rendered.visible,
+                "trajectory_t_s": t_traj,
+            },
+            attitude=self._attitude(t_traj),
+        )
         self._seq += 1
         return frame
 
     def _attitude(self, t_traj_s: float) -> Optional[Attitude]:
         if not self.attitude:
             return None
-        rpy = np.asarray(self.path.attitude_at(t_traj_s - self.attitude_lag_s, self.vehicle_frames))
+        truth = self.path.at(t_traj_s - self.attitude_lag_s)
+        rpy = np.asarray(self.vehicle_frames.vehicle_pose(R_from_rvec(truth.rvec), truth.tvec).rpy_rad)
         assert self._attitude_rng is not None
         sigma = math.radians(self.attitude_noise_deg)
         rpy = rpy + self._attitude_rng.normal(0.0, 1.0, 3) * sigma
-        return Attitude(tuple(float(v) for v in rpy), sigma)
+        return Attitude((float(rpy[0]), float(rpy[1]), float(rpy[2])), sigma)
+
+    def _map_frame(self, truth, t_capture: float, t_traj: float) -> Frame:
+        rendered = render_map(
+            self.camera,
+            self.marker_map,
+            truth.rvec,
+            truth.tvec,
+            effects=self.effects,
+            rng=self._rng,
+            background=self._background,
+        )
+        return Frame(
+            image=rendered.image,
+            t_capture_s=t_capture,
+            seq=self._seq,
+            metadata={
+                "true_rvec": truth.rvec,
+                "true_tvec": truth.tvec,
+                "true_marker_corners": rendered.corners_px,
+                "visible_ids": rendered.visible,
+                "visible": bool(rendered.visible),
+                "trajectory_t_s": t_traj,
+            },
+            attitude=self._attitude(t_traj),
+        )
 
     def close(self) -> None:
         self._rng = None

@@ -1,4 +1,4 @@
-"""``pose-daemon bench {estimator,detector,pipeline,outputs,quality,ambiguity}``: benchmarks that print figures.
+"""``pose-daemon bench {estimator,detector,pipeline,outputs,quality,ambiguity,map}``: benchmarks that print figures.
 
 Each benchmark is ``run_bench(...)`` (parameters in, report out) and ``print_report(report)``
 in ``pose_daemon/tools/bench_<name>.py``; this file holds their arguments.
@@ -17,46 +17,63 @@ BENCHES = {
     "detector": "detection rate, corner and pose error, time per frame against ArUco + IPPE",
     "pipeline": "end-to-end latency (capture -> bytes written) and memory over a long run",
     "outputs": "time each output takes from publish to bytes written on its link",
+    "map": "marker maps: floor-grid flights, the nested-pad descent, cost with 1/4/9 markers",
     "quality": "the quality sent to the autopilot against the pose's true error (rendered hovers)",
     "ambiguity": "mirror-pose flips per way of choosing the planar solution, and the gate on clutter",
 }
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    parser = sub.add_parser("bench", help="benchmarks: accuracy, speed, latency",
-                            description=__doc__.splitlines()[0])
+    parser = sub.add_parser("bench", help="benchmarks: accuracy, speed, latency", description=__doc__.splitlines()[0])
     benches = parser.add_subparsers(dest="bench", metavar="BENCH", required=True, parser_class=type(parser))
     p = {name: benches.add_parser(name, help=text, description=text) for name, text in BENCHES.items()}
     p["estimator"].add_argument("--n", type=int, default=10_000, help="random poses per noise level (default 10000)")
-    p["estimator"].add_argument("--timing-n", type=int, default=1000,
-                                help="corner sets timed one call at a time per method (default 1000)")
+    p["estimator"].add_argument(
+        "--timing-n", type=int, default=1000, help="corner sets timed one call at a time per method (default 1000)"
+    )
     p["estimator"].add_argument("--seed", type=int, default=1, help="random seed (default 1)")
-    p["detector"].add_argument("--frames", type=int, default=300, metavar="N",
-                               help="marker frames per marker type (default 300)")
-    p["detector"].add_argument("--empty", type=int, default=200, metavar="N",
-                               help="marker-free frames for false detections (default 200)")
+    p["detector"].add_argument(
+        "--frames", type=int, default=300, metavar="N", help="marker frames per marker type (default 300)"
+    )
+    p["detector"].add_argument(
+        "--empty", type=int, default=200, metavar="N", help="marker-free frames for false detections (default 200)"
+    )
     p["detector"].add_argument("--seed", type=int, default=0, help="random seed of poses and images")
-    p["detector"].add_argument("--repeat", type=int, default=3, metavar="K",
-                               help="time each frame K times and keep the fastest (default 3)")
-    p["ambiguity"].add_argument("--frames", type=int, default=300, metavar="N",
-                                help="frames per flight (default 300)")
-    p["ambiguity"].add_argument("--clutter", type=int, default=500, metavar="N",
-                                help="marker-free clutter frames (default 500, 0 = none)")
+    p["detector"].add_argument(
+        "--repeat", type=int, default=3, metavar="K", help="time each frame K times and keep the fastest (default 3)"
+    )
+    p["ambiguity"].add_argument("--frames", type=int, default=300, metavar="N", help="frames per flight (default 300)")
+    p["ambiguity"].add_argument(
+        "--clutter", type=int, default=500, metavar="N", help="marker-free clutter frames (default 500, 0 = none)"
+    )
     p["ambiguity"].add_argument("--seed", type=int, default=0, help="random seed of flights, noise and clutter")
     for name in ("estimator", "detector", "quality", "ambiguity"):
         p[name].add_argument("--json", action="store_true", help="print one JSON object instead of tables")
-    p["pipeline"].add_argument("--frames", type=int, default=3000,
-                               help="frames to run (default 3000; 20000 for the memory figure)")
-    p["pipeline"].add_argument("--fps", type=float, default=100.0,
-                               help="rate at which the source hands out frames (default 100)")
+    p["pipeline"].add_argument(
+        "--frames", type=int, default=3000, help="frames to run (default 3000; 20000 for the memory figure)"
+    )
+    p["pipeline"].add_argument(
+        "--fps", type=float, default=100.0, help="rate at which the source hands out frames (default 100)"
+    )
     p["pipeline"].add_argument("--distinct", type=int, default=48, help="distinct rendered frames, cycled (default 48)")
     p["pipeline"].add_argument("--seed", type=int, default=0, help="trajectory and noise seed")
-    p["pipeline"].add_argument("--preview", choices=("off", "idle", "watch"), default="off",
-                               help="live preview: off (default), idle (served, nobody watching), "
-                                    "watch (one viewer reading /stream.mjpg)")
+    p["pipeline"].add_argument(
+        "--preview",
+        choices=("off", "idle", "watch"),
+        default="off",
+        help="live preview: off (default), idle (served, nobody watching), watch (one viewer reading /stream.mjpg)",
+    )
     p["outputs"].add_argument("--poses", type=int, default=3000, help="poses per output (default 3000)")
-    p["quality"].add_argument("--frames", type=int, default=150, metavar="N",
-                              help="hover frames per tilt and height (default 150)")
+    p["map"].add_argument("--frames", type=int, default=600, help="frames per floor-grid flight (default 600)")
+    p["map"].add_argument(
+        "--descent-frames", type=int, default=300, help="frames of the 10 m -> 0.2 m pad descent (default 300)"
+    )
+    p["map"].add_argument("--repeat", type=int, default=200, help="timed frames per cost row (default 200)")
+    p["map"].add_argument("--seed", type=int, default=0, help="trajectory and noise seed")
+    p["map"].add_argument("--json", action="store_true", help="print one JSON object instead of tables")
+    p["quality"].add_argument(
+        "--frames", type=int, default=150, metavar="N", help="hover frames per tilt and height (default 150)"
+    )
     p["quality"].add_argument("--seed", type=int, default=0, help="random seed of hovers and images")
     for parser in p.values():
         parser.set_defaults(func=run)
@@ -81,6 +98,12 @@ def run(a: argparse.Namespace) -> int:
     elif a.bench == "pipeline":
         _check(a.frames >= 1 and a.fps > 0 and a.distinct >= 1, "--frames and --distinct must be >= 1 and --fps > 0")
         report = bench.run_bench(a.frames, a.fps, a.distinct, a.seed, preview=a.preview)
+    elif a.bench == "map":
+        _check(
+            a.frames >= 2 and a.descent_frames >= 2 and a.repeat >= 1,
+            "--frames and --descent-frames must be >= 2 and --repeat >= 1",
+        )
+        report = bench.run_bench(a.frames, a.descent_frames, a.repeat, a.seed, progress=not a.json)
     elif a.bench == "quality":
         _check(a.frames >= 1, f"--frames must be at least 1, got {a.frames}")
         report = bench.run_bench(a.frames, a.seed)

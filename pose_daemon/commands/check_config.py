@@ -8,11 +8,11 @@ from ..config import check_whole, load_config
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    parser = sub.add_parser("check-config", help="validate a config file",
-                            description=__doc__.splitlines()[0])
+    parser = sub.add_parser("check-config", help="validate a config file", description=__doc__.splitlines()[0])
     parser.add_argument("config", metavar="FILE", help="TOML config file")
-    parser.add_argument("--print", dest="show", action="store_true",
-                        help="print the effective configuration (defaults filled in)")
+    parser.add_argument(
+        "--print", dest="show", action="store_true", help="print the effective configuration (defaults filled in)"
+    )
     parser.set_defaults(func=run)
 
 
@@ -23,6 +23,9 @@ def run(args: argparse.Namespace) -> int:
         print(cfg.to_toml(), end="")
     else:
         outputs = [name for name in ("mavlink", "serial", "jsonl") if getattr(cfg.output, name)]
-        print(f"{args.config}: ok (source {cfg.camera.source}, marker {cfg.marker.type} "
-              f"{cfg.marker.width:g}x{cfg.marker.height:g} m, outputs: {', '.join(outputs) or 'none'})")
+        if cfg.map is not None:
+            target = f"map {cfg.map.dictionary} with {len(cfg.map.markers)} markers ({cfg.map.placement})"
+        else:
+            target = f"marker {cfg.marker.type} {cfg.marker.width:g}x{cfg.marker.height:g} m"
+        print(f"{args.config}: ok (source {cfg.camera.source}, {target}, outputs: {', '.join(outputs) or 'none'})")
     return 0

@@ -12,17 +12,20 @@ from ..errors import UserError
 
 def register(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser(
-        "estimate", help="poses for corner sets given as JSON lines",
+        "estimate",
+        help="poses for corner sets given as JSON lines",
         description=__doc__.splitlines()[0].split(": ", 1)[1],
         epilog='Each input line: {"corners": [[u, v], [u, v], [u, v], [u, v]], ...} in pixels, '
-               "order TL, TR, BR, BL; other keys are copied to the output. A bad line gives "
-               '{"ok": false, "error": "..."} and processing goes on.')
-    parser.add_argument("file", nargs="?", metavar="FILE", default="-",
-                        help="JSON lines to read (default: standard input)")
-    parser.add_argument("--config", metavar="FILE",
-                        help="TOML config: camera, marker and estimator (default: the embedded demo config)")
-    parser.add_argument("--method", choices=("iterative", "paper"),
-                        help="override [estimator] method")
+        "order TL, TR, BR, BL; other keys are copied to the output. A bad line gives "
+        '{"ok": false, "error": "..."} and processing goes on.',
+    )
+    parser.add_argument(
+        "file", nargs="?", metavar="FILE", default="-", help="JSON lines to read (default: standard input)"
+    )
+    parser.add_argument(
+        "--config", metavar="FILE", help="TOML config: camera, marker and estimator (default: the embedded demo config)"
+    )
+    parser.add_argument("--method", choices=("iterative", "paper"), help="override [estimator] method")
     parser.set_defaults(func=run)
 
 
@@ -34,10 +37,10 @@ def _pose_line(line: str, lineno: int, estimate, camera, marker, opts: Dict[str,
     except ValueError as exc:
         return {"ok": False, "error": f"line {lineno}: not JSON: {exc}"}
     if not isinstance(item, dict):
-        return {"ok": False, "error": f"line {lineno}: expected a JSON object with \"corners\""}
+        return {"ok": False, "error": f'line {lineno}: expected a JSON object with "corners"'}
     out = {k: v for k, v in item.items() if k != "corners"}
     if "corners" not in item:
-        out.update(ok=False, error=f"line {lineno}: no \"corners\" key")
+        out.update(ok=False, error=f'line {lineno}: no "corners" key')
         return out
     corners = item["corners"]
     try:
@@ -57,8 +60,11 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config) if args.config else Config.default()
     camera, marker = cfg.camera.model(), cfg.marker.model()
-    opts = {"method": args.method or cfg.estimator.method, "iterations": cfg.estimator.iterations,
-            "refine": cfg.estimator.refine}
+    opts = {
+        "method": args.method or cfg.estimator.method,
+        "iterations": cfg.estimator.iterations,
+        "refine": cfg.estimator.refine,
+    }
     if args.file == "-":
         stream: IO[str] = sys.stdin
     else:

@@ -9,10 +9,12 @@ from ..errors import UserError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    parser = sub.add_parser("record", help="record frames from the camera source into a folder",
-                            description=__doc__.splitlines()[0])
-    parser.add_argument("--config", metavar="FILE",
-                        help="TOML config (default: the embedded demo config, synthetic source)")
+    parser = sub.add_parser(
+        "record", help="record frames from the camera source into a folder", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument(
+        "--config", metavar="FILE", help="TOML config (default: the embedded demo config, synthetic source)"
+    )
     parser.add_argument("--out", metavar="DIR", required=True, help="new folder for the recording")
     limit = parser.add_mutually_exclusive_group()
     limit.add_argument("--seconds", type=float, metavar="N", help="stop after N seconds of frames")

@@ -7,11 +7,17 @@ import argparse
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    parser = sub.add_parser("replay", help="run detection and pose over a recording, image folder or video",
-                            description=__doc__.splitlines()[0])
+    parser = sub.add_parser(
+        "replay",
+        help="run detection and pose over a recording, image folder or video",
+        description=__doc__.splitlines()[0],
+    )
     parser.add_argument("path", metavar="PATH", help="recording folder, folder of images or video file")
-    parser.add_argument("--config", metavar="FILE",
-                        help="TOML config: camera and marker when the recording has none, estimator, detector")
+    parser.add_argument(
+        "--config",
+        metavar="FILE",
+        help="TOML config: camera and marker when the recording has none, estimator, detector",
+    )
     parser.add_argument("--out", metavar="FILE", help="write the JSON lines here (default: stdout)")
     parser.add_argument("--annotate", metavar="DIR", help="also write each frame with corners, axes and pose")
     parser.set_defaults(func=run)

@@ -8,10 +8,10 @@ from ..config import check_whole, load_config_or_default
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    parser = sub.add_parser("run", help="run the daemon until SIGTERM/SIGINT",
-                            description=__doc__.splitlines()[0])
-    parser.add_argument("--config", metavar="FILE",
-                        help="TOML config (default: the embedded demo config, synthetic source)")
+    parser = sub.add_parser("run", help="run the daemon until SIGTERM/SIGINT", description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--config", metavar="FILE", help="TOML config (default: the embedded demo config, synthetic source)"
+    )
     parser.set_defaults(func=run)
 
 

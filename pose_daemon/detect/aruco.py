@@ -15,6 +15,7 @@ from . import aruco_compat
 from .quads import Roi, inside_any
 from .refine import SEARCH_CONVERGED_PX, SEARCH_ITERATIONS, EdgeFit, signed_area
 from .square import (
+    MAX_REACH_PX,
     Candidate,
     OutlineFinder,
     SquareOptions,
@@ -44,9 +45,9 @@ class ArucoFinder(OutlineFinder):
         self.max_bit_errors = int(getattr(self.dictionary, "maxCorrectionBits", 0))
         # Our own edge fits replace OpenCV's refinement, so it is switched off.
         self._finder = aruco_compat.ArucoMarkerFinder(
-            self.dictionary, aruco_compat.make_parameters(
-                corner_refine="none", minMarkerPerimeterRate=0.01,
-                minCornerDistanceRate=0.02))
+            self.dictionary,
+            aruco_compat.make_parameters(corner_refine="none", minMarkerPerimeterRate=0.01, minCornerDistanceRate=0.02),
+        )
         cells = self.n_bits + 2
         centres = (np.arange(cells) + 0.5) / cells
         uu, vv = np.meshgrid(centres, centres)
@@ -66,13 +67,17 @@ class ArucoFinder(OutlineFinder):
             idx = np.floor(uv * cells).astype(int).clip(0, cells - 1)
             self._perms.append(idx[:, 1] * cells + idx[:, 0])
         s = np.linspace(0.1, 0.9, 7)
-        self._ring = np.concatenate([np.column_stack([s, np.full_like(s, -0.08)]),
-                                     np.column_stack([np.full_like(s, 1.08), s]),
-                                     np.column_stack([s, np.full_like(s, 1.08)]),
-                                     np.column_stack([np.full_like(s, -0.08), s])])
+        self._ring = np.concatenate(
+            [
+                np.column_stack([s, np.full_like(s, -0.08)]),
+                np.column_stack([np.full_like(s, 1.08), s]),
+                np.column_stack([s, np.full_like(s, 1.08)]),
+                np.column_stack([np.full_like(s, -0.08), s]),
+            ]
+        )
         self._cell_and_ring_uv = np.concatenate([self._cell_uv, self._ring])
-        self._pool: Optional[Any] = None   # a ThreadPoolExecutor once use_threads(2+)
-        self._pending = None   # (future, frame, roi) of OpenCV's detector started early
+        self._pool: Optional[Any] = None  # a ThreadPoolExecutor once use_threads(2+)
+        self._pending = None  # (future, frame, roi) of OpenCV's detector started early
 
     def use_threads(self, threads: int) -> None:
         """``threads`` >= 2: when a whole-frame search reaches its full-size pass (the
@@ -87,19 +92,18 @@ class ArucoFinder(OutlineFinder):
             # Its own OpenCV detector object: never shared between two threads.
             self._early_finder = aruco_compat.ArucoMarkerFinder(self.dictionary, self._finder.parameters)
 
-    def prepare_stage(self, gray: np.ndarray, plan: List[Tuple[str, int]], stage_i: int,
-                      roi: Optional[Roi]) -> None:
+    def prepare_stage(self, gray: np.ndarray, plan: List[Tuple[str, int]], stage_i: int, roi: Optional[Roi]) -> None:
         if self._pool is None or stage_i == 0 or stage_i + 1 >= len(plan) or plan[stage_i + 1][0] != "opencv":
             return
         if self._pending is not None and not self._pending[0].done():
-            return   # one early run at a time (a time-capped search may have left one)
+            return  # one early run at a time (a time-capped search may have left one)
         self._pending = (self._pool.submit(self._search_opencv, gray, roi, self._early_finder), gray, roi)
 
     def reach_px(self, corners: np.ndarray):
         side = min(side_lengths(corners).tolist())
         cell = side / (self.n_bits + 2)
         # Inside, stay within the one-cell black border; outside, within the quiet zone.
-        return clamp(0.6 * cell, 1.0, 3.0), clamp(0.15 * side, 1.5, 3.0)
+        return clamp(0.6 * cell, 1.0, 3.0), clamp(0.15 * side, 1.5, MAX_REACH_PX)
 
     def orientation(self, gray: np.ndarray, fit: EdgeFit) -> Optional[int]:
         """k such that the corners rolled by k start at the marker's top-left, or None if
@@ -110,7 +114,7 @@ class ArucoFinder(OutlineFinder):
         if fit.contrast < o.min_contrast or side_lengths(fit.corners).min() < o.min_side_px:
             return None
         values = sample_canonical(gray, fit.corners, self._cell_and_ring_uv)
-        cells, ring = values[:len(self._cell_uv)], values[len(self._cell_uv):]
+        cells, ring = values[: len(self._cell_uv)], values[len(self._cell_uv) :]
         ring = ring[np.isfinite(ring)]
         if not np.isfinite(cells).all() or len(ring) < 10:
             return None
@@ -132,7 +136,7 @@ class ArucoFinder(OutlineFinder):
         (about a pixel off, so with one more bit error and border cell allowed). Rejects
         the dark squares of a board, print and texture at a fraction of an edge fit's cost."""
         values = sample_canonical(gray, quad, self._cell_and_ring_uv)
-        cells, ring = values[:len(self._cell_uv)], values[len(self._cell_uv):]
+        cells, ring = values[: len(self._cell_uv)], values[len(self._cell_uv) :]
         ring = ring[np.isfinite(ring)]
         if not np.isfinite(cells).all() or len(ring) < 10:
             return False
@@ -143,15 +147,16 @@ class ArucoFinder(OutlineFinder):
         if np.count_nonzero(white[self._border]) > 2:
             return False
         inner = self._inner
-        return any(np.count_nonzero(white[perm][inner] != self._expected_white[inner]) <= self.max_bit_errors + 1
-                   for perm in self._perms)
+        return any(
+            np.count_nonzero(white[perm][inner] != self._expected_white[inner]) <= self.max_bit_errors + 1
+            for perm in self._perms
+        )
 
     def verify(self, gray: np.ndarray, fit: EdgeFit) -> bool:
         """Is this the marker, with the corners already labelled TL, TR, BR, BL?"""
         return self.orientation(gray, fit) == 0
 
-    def try_quad(self, gray: np.ndarray, quad: np.ndarray, scale: int,
-                 found: List[Candidate]) -> Optional[Candidate]:
+    def try_quad(self, gray: np.ndarray, quad: np.ndarray, scale: int, found: List[Candidate]) -> Optional[Candidate]:
         """A rough outline -> the marker (refined, labelled) or None; the code is read from
         the rough outline first, the edges fitted only when it may be the marker."""
         # Quads come largest first: one inside a marker already found is part of it.
@@ -160,8 +165,9 @@ class ArucoFinder(OutlineFinder):
         # (could_be also checks that the border is darker than the quiet zone.)
         if not self.could_be(gray, quad):
             return None
-        fit = self.refine(gray, quad, iterations=SEARCH_ITERATIONS, max_move_px=1.5 * scale + 1.0,
-                          converged_px=SEARCH_CONVERGED_PX)
+        fit = self.refine(
+            gray, quad, iterations=SEARCH_ITERATIONS, max_move_px=1.5 * scale + 1.0, converged_px=SEARCH_CONVERGED_PX
+        )
         if fit is None:
             return None
         k = self.orientation(gray, fit)
@@ -177,8 +183,9 @@ class ArucoFinder(OutlineFinder):
             return [None]
         return super().stage_items(gray, stage, roi, block)
 
-    def process(self, gray: np.ndarray, stage: Tuple[str, int], item, roi: Optional[Roi],
-                found: List[Candidate]) -> List[Candidate]:
+    def process(
+        self, gray: np.ndarray, stage: Tuple[str, int], item, roi: Optional[Roi], found: List[Candidate]
+    ) -> List[Candidate]:
         if stage[0] == "opencv":
             pending, self._pending = self._pending, None
             if pending is not None and pending[1] is gray and pending[2] == roi:

@@ -12,8 +12,10 @@ import cv2
 import numpy as np
 
 if not hasattr(cv2, "aruco"):  # pragma: no cover - depends on the installed wheel
-    raise ImportError("this OpenCV build has no cv2.aruco module; install opencv-python-headless >= 4.7 "
-                      "or opencv-contrib-python-headless")
+    raise ImportError(
+        "this OpenCV build has no cv2.aruco module; install opencv-python-headless >= 4.7 "
+        "or opencv-contrib-python-headless"
+    )
 
 _aruco = cv2.aruco
 
@@ -36,8 +38,7 @@ def get_dictionary(name: str) -> Any:
     """OpenCV's predefined dictionary called ``name``; ValueError naming the choices otherwise."""
     code = getattr(_aruco, str(name), None) if str(name).startswith("DICT_") else None
     if not isinstance(code, int):
-        raise ValueError(f"unknown ArUco dictionary {name!r}; expected one of "
-                         f"{', '.join(dictionary_names())}")
+        raise ValueError(f"unknown ArUco dictionary {name!r}; expected one of {', '.join(dictionary_names())}")
     if hasattr(_aruco, "getPredefinedDictionary"):
         return _aruco.getPredefinedDictionary(code)
     return _aruco.Dictionary_get(code)  # pragma: no cover - very old 4.x
@@ -68,8 +69,7 @@ class ArucoMarkerFinder:
     def __init__(self, dictionary: Any, parameters: Optional[Any] = None) -> None:
         self.dictionary = dictionary
         self.parameters = parameters if parameters is not None else make_parameters()
-        self._detector = (_aruco.ArucoDetector(self.dictionary, self.parameters)
-                          if NEW_API else None)
+        self._detector = _aruco.ArucoDetector(self.dictionary, self.parameters) if NEW_API else None
 
     def detect(self, gray: np.ndarray) -> Tuple[List[np.ndarray], np.ndarray]:
         """All markers in ``gray``: (list of (4, 2) float32 corners TL,TR,BR,BL, ids (N,) int)."""
@@ -79,8 +79,9 @@ class ArucoMarkerFinder:
             corners, ids, _ = _aruco.detectMarkers(gray, self.dictionary, parameters=self.parameters)
         if ids is None or len(corners) == 0:
             return [], np.zeros(0, dtype=np.int64)
-        return [np.asarray(c, dtype=np.float32).reshape(4, 2) for c in corners], \
-            np.asarray(ids, dtype=np.int64).reshape(-1)
+        return [np.asarray(c, dtype=np.float32).reshape(4, 2) for c in corners], np.asarray(
+            ids, dtype=np.int64
+        ).reshape(-1)
 
 
 def marker_image(dictionary: Any, marker_id: int, side_px: int, border_bits: int = 1) -> np.ndarray:
@@ -111,10 +112,12 @@ def charuco_board(spec: Any) -> Any:
     ``marker_m`` (metres) and ``dictionary`` (a name for ``get_dictionary``)."""
     dictionary = get_dictionary(spec.dictionary)
     if NEW_CHARUCO_API:
-        return _aruco.CharucoBoard((int(spec.cols), int(spec.rows)), float(spec.square_m),
-                                   float(spec.marker_m), dictionary)
-    return _aruco.CharucoBoard_create(int(spec.cols), int(spec.rows), float(spec.square_m),
-                                      float(spec.marker_m), dictionary)
+        return _aruco.CharucoBoard(
+            (int(spec.cols), int(spec.rows)), float(spec.square_m), float(spec.marker_m), dictionary
+        )
+    return _aruco.CharucoBoard_create(
+        int(spec.cols), int(spec.rows), float(spec.square_m), float(spec.marker_m), dictionary
+    )
 
 
 def charuco_corners_3d(board: Any) -> np.ndarray:
@@ -150,5 +153,4 @@ class CharucoFinder:
                 _, ch_corners, ch_ids = _aruco.interpolateCornersCharuco(m_corners, m_ids, gray, self.board)
         if ch_ids is None or ch_corners is None or len(ch_ids) == 0:
             return np.zeros((0, 2), dtype=np.float32), np.zeros(0, dtype=np.int64)
-        return (np.asarray(ch_corners, dtype=np.float32).reshape(-1, 2),
-                np.asarray(ch_ids, dtype=np.int64).reshape(-1))
+        return (np.asarray(ch_corners, dtype=np.float32).reshape(-1, 2), np.asarray(ch_ids, dtype=np.int64).reshape(-1))

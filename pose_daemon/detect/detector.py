@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from typing import Callable, List, Optional, Tuple
+from typing import Callable, List, NamedTuple, Optional, Tuple
 
 import numpy as np
 
@@ -21,17 +21,65 @@ from ..camera import Camera, Marker
 from ..capture.base import as_gray
 from .quads import Roi
 from .response import Response, check_response
-from .square import Candidate, SquareFinder, SquareOptions, aspect_error, side_lengths
+from .square import MAX_REACH_PX, Candidate, SquareFinder, SquareOptions, aspect_error, side_lengths
 
 #: Which step found the marker in the last call: "follow", "roi", "full" or None (not found).
 STAGES = ("follow", "roi", "full")
 
 
+class SearchRecord(NamedTuple):
+    """What one ``detect`` call searched (``MarkerDetector.last_search``), for the preview.
+
+    Made once per frame from what the search had at hand (a tuple, no image copied); the
+    rectangles are worked out only when asked for.
+    """
+
+    #: The step that found the marker ("follow", "roi", "full") or None.
+    stage: Optional[str]
+    #: The corners the follow step fitted edges from (4, 2) pixels, or None when it did not run.
+    #: Not written to after the frame (each frame predicts a fresh array).
+    predicted_px: Optional[np.ndarray]
+    #: The region the roi step searched, (x0, y0, x1, y1) pixels (x1, y1 exclusive), or None.
+    roi_px: Optional[Roi]
+    #: The whole-frame search: None (did not run), "done" or "deferred" (stopped at the
+    #: time cap, going on next frame).
+    full: Optional[str]
+
+    @property
+    def steps(self) -> Tuple[str, ...]:
+        """The steps that ran, in order."""
+        ran = (
+            ("follow", self.predicted_px is not None),
+            ("roi", self.roi_px is not None),
+            ("full", self.full is not None),
+        )
+        return tuple(name for name, did in ran if did)
+
+    @property
+    def regions(self) -> Tuple[Tuple[str, Roi], ...]:
+        """(step, (x0, y0, x1, y1)) per region searched, pixels (x1, y1 exclusive): for follow
+        the predicted corners' bounding box grown by the edge profiles' reach
+        (``MAX_REACH_PX``), for roi its region. The whole frame is not listed (see ``full``)."""
+        out: List[Tuple[str, Roi]] = []
+        if self.predicted_px is not None:
+            p = self.predicted_px
+            x0, y0 = (math.floor(float(v) - MAX_REACH_PX) for v in p.min(axis=0))
+            x1, y1 = (math.ceil(float(v) + MAX_REACH_PX) + 1 for v in p.max(axis=0))
+            out.append(("follow", (x0, y0, x1, y1)))
+        if self.roi_px is not None:
+            out.append(("roi", self.roi_px))
+        return tuple(out)
+
+
+_NOTHING_SEARCHED = SearchRecord(None, None, None, None)
+
+
 def _cyclic_shift_to(corners: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """Relabel clockwise corners so each lands nearest its previous label (continuity)."""
     c, r = corners.tolist(), reference.tolist()
-    costs = [sum((c[(i + k) % 4][0] - r[i][0]) ** 2 + (c[(i + k) % 4][1] - r[i][1]) ** 2
-                 for i in range(4)) for k in range(4)]
+    costs = [
+        sum((c[(i + k) % 4][0] - r[i][0]) ** 2 + (c[(i + k) % 4][1] - r[i][1]) ** 2 for i in range(4)) for k in range(4)
+    ]
     k = costs.index(min(costs))
     return corners[[(i + k) % 4 for i in range(4)]]
 
@@ -97,32 +145,52 @@ class MarkerDetector:
       its own full-size pass runs, once the half-size pass found nothing. Same results.
     """
 
-    def __init__(self, marker: Marker, *, max_misses: int = 5, min_side_px: float = 10.0,
-                 camera: Optional[Camera] = None, block_px: int = 25,
-                 threshold_offset: float = 10.0, min_contrast: float = 20.0,
-                 max_edge_residual_px: float = 0.4, max_aspect_ratio_error: float = 3.0,
-                 roi_margin: float = 0.5, gamma: Response = 1.0,
-                 search_budget_ms: Optional[float] = None,
-                 clock: Callable[[], float] = time.perf_counter,
-                 search_threads: Optional[int] = None) -> None:
+    def __init__(
+        self,
+        marker: Marker,
+        *,
+        max_misses: int = 5,
+        min_side_px: float = 10.0,
+        camera: Optional[Camera] = None,
+        block_px: int = 25,
+        threshold_offset: float = 10.0,
+        min_contrast: float = 20.0,
+        max_edge_residual_px: float = 0.4,
+        max_aspect_ratio_error: float = 3.0,
+        roi_margin: float = 0.5,
+        gamma: Response = 1.0,
+        search_budget_ms: Optional[float] = None,
+        clock: Callable[[], float] = time.perf_counter,
+        search_threads: Optional[int] = None,
+    ) -> None:
         if not isinstance(marker, Marker):
             raise ValueError(f"marker must be a pose_daemon.Marker, got {type(marker).__name__}")
         if isinstance(max_misses, bool) or not isinstance(max_misses, (int, np.integer)) or max_misses < 0:
             raise ValueError(f"max_misses must be a non-negative integer, got {max_misses!r}")
-        checks = (("min_side_px", min_side_px, 1.0), ("block_px", block_px, 3),
-                  ("min_contrast", min_contrast, 1.0), ("max_edge_residual_px", max_edge_residual_px, 0.01),
-                  ("max_aspect_ratio_error", max_aspect_ratio_error, 1.0), ("roi_margin", roi_margin, 0.0),
-                  ("threshold_offset", threshold_offset, 0.0))
+        checks = (
+            ("min_side_px", min_side_px, 1.0),
+            ("block_px", block_px, 3),
+            ("min_contrast", min_contrast, 1.0),
+            ("max_edge_residual_px", max_edge_residual_px, 0.01),
+            ("max_aspect_ratio_error", max_aspect_ratio_error, 1.0),
+            ("roi_margin", roi_margin, 0.0),
+            ("threshold_offset", threshold_offset, 0.0),
+        )
         for name, value, lowest in checks:
             if not isinstance(value, (int, float)) or not np.isfinite(value) or value < lowest:
                 raise ValueError(f"{name} must be a number >= {lowest}, got {value!r}")
-        if search_budget_ms is not None and (isinstance(search_budget_ms, bool)
-                                             or not isinstance(search_budget_ms, (int, float))
-                                             or not np.isfinite(search_budget_ms) or search_budget_ms <= 0):
+        if search_budget_ms is not None and (
+            isinstance(search_budget_ms, bool)
+            or not isinstance(search_budget_ms, (int, float))
+            or not np.isfinite(search_budget_ms)
+            or search_budget_ms <= 0
+        ):
             raise ValueError(f"search_budget_ms must be a number > 0 or None, got {search_budget_ms!r}")
-        if search_threads is not None and (isinstance(search_threads, bool)
-                                           or not isinstance(search_threads, (int, np.integer))
-                                           or not 1 <= search_threads <= 64):
+        if search_threads is not None and (
+            isinstance(search_threads, bool)
+            or not isinstance(search_threads, (int, np.integer))
+            or not 1 <= search_threads <= 64
+        ):
             raise ValueError(f"search_threads must be an integer in [1, 64] or None, got {search_threads!r}")
         if not callable(clock):
             raise ValueError(f"clock must be a callable returning seconds, got {clock!r}")
@@ -133,10 +201,14 @@ class MarkerDetector:
         self.max_misses = int(max_misses)
         self.roi_margin = float(roi_margin)
         self.options = SquareOptions(
-            min_side_px=float(min_side_px), block_px=int(block_px),
-            threshold_offset=float(threshold_offset), min_contrast=float(min_contrast),
+            min_side_px=float(min_side_px),
+            block_px=int(block_px),
+            threshold_offset=float(threshold_offset),
+            min_contrast=float(min_contrast),
             max_edge_residual_px=float(max_edge_residual_px),
-            max_aspect_ratio_error=float(max_aspect_ratio_error), gamma=check_response(gamma))
+            max_aspect_ratio_error=float(max_aspect_ratio_error),
+            gamma=check_response(gamma),
+        )
         if marker.type == "aruco":
             from .aruco import ArucoFinder
 
@@ -147,6 +219,8 @@ class MarkerDetector:
         else:
             self._finder = SquareFinder(marker, self.options, camera)
         self.last_stage: Optional[str] = None
+        #: What the last ``detect`` call searched (a SearchRecord), None before the first.
+        self.last_search: Optional[SearchRecord] = None
         self.search_budget_s = None if search_budget_ms is None else float(search_budget_ms) / 1e3
         self._clock = clock
         #: Frames whose whole-frame search stopped at ``search_budget_ms``, leaving the rest
@@ -162,7 +236,7 @@ class MarkerDetector:
     def reset(self) -> None:
         """Forget the track: the next frame is searched whole and labelled afresh."""
         self._forget_track()
-        self._cursor: Tuple[int, int] = (0, 0)   # where an interrupted whole-frame search goes on
+        self._cursor: Tuple[int, int] = (0, 0)  # where an interrupted whole-frame search goes on
 
     def _forget_track(self) -> None:
         self._last: Optional[np.ndarray] = None
@@ -187,10 +261,13 @@ class MarkerDetector:
         self.last_search_deferred = False
         gray = as_gray(image)
         if self.camera is not None and gray.shape != (self.camera.height, self.camera.width):
-            raise ValueError(f"image is {gray.shape[1]}x{gray.shape[0]} but the camera model is "
-                             f"{self.camera.width}x{self.camera.height}")
-        found, stage = self._find(gray)
-        self.last_stage = stage if found is not None else None
+            raise ValueError(
+                f"image is {gray.shape[1]}x{gray.shape[0]} but the camera model is "
+                f"{self.camera.width}x{self.camera.height}"
+            )
+        found, search = self._find(gray)
+        self.last_search = search
+        self.last_stage = search.stage
         if found is None:
             self.misses += 1
             self._previous = None  # no velocity across a gap
@@ -203,26 +280,31 @@ class MarkerDetector:
         self.misses = 0
         return found.copy()
 
-    def _find(self, gray: np.ndarray) -> Tuple[Optional[np.ndarray], Optional[str]]:
+    def _find(self, gray: np.ndarray) -> Tuple[Optional[np.ndarray], SearchRecord]:
         h, w = gray.shape
         if h < 8 or w < 8:
-            return None, None
+            return None, _NOTHING_SEARCHED
         if self._last is None:
-            return self._pick_first(self._full_search(gray)), "full"
+            found = self._pick_first(self._full_search(gray))
+            return found, SearchRecord("full" if found is not None else None, None, None, self._full_outcome())
         predicted = self._predict()
         inside = ((predicted >= 1.0) & (predicted <= [w - 2.0, h - 2.0])).all()
+        followed = predicted if inside else None
         if inside:
             cand = self._finder.follow(gray, predicted)
             if cand is not None:
-                return self._label(cand, predicted), "follow"
+                return self._label(cand, predicted), SearchRecord("follow", followed, None, None)
         side = float(side_lengths(self._last).max())
         roi = self._roi(predicted, side, w, h)
         if roi is not None:
             found = self._pick_continuous(self._finder.search(gray, roi, side), predicted)
             if found is not None:
-                return found, "roi"
+                return found, SearchRecord("roi", followed, roi, None)
         found = self._pick_continuous(self._full_search(gray), predicted)
-        return found, ("full" if found is not None else None)
+        return found, SearchRecord("full" if found is not None else None, followed, roi, self._full_outcome())
+
+    def _full_outcome(self) -> str:
+        return "deferred" if self.last_search_deferred else "done"
 
     def _full_search(self, gray: np.ndarray) -> List[Candidate]:
         """The whole frame, within the frame's time cap (if any), going on from where the
@@ -270,9 +352,11 @@ class MarkerDetector:
         """No track: the candidate closest to the marker's shape; the larger one on a tie."""
         if not cands:
             return None
+
         def key(c: Candidate):
             labelled = self._label(c, None)
             return (round(aspect_error(labelled, self.marker), 1), -float(side_lengths(labelled).sum()))
+
         return self._label(min(cands, key=key), None)
 
     def _pick_continuous(self, cands: List[Candidate], predicted: np.ndarray) -> Optional[np.ndarray]:

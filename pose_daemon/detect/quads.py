@@ -22,9 +22,17 @@ def odd(n: float, lo: int = 3, hi: int = 255) -> int:
     return k if k % 2 else k + 1
 
 
-def find_quads(gray: np.ndarray, *, min_side_px: float, block_px: int, offset_gray: float = 7.0,
-               roi: Optional[Roi] = None, approx_rate: float = 0.04,
-               max_candidates: int = 64, downscale: int = 1) -> List[np.ndarray]:
+def find_quads(
+    gray: np.ndarray,
+    *,
+    min_side_px: float,
+    block_px: int,
+    offset_gray: float = 7.0,
+    roi: Optional[Roi] = None,
+    approx_rate: float = 0.04,
+    max_candidates: int = 64,
+    downscale: int = 1,
+) -> List[np.ndarray]:
     """Dark convex quadrilaterals in ``gray`` (within ``roi``), largest first.
 
     Each is (4, 2) float64 pixels of the full image, in image-clockwise order (positive
@@ -42,13 +50,13 @@ def find_quads(gray: np.ndarray, *, min_side_px: float, block_px: int, offset_gr
         return []
     scale = 1.0
     if downscale > 1:
-        img = cv2.resize(img, (img.shape[1] // downscale, img.shape[0] // downscale),
-                         interpolation=cv2.INTER_AREA)
+        img = cv2.resize(img, (img.shape[1] // downscale, img.shape[0] // downscale), interpolation=cv2.INTER_AREA)
         scale = float(downscale)
         block_px = block_px / scale
         min_side_px = min_side_px / scale
-    binary = cv2.adaptiveThreshold(img, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY_INV,
-                                   odd(block_px), offset_gray)
+    binary = cv2.adaptiveThreshold(
+        img, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY_INV, odd(block_px), offset_gray
+    )
     found = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
     contours, hierarchy = found[-2], found[-1]
     if hierarchy is None:
@@ -74,8 +82,10 @@ def find_quads(gray: np.ndarray, *, min_side_px: float, block_px: int, offset_gr
             area = -area
         if area < min_area:
             continue
-        if min(math.hypot(pts[(i + 1) % 4][0] - pts[i][0], pts[(i + 1) % 4][1] - pts[i][1])
-               for i in range(4)) < min_side_px:
+        if (
+            min(math.hypot(pts[(i + 1) % 4][0] - pts[i][0], pts[(i + 1) % 4][1] - pts[i][1]) for i in range(4))
+            < min_side_px
+        ):
             continue
         # Boundary pixels of the dark region lie half a pixel inside its true edge; then
         # pixel centres of the half-size image: full-size x = scale * x_small + (scale - 1) / 2.
@@ -96,7 +106,9 @@ def inside_any(point: np.ndarray, outlines: List[np.ndarray]) -> bool:
     px, py = float(point[0]), float(point[1])
     for outline in outlines:
         c = outline.tolist()
-        if all((c[(i + 1) % 4][0] - c[i][0]) * (py - c[i][1]) - (c[(i + 1) % 4][1] - c[i][1]) * (px - c[i][0]) >= 0
-               for i in range(4)):
+        if all(
+            (c[(i + 1) % 4][0] - c[i][0]) * (py - c[i][1]) - (c[(i + 1) % 4][1] - c[i][1]) * (px - c[i][0]) >= 0
+            for i in range(4)
+        ):
             return True
     return False

@@ -42,9 +42,9 @@ class EdgeFit:
     """Refined corners (4, 2) pixels in the input order, and how well the sides fitted."""
 
     corners: np.ndarray
-    residual_px: float          # RMS distance of the edge points to their side's line
-    contrast: float             # mean light - dark grey levels across the edges
-    valid_fraction: float       # share of profiles that crossed the edge cleanly
+    residual_px: float  # RMS distance of the edge points to their side's line
+    contrast: float  # mean light - dark grey levels across the edges
+    valid_fraction: float  # share of profiles that crossed the edge cleanly
 
 
 def signed_area(corners: np.ndarray) -> float:
@@ -107,7 +107,7 @@ def _corner_clearance(u: np.ndarray, length: np.ndarray, blur_px: float) -> np.n
     2.5 sigma away only that far along this one). At most 0.3 of the side."""
     if blur_px <= 0.0:
         return np.zeros(4)
-    sin_corner = np.abs(u[:, 0] * u[_PREV, 1] - u[:, 1] * u[_PREV, 0])   # at each side's start
+    sin_corner = np.abs(u[:, 0] * u[_PREV, 1] - u[:, 1] * u[_PREV, 0])  # at each side's start
     sin_end = np.minimum(sin_corner, sin_corner[_NEXT])
     return np.minimum(2.5 * blur_px / np.maximum(sin_end, 0.3), 0.3 * length)
 
@@ -132,11 +132,21 @@ def _fit_line(points: np.ndarray) -> Tuple[float, float, float]:
     return -vy, vx, -vy * x0 + vx * y0
 
 
-def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_px: float,
-              iterations: int = 2, camera=None, min_contrast: float = 8.0,
-              max_move_px: Optional[float] = None, samples_per_side: int = 24,
-              converged_px: float = 0.5, lut: Optional[np.ndarray] = None,
-              check_blur: bool = True) -> Optional[EdgeFit]:
+def fit_edges(
+    gray: np.ndarray,
+    corners: np.ndarray,
+    *,
+    inner_px: float,
+    outer_px: float,
+    iterations: int = 2,
+    camera=None,
+    min_contrast: float = 8.0,
+    max_move_px: Optional[float] = None,
+    samples_per_side: int = 24,
+    converged_px: float = 0.5,
+    lut: Optional[np.ndarray] = None,
+    check_blur: bool = True,
+) -> Optional[EdgeFit]:
     """Refine approximate corners (4, 2) of a dark quadrilateral on a lighter surround.
 
     ``corners`` must be in image-clockwise order (positive ``signed_area``); the result
@@ -168,7 +178,7 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
     rows2 = np.concatenate([rows, rows]) * n_off
     last = float(n_off - 1)
     frac_along = (np.arange(m) + 0.5) / m
-    blur_px = 0.0   # the edges' blur (Gaussian sigma equivalent), estimated by each pass
+    blur_px = 0.0  # the edges' blur (Gaussian sigma equivalent), estimated by each pass
     for _ in range(iterations):
         d = current[_NEXT] - current
         length = np.hypot(d[:, 0], d[:, 1])
@@ -180,8 +190,8 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
         span = length - 2.0 * end
         if span.min() < 2.0:
             return None
-        t = end[:, None] + frac_along * span[:, None]                            # (4, m)
-        bx = current[:, 0:1] + t * u[:, 0:1]                                      # (4, m)
+        t = end[:, None] + frac_along * span[:, None]  # (4, m)
+        bx = current[:, 0:1] + t * u[:, 0:1]  # (4, m)
         by = current[:, 1:2] + t * u[:, 1:2]
         # Outward normal of an image-clockwise outline: (u_y, -u_x).
         gx = (bx[:, :, None] + offsets * u[:, 1, None, None]).reshape(n, n_off).astype(np.float32)
@@ -225,7 +235,7 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
             if settled:
                 break
         s_edge = (offsets[0] + x * PROFILE_STEP_PX).reshape(4, m)
-        pts = np.stack([bx + s_edge * u[:, 1:2], by - s_edge * u[:, 0:1]], axis=-1)   # (4, m, 2)
+        pts = np.stack([bx + s_edge * u[:, 1:2], by - s_edge * u[:, 0:1]], axis=-1)  # (4, m, 2)
         if distorted:
             pts = _undistort_px(pts.reshape(-1, 2), camera).reshape(4, m, 2)
         ok4 = ok.reshape(4, m)
@@ -235,7 +245,7 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
             if len(p) < 3:
                 return None
             lines[side] = _fit_line(p)
-        res = pts[..., 0] * lines[:, 0:1] + pts[..., 1] * lines[:, 1:2] - lines[:, 2:3]   # (4, m)
+        res = pts[..., 0] * lines[:, 0:1] + pts[..., 1] * lines[:, 1:2] - lines[:, 2:3]  # (4, m)
         abs_res = np.where(ok4, np.abs(res), 0.0)
         for side in np.nonzero(abs_res.max(axis=1) > 0.3)[0].tolist():
             # One pass of outlier rejection: a few profiles crossing glare, texture or a
@@ -266,8 +276,12 @@ def fit_edges(gray: np.ndarray, corners: np.ndarray, *, inner_px: float, outer_p
             return None
         if n_used < 12:
             return None
-        fit = EdgeFit(corners=refined, residual_px=math.sqrt(sq_sum / n_used),
-                      contrast=float(contrast[ok].mean()), valid_fraction=n_used / n)
+        fit = EdgeFit(
+            corners=refined,
+            residual_px=math.sqrt(sq_sum / n_used),
+            contrast=float(contrast[ok].mean()),
+            valid_fraction=n_used / n,
+        )
         moved = float(np.abs(refined - current).max())
         current = refined
         # Profiles along normals a fraction of a degree off find the same edge points, but

@@ -28,8 +28,12 @@ def check_response(value: Response, name: str = "gamma") -> Response:
         if value.strip().lower() == "srgb":
             return "srgb"
         raise ValueError(f"{name} must be a number in [0.2, 5] or 'srgb', got {value!r}")
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
-            or not 0.2 <= float(value) <= 5.0:
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, float))
+        or not math.isfinite(value)
+        or not 0.2 <= float(value) <= 5.0
+    ):
         raise ValueError(f"{name} must be a number in [0.2, 5] or 'srgb', got {value!r}")
     return float(value)
 

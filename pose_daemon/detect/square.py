@@ -39,21 +39,27 @@ class SquareOptions:
     """Tuning of the square finder (MarkerDetector keyword options of the same names)."""
 
     min_side_px: float = 10.0
-    block_px: int = 25               # adaptive threshold window for a full-frame search
-    threshold_offset: float = 10.0   # grey levels below the local mean that count as dark
-    min_contrast: float = 20.0       # light surround - dark inside, grey levels
+    block_px: int = 25  # adaptive threshold window for a full-frame search
+    threshold_offset: float = 10.0  # grey levels below the local mean that count as dark
+    min_contrast: float = 20.0  # light surround - dark inside, grey levels
     max_edge_residual_px: float = 0.4
-    max_aspect_ratio_error: float = 3.0   # measured W:H may differ from the marker's by this factor
-    ring_px: float = 2.5             # how far outside the sides the light ring is sampled
-    gamma: Response = 1.0            # the camera's response (response.py): edges fitted in linear light
+    max_aspect_ratio_error: float = 3.0  # measured W:H may differ from the marker's by this factor
+    ring_px: float = 2.5  # how far outside the sides the light ring is sampled
+    gamma: Response = 1.0  # the camera's response (response.py): edges fitted in linear light
 
 
 def side_lengths(corners: np.ndarray) -> np.ndarray:
     """Lengths of the sides TL-TR, TR-BR, BR-BL, BL-TL (for any start corner), pixels."""
     # Plain floats: at four points numpy's per-call overhead costs more than the arithmetic.
     (x0, y0), (x1, y1), (x2, y2), (x3, y3) = np.asarray(corners, dtype=np.float64).tolist()
-    return np.array([math.hypot(x1 - x0, y1 - y0), math.hypot(x2 - x1, y2 - y1),
-                     math.hypot(x3 - x2, y3 - y2), math.hypot(x0 - x3, y0 - y3)])
+    return np.array(
+        [
+            math.hypot(x1 - x0, y1 - y0),
+            math.hypot(x2 - x1, y2 - y1),
+            math.hypot(x3 - x2, y3 - y2),
+            math.hypot(x0 - x3, y0 - y3),
+        ]
+    )
 
 
 # Canonical marker square [0, 1]^2, corners in image-clockwise order from its top-left.
@@ -66,12 +72,28 @@ _s = np.linspace(0.1, 0.9, 7)
 
 # Points just outside each side, spread along it: base + (ru, rv) * direction, where ru/rv
 # are how far outside the left/right and top/bottom sides, in canonical units.
-_RING_BASE = np.concatenate([np.column_stack([_s, 0 * _s]), np.column_stack([1 + 0 * _s, _s]),
-                             np.column_stack([_s[::-1], 1 + 0 * _s]), np.column_stack([0 * _s, _s[::-1]])])
-_RING_DIR = np.concatenate([np.tile([0.0, -1.0], (7, 1)), np.tile([1.0, 0.0], (7, 1)),
-                            np.tile([0.0, 1.0], (7, 1)), np.tile([-1.0, 0.0], (7, 1))])
+_RING_BASE = np.concatenate(
+    [
+        np.column_stack([_s, 0 * _s]),
+        np.column_stack([1 + 0 * _s, _s]),
+        np.column_stack([_s[::-1], 1 + 0 * _s]),
+        np.column_stack([0 * _s, _s[::-1]]),
+    ]
+)
+_RING_DIR = np.concatenate(
+    [
+        np.tile([0.0, -1.0], (7, 1)),
+        np.tile([1.0, 0.0], (7, 1)),
+        np.tile([0.0, 1.0], (7, 1)),
+        np.tile([-1.0, 0.0], (7, 1)),
+    ]
+)
 _N_GRID = len(_GRID)
 _LEVELS = np.arange(256, dtype=np.float64)
+
+
+#: The farthest any edge profile reaches outside a tracked outline (``reach_px``'s cap), pixels.
+MAX_REACH_PX = 3.0
 
 
 def clamp(value: float, lo: float, hi: float) -> float:
@@ -85,8 +107,14 @@ def median_of(values: np.ndarray) -> float:
 @functools.lru_cache(maxsize=64)
 def _band(d: float) -> np.ndarray:
     """Points at canonical distance ``d`` inside (d > 0) or outside (d < 0) each side."""
-    return np.concatenate([np.column_stack([_s, 0 * _s + d]), np.column_stack([1 - d + 0 * _s, _s]),
-                           np.column_stack([_s[::-1], 1 - d + 0 * _s]), np.column_stack([d + 0 * _s, _s[::-1]])])
+    return np.concatenate(
+        [
+            np.column_stack([_s, 0 * _s + d]),
+            np.column_stack([1 - d + 0 * _s, _s]),
+            np.column_stack([_s[::-1], 1 - d + 0 * _s]),
+            np.column_stack([d + 0 * _s, _s[::-1]]),
+        ]
+    )
 
 
 def darker_inside(gray: np.ndarray, corners: np.ndarray, depth: float, min_contrast: float) -> bool:
@@ -147,19 +175,34 @@ class OutlineFinder:
     def verify(self, gray: np.ndarray, fit: EdgeFit) -> bool:
         raise NotImplementedError
 
-    def refine(self, gray: np.ndarray, corners: np.ndarray, iterations: int,
-               max_move_px: Optional[float] = None, converged_px: float = 0.5,
-               reach: Optional[Tuple[float, float]] = None, check_blur: bool = True) -> Optional[EdgeFit]:
+    def refine(
+        self,
+        gray: np.ndarray,
+        corners: np.ndarray,
+        iterations: int,
+        max_move_px: Optional[float] = None,
+        converged_px: float = 0.5,
+        reach: Optional[Tuple[float, float]] = None,
+        check_blur: bool = True,
+    ) -> Optional[EdgeFit]:
         inner, outer = self.reach_px(corners) if reach is None else reach
-        return fit_edges(gray, corners, inner_px=inner, outer_px=outer, iterations=iterations,
-                         camera=self.camera, min_contrast=0.5 * self.options.min_contrast,
-                         max_move_px=max_move_px, converged_px=converged_px, lut=self.lut,
-                         check_blur=check_blur)
+        return fit_edges(
+            gray,
+            corners,
+            inner_px=inner,
+            outer_px=outer,
+            iterations=iterations,
+            camera=self.camera,
+            min_contrast=0.5 * self.options.min_contrast,
+            max_move_px=max_move_px,
+            converged_px=converged_px,
+            lut=self.lut,
+            check_blur=check_blur,
+        )
 
     # ------------------------------------------------------------------ search
 
-    def try_quad(self, gray: np.ndarray, quad: np.ndarray, scale: int,
-                 found: List[Candidate]) -> Optional[Candidate]:
+    def try_quad(self, gray: np.ndarray, quad: np.ndarray, scale: int, found: List[Candidate]) -> Optional[Candidate]:
         raise NotImplementedError
 
     def stages(self, gray: np.ndarray, roi: Optional[Roi]) -> List[Tuple[str, int]]:
@@ -170,31 +213,36 @@ class OutlineFinder:
             return [("quads", 2), ("quads", 1)]
         return [("quads", 1)]
 
-    def stage_items(self, gray: np.ndarray, stage: Tuple[str, int], roi: Optional[Roi],
-                    block: int) -> list:
+    def stage_items(self, gray: np.ndarray, stage: Tuple[str, int], roi: Optional[Roi], block: int) -> list:
         """The work items of a stage: its rough outlines, largest first."""
         o = self.options
-        return find_quads(gray, min_side_px=o.min_side_px, block_px=block, offset_gray=o.threshold_offset,
-                          roi=roi, downscale=stage[1])
+        return find_quads(
+            gray, min_side_px=o.min_side_px, block_px=block, offset_gray=o.threshold_offset, roi=roi, downscale=stage[1]
+        )
 
-    def process(self, gray: np.ndarray, stage: Tuple[str, int], item, roi: Optional[Roi],
-                found: List[Candidate]) -> List[Candidate]:
+    def process(
+        self, gray: np.ndarray, stage: Tuple[str, int], item, roi: Optional[Roi], found: List[Candidate]
+    ) -> List[Candidate]:
         cand = self.try_quad(gray, item, stage[1], found)
         return [] if cand is None else [cand]
 
-    def prepare_stage(self, gray: np.ndarray, plan: List[Tuple[str, int]], stage_i: int,
-                      roi: Optional[Roi]) -> None:
+    def prepare_stage(self, gray: np.ndarray, plan: List[Tuple[str, int]], stage_i: int, roi: Optional[Roi]) -> None:
         """Called as stage ``stage_i`` of ``plan`` starts (a finder may start later work early)."""
 
-    def search(self, gray: np.ndarray, roi: Optional[Roi] = None,
-               expected_side_px: Optional[float] = None) -> List[Candidate]:
+    def search(
+        self, gray: np.ndarray, roi: Optional[Roi] = None, expected_side_px: Optional[float] = None
+    ) -> List[Candidate]:
         """Every verified marker outline in ``roi`` (or the whole frame)."""
         return self.search_from(gray, roi, expected_side_px)[0]
 
-    def search_from(self, gray: np.ndarray, roi: Optional[Roi] = None,
-                    expected_side_px: Optional[float] = None, start: Tuple[int, int] = (0, 0),
-                    over: Optional[Callable[[], bool]] = None
-                    ) -> Tuple[List[Candidate], Optional[Tuple[int, int]]]:
+    def search_from(
+        self,
+        gray: np.ndarray,
+        roi: Optional[Roi] = None,
+        expected_side_px: Optional[float] = None,
+        start: Tuple[int, int] = (0, 0),
+        over: Optional[Callable[[], bool]] = None,
+    ) -> Tuple[List[Candidate], Optional[Tuple[int, int]]]:
         """A search that may stop early: (candidates, where to go on or None).
 
         Starts at ``start`` = (stage, item); stages run cheapest first and a stage that finds
@@ -229,8 +277,14 @@ class OutlineFinder:
     def follow(self, gray: np.ndarray, predicted: np.ndarray) -> Optional[Candidate]:
         """The marker near ``predicted`` corners (tracked frames): edge fits from there, checked."""
         inner, outer = self.reach_px(predicted)
-        fit = self.refine(gray, predicted, iterations=2, max_move_px=0.8 * min(inner, outer) + 0.5,
-                          reach=(inner, outer), check_blur=False)
+        fit = self.refine(
+            gray,
+            predicted,
+            iterations=2,
+            max_move_px=0.8 * min(inner, outer) + 0.5,
+            reach=(inner, outer),
+            check_blur=False,
+        )
         if fit is None or not self.verify(gray, fit):
             return None
         return Candidate(fit.corners, self.oriented, fit)
@@ -244,7 +298,7 @@ class SquareFinder(OutlineFinder):
     def reach_px(self, corners: np.ndarray):
         """(inside, outside) reach of the edge profiles for an outline of this size."""
         side = min(side_lengths(corners).tolist())
-        return clamp(0.2 * side, 1.5, 3.0), clamp(0.15 * side, 1.5, 3.0)
+        return clamp(0.2 * side, 1.5, 3.0), clamp(0.15 * side, 1.5, MAX_REACH_PX)
 
     def shape_ok(self, corners: np.ndarray) -> bool:
         if side_lengths(corners).min() < self.options.min_side_px:
@@ -265,8 +319,9 @@ class SquareFinder(OutlineFinder):
         r = np.array([ru, rv])
         # The inside is sampled out to ring_px from the sides: a dark frame around a lighter
         # band (paper darker than the wall around it) is not a uniformly dark region.
-        values = sample_canonical(gray, fit.corners, np.concatenate(
-            [r + _GRID * (1.0 - 2.0 * r), _RING_BASE + _RING_DIR * r]))
+        values = sample_canonical(
+            gray, fit.corners, np.concatenate([r + _GRID * (1.0 - 2.0 * r), _RING_BASE + _RING_DIR * r])
+        )
         inside, ring = values[:_N_GRID], values[_N_GRID:]
         ring = ring[np.isfinite(ring)]
         if len(ring) < 10:
@@ -288,8 +343,7 @@ class SquareFinder(OutlineFinder):
             return False
         return np.count_nonzero(ring <= mid) <= 0.1 * len(ring)
 
-    def try_quad(self, gray: np.ndarray, quad: np.ndarray, scale: int,
-                 found: List[Candidate]) -> Optional[Candidate]:
+    def try_quad(self, gray: np.ndarray, quad: np.ndarray, scale: int, found: List[Candidate]) -> Optional[Candidate]:
         """A rough outline from the threshold -> the verified marker, or None. Cheap checks
         first (shape, not inside one found, darker inside); the edge fit only for survivors."""
         o = self.options
@@ -298,8 +352,9 @@ class SquareFinder(OutlineFinder):
             return None
         if not darker_inside(gray, quad, 0.1, 0.5 * o.min_contrast):
             return None
-        fit = self.refine(gray, quad, iterations=SEARCH_ITERATIONS, max_move_px=1.5 * scale + 1.0,
-                          converged_px=SEARCH_CONVERGED_PX)
+        fit = self.refine(
+            gray, quad, iterations=SEARCH_ITERATIONS, max_move_px=1.5 * scale + 1.0, converged_px=SEARCH_CONVERGED_PX
+        )
         if fit is not None and self.verify(gray, fit):
             return Candidate(fit.corners, False, fit)
         return None

@@ -16,7 +16,7 @@ bytes-written latency with it.
 
 from __future__ import annotations
 
-from typing import Any, List, Optional
+from typing import TYPE_CHECKING, Any, Dict, List, Optional
 
 from .base import ClosedHook, Output, OutputFactory, WrittenHook
 from .jsonl import JsonlOutput
@@ -24,13 +24,34 @@ from .mavlink import MavlinkOutput
 from .plain_serial import PlainSerialOutput
 from .worker import LinkBusy, LinkError, QueuedOutput
 
-__all__ = ["Output", "OutputFactory", "WrittenHook", "ClosedHook", "QueuedOutput", "MavlinkOutput", "PlainSerialOutput", "JsonlOutput", "LinkError",
-           "LinkBusy", "open_outputs"]
+if TYPE_CHECKING:  # config.py imports the outputs' choices: no import back at run time
+    from ..config import Config
+
+__all__ = [
+    "Output",
+    "OutputFactory",
+    "WrittenHook",
+    "ClosedHook",
+    "QueuedOutput",
+    "MavlinkOutput",
+    "PlainSerialOutput",
+    "JsonlOutput",
+    "LinkError",
+    "LinkBusy",
+    "open_outputs",
+]
 
 
-def open_outputs(cfg, *, max_age_s: Optional[float] = None, on_written: Optional[WrittenHook] = None,
-                 on_closed: Optional[ClosedHook] = None, start: bool = True,
-                 queue_size: Optional[int] = None, attitude: Any = None) -> List[QueuedOutput]:
+def open_outputs(
+    cfg: Config,
+    *,
+    max_age_s: Optional[float] = None,
+    on_written: Optional[WrittenHook] = None,
+    on_closed: Optional[ClosedHook] = None,
+    start: bool = True,
+    queue_size: Optional[int] = None,
+    attitude: Any = None,
+) -> List[QueuedOutput]:
     """The outputs ``cfg.output`` asks for, started (links open in their own threads, so a link
     that is down now does not stop the daemon: it is retried with a doubling pause).
 
@@ -43,8 +64,9 @@ def open_outputs(cfg, *, max_age_s: Optional[float] = None, on_written: Optional
     """
     if queue_size is None:
         queue_size = cfg.pipeline.output_buffer
-    common = dict(max_age_s=max_age_s, on_written=on_written, on_closed=on_closed, start=start,
-                  queue_size=queue_size)
+    common: Dict[str, Any] = dict(
+        max_age_s=max_age_s, on_written=on_written, on_closed=on_closed, start=start, queue_size=queue_size
+    )
     outputs: List[QueuedOutput] = []
     m = cfg.output.mavlink
     if m is not None:

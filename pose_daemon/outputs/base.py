@@ -40,5 +40,6 @@ class OutputFactory(Protocol):
     """Builds the outputs of a pipeline with the pipeline's budget and hooks
     (``functools.partial(open_outputs, cfg)`` is one)."""
 
-    def __call__(self, *, max_age_s: Optional[float], on_written: Optional[WrittenHook],
-                 on_closed: Optional[ClosedHook]) -> Sequence[Output]: ...
+    def __call__(
+        self, *, max_age_s: Optional[float], on_written: Optional[WrittenHook], on_closed: Optional[ClosedHook]
+    ) -> Sequence[Output]: ...

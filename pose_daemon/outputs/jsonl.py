@@ -12,14 +12,14 @@ import json
 import os
 import sys
 import time
-from typing import TYPE_CHECKING, Callable, Optional, TextIO
+from typing import TYPE_CHECKING, Any, Callable, Optional, TextIO
 
 from ..result import FrameResult
 from .base import ClosedHook, WrittenHook
 from .worker import LinkClosed, LinkError, QueuedOutput
 
 if TYPE_CHECKING:
-    from ..config import JsonlOutputConfig
+    from ..config import Config, JsonlOutputConfig
 
 
 def json_line(result: FrameResult) -> str:
@@ -33,25 +33,41 @@ class JsonlOutput(QueuedOutput):
 
     name = "jsonl"
 
-    def __init__(self, cfg: JsonlOutputConfig, *, queue_size: int = 4, max_age_s: Optional[float] = None,
-                 on_written: Optional[WrittenHook] = None, on_closed: Optional[ClosedHook] = None,
-                 retry_s: float = 0.5, retry_max_s: float = 5.0,
-                 clock: Callable[[], float] = time.monotonic, start: bool = True,
-                 stream: Optional[TextIO] = None) -> None:
+    def __init__(
+        self,
+        cfg: JsonlOutputConfig,
+        *,
+        queue_size: int = 4,
+        max_age_s: Optional[float] = None,
+        on_written: Optional[WrittenHook] = None,
+        on_closed: Optional[ClosedHook] = None,
+        retry_s: float = 0.5,
+        retry_max_s: float = 5.0,
+        clock: Callable[[], float] = time.monotonic,
+        start: bool = True,
+        stream: Optional[TextIO] = None,
+    ) -> None:
         """``cfg``: the ``[output.jsonl]`` table (``path``); ``stream``: write there instead
         (tests); the rest as QueuedOutput."""
         self.cfg = cfg
         self.path = cfg.path
         self._given_stream = stream
         self._stream: Optional[TextIO] = None
-        self._fd: Optional[int] = None          # the file (path not "-"), written with os.write
-        self._cut_to: Optional[int] = None      # a failed line's start still to be truncated back to
-        super().__init__(queue_size=queue_size, max_age_s=max_age_s, on_written=on_written,
-                         on_closed=on_closed, retry_s=retry_s, retry_max_s=retry_max_s, clock=clock,
-                         start=start)
+        self._fd: Optional[int] = None  # the file (path not "-"), written with os.write
+        self._cut_to: Optional[int] = None  # a failed line's start still to be truncated back to
+        super().__init__(
+            queue_size=queue_size,
+            max_age_s=max_age_s,
+            on_written=on_written,
+            on_closed=on_closed,
+            retry_s=retry_s,
+            retry_max_s=retry_max_s,
+            clock=clock,
+            start=start,
+        )
 
     @classmethod
-    def from_config(cls, cfg, **kwargs) -> JsonlOutput:
+    def from_config(cls, cfg: Config, **kwargs: Any) -> JsonlOutput:
         return cls(cfg.output.jsonl, **kwargs)
 
     def _open(self) -> None:
@@ -113,7 +129,7 @@ class JsonlOutput(QueuedOutput):
         except OSError as exc:
             raise LinkError(f"cannot write {self.path}: {exc}") from exc
         done = 0
-        self._before_send(len(data))      # the last step before the bytes go out
+        self._before_send(len(data))  # the last step before the bytes go out
         try:
             while done < len(data):
                 done += os.write(fd, data[done:])

@@ -96,7 +96,7 @@ from .worker import (
 )
 
 if TYPE_CHECKING:  # config.py may import this module's choices: no import back at run time
-    from ..config import MavlinkOutputConfig
+    from ..config import Config, MavlinkOutputConfig
 
 MESSAGES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
 AUTOPILOTS = ("auto", "ardupilot", "px4")
@@ -255,7 +255,7 @@ def parse_connection(connection: str, baud: int) -> Tuple[str, str, int]:
     s = connection.strip()
     for prefix, kind in (("udpout:", "udpout"), ("udpin:", "udpin"), ("udp:", "udpin"), ("tcp:", "tcp")):
         if s.startswith(prefix):
-            host, sep, port = s[len(prefix):].rpartition(":")
+            host, sep, port = s[len(prefix) :].rpartition(":")
             if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
                 raise ValueError(f"{prefix}HOST:PORT with a port in 1..65535")
             return kind, f"{'udpin:' if prefix == 'udp:' else prefix}{host}:{int(port)}", int(baud)
@@ -267,18 +267,28 @@ def parse_connection(connection: str, baud: int) -> Tuple[str, str, int]:
                 device, rate = head, int(tail)
                 break
         return "serial", device, rate
-    raise ValueError("udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT or a serial device such as "
-                     "/dev/serial0 (optionally /dev/serial0:921600)")
+    raise ValueError(
+        "udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT or a serial device such as "
+        "/dev/serial0 (optionally /dev/serial0:921600)"
+    )
 
 
 class _MavlinkLink:
     """One open connection: pymavlink's opener and MAVLink 2 encoder, with our own byte I/O."""
 
-    def __init__(self, kind: str, device: str, baud: int, source_system: int, source_component: int,
-                 signing_key: Optional[bytes], on_ignored: Callable[[str], None] = lambda cause: None,
-                 before_send: Callable[[int], None] = lambda n: None,
-                 after_send: Callable[[int], None] = lambda n: None,
-                 on_discarded: Callable[[], None] = lambda: None) -> None:
+    def __init__(
+        self,
+        kind: str,
+        device: str,
+        baud: int,
+        source_system: int,
+        source_component: int,
+        signing_key: Optional[bytes],
+        on_ignored: Callable[[str], None] = lambda cause: None,
+        before_send: Callable[[int], None] = lambda n: None,
+        after_send: Callable[[int], None] = lambda n: None,
+        on_discarded: Callable[[], None] = lambda: None,
+    ) -> None:
         """``on_ignored(cause)``: counts received data not believed; ``before_send(nbytes)``: the
         output's last check, called right before each write (it may raise to refuse the
         bytes); ``after_send(nbytes)``: called once they were handed to the kernel;
@@ -294,9 +304,14 @@ class _MavlinkLink:
         self._rx_buf = bytearray(RX_MAX_DATAGRAM + 1)
         if kind == "udpin":
             _warn_if_udp_port_taken(device)
-        self.conn = mavutil.mavlink_connection(device, baud=baud, source_system=source_system,
-                                               source_component=source_component, retries=0,
-                                               autoreconnect=False)
+        self.conn = mavutil.mavlink_connection(
+            device,
+            baud=baud,
+            source_system=source_system,
+            source_component=source_component,
+            retries=0,
+            autoreconnect=False,
+        )
         if kind == "serial":
             try:
                 hold_serial_port(self.conn.port.fd, device)
@@ -486,7 +501,10 @@ def _warn_if_udp_port_taken(device: str) -> None:
         if exc.errno == errno.EADDRINUSE:
             logging.getLogger("pose_daemon.outputs.mavlink").warning(
                 "mavlink output: UDP port %s:%s is bound by another socket too (another pose-daemon or "
-                "ground station?): datagrams from the autopilot reach only one of them", host, port)
+                "ground station?): datagrams from the autopilot reach only one of them",
+                host,
+                port,
+            )
     finally:
         probe.close()
 
@@ -497,10 +515,20 @@ class MavlinkOutput(QueuedOutput):
     name = "mavlink"
     tick_s = 0.05  # how often incoming bytes are read and the heartbeat is checked
 
-    def __init__(self, cfg: MavlinkOutputConfig, frames: VehicleFrames, *, camera: Camera, marker: Marker,
-                 queue_size: int = 4, max_age_s: Optional[float] = None,
-                 on_written: Optional[WrittenHook] = None, on_closed: Optional[ClosedHook] = None,
-                 clock: Callable[[], float] = time.monotonic, start: bool = True) -> None:
+    def __init__(
+        self,
+        cfg: MavlinkOutputConfig,
+        frames: VehicleFrames,
+        *,
+        camera: Camera,
+        marker: Marker,
+        queue_size: int = 4,
+        max_age_s: Optional[float] = None,
+        on_written: Optional[WrittenHook] = None,
+        on_closed: Optional[ClosedHook] = None,
+        clock: Callable[[], float] = time.monotonic,
+        start: bool = True,
+    ) -> None:
         """``cfg``: the ``[output.mavlink]`` table (its keys are read where they apply, as
         ``self.cfg.KEY``); ``frames``: mount and marker placement; ``camera``/``marker``: the
         focal length and marker size behind the covariance and LANDING_TARGET. The rest as
@@ -533,12 +561,12 @@ class MavlinkOutput(QueuedOutput):
         self._home_acked = False
         self._state = VehicleStateHistory()
         self._state_request_t = -1e18
-        self._state_requests = 0          # request rounds since the wanted messages were last fresh
-        self._state_heard_t: Dict[int, float] = {}   # message id -> arrival (output's clock)
-        self._attitude_sink: Any = None   # attitude.AutopilotAttitude, once attach_attitude()
+        self._state_requests = 0  # request rounds since the wanted messages were last fresh
+        self._state_heard_t: Dict[int, float] = {}  # message id -> arrival (output's clock)
+        self._attitude_sink: Any = None  # attitude.AutopilotAttitude, once attach_attitude()
         self._timesync_peer: Optional[TimesyncPeer] = None
         self._timesync_request_t = -1e18
-        self._timesync_pending: Optional[int] = None   # ts1 of our request awaiting its reply
+        self._timesync_pending: Optional[int] = None  # ts1 of our request awaiting its reply
         self._qual_min_asked = self._qual_min_warned = False
         # What is done with each received message, by type (the one dispatch point, _on_message);
         # a type not listed is ignored. More handlers: one line here, or subscribe().
@@ -561,15 +589,27 @@ class MavlinkOutput(QueuedOutput):
         self._tracked = False
         self._lost = False
         self._new_track = False
-        super().__init__(queue_size=queue_size, max_age_s=max_age_s, on_written=on_written,
-                         on_closed=on_closed, retry_s=cfg.retry_s, retry_max_s=cfg.retry_max_s,
-                         clock=clock, start=start)
+        super().__init__(
+            queue_size=queue_size,
+            max_age_s=max_age_s,
+            on_written=on_written,
+            on_closed=on_closed,
+            retry_s=cfg.retry_s,
+            retry_max_s=cfg.retry_max_s,
+            clock=clock,
+            start=start,
+        )
 
     @classmethod
-    def from_config(cls, cfg, **kwargs) -> MavlinkOutput:
+    def from_config(cls, cfg: Config, **kwargs: Any) -> MavlinkOutput:
         """The output of a whole Config's ``[output.mavlink]``; ``kwargs`` as ``__init__``."""
-        return cls(cfg.output.mavlink, VehicleFrames.from_config(cfg.mount, cfg.marker.placement),
-                   camera=cfg.camera.model(), marker=cfg.marker.model(), **kwargs)
+        return cls(
+            cfg.output.mavlink,
+            VehicleFrames.from_config(cfg.mount, cfg.placement),
+            camera=cfg.camera.model(),
+            marker=cfg.target_marker(),
+            **kwargs,
+        )
 
     def stats(self) -> dict:
         s = super().stats()
@@ -591,10 +631,18 @@ class MavlinkOutput(QueuedOutput):
         return self.kind in ("udpout", "udpin") and self._link_up
 
     def _open(self) -> None:
-        self._link = _MavlinkLink(self.kind, self.device, self.baud, self.cfg.source_system,
-                                  self.cfg.source_component, self._signing_key, on_ignored=self._ignore,
-                                  before_send=self._before_send, after_send=self._after_send,
-                                  on_discarded=self._discarded_after_timeout)
+        self._link = _MavlinkLink(
+            self.kind,
+            self.device,
+            self.baud,
+            self.cfg.source_system,
+            self.cfg.source_component,
+            self._signing_key,
+            on_ignored=self._ignore,
+            before_send=self._before_send,
+            after_send=self._after_send,
+            on_discarded=self._discarded_after_timeout,
+        )
 
     def _queued_bytes(self) -> Optional[int]:
         return self._link.queued_bytes() if self._link is not None else 0
@@ -642,8 +690,9 @@ class MavlinkOutput(QueuedOutput):
             self._request_vehicle_state(now)
         if "VISION_POSITION_ESTIMATE" in self.messages and not self._qual_min_asked:
             self._qual_min_asked = True
-            self._link.mav.param_request_read_send(self.autopilot_system, self._autopilot_component,
-                                                   b"VISO_QUAL_MIN", -1)
+            self._link.mav.param_request_read_send(
+                self.autopilot_system, self._autopilot_component, b"VISO_QUAL_MIN", -1
+            )
         peer = self._timesync_peer
         if peer is not None and now - self._timesync_request_t >= TIMESYNC_REQUEST_S:
             self._timesync_request_t = now
@@ -704,7 +753,8 @@ class MavlinkOutput(QueuedOutput):
         """Feed the live attitude (attitude.AutopilotAttitude) from this link: its TIMESYNC
         exchanges (``attach_timesync``), the autopilot's ATTITUDE and ATTITUDE_QUATERNION with
         their arrival time on the output's clock, and ATTITUDE asked for at 50 Hz (module
-        docstring); the link is read every ATTITUDE_TICK_S from then on. Messages from other systems (a ground station, another vehicle) are not used."""
+        docstring); the link is read every ATTITUDE_TICK_S from then on. Messages from other
+        systems (a ground station, another vehicle) are not used."""
         self.attach_timesync(attitude)
 
         def on_attitude(msg: Any, now: float) -> None:
@@ -766,8 +816,7 @@ class MavlinkOutput(QueuedOutput):
             if self.autopilot_kind is None:
                 self.autopilot_kind = kind
             elif kind != "other" and kind != self.autopilot_kind:
-                self.log.warning("autopilot = %s in the config, but the HEARTBEAT says %s", self.autopilot_kind,
-                                 kind)
+                self.log.warning("autopilot = %s in the config, but the HEARTBEAT says %s", self.autopilot_kind, kind)
             self.log.info("autopilot heard: system %d (%s)", msg.get_srcSystem(), self.autopilot_kind)
         self.autopilot_system = msg.get_srcSystem()
         self._autopilot_component = msg.get_srcComponent()
@@ -795,10 +844,12 @@ class MavlinkOutput(QueuedOutput):
         """The origin's state machine (module docstring): send until reported, re-send when no
         longer reported; home once it holds."""
         assert self._link is not None
-        if (self.origin_state in ("held", "other") and self._origin_heard_t is not None
-                and now - self._origin_heard_t > ORIGIN_STALE_S):
-            self.log.warning("the autopilot no longer reports its GPS origin (reboot or EKF reset): "
-                             "sending it again")
+        if (
+            self.origin_state in ("held", "other")
+            and self._origin_heard_t is not None
+            and now - self._origin_heard_t > ORIGIN_STALE_S
+        ):
+            self.log.warning("the autopilot no longer reports its GPS origin (reboot or EKF reset): sending it again")
             self._count("origin_forgotten")
             self.origin_state = "sending"
             self._home_acked = False
@@ -811,20 +862,45 @@ class MavlinkOutput(QueuedOutput):
             self._link.mav.set_gps_global_origin_send(target, lat_e7, lon_e7, alt_mm, time_usec_from_s(now))
             self._count("origin_sent")
             self.log.debug("GPS origin sent to system %d", target)
-        self._link.mav.command_long_send(target, self._autopilot_component, MAV_CMD_REQUEST_MESSAGE, 0,
-                                         float(MSG_ID_GPS_GLOBAL_ORIGIN), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        self._link.mav.command_long_send(
+            target,
+            self._autopilot_component,
+            MAV_CMD_REQUEST_MESSAGE,
+            0,
+            float(MSG_ID_GPS_GLOBAL_ORIGIN),
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+        )
         if self.cfg.set_home and self.origin_state == "held" and not self._home_acked:
             # COMMAND_INT: latitude and longitude as 1e7 integers (a float param loses decimetres).
-            self._link.mav.command_int_send(target, self._autopilot_component, MAV_FRAME_GLOBAL,
-                                            MAV_CMD_DO_SET_HOME, 0, 0, 0.0, 0.0, 0.0, NAN,
-                                            lat_e7, lon_e7, float(alt_mm) / 1e3)
+            self._link.mav.command_int_send(
+                target,
+                self._autopilot_component,
+                MAV_FRAME_GLOBAL,
+                MAV_CMD_DO_SET_HOME,
+                0,
+                0,
+                0.0,
+                0.0,
+                0.0,
+                NAN,
+                lat_e7,
+                lon_e7,
+                float(alt_mm) / 1e3,
+            )
             self._count("home_sent")
 
     def _on_gps_global_origin(self, msg: Any, now: float) -> None:
         if not self._from_autopilot(msg) or self.origin is None:
             return
         lat_e7, lon_e7, alt_mm = self._origin_e7()
-        ours = abs(msg.latitude - lat_e7) <= 10 and abs(msg.longitude - lon_e7) <= 10 and abs(msg.altitude - alt_mm) <= 100
+        ours = (
+            abs(msg.latitude - lat_e7) <= 10 and abs(msg.longitude - lon_e7) <= 10 and abs(msg.altitude - alt_mm) <= 100
+        )
         self._origin_heard_t = now
         state = "held" if ours else "other"
         if state != self.origin_state:
@@ -833,14 +909,21 @@ class MavlinkOutput(QueuedOutput):
                 if self.cfg.statustext:
                     self._send_text(MAV_SEVERITY_INFO, "pose-daemon: origin set")
             else:
-                self.log.warning("the autopilot has an origin of its own (%.7f %.7f): not sending ours",
-                                 msg.latitude / 1e7, msg.longitude / 1e7)
+                self.log.warning(
+                    "the autopilot has an origin of its own (%.7f %.7f): not sending ours",
+                    msg.latitude / 1e7,
+                    msg.longitude / 1e7,
+                )
             self.origin_state = state
             self._origin_next_t = now + ORIGIN_RETRY_S if not ours else -1e18
 
     def _on_command_ack(self, msg: Any, now: float) -> None:
-        if (self._from_autopilot(msg) and msg.command == MAV_CMD_SET_MESSAGE_INTERVAL and self._for_us(msg)
-                and msg.result != MAV_RESULT_ACCEPTED):
+        if (
+            self._from_autopilot(msg)
+            and msg.command == MAV_CMD_SET_MESSAGE_INTERVAL
+            and self._for_us(msg)
+            and msg.result != MAV_RESULT_ACCEPTED
+        ):
             # An older ArduPilot (or a refusal): the stream rates are its SRx_ parameters,
             # which REQUEST_DATA_STREAM sets.
             self._request_data_streams()
@@ -867,13 +950,19 @@ class MavlinkOutput(QueuedOutput):
 
     def _on_param_value(self, msg: Any, now: float) -> None:
         name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode("ascii", "replace")
-        if (self._from_autopilot(msg) and name.rstrip("\x00") == "VISO_QUAL_MIN" and msg.param_value > 0
-                and not self._qual_min_warned):
+        if (
+            self._from_autopilot(msg)
+            and name.rstrip("\x00") == "VISO_QUAL_MIN"
+            and msg.param_value > 0
+            and not self._qual_min_warned
+        ):
             self._qual_min_warned = True
             text = f"VPE has no quality: VISO_QUAL_MIN {msg.param_value:g} drops all"
-            self.log.warning("VISION_POSITION_ESTIMATE carries no quality (ArduPilot takes 0): with "
-                             "VISO_QUAL_MIN = %g every one is dropped; set it to 0 or send ODOMETRY",
-                             msg.param_value)
+            self.log.warning(
+                "VISION_POSITION_ESTIMATE carries no quality (ArduPilot takes 0): with "
+                "VISO_QUAL_MIN = %g every one is dropped; set it to 0 or send ODOMETRY",
+                msg.param_value,
+            )
             if self.cfg.statustext:
                 self._send_text(MAV_SEVERITY_WARNING, text)
 
@@ -888,8 +977,7 @@ class MavlinkOutput(QueuedOutput):
         return wanted
 
     def _missing_state(self, now_s: float) -> List[int]:
-        return [m for m in self._wanted_state()
-                if now_s - self._state_heard_t.get(m, -1e18) >= STATE_REQUEST_S]
+        return [m for m in self._wanted_state() if now_s - self._state_heard_t.get(m, -1e18) >= STATE_REQUEST_S]
 
     def _request_vehicle_state(self, now: float) -> None:
         """Ask for the wanted messages (``_wanted_state``) that have not arrived for
@@ -905,9 +993,19 @@ class MavlinkOutput(QueuedOutput):
             return
         self._state_request_t = now
         for msg_id in missing:
-            self._link.mav.command_long_send(self.autopilot_system or 0, self._autopilot_component,
-                                             MAV_CMD_SET_MESSAGE_INTERVAL, 0, float(msg_id),
-                                             float(STATE_INTERVAL_US), 0.0, 0.0, 0.0, 0.0, 0.0)
+            self._link.mav.command_long_send(
+                self.autopilot_system or 0,
+                self._autopilot_component,
+                MAV_CMD_SET_MESSAGE_INTERVAL,
+                0,
+                float(msg_id),
+                float(STATE_INTERVAL_US),
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+            )
             self._count("state_requested")
         if self._state_requests > 0:
             self._request_data_streams()
@@ -920,8 +1018,9 @@ class MavlinkOutput(QueuedOutput):
         assert self._link is not None
         streams = {MSG_ID_ATTITUDE: MAV_DATA_STREAM_EXTRA1, MSG_ID_LOCAL_POSITION_NED: MAV_DATA_STREAM_POSITION}
         for msg_id in self._missing_state(self._clock()):
-            self._link.mav.request_data_stream_send(self.autopilot_system or 0, self._autopilot_component,
-                                                    streams[msg_id], STATE_RATE_HZ, 1)
+            self._link.mav.request_data_stream_send(
+                self.autopilot_system or 0, self._autopilot_component, streams[msg_id], STATE_RATE_HZ, 1
+            )
             self._count("data_stream_requested")
 
     # ------------------------------------------------------------------ poses
@@ -955,8 +1054,9 @@ class MavlinkOutput(QueuedOutput):
             self._drop("not_finite")
             return 0
         found_again = self._lost
-        if self._last_sent_t is not None and (found_again or self._new_track or t - self._last_sent_t > HEALTH_GAP_S
-                                              or self._jumped(p, R)):
+        if self._last_sent_t is not None and (
+            found_again or self._new_track or t - self._last_sent_t > HEALTH_GAP_S or self._jumped(p, R)
+        ):
             self.reset_counter = (self.reset_counter + 1) % 256
         self._new_track = False
         if found_again and self.cfg.statustext:
@@ -969,12 +1069,18 @@ class MavlinkOutput(QueuedOutput):
             if state is not None:
                 p_ned, R_ned_body = state
                 target_ned = p_ned + R_ned_body @ np.asarray(self.frames.marker_in_body(pose.tvec))
-        inputs = PoseMessageInputs.from_pose(time_usec_from_s(t), pose, self.frames, vehicle=vehicle,
-                                             fx_px=self.fx_px, marker_width_m=self.marker_width_m,
-                                             marker_height_m=self.marker_height_m,
-                                             reset_counter=self.reset_counter, target_local_ned_m=target_ned,
-                                             flip_resolved=(result.choice is not None
-                                                            and result.choice.resolved_by == "attitude"))
+        inputs = PoseMessageInputs.from_pose(
+            time_usec_from_s(t),
+            pose,
+            self.frames,
+            vehicle=vehicle,
+            fx_px=self.fx_px,
+            marker_width_m=self.marker_width_m,
+            marker_height_m=self.marker_height_m,
+            reset_counter=self.reset_counter,
+            target_local_ned_m=target_ned,
+            flip_resolved=(result.choice is not None and result.choice.resolved_by == "attitude"),
+        )
         n = self._send_pose(inputs)
         self._last_sent_t = t
         self._last_sent_pose = (p, R)
@@ -984,13 +1090,11 @@ class MavlinkOutput(QueuedOutput):
         if self._last_sent_pose is None:
             return False
         p0, R0 = self._last_sent_pose
-        return (float(np.linalg.norm(p - p0)) > self.cfg.jump_m
-                or rotation_angle_deg_3x3(R0, R) > self.cfg.jump_deg)
+        return float(np.linalg.norm(p - p0)) > self.cfg.jump_m or rotation_angle_deg_3x3(R0, R) > self.cfg.jump_deg
 
     def _send_pose(self, inputs: PoseMessageInputs) -> int:
         assert self._link is not None
-        msgs = encode_pose_messages(self._link.mav, self.messages, inputs,
-                                    autopilot=self.autopilot_kind or "ardupilot")
+        msgs = encode_pose_messages(self._link.mav, self.messages, inputs, autopilot=self.autopilot_kind or "ardupilot")
         for msg in msgs:
             self._link.mav.send(msg)
         return len(msgs)
@@ -1022,11 +1126,20 @@ class PoseMessageInputs:
     target_local_ned_m: Optional[np.ndarray] = None
 
     @classmethod
-    def from_pose(cls, t_us: int, pose: Pose, frames: VehicleFrames, *, fx_px: float, marker_width_m: float,
-                  marker_height_m: Optional[float] = None, reset_counter: int = 0,
-                  vehicle: Optional[VehiclePose] = None,
-                  target_local_ned_m: Optional[np.ndarray] = None,
-                  flip_resolved: bool = False) -> PoseMessageInputs:
+    def from_pose(
+        cls,
+        t_us: int,
+        pose: Pose,
+        frames: VehicleFrames,
+        *,
+        fx_px: float,
+        marker_width_m: float,
+        marker_height_m: Optional[float] = None,
+        reset_counter: int = 0,
+        vehicle: Optional[VehiclePose] = None,
+        target_local_ned_m: Optional[np.ndarray] = None,
+        flip_resolved: bool = False,
+    ) -> PoseMessageInputs:
         """From the camera's pose (``pose``: R_cam_marker, tvec) and the mounting; ``vehicle``:
         ``frames.vehicle_pose`` of the same pose when the caller has it already;
         ``flip_resolved``: the vehicle's attitude chose the planar solution (quality.pose_quality)."""
@@ -1034,20 +1147,26 @@ class PoseMessageInputs:
             vehicle = frames.vehicle_pose(pose.R, pose.tvec)
         t_cam = np.asarray(pose.tvec, dtype=np.float64)
         width_m = float(marker_width_m)
-        u = uncertainty(pose, fx_px, width_m)   # the solve's covariance, once per pose
+        u = uncertainty(pose, fx_px, width_m)  # the solve's covariance, once per pose
         height_m = float(marker_height_m) if marker_height_m is not None else width_m
-        return cls(t_us=int(t_us), p_local_m=np.asarray(vehicle.p_local_body_m, dtype=np.float64),
-                   R_local_body=np.asarray(vehicle.R_local_body, dtype=np.float64),
-                   covariance=pose_covariance_local(pose, frames, fx_px, width_m, u=u),
-                   reset_counter=int(reset_counter),
-                   quality=pose_quality(pose, fx_px, width_m, u=u, flip_resolved=flip_resolved),
-                   p_marker_cam_m=t_cam, p_marker_body_m=np.asarray(frames.marker_in_body(t_cam)),
-                   R_body_marker=frames.R_body_cam @ np.asarray(pose.R), marker_size_m=(width_m, height_m),
-                   target_local_ned_m=target_local_ned_m)
+        return cls(
+            t_us=int(t_us),
+            p_local_m=np.asarray(vehicle.p_local_body_m, dtype=np.float64),
+            R_local_body=np.asarray(vehicle.R_local_body, dtype=np.float64),
+            covariance=pose_covariance_local(pose, frames, fx_px, width_m, u=u),
+            reset_counter=int(reset_counter),
+            quality=pose_quality(pose, fx_px, width_m, u=u, flip_resolved=flip_resolved),
+            p_marker_cam_m=t_cam,
+            p_marker_body_m=np.asarray(frames.marker_in_body(t_cam)),
+            R_body_marker=frames.R_body_cam @ np.asarray(pose.R),
+            marker_size_m=(width_m, height_m),
+            target_local_ned_m=target_local_ned_m,
+        )
 
 
-def encode_pose_messages(mav: Any, messages: Sequence[str], inputs: PoseMessageInputs,
-                         autopilot: str = "ardupilot") -> List[Any]:
+def encode_pose_messages(
+    mav: Any, messages: Sequence[str], inputs: PoseMessageInputs, autopilot: str = "ardupilot"
+) -> List[Any]:
     """The MAVLink messages (pymavlink objects, not yet packed) for one pose, in ``messages`` order:
     ODOMETRY and VISION_POSITION_ESTIMATE in the local FRD frame; LANDING_TARGET in the body
     FRD frame for ArduPilot (``autopilot`` "ardupilot" or "other"), in local NED for "px4"."""
@@ -1058,13 +1177,31 @@ def encode_pose_messages(mav: Any, messages: Sequence[str], inputs: PoseMessageI
     for name in messages:
         if name == "ODOMETRY":
             q = [float(v) for v in quaternion_from_R_3x3(inputs.R_local_body)]
-            out.append(mav.odometry_encode(t_us, MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD, x, y, z, q,
-                                           NAN, NAN, NAN, NAN, NAN, NAN, cov, [NAN] * 21,
-                                           inputs.reset_counter, MAV_ESTIMATOR_TYPE_VISION, inputs.quality))
+            out.append(
+                mav.odometry_encode(
+                    t_us,
+                    MAV_FRAME_LOCAL_FRD,
+                    MAV_FRAME_BODY_FRD,
+                    x,
+                    y,
+                    z,
+                    q,
+                    NAN,
+                    NAN,
+                    NAN,
+                    NAN,
+                    NAN,
+                    NAN,
+                    cov,
+                    [NAN] * 21,
+                    inputs.reset_counter,
+                    MAV_ESTIMATOR_TYPE_VISION,
+                    inputs.quality,
+                )
+            )
         elif name == "VISION_POSITION_ESTIMATE":
             roll, pitch, yaw = (float(v) for v in euler_rpy_from_R(inputs.R_local_body))
-            out.append(mav.vision_position_estimate_encode(t_us, x, y, z, roll, pitch, yaw, cov,
-                                                           inputs.reset_counter))
+            out.append(mav.vision_position_estimate_encode(t_us, x, y, z, roll, pitch, yaw, cov, inputs.reset_counter))
         elif name == "LANDING_TARGET":
             out.append(_landing_target(mav, inputs, autopilot))
         else:
@@ -1087,10 +1224,37 @@ def _landing_target(mav: Any, inputs: PoseMessageInputs, autopilot: str) -> Any:
         p = inputs.target_local_ned_m
         valid = p is not None
         x, y, z = (float(v) for v in p) if valid else (0.0, 0.0, 0.0)
-        return mav.landing_target_encode(inputs.t_us, 0, MAV_FRAME_LOCAL_NED, angle_x, angle_y, distance, size_x,
-                                         size_y, x, y, z, [1.0, 0.0, 0.0, 0.0], LANDING_TARGET_TYPE_VISION_FIDUCIAL,
-                                         1 if valid else 0)
+        return mav.landing_target_encode(
+            inputs.t_us,
+            0,
+            MAV_FRAME_LOCAL_NED,
+            angle_x,
+            angle_y,
+            distance,
+            size_x,
+            size_y,
+            x,
+            y,
+            z,
+            [1.0, 0.0, 0.0, 0.0],
+            LANDING_TARGET_TYPE_VISION_FIDUCIAL,
+            1 if valid else 0,
+        )
     xb, yb, zb = (float(v) for v in inputs.p_marker_body_m)
     q = [float(v) for v in quaternion_from_R_3x3(inputs.R_body_marker)]
-    return mav.landing_target_encode(inputs.t_us, 0, MAV_FRAME_BODY_FRD, angle_x, angle_y, distance, size_x, size_y,
-                                     xb, yb, zb, q, LANDING_TARGET_TYPE_VISION_FIDUCIAL, 1)
+    return mav.landing_target_encode(
+        inputs.t_us,
+        0,
+        MAV_FRAME_BODY_FRD,
+        angle_x,
+        angle_y,
+        distance,
+        size_x,
+        size_y,
+        xb,
+        yb,
+        zb,
+        q,
+        LANDING_TARGET_TYPE_VISION_FIDUCIAL,
+        1,
+    )

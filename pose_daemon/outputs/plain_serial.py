@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import TYPE_CHECKING, Callable, Optional
+from typing import TYPE_CHECKING, Any, Callable, Optional
 
 import numpy as np
 
@@ -37,7 +37,7 @@ from .worker import (
 )
 
 if TYPE_CHECKING:
-    from ..config import SerialOutputConfig
+    from ..config import Config, SerialOutputConfig
 
 WRITE_TIMEOUT_S = 0.25
 
@@ -50,8 +50,9 @@ def nmea_checksum(body: str) -> str:
     return f"{c:02X}"
 
 
-def pose_line(result: FrameResult, frames: VehicleFrames, fx_px: Optional[float] = None,
-              marker_width_m: Optional[float] = None) -> Optional[str]:
+def pose_line(
+    result: FrameResult, frames: VehicleFrames, fx_px: Optional[float] = None, marker_width_m: Optional[float] = None
+) -> Optional[str]:
     """The ``$POSE`` line (with CR LF) for one result; None when the pose is not finite.
     ``fx_px``/``marker_width_m``: the focal length and marker width behind the quality's
     expected-error factor (quality.pose_quality; without them that factor is left out)."""
@@ -98,11 +99,20 @@ class PlainSerialOutput(QueuedOutput):
 
     name = "serial"
 
-    def __init__(self, cfg: SerialOutputConfig, frames: VehicleFrames, *, queue_size: int = 4,
-                 max_age_s: Optional[float] = None, on_written: Optional[WrittenHook] = None,
-                 on_closed: Optional[ClosedHook] = None, clock: Callable[[], float] = time.monotonic,
-                 start: bool = True, fx_px: Optional[float] = None,
-                 marker_width_m: Optional[float] = None) -> None:
+    def __init__(
+        self,
+        cfg: SerialOutputConfig,
+        frames: VehicleFrames,
+        *,
+        queue_size: int = 4,
+        max_age_s: Optional[float] = None,
+        on_written: Optional[WrittenHook] = None,
+        on_closed: Optional[ClosedHook] = None,
+        clock: Callable[[], float] = time.monotonic,
+        start: bool = True,
+        fx_px: Optional[float] = None,
+        marker_width_m: Optional[float] = None,
+    ) -> None:
         """``cfg``: the ``[output.serial]`` table; ``frames``: mount and marker placement;
         ``fx_px``/``marker_width_m``: for the quality, as MAVLink's; the rest as QueuedOutput."""
         self.cfg = cfg
@@ -110,24 +120,35 @@ class PlainSerialOutput(QueuedOutput):
         self.fx_px = fx_px
         self.marker_width_m = marker_width_m
         self._serial = None
-        self._fd: Optional[int] = None     # the tty's descriptor (None for a pyserial URL)
+        self._fd: Optional[int] = None  # the tty's descriptor (None for a pyserial URL)
         self._pty = False
         self._last_sent_t: Optional[float] = None
-        super().__init__(queue_size=queue_size, max_age_s=max_age_s, on_written=on_written,
-                         on_closed=on_closed, retry_s=cfg.retry_s, retry_max_s=cfg.retry_max_s,
-                         clock=clock, start=start)
+        super().__init__(
+            queue_size=queue_size,
+            max_age_s=max_age_s,
+            on_written=on_written,
+            on_closed=on_closed,
+            retry_s=cfg.retry_s,
+            retry_max_s=cfg.retry_max_s,
+            clock=clock,
+            start=start,
+        )
 
     @classmethod
-    def from_config(cls, cfg, **kwargs) -> PlainSerialOutput:
+    def from_config(cls, cfg: Config, **kwargs: Any) -> PlainSerialOutput:
         """The output of a whole Config's ``[output.serial]``; ``kwargs`` as ``__init__``."""
-        return cls(cfg.output.serial, VehicleFrames.from_config(cfg.mount, cfg.marker.placement),
-                   fx_px=cfg.camera.fx, marker_width_m=cfg.marker.width, **kwargs)
+        return cls(
+            cfg.output.serial,
+            VehicleFrames.from_config(cfg.mount, cfg.placement),
+            fx_px=cfg.camera.fx,
+            marker_width_m=cfg.target_marker().width,
+            **kwargs,
+        )
 
     def _open(self) -> None:
         import serial
 
-        port = serial.serial_for_url(self.cfg.port, baudrate=self.cfg.baud, timeout=0,
-                                     write_timeout=WRITE_TIMEOUT_S)
+        port = serial.serial_for_url(self.cfg.port, baudrate=self.cfg.baud, timeout=0, write_timeout=WRITE_TIMEOUT_S)
         fd = getattr(port, "fd", None)
         if isinstance(fd, int):  # a device (not a pyserial URL): this daemon's alone
             try:
@@ -177,7 +198,7 @@ class PlainSerialOutput(QueuedOutput):
             self._drop("not_finite")
             return 0
         data = line.encode("ascii")
-        self._before_send(len(data))      # the last step before the bytes go out
+        self._before_send(len(data))  # the last step before the bytes go out
         try:
             n = self._serial.write(data)
         except serial.SerialTimeoutException as exc:

@@ -3,7 +3,8 @@
 A pose from four corners is as good as the corners: its expected error is the linearised
 least-squares covariance of the solve (``solve_covariance``: corner error e over the
 derivative of the corners with respect to the pose), which near face-on is dominated by the
-weakly seen tilt and the camera centre swinging with it (distance x tilt). Beyond that precision a planar pose has one real risk: the
+weakly seen tilt and the camera centre swinging with it (distance x tilt). Beyond that
+precision a planar pose has one real risk: the
 other planar solution (``pose.alternative``) fits almost as well (``ambiguity_ratio`` near 1)
 *and* is a different pose, so the one sent may be the wrong one altogether. Two solutions that
 agree within the pose's own expected error are no risk: a level camera over a floor square is
@@ -67,8 +68,9 @@ def _skew3(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
-def solve_covariance(pose: Pose, fx_px: float, marker_width_m: float,
-                     marker_height_m: Optional[float] = None) -> Tuple[np.ndarray, np.ndarray]:
+def solve_covariance(
+    pose: Pose, fx_px: float, marker_width_m: float, marker_height_m: Optional[float] = None
+) -> Tuple[np.ndarray, np.ndarray]:
     """The expected error of the solve: (3x3 covariance of the camera centre in the marker
     frame, m^2; 3x3 covariance of the rotation in the marker frame, rad^2).
 
@@ -78,6 +80,9 @@ def solve_covariance(pose: Pose, fx_px: float, marker_width_m: float,
     marker's tilt is weakly seen and the camera centre moves with it (distance x tilt): this
     is where a planar pose's real error lies, and what a fixed d*e/f misses.
     """
+    solved = getattr(pose, "solve_covariance_map", None)
+    if solved is not None:  # a map pose (pose/map_solve.py) carries the covariance of its own solve
+        return solved
     w2 = marker_width_m / 2.0
     h2 = (marker_height_m if marker_height_m is not None else marker_width_m) / 2.0
     R = np.asarray(pose.R, dtype=np.float64)
@@ -147,7 +152,7 @@ def _flip_risk(pose: Pose, attitude_std_rad: float) -> float:
     if not (np.all(np.isfinite(alt.R)) and np.all(np.isfinite(pose.R))):
         return min(r, 1.0)
     bound_deg = max(AGREE_DEG, 3.0 * math.degrees(attitude_std_rad))
-    apart_deg = rotation_angle_deg_3x3(pose.R, alt.R)
+    apart_deg = float(rotation_angle_deg_3x3(pose.R, alt.R))
     weight = min(max((apart_deg - bound_deg) / bound_deg, 0.0), 1.0)
     return weight * min(r, 1.0)
 
@@ -180,8 +185,14 @@ def position_std_m(pose: Pose, fx_px: float, marker_width_m: float) -> float:
     return math.sqrt(max(float(np.trace(cov_c)), 0.0))
 
 
-def pose_quality(pose: Pose, fx_px: Optional[float] = None, marker_width_m: Optional[float] = None, *,
-                 flip_resolved: bool = False, u: Optional[Uncertainty] = None) -> int:
+def pose_quality(
+    pose: Pose,
+    fx_px: Optional[float] = None,
+    marker_width_m: Optional[float] = None,
+    *,
+    flip_resolved: bool = False,
+    u: Optional[Uncertainty] = None,
+) -> int:
     """1 (worst) .. 100 (best) for a pose; -1 (LOST_QUALITY) is kept for "no pose".
 
     ``fx_px``/``marker_width_m``: the focal length (pixels) and marker width (metres) behind the
@@ -206,11 +217,12 @@ def pose_quality(pose: Pose, fx_px: Optional[float] = None, marker_width_m: Opti
     return int(min(100, max(1, round(100.0 * f_fit * f_precision * f_flip))))
 
 
-def position_covariance_cam(pose: Pose, fx_px: float, marker_width_m: float,
-                            u: Optional[Uncertainty] = None) -> np.ndarray:
+def position_covariance_cam(
+    pose: Pose, fx_px: float, marker_width_m: float, u: Optional[Uncertainty] = None
+) -> np.ndarray:
     """3x3 covariance of the camera position (m^2), in the camera frame, widened by the flip risk."""
     u = u if u is not None else uncertainty(pose, fx_px, marker_width_m)
-    return u.inflation ** 2 * rotate_covariance(np.asarray(pose.R, dtype=np.float64), u.cov_centre_m2)
+    return u.inflation**2 * rotate_covariance(np.asarray(pose.R, dtype=np.float64), u.cov_centre_m2)
 
 
 def attitude_std_rad(pose: Pose, fx_px: float, marker_width_m: float, u: Optional[Uncertainty] = None) -> float:
@@ -219,13 +231,14 @@ def attitude_std_rad(pose: Pose, fx_px: float, marker_width_m: float, u: Optiona
     return u.inflation * u.attitude_std_rad
 
 
-def pose_covariance_local(pose: Pose, frames: VehicleFrames, fx_px: float, marker_width_m: float,
-                          u: Optional[Uncertainty] = None) -> List[float]:
+def pose_covariance_local(
+    pose: Pose, frames: VehicleFrames, fx_px: float, marker_width_m: float, u: Optional[Uncertainty] = None
+) -> List[float]:
     """MAVLink's 21-element upper-right triangle (row-major) of the 6x6 covariance of
     (x, y, z, roll, pitch, yaw) in the local frame: m^2 and rad^2 (``solve_covariance``
     rotated into the local frame, widened by the flip risk)."""
     u = u if u is not None else uncertainty(pose, fx_px, marker_width_m)
-    k2 = u.inflation ** 2
+    k2 = u.inflation**2
     R = frames.R_local_marker
     full = np.zeros((6, 6))
     full[:3, :3] = k2 * (R @ u.cov_centre_m2 @ R.T)

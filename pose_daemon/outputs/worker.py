@@ -158,10 +158,18 @@ class QueuedOutput:
     # Longest a direct submit waits for the link (held by a reopen or a tick).
     lock_timeout_s = 0.25
 
-    def __init__(self, *, queue_size: int = 4, max_age_s: Optional[float] = None,
-                 on_written: Optional[WrittenHook] = None, on_closed: Optional[ClosedHook] = None,
-                 retry_s: float = 0.5, retry_max_s: float = 5.0,
-                 clock: Callable[[], float] = time.monotonic, start: bool = True) -> None:
+    def __init__(
+        self,
+        *,
+        queue_size: int = 4,
+        max_age_s: Optional[float] = None,
+        on_written: Optional[WrittenHook] = None,
+        on_closed: Optional[ClosedHook] = None,
+        retry_s: float = 0.5,
+        retry_max_s: float = 5.0,
+        clock: Callable[[], float] = time.monotonic,
+        start: bool = True,
+    ) -> None:
         self._queue: Deque[FrameResult] = collections.deque()
         self._queue_size = max(0, int(queue_size))
         self._direct = self._queue_size == 0
@@ -182,7 +190,14 @@ class QueuedOutput:
         self._on_closed = on_closed  # called once, from the output's thread
         self._max_age_s = float(max_age_s) if max_age_s is not None else None
         self.log = logging.getLogger(f"pose_daemon.outputs.{self.name}")
-        self._counts: Dict[str, int] = {"submitted": 0, "written": 0, "sent": 0, "errors": 0, "opens": 0, "link_failures": 0}
+        self._counts: Dict[str, int] = {
+            "submitted": 0,
+            "written": 0,
+            "sent": 0,
+            "errors": 0,
+            "opens": 0,
+            "link_failures": 0,
+        }
         self._dropped: Dict[str, int] = collections.defaultdict(int)
         # Received bytes or messages not acted on, by cause (bad_signature, oversized, ...).
         self._ignored: Dict[str, int] = collections.defaultdict(int)
@@ -372,16 +387,16 @@ class QueuedOutput:
         if queued is not None:
             first_waiting = self._bytes_out - queued
             while written and written[0][1] <= first_waiting:
-                written.popleft()       # through: on the wire or read by the peer
+                written.popleft()  # through: on the wire or read by the peer
             limit = budget
         else:
-            limit = budget / 2          # cannot tell: assume all since the last discard waits
+            limit = budget / 2  # cannot tell: assume all since the last discard waits
         if written and now - written[0][0] > limit:
             held = len(written) if queued is not None else 0
             discarded = False
             try:
                 discarded = self._discard_queued()
-            except LinkError:           # discarded by closing the link (TCP reset)
+            except LinkError:  # discarded by closing the link (TCP reset)
                 discarded = True
                 raise
             finally:
@@ -395,7 +410,7 @@ class QueuedOutput:
             queued = 0
         rate = self._link_rate_Bps()
         if rate and queued is not None and now + (queued + nbytes) / rate - t_capture > budget:
-            raise _Refused("late")      # it would only be through after the budget
+            raise _Refused("late")  # it would only be through after the budget
 
     def _writes_never_block(self) -> bool:
         """True when a write cannot wait (non-blocking datagrams): submit may then write at once

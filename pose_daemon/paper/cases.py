@@ -36,8 +36,10 @@ class PaperCase:
     @property
     def title(self) -> str:
         x, y, z = (f"{v:g}" for v in self.position)
-        return (f"Case {self.number}: alpha {self.alpha_deg:.2f}, beta {self.beta_deg:.2f}, "
-                f"gamma {self.gamma_deg:.2f} deg at ({x}, {y}, {z})")
+        return (
+            f"Case {self.number}: alpha {self.alpha_deg:.2f}, beta {self.beta_deg:.2f}, "
+            f"gamma {self.gamma_deg:.2f} deg at ({x}, {y}, {z})"
+        )
 
 
 CASES: Dict[int, PaperCase] = {
@@ -50,16 +52,20 @@ CASES: Dict[int, PaperCase] = {
 # (deg). Its intermediate rows depend on its unpublished polynomial and focal length; they
 # are shown next to ours for comparison, the final rows are the ones to match.
 PAPER_ROWS: Dict[int, List[Tuple[float, ...]]] = {
-    1: [(1, 13.68, 12.07, 72.06, 96.8, 89.8, 91.9, -50.99, 22.92, 25.21),
+    1: [
+        (1, 13.68, 12.07, 72.06, 96.8, 89.8, 91.9, -50.99, 22.92, 25.21),
         (2, 0.42, 0.35, 97.61, 91.0, 91.0, 89.0, 5.16, 9.74, 9.74),
         (3, 0, 0, 100, 90.0, 90.0, 89.9, 0.57, 0, 0),
         (4, 0, 0, 100, 90, 90, 90, 0, 0, 0),
-        (5, 0, 0, 100, 90, 90, 90, 0, 0, 0)],
-    2: [(1, 31.48, 34.83, 141.9, 86.5, 97.7, 81.6, 30.37, -18.33, 32.66),
+        (5, 0, 0, 100, 90, 90, 90, 0, 0, 0),
+    ],
+    2: [
+        (1, 31.48, 34.83, 141.9, 86.5, 97.7, 81.6, 30.37, -18.33, 32.66),
         (2, 20.86, 40.08, 151.0, 89.9, 90.1, 89.8, 0.57, -4.58, 1.15),
         (3, 20.01, 39.99, 149.9, 90, 90, 90, 0.57, 0, 0),
         (4, 20, 40, 150, 90, 90, 90, 0, 0, 0),
-        (5, 20, 40, 150, 90, 90, 90, 0, 0, 0)],
+        (5, 20, 40, 150, 90, 90, 90, 0, 0, 0),
+    ],
 }
 
 
@@ -80,55 +86,80 @@ class CaseResult:
             "method": self.method,
             "iterations": self.iterations,
             "geometry": {"f_px": self.focal_px, "side": self.side},
-            "truth": {"x": c.position[0], "y": c.position[1], "z": c.position[2],
-                      "alpha_deg": c.alpha_deg, "beta_deg": c.beta_deg,
-                      "gamma_deg": c.gamma_deg},
+            "truth": {
+                "x": c.position[0],
+                "y": c.position[1],
+                "z": c.position[2],
+                "alpha_deg": c.alpha_deg,
+                "beta_deg": c.beta_deg,
+                "gamma_deg": c.gamma_deg,
+            },
             "rows": self.rows,
             "final": self.final,
-            "paper_rows": [{"i": int(r[0]), "x": r[1], "y": r[2], "z": r[3],
-                            "zeta_deg": list(r[4:7]), "gamma_deg": r[7], "beta_deg": r[8],
-                            "alpha_deg": r[9]} for r in PAPER_ROWS[c.number]],
+            "paper_rows": [
+                {
+                    "i": int(r[0]),
+                    "x": r[1],
+                    "y": r[2],
+                    "z": r[3],
+                    "zeta_deg": list(r[4:7]),
+                    "gamma_deg": r[7],
+                    "beta_deg": r[8],
+                    "alpha_deg": r[9],
+                }
+                for r in PAPER_ROWS[c.number]
+            ],
         }
 
 
 def case_image(case: PaperCase, *, focal_px: float = FOCAL_PX, side: float = SIDE) -> np.ndarray:
     """The (4, 2) image, in pixels from the principal point, that the case's camera sees."""
     R = geometry.R_cam_unrot_from_paper_angles(
-        np.radians(case.alpha_deg), np.radians(case.beta_deg), np.radians(case.gamma_deg))
-    return np.asarray(project_unrot(R, np.asarray(case.position, dtype=np.float64),
-                                    side, side, focal_px), dtype=np.float64)
+        np.radians(case.alpha_deg), np.radians(case.beta_deg), np.radians(case.gamma_deg)
+    )
+    return np.asarray(
+        project_unrot(R, np.asarray(case.position, dtype=np.float64), side, side, focal_px), dtype=np.float64
+    )
 
 
-def run_case(case: PaperCase, *, method: str = "paper", iterations: int = 5,
-             focal_px: float = FOCAL_PX, side: float = SIDE) -> CaseResult:
+def run_case(
+    case: PaperCase, *, method: str = "paper", iterations: int = 5, focal_px: float = FOCAL_PX, side: float = SIDE
+) -> CaseResult:
     """Trace the loop on one case: a row per iteration and the final pose (eqs 13-16)."""
     points = case_image(case, focal_px=focal_px, side=side)
-    result = correction_loop(points, focal_px, side * side, method=method,
-                             iterations=iterations, trace=True)
+    result = correction_loop(points, focal_px, side * side, method=method, iterations=iterations, trace=True)
     rows = []
     for step in result.trace or []:
-        rows.append({
-            "i": int(step.i),
-            "x": float(step.x),
-            "y": float(step.y),
-            "z": float(step.z),
-            "zeta_deg": [float(v) for v in np.degrees(np.asarray(step.zeta_rad)).reshape(4)],
-            "gamma_deg": float(np.degrees(step.gamma_step_rad)),
-            "beta_deg": float(np.degrees(step.beta_step_rad)),
-            "alpha_deg": float(np.degrees(step.alpha_step_rad)),
-            # What the loop would return if stopped here: eqs 13-16 on the accumulated R_est.
-            "accumulated_deg": [float(v) for v in np.degrees(
-                geometry.paper_angles_from_R_cam_unrot(step.R_cam_unrot))],
-        })
+        rows.append(
+            {
+                "i": int(step.i),
+                "x": float(step.x),
+                "y": float(step.y),
+                "z": float(step.z),
+                "zeta_deg": [float(v) for v in np.degrees(np.asarray(step.zeta_rad)).reshape(4)],
+                "gamma_deg": float(np.degrees(step.gamma_step_rad)),
+                "beta_deg": float(np.degrees(step.beta_step_rad)),
+                "alpha_deg": float(np.degrees(step.alpha_step_rad)),
+                # What the loop would return if stopped here: eqs 13-16 on the accumulated R_est.
+                "accumulated_deg": [
+                    float(v) for v in np.degrees(geometry.paper_angles_from_R_cam_unrot(step.R_cam_unrot))
+                ],
+            }
+        )
     alpha, beta, gamma = geometry.paper_angles_from_R_cam_unrot(result.R_cam_unrot)
     x, y, z = (float(v) for v in np.asarray(result.position_unrot).reshape(3))
-    final = {"x": x, "y": y, "z": z, "alpha_deg": float(np.degrees(alpha)),
-             "beta_deg": float(np.degrees(beta)), "gamma_deg": float(np.degrees(gamma))}
+    final = {
+        "x": x,
+        "y": y,
+        "z": z,
+        "alpha_deg": float(np.degrees(alpha)),
+        "beta_deg": float(np.degrees(beta)),
+        "gamma_deg": float(np.degrees(gamma)),
+    }
     return CaseResult(case, method, iterations, focal_px, side, rows, final)
 
 
-def first_converged_iteration(result: CaseResult, tol_deg: float = 0.01,
-                              tol_pos: float = 0.01) -> Optional[int]:
+def first_converged_iteration(result: CaseResult, tol_deg: float = 0.01, tol_pos: float = 0.01) -> Optional[int]:
     """The first iteration after which the accumulated pose stays within tolerance of the truth.
 
     Uses the accumulated rotation and position of every row, i.e. what the loop would
@@ -139,8 +170,9 @@ def first_converged_iteration(result: CaseResult, tol_deg: float = 0.01,
     pos = np.asarray(c.position)
     first = None
     for row in result.rows:
-        ok = (np.all(np.abs(np.array(row["accumulated_deg"]) - truth) <= tol_deg)
-              and np.all(np.abs(np.array([row["x"], row["y"], row["z"]]) - pos) <= tol_pos))
+        ok = np.all(np.abs(np.array(row["accumulated_deg"]) - truth) <= tol_deg) and np.all(
+            np.abs(np.array([row["x"], row["y"], row["z"]]) - pos) <= tol_pos
+        )
         if ok and first is None:
             first = row["i"]
         elif not ok:
@@ -156,35 +188,41 @@ def _clean(value: float, decimals: int) -> float:
 def format_case(result: CaseResult) -> str:
     """The readable table: one line per iteration like the paper's, then final vs paper."""
     c = result.case
-    lines = [c.title,
-             f"method {result.method}, {result.iterations} iterations, f = {result.focal_px:g} px, "
-             f"square side {result.side:g}",
-             "",
-             f"{'i':>2} {'x':>9} {'y':>9} {'z':>9} {'zeta1':>7} {'zeta2':>7} {'zeta3':>7} "
-             f"{'zeta4':>7} {'gamma_i':>9} {'beta_i':>9} {'alpha_i':>9}"]
+    lines = [
+        c.title,
+        f"method {result.method}, {result.iterations} iterations, f = {result.focal_px:g} px, "
+        f"square side {result.side:g}",
+        "",
+        f"{'i':>2} {'x':>9} {'y':>9} {'z':>9} {'zeta1':>7} {'zeta2':>7} {'zeta3':>7} "
+        f"{'zeta4':>7} {'gamma_i':>9} {'beta_i':>9} {'alpha_i':>9}",
+    ]
     for r in result.rows:
         z1, z2, z3, z4 = r["zeta_deg"]
-        x, y, z, g, b, a = (_clean(r[k], 4) for k in
-                            ("x", "y", "z", "gamma_deg", "beta_deg", "alpha_deg"))
-        lines.append(f"{r['i']:>2} {x:9.4f} {y:9.4f} {z:9.4f} {z1:7.2f} {z2:7.2f} "
-                     f"{z3:7.2f} {z4:7.2f} {g:9.4f} {b:9.4f} {a:9.4f}")
+        x, y, z, g, b, a = (_clean(r[k], 4) for k in ("x", "y", "z", "gamma_deg", "beta_deg", "alpha_deg"))
+        lines.append(
+            f"{r['i']:>2} {x:9.4f} {y:9.4f} {z:9.4f} {z1:7.2f} {z2:7.2f} {z3:7.2f} {z4:7.2f} {g:9.4f} {b:9.4f} {a:9.4f}"
+        )
     f = {k: _clean(v, 4) for k, v in result.final.items()}
     converged = first_converged_iteration(result)
-    lines += ["",
-              "the pose is within 0.01 of the paper's from iteration "
-              f"{converged} on" if converged else "the pose is not within 0.01 of the paper's",
-              "",
-              f"{'':6}{'x':>10} {'y':>10} {'z':>10} {'alpha':>10} {'beta':>10} {'gamma':>10}",
-              f"{'final':6}{f['x']:10.4f} {f['y']:10.4f} {f['z']:10.4f} {f['alpha_deg']:10.4f} "
-              f"{f['beta_deg']:10.4f} {f['gamma_deg']:10.4f}",
-              f"{'paper':6}{c.position[0]:10.2f} {c.position[1]:10.2f} {c.position[2]:10.2f} "
-              f"{c.alpha_deg:10.2f} {c.beta_deg:10.2f} {c.gamma_deg:10.2f}",
-              "",
-              f"the paper's Table {'I' * c.number} as printed (its polynomial and focal length are "
-              "unpublished: only the final rows compare):",
-              f"{'i':>2} {'x':>9} {'y':>9} {'z':>9} {'zeta1':>7} {'zeta2':>7} {'zeta3':>7} "
-              f"{'':>7} {'gamma_i':>9} {'beta_i':>9} {'alpha_i':>9}"]
+    lines += [
+        "",
+        f"the pose is within 0.01 of the paper's from iteration {converged} on"
+        if converged
+        else "the pose is not within 0.01 of the paper's",
+        "",
+        f"{'':6}{'x':>10} {'y':>10} {'z':>10} {'alpha':>10} {'beta':>10} {'gamma':>10}",
+        f"{'final':6}{f['x']:10.4f} {f['y']:10.4f} {f['z']:10.4f} {f['alpha_deg']:10.4f} "
+        f"{f['beta_deg']:10.4f} {f['gamma_deg']:10.4f}",
+        f"{'paper':6}{c.position[0]:10.2f} {c.position[1]:10.2f} {c.position[2]:10.2f} "
+        f"{c.alpha_deg:10.2f} {c.beta_deg:10.2f} {c.gamma_deg:10.2f}",
+        "",
+        f"the paper's Table {'I' * c.number} as printed (its polynomial and focal length are "
+        "unpublished: only the final rows compare):",
+        f"{'i':>2} {'x':>9} {'y':>9} {'z':>9} {'zeta1':>7} {'zeta2':>7} {'zeta3':>7} "
+        f"{'':>7} {'gamma_i':>9} {'beta_i':>9} {'alpha_i':>9}",
+    ]
     for i, x, y, z, z1, z2, z3, g, b, a in PAPER_ROWS[c.number]:
-        lines.append(f"{i:>2} {x:9.2f} {y:9.2f} {z:9.2f} {z1:7.1f} {z2:7.1f} {z3:7.1f} {'':>7} "
-                     f"{g:9.2f} {b:9.2f} {a:9.2f}")
+        lines.append(
+            f"{i:>2} {x:9.2f} {y:9.2f} {z:9.2f} {z1:7.1f} {z2:7.1f} {z3:7.1f} {'':>7} {g:9.2f} {b:9.2f} {a:9.2f}"
+        )
     return "\n".join(lines)

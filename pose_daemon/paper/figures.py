@@ -21,7 +21,8 @@ PAPER_MAX_HEADING_ERROR_DEG = 0.043  # Fig. 9
 def plot_sweep(result: SweepResult, path: str) -> Path:
     """Fig. 4: e_image of every orientation against its index, their distribution, and
     (when traced) the largest and mean e_image after each iteration."""
-    traced = result.by_iteration is not None
+    by_iteration = result.by_iteration
+    traced = by_iteration is not None
     fig, axes = new_figure(1, 3 if traced else 2, size_in=(16.0 if traced else 11.0, 4.4))
     ax, hist = axes[0], axes[1]
     e = result.e_image
@@ -38,18 +39,16 @@ def plot_sweep(result: SweepResult, path: str) -> Path:
     ax.legend(loc="center right")
     if finite.any():
         hist.hist(np.log10(e[finite]), bins=80, color="tab:blue")
-    hist.axvline(np.log10(PAPER_E_IMAGE), color="tab:red", linestyle="--",
-                 label=f"paper: {PAPER_E_IMAGE:g}")
+    hist.axvline(np.log10(PAPER_E_IMAGE), color="tab:red", linestyle="--", label=f"paper: {PAPER_E_IMAGE:g}")
     hist.legend(loc="upper left")
     hist.set_xlabel("log10 e_image (px)")
     hist.set_ylabel("orientations")
     hist.set_title(f"{result.count:,} orientations, max {np.nanmax(e):.2e} px")
-    if traced:
+    if by_iteration is not None:
         conv = axes[2]
-        its = np.arange(1, result.by_iteration.shape[0] + 1)
-        conv.semilogy(its, result.by_iteration[:, 0], "o-", label="max")
-        conv.semilogy(its, result.by_iteration[:, 1] / max(result.count, 1), "s--",
-                      label="mean")
+        its = np.arange(1, by_iteration.shape[0] + 1)
+        conv.semilogy(its, by_iteration[:, 0], "o-", label="max")
+        conv.semilogy(its, by_iteration[:, 1] / max(result.count, 1), "s--", label="mean")
         conv.axhline(PAPER_E_IMAGE, color="tab:red", linestyle="--", label="paper")
         conv.set_xlabel("iteration")
         conv.set_ylabel("e_image after the iteration (px)")
@@ -92,10 +91,15 @@ def plot_unicycle(result: UnicycleResult, directory: str) -> List[Path]:
     fig, ax = new_figure()
     error = est.theta_est_deg - est.theta_deg
     ax.plot(est.t_s, error, "-", color="tab:red")
-    ax.text(0.98, 0.95, f"max |error| {np.max(np.abs(error)):.2e} deg\n"
-            f"paper: {PAPER_MAX_HEADING_ERROR_DEG} deg",
-            transform=ax.transAxes, ha="right", va="top",
-            bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "0.8"})
+    ax.text(
+        0.98,
+        0.95,
+        f"max |error| {np.max(np.abs(error)):.2e} deg\npaper: {PAPER_MAX_HEADING_ERROR_DEG} deg",
+        transform=ax.transAxes,
+        ha="right",
+        va="top",
+        bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "0.8"},
+    )
     ax.set_xlabel("time (s)")
     ax.set_ylabel("heading error (deg)")
     ax.set_title(f"Fig. 9: error in the estimated heading ({s.method}{noise})")

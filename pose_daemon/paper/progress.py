@@ -14,8 +14,9 @@ class ProgressBar:
     so logs stay readable. ``enabled=False`` draws nothing.
     """
 
-    def __init__(self, total: int, *, label: str = "", stream: Optional[TextIO] = None,
-                 enabled: bool = True, width: int = 30) -> None:
+    def __init__(
+        self, total: int, *, label: str = "", stream: Optional[TextIO] = None, enabled: bool = True, width: int = 30
+    ) -> None:
         self.total = max(int(total), 0)
         self.label = label
         self.stream = sys.stderr if stream is None else stream
@@ -53,8 +54,7 @@ class ProgressBar:
         bar = "#" * filled + "." * (self.width - filled)
         elapsed = time.perf_counter() - self._t0
         prefix = f"{self.label} " if self.label else ""
-        return (f"{prefix}[{bar}] {fraction * 100:5.1f}%  {self.done:,}/{self.total:,}"
-                f"  {elapsed:.1f} s")
+        return f"{prefix}[{bar}] {fraction * 100:5.1f}%  {self.done:,}/{self.total:,}  {elapsed:.1f} s"
 
     def __enter__(self) -> ProgressBar:
         return self

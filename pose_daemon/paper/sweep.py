@@ -64,16 +64,16 @@ class SweepResult:
             "method": self.method,
             "iterations": self.iterations,
             "e_image_unit": "px",
-            "geometry": {"f_px": self.focal_px, "side": self.side,
-                         "position": [0.0, 0.0, self.distance]},
+            "geometry": {"f_px": self.focal_px, "side": self.side, "position": [0.0, 0.0, self.distance]},
             "step_deg": self.step_deg,
             "range_deg": list(RANGE_DEG),
             "worst": self.worst() if self.count else None,
-            "max_e_image_by_iteration": (None if self.by_iteration is None else
-                                         [float(v) for v in self.by_iteration[:, 0]]),
-            "mean_e_image_by_iteration": (None if self.by_iteration is None else
-                                          [float(v) / max(self.count, 1)
-                                           for v in self.by_iteration[:, 1]]),
+            "max_e_image_by_iteration": (
+                None if self.by_iteration is None else [float(v) for v in self.by_iteration[:, 0]]
+            ),
+            "mean_e_image_by_iteration": (
+                None if self.by_iteration is None else [float(v) / max(self.count, 1) for v in self.by_iteration[:, 1]]
+            ),
         }
 
 
@@ -102,15 +102,23 @@ def _rotate_rays(R: np.ndarray, d: np.ndarray, transpose: bool = False) -> np.nd
     out = np.empty_like(d)
     for a in range(3):
         row = R[:, :, a] if transpose else R[:, a, :]
-        out[:, a, :] = (row[:, 0, None] * d[:, 0, :] + row[:, 1, None] * d[:, 1, :]
-                        + row[:, 2, None] * d[:, 2, :])
+        out[:, a, :] = row[:, 0, None] * d[:, 0, :] + row[:, 1, None] * d[:, 1, :] + row[:, 2, None] * d[:, 2, :]
     return out
 
 
-def run_sweep(*, method: str = "paper", iterations: int = 10, step_deg: float = 1.0,
-              limit: Optional[int] = None, focal_px: float = FOCAL_PX, side: float = SIDE,
-              distance: float = DISTANCE, chunk: int = CHUNK, per_iteration: bool = True,
-              progress: Optional[Callable[[int], None]] = None) -> SweepResult:
+def run_sweep(
+    *,
+    method: str = "paper",
+    iterations: int = 10,
+    step_deg: float = 1.0,
+    limit: Optional[int] = None,
+    focal_px: float = FOCAL_PX,
+    side: float = SIDE,
+    distance: float = DISTANCE,
+    chunk: int = CHUNK,
+    per_iteration: bool = True,
+    progress: Optional[Callable[[int], None]] = None,
+) -> SweepResult:
     """Run the sweep; ``limit`` keeps the first N orientations; ``progress(n)`` after each chunk.
 
     With ``per_iteration`` the loop is traced and e_image is also taken after every
@@ -120,7 +128,7 @@ def run_sweep(*, method: str = "paper", iterations: int = 10, step_deg: float = 
     """
     angles = angle_grid(step_deg)
     n = angles.size
-    total = n ** 3 if limit is None else min(int(limit), n ** 3)
+    total = n**3 if limit is None else min(int(limit), n**3)
     position = np.array([0.0, 0.0, distance])
     ideal = np.asarray(project_unrot(np.eye(3), position, side, side, focal_px))
     # Corner rays (4, 3) in the unrotated frame, in project_unrot's order TL, TR, BR, BL.
@@ -136,9 +144,10 @@ def run_sweep(*, method: str = "paper", iterations: int = 10, step_deg: float = 
         ib, ig = np.divmod(rest, n)
         R = geometry.R_cam_unrot_from_paper_angles(rad[ia], rad[ib], rad[ig])
         points = project_unrot(R, np.broadcast_to(position, (k.size, 3)), side, side, focal_px)
-        result = correction_loop(points, focal_px, side * side, method=method,
-                                 iterations=iterations, trace=per_iteration)
-        out[start:start + k.size] = e_image(result.corrected, ideal)
+        result = correction_loop(
+            points, focal_px, side * side, method=method, iterations=iterations, trace=per_iteration
+        )
+        out[start : start + k.size] = e_image(result.corrected, ideal)
         if by_iteration is not None:
             # The rays of the corners as the real camera sees them, (N, 3, 4).
             rays = _rotate_rays(R, np.broadcast_to(corner_rays.T, (k.size, 3, 4)))
@@ -151,8 +160,9 @@ def run_sweep(*, method: str = "paper", iterations: int = 10, step_deg: float = 
         if progress is not None:
             progress(int(k.size))
     seconds = time.perf_counter() - t0
-    return SweepResult(method, iterations, float(step_deg), focal_px, side, distance, seconds,
-                       out, angles, by_iteration)
+    return SweepResult(
+        method, iterations, float(step_deg), focal_px, side, distance, seconds, out, angles, by_iteration
+    )
 
 
 def format_sweep(result: SweepResult) -> str:
@@ -171,16 +181,15 @@ def format_sweep(result: SweepResult) -> str:
             f"{'max e_image (px)':<22}{d['max_e_image']:.3e}",
             f"{'mean e_image (px)':<22}{d['mean_e_image']:.3e}",
             f"{'median e_image (px)':<22}{d['median_e_image']:.3e}",
-            f"{'worst orientation':<22}alpha {w['alpha_deg']:g}, beta {w['beta_deg']:g}, "
-            f"gamma {w['gamma_deg']:g} deg",
+            f"{'worst orientation':<22}alpha {w['alpha_deg']:g}, beta {w['beta_deg']:g}, gamma {w['gamma_deg']:g} deg",
         ]
     if result.by_iteration is not None:
         lines += ["", f"{'after iteration':<16}{'max e_image':>14}{'mean e_image':>14}"]
-        for i, (mx, mean) in enumerate(zip(d["max_e_image_by_iteration"],
-                                           d["mean_e_image_by_iteration"]), 1):
+        for i, (mx, mean) in enumerate(zip(d["max_e_image_by_iteration"], d["mean_e_image_by_iteration"]), 1):
             lines.append(f"{i:<16}{mx:14.3e}{mean:14.3e}")
         lines.append("")
-    lines += [f"{'failed':<22}{d['failed']:,}",
-              f"{'time':<22}{result.seconds:.1f} s "
-              f"({result.count / max(result.seconds, 1e-9):,.0f} orientations/s)"]
+    lines += [
+        f"{'failed':<22}{d['failed']:,}",
+        f"{'time':<22}{result.seconds:.1f} s ({result.count / max(result.seconds, 1e-9):,.0f} orientations/s)",
+    ]
     return "\n".join(lines)

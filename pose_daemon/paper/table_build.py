@@ -27,7 +27,7 @@ def build_table() -> Dict[str, object]:
     angles = np.radians(np.linspace(-ANGLE_MAX_DEG, ANGLE_MAX_DEG, ANGLE_COUNT))
     out: Dict[str, object] = {
         "description": "cubic angle = a e^3 + b e^2 + c e + d (radians) per z_rel = z / sqrt(W*H); "
-                       "simulated square on the optical axis, pure yaw (beta) or pitch (alpha)",
+        "simulated square on the optical axis, pure yaw (beta) or pitch (alpha)",
         "angle_max_deg": ANGLE_MAX_DEG,
         "z_rel": [float(v) for v in z_rel],
     }
@@ -40,7 +40,7 @@ def build_table() -> Dict[str, object]:
             e = err(internal_angles(img))
             # Fit in u = e * z_rel (well scaled at every depth), convert back to e.
             A, B, C, D = np.polyfit(e * zr, angles, 3)
-            coeffs.append([float(A * zr ** 3), float(B * zr ** 2), float(C * zr), float(D)])
+            coeffs.append([float(A * zr**3), float(B * zr**2), float(C * zr), float(D)])
             e_max.append(float(np.abs(e).max()))
         out[name] = coeffs
         # The fit's range of |e|: a cubic must not be extrapolated beyond it.

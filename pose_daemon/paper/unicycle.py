@@ -40,16 +40,16 @@ DEFAULT_CAMERA = Camera(fx=260.0, fy=260.0, cx=319.5, cy=239.5, width=640, heigh
 class UnicycleSetup:
     """Everything the paper leaves open, with the values this reproduction uses."""
 
-    kv: float = 0.5            # 1/s: eq 21
-    kw: float = 3.0            # 1/s: eq 22
-    dt_s: float = 1.0 / 30.0   # one control step per camera frame at 30 fps
+    kv: float = 0.5  # 1/s: eq 21
+    kw: float = 3.0  # 1/s: eq 22
+    dt_s: float = 1.0 / 30.0  # one control step per camera frame at 30 fps
     duration_s: float = 10.0
-    start: Tuple[float, float, float] = (20.0, -100.0, 0.0)   # x, z (cm), theta (deg)
-    goal: Tuple[float, float] = (0.0, -50.0)                   # x_f, z_f (cm)
+    start: Tuple[float, float, float] = (20.0, -100.0, 0.0)  # x, z (cm), theta (deg)
+    goal: Tuple[float, float] = (0.0, -50.0)  # x_f, z_f (cm)
     # The bearing in eq 22 is undefined at the goal: with noisy feedback, the robot would
     # spin in place there. It stops (v = w = 0, for good) once the feedback puts it within
     # goal_radius of the goal; 0 keeps the paper's controller exactly as printed.
-    goal_radius: float = 1.0   # cm
+    goal_radius: float = 1.0  # cm
     window_side: float = 20.0  # cm
     camera_below: float = 10.0  # cm the camera sits under the window's centre
     camera: Camera = DEFAULT_CAMERA
@@ -62,14 +62,21 @@ class UnicycleSetup:
     def to_json_dict(self) -> dict:
         c = self.camera
         return {
-            "kv": self.kv, "kw": self.kw, "dt_s": self.dt_s, "duration_s": self.duration_s,
+            "kv": self.kv,
+            "kw": self.kw,
+            "dt_s": self.dt_s,
+            "duration_s": self.duration_s,
             "start": {"x": self.start[0], "z": self.start[1], "theta_deg": self.start[2]},
-            "goal": {"x": self.goal[0], "z": self.goal[1]}, "goal_radius": self.goal_radius,
-            "window_side": self.window_side, "camera_below": self.camera_below,
-            "camera": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
-                       "width": c.width, "height": c.height},
-            "method": self.method, "iterations": self.iterations, "refine": self.refine,
-            "noise_px": self.noise_px, "seed": self.seed,
+            "goal": {"x": self.goal[0], "z": self.goal[1]},
+            "goal_radius": self.goal_radius,
+            "window_side": self.window_side,
+            "camera_below": self.camera_below,
+            "camera": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width, "height": c.height},
+            "method": self.method,
+            "iterations": self.iterations,
+            "refine": self.refine,
+            "noise_px": self.noise_px,
+            "seed": self.seed,
         }
 
 
@@ -77,7 +84,7 @@ class UnicycleSetup:
 class UnicycleRun:
     """One simulated run; arrays have one entry per control step (time t_s)."""
 
-    feedback: str                 # "true" or "estimated"
+    feedback: str  # "true" or "estimated"
     t_s: np.ndarray
     x: np.ndarray
     z: np.ndarray
@@ -86,8 +93,8 @@ class UnicycleRun:
     z_est: np.ndarray = field(default_factory=lambda: np.empty(0))
     theta_est_deg: np.ndarray = field(default_factory=lambda: np.empty(0))
     t_arrived_s: Optional[float] = None  # when the feedback first put it within goal_radius
-    out_of_view: int = 0          # frames where a corner fell outside the image (no estimate)
-    failures: int = 0             # frames the estimator rejected (the last estimate was kept)
+    out_of_view: int = 0  # frames where a corner fell outside the image (no estimate)
+    failures: int = 0  # frames the estimator rejected (the last estimate was kept)
 
 
 def goal_bearing_rad(x: float, z: float, goal: Tuple[float, float]) -> float:
@@ -101,8 +108,7 @@ def goal_bearing_rad(x: float, z: float, goal: Tuple[float, float]) -> float:
     return math.atan2(x - goal[0], goal[1] - z)
 
 
-def camera_pose(x: float, z: float, theta_rad: float,
-                setup: UnicycleSetup) -> Tuple[np.ndarray, np.ndarray]:
+def camera_pose(x: float, z: float, theta_rad: float, setup: UnicycleSetup) -> Tuple[np.ndarray, np.ndarray]:
     """(R_cam_marker, tvec) of the robot's camera: X_cam = R X_marker + tvec."""
     # The world has the unrotated camera's axes, so the camera turned by theta about the
     # vertical is R_world_cam = Ry(theta) (its optical axis (-sin, 0, cos) is the heading).
@@ -125,9 +131,7 @@ def _step(x: float, z: float, theta: float, v: float, w: float, dt: float) -> Tu
     h = 0.5 * w * dt
     sinc = math.sin(h) / h if abs(h) > 1e-12 else 1.0
     theta_mid = theta + h
-    return (x - v * dt * math.sin(theta_mid) * sinc,
-            z + v * dt * math.cos(theta_mid) * sinc,
-            theta + w * dt)
+    return (x - v * dt * math.sin(theta_mid) * sinc, z + v * dt * math.cos(theta_mid) * sinc, theta + w * dt)
 
 
 def simulate(setup: UnicycleSetup, *, feedback: str = "estimated") -> UnicycleRun:
@@ -152,15 +156,19 @@ def simulate(setup: UnicycleSetup, *, feedback: str = "estimated") -> UnicycleRu
         corners = camera.project(points_cam)
         if setup.noise_px > 0:
             corners = corners + rng.normal(0.0, setup.noise_px, corners.shape)
-        if (np.any(points_cam[:, 2] <= 0.0) or np.any(corners < -0.5)
-                or np.any(corners[:, 0] > camera.width - 0.5)
-                or np.any(corners[:, 1] > camera.height - 0.5)):
+        if (
+            np.any(points_cam[:, 2] <= 0.0)
+            or np.any(corners < -0.5)
+            or np.any(corners[:, 0] > camera.width - 0.5)
+            or np.any(corners[:, 1] > camera.height - 0.5)
+        ):
             # A real camera would not see the whole window: no detection this frame.
             out_of_view += 1
         else:
             try:
-                pose = estimate_pose(corners, camera, marker, method=setup.method,
-                                     iterations=setup.iterations, refine=setup.refine)
+                pose = estimate_pose(
+                    corners, camera, marker, method=setup.method, iterations=setup.iterations, refine=setup.refine
+                )
                 last = feedback_from_pose(pose)
             except EstimationError:
                 failures += 1
@@ -171,7 +179,8 @@ def simulate(setup: UnicycleSetup, *, feedback: str = "estimated") -> UnicycleRu
                 continue
         else:
             xe[k], ze[k], the[k] = last
-        fx, fz, fth = (x, z, theta) if feedback == "true" else last
+        # last is None here only with true feedback (estimated feedback waited above).
+        fx, fz, fth = (x, z, theta) if feedback == "true" or last is None else last
         distance = math.hypot(fx - setup.goal[0], fz - setup.goal[1])
         if t_arrived is None and distance < setup.goal_radius:
             t_arrived = float(t[k])
@@ -184,8 +193,7 @@ def simulate(setup: UnicycleSetup, *, feedback: str = "estimated") -> UnicycleRu
             # Dead reckoning: until the next camera fix the feedback follows the commanded
             # motion (a stale pose would make the robot circle with a constant turn rate).
             last = _step(*last, v, w, setup.dt_s)
-    return UnicycleRun(feedback, t, xs, zs, np.degrees(ths), xe, ze, np.degrees(the),
-                       t_arrived, out_of_view, failures)
+    return UnicycleRun(feedback, t, xs, zs, np.degrees(ths), xe, ze, np.degrees(the), t_arrived, out_of_view, failures)
 
 
 @dataclass
@@ -208,16 +216,16 @@ class UnicycleResult:
             "max_heading_error_deg": worst(heading_err),
             "max_x_error": worst(np.abs(e.x_est - e.x)[seen]),
             "max_z_error": worst(np.abs(e.z_est - e.z)[seen]),
-            "rms_heading_error_deg": (float(np.sqrt(np.mean(heading_err ** 2)))
-                                      if heading_err.size else None),
+            "rms_heading_error_deg": (float(np.sqrt(np.mean(heading_err**2))) if heading_err.size else None),
             "max_trajectory_deviation": float(deviation.max()),
             "t_arrived_s": e.t_arrived_s,
             "t_arrived_true_feedback_s": self.true_run.t_arrived_s,
-            "final": {"x": float(e.x[-1]), "z": float(e.z[-1]),
-                      "theta_deg": float(e.theta_deg[-1])},
-            "final_true_feedback": {"x": float(self.true_run.x[-1]),
-                                    "z": float(self.true_run.z[-1]),
-                                    "theta_deg": float(self.true_run.theta_deg[-1])},
+            "final": {"x": float(e.x[-1]), "z": float(e.z[-1]), "theta_deg": float(e.theta_deg[-1])},
+            "final_true_feedback": {
+                "x": float(self.true_run.x[-1]),
+                "z": float(self.true_run.z[-1]),
+                "theta_deg": float(self.true_run.theta_deg[-1]),
+            },
             "frames": int(e.t_s.size),
             "frames_out_of_view": e.out_of_view,
             "estimation_failures": e.failures,
@@ -227,8 +235,7 @@ class UnicycleResult:
 
 
 def run_unicycle(setup: UnicycleSetup) -> UnicycleResult:
-    return UnicycleResult(setup, simulate(setup, feedback="true"),
-                          simulate(setup, feedback="estimated"))
+    return UnicycleResult(setup, simulate(setup, feedback="true"), simulate(setup, feedback="estimated"))
 
 
 def _sci(value: Optional[float]) -> str:
@@ -265,7 +272,6 @@ def format_unicycle(result: UnicycleResult) -> str:
         f"heading {d['final_true_feedback']['theta_deg']:.3f} deg",
         f"{'arrived (within ' + format(s.goal_radius, 'g') + ' cm)':<30}"
         f"{_when(d['t_arrived_s'])} (true feedback: {_when(d['t_arrived_true_feedback_s'])})",
-        f"{'frames (out of view, failed)':<30}{d['frames']} ({d['frames_out_of_view']}, "
-        f"{d['estimation_failures']})",
+        f"{'frames (out of view, failed)':<30}{d['frames']} ({d['frames_out_of_view']}, {d['estimation_failures']})",
     ]
     return "\n".join(lines)

@@ -51,9 +51,17 @@ def weak_perspective_pair(us: Sequence[float], vs: Sequence[float], width: float
         kx, ky = rx * (1.0 / theta), ry * (1.0 / theta)
         c, s = math.cos(theta), math.sin(theta)
         c1 = 1.0 - c
-        Rc = (c + c1 * (kx * kx), c1 * (kx * ky), s * ky,
-              c1 * (kx * ky), c + c1 * (ky * ky), -s * kx,
-              -s * ky, s * kx, c)
+        Rc = (
+            c + c1 * (kx * kx),
+            c1 * (kx * ky),
+            s * ky,
+            c1 * (kx * ky),
+            c + c1 * (ky * ky),
+            -s * kx,
+            -s * ky,
+            s * kx,
+            c,
+        )
     else:
         Rc = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
     c00, c01, c02, c10, c11, c12, c20, c21, c22 = Rc
@@ -125,6 +133,5 @@ def polished_pair(R, t, cost: float, zmin: float, wp, obj, us, vs, wx: float, wy
     cands.sort(key=lambda c: c[2] if c[3] > 0.0 and math.isfinite(c[2]) else math.inf)
     # Two starts can end in the same minimum: the alternative is the best other one.
     R0 = cands[0][0]
-    others = [c for c in cands[1:]
-              if not all(abs(a - b) < SAME_POSE for a, b in zip(c[0], R0))]
+    others = [c for c in cands[1:] if not all(abs(a - b) < SAME_POSE for a, b in zip(c[0], R0))]
     return cands[0], (others or cands[1:])[0]

@@ -40,19 +40,19 @@ class BatchPoses:
     ``alternative_*`` is the other planar solution, ``ambiguity_ratio`` = best reprojection
     error / the alternative's."""
 
-    rvec: np.ndarray                   # (N, 3)
-    tvec: np.ndarray                   # (N, 3)
-    R: np.ndarray                      # (N, 3, 3) R_cam_marker
-    alpha_deg: np.ndarray              # (N,)
+    rvec: np.ndarray  # (N, 3)
+    tvec: np.ndarray  # (N, 3)
+    R: np.ndarray  # (N, 3, 3) R_cam_marker
+    alpha_deg: np.ndarray  # (N,)
     beta_deg: np.ndarray
     gamma_deg: np.ndarray
     reprojection_error_px: np.ndarray  # (N,) RMS over the 4 corners, through the distortion
-    ambiguity_ratio: np.ndarray        # (N,)
-    alternative_R: np.ndarray          # (N, 3, 3)
-    alternative_tvec: np.ndarray       # (N, 3)
-    alternative_error_px: np.ndarray   # (N,)
-    ok: np.ndarray                     # (N,) bool
-    errors: List[Optional[str]]        # (N,) None where ok
+    ambiguity_ratio: np.ndarray  # (N,)
+    alternative_R: np.ndarray  # (N, 3, 3)
+    alternative_tvec: np.ndarray  # (N, 3)
+    alternative_error_px: np.ndarray  # (N,)
+    ok: np.ndarray  # (N,) bool
+    errors: List[Optional[str]]  # (N,) None where ok
     method: str = "iterative"
 
     def __len__(self) -> int:
@@ -95,10 +95,10 @@ def _zmin_batch(R: np.ndarray, t: np.ndarray, obj) -> np.ndarray:
     """The smallest corner depth (n,) of poses R (n, 3, 3), t (n, 3): _residuals_batch's
     zmin without the projections."""
     r20, r21, t2 = R[:, 2, 0], R[:, 2, 1], t[:, 2]
-    zmin = None
-    for X, Y in obj:
-        pz = r20 * X + r21 * Y + t2
-        zmin = pz if zmin is None else np.minimum(zmin, pz)
+    (X0, Y0), rest = obj[0], obj[1:]
+    zmin = r20 * X0 + r21 * Y0 + t2
+    for X, Y in rest:
+        zmin = np.minimum(zmin, r20 * X + r21 * Y + t2)
     return zmin
 
 
@@ -110,14 +110,16 @@ def _rotate_comp(w0: np.ndarray, w1: np.ndarray, w2: np.ndarray, Rc) -> List[np.
     theta = np.sqrt(t2)
     small = theta < 1e-12
     safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0, np.sin(safe) / safe)             # sin(t) / t
+    a = np.where(small, 1.0, np.sin(safe) / safe)  # sin(t) / t
     b = np.where(small, 0.5, (1.0 - np.cos(safe)) / (safe * safe))  # (1 - cos t) / t^2
     # E = I + a [w]x + b [w]x^2, with [w]x^2 = w w^T - |w|^2 I.
     bxy, bxz, byz = b * w0 * w1, b * w0 * w2, b * w1 * w2
     ax, ay, az = a * w0, a * w1, a * w2
-    e = ((1.0 + b * (w0 * w0 - t2), bxy - az, bxz + ay),
-         (bxy + az, 1.0 + b * (w1 * w1 - t2), byz - ax),
-         (bxz - ay, byz + ax, 1.0 + b * (w2 * w2 - t2)))
+    e = (
+        (1.0 + b * (w0 * w0 - t2), bxy - az, bxz + ay),
+        (bxy + az, 1.0 + b * (w1 * w1 - t2), byz - ax),
+        (bxz - ay, byz + ax, 1.0 + b * (w2 * w2 - t2)),
+    )
     out = []
     for ei0, ei1, ei2 in e:
         for j in range(3):
@@ -155,13 +157,34 @@ def _normal_comp(P, us: np.ndarray, vs: np.ndarray, obj, wx: float, wy: float) -
     az, bz = -u * ax, -v * by
     j0, j1, j2 = qy * az, qz * ax - qx * az, -qy * ax
     k0, k1, k2 = qy * bz - qz * by, -qx * bz, qx * by
-    terms = (j0 * j0 + k0 * k0, j0 * j1 + k0 * k1, j0 * j2 + k0 * k2, j0 * ax, k0 * by,
-             j0 * az + k0 * bz,
-             j1 * j1 + k1 * k1, j1 * j2 + k1 * k2, j1 * ax, k1 * by, j1 * az + k1 * bz,
-             j2 * j2 + k2 * k2, j2 * ax, k2 * by, j2 * az + k2 * bz,
-             ax * ax, ax * az, by * by, by * bz, az * az + bz * bz,
-             j0 * ru + k0 * rv, j1 * ru + k1 * rv, j2 * ru + k2 * rv, ax * ru, by * rv,
-             az * ru + bz * rv)
+    terms = (
+        j0 * j0 + k0 * k0,
+        j0 * j1 + k0 * k1,
+        j0 * j2 + k0 * k2,
+        j0 * ax,
+        k0 * by,
+        j0 * az + k0 * bz,
+        j1 * j1 + k1 * k1,
+        j1 * j2 + k1 * k2,
+        j1 * ax,
+        k1 * by,
+        j1 * az + k1 * bz,
+        j2 * j2 + k2 * k2,
+        j2 * ax,
+        k2 * by,
+        j2 * az + k2 * bz,
+        ax * ax,
+        ax * az,
+        by * by,
+        by * bz,
+        az * az + bz * bz,
+        j0 * ru + k0 * rv,
+        j1 * ru + k1 * rv,
+        j2 * ru + k2 * rv,
+        ax * ru,
+        by * rv,
+        az * ru + bz * rv,
+    )
     out = np.empty((26, P.shape[1]))
     for row, x in zip(out, terms):
         x.sum(0, out=row)
@@ -171,8 +194,34 @@ def _normal_comp(P, us: np.ndarray, vs: np.ndarray, obj, wx: float, wy: float) -
 def _solve_batch(ne, lam: np.ndarray) -> List[np.ndarray]:
     """Vectorised Cholesky solve of (J^T J + lam diag) x = -J^T r from _normal_comp's 26
     rows; a row that is not positive definite gives NaN (refused by the caller)."""
-    (a00, a01, a02, a03, a04, a05, a11, a12, a13, a14, a15, a22, a23, a24, a25, a33, a35,
-     a44, a45, a55, g0, g1, g2, g3, g4, g5) = ne
+    (
+        a00,
+        a01,
+        a02,
+        a03,
+        a04,
+        a05,
+        a11,
+        a12,
+        a13,
+        a14,
+        a15,
+        a22,
+        a23,
+        a24,
+        a25,
+        a33,
+        a35,
+        a44,
+        a45,
+        a55,
+        g0,
+        g1,
+        g2,
+        g3,
+        g4,
+        g5,
+    ) = ne
     damp = 1.0 + lam
     nan = np.nan
 
@@ -191,7 +240,7 @@ def _solve_batch(ne, lam: np.ndarray) -> List[np.ndarray]:
     l42 = (a24 - l40 * l20 - l41 * l21) * d2
     l52 = (a25 - l50 * l20 - l51 * l21) * d2
     d3 = inv_sqrt(a33 * damp - (l30 * l30 + l31 * l31 + l32 * l32))
-    l43 = -(l40 * l30 + l41 * l31 + l42 * l32) * d3   # J^T J [3][4] is 0
+    l43 = -(l40 * l30 + l41 * l31 + l42 * l32) * d3  # J^T J [3][4] is 0
     l53 = (a35 - l50 * l30 - l51 * l31 - l52 * l32) * d3
     d4 = inv_sqrt(a44 * damp - (l40 * l40 + l41 * l41 + l42 * l42 + l43 * l43))
     l54 = (a45 - l50 * l40 - l51 * l41 - l52 * l42 - l53 * l43) * d4
@@ -211,10 +260,18 @@ def _solve_batch(ne, lam: np.ndarray) -> List[np.ndarray]:
     return [x0, x1, x2, x3, x4, x5]
 
 
-def _polish_batch(R: np.ndarray, t: np.ndarray, obj, us: np.ndarray, vs: np.ndarray, wx: float,
-                  wy: float, max_iter: int = POLISH_MAX_ITER,
-                  active: Optional[np.ndarray] = None,
-                  cost: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _polish_batch(
+    R: np.ndarray,
+    t: np.ndarray,
+    obj,
+    us: np.ndarray,
+    vs: np.ndarray,
+    wx: float,
+    wy: float,
+    max_iter: int = POLISH_MAX_ITER,
+    active: Optional[np.ndarray] = None,
+    cost: Optional[np.ndarray] = None,
+) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """polish.polish over N poses at once (us, vs: (N, 4)); each row stops on its own criterion.
     Only rows still moving are computed; ``cost`` (N,) of the start when already known.
     Returns R, t, cost (N,).
@@ -251,9 +308,16 @@ def _polish_rows(P, U, V, obj, wx, wy, max_iter, idx, cost):
             # A few slow rows left: numpy's per-call overhead would dominate, finish them
             # one by one.
             for k in range(idx.size):
-                R_i, t_i, ca[k], _ = polish(tuple(Pa[:9, k].tolist()), tuple(Pa[9:, k].tolist()),
-                                             obj, Ua[:, k].tolist(), Va[:, k].tolist(), wx, wy,
-                                             max_iter - it)
+                R_i, t_i, ca[k], _ = polish(
+                    tuple(Pa[:9, k].tolist()),
+                    tuple(Pa[9:, k].tolist()),
+                    obj,
+                    Ua[:, k].tolist(),
+                    Va[:, k].tolist(),
+                    wx,
+                    wy,
+                    max_iter - it,
+                )
                 Pa[:9, k], Pa[9:, k] = R_i, t_i
             break
         if stale is None:
@@ -292,10 +356,12 @@ def _quad_screen(xs, ys) -> np.ndarray:
     """(N,) True where a quadrilateral might fail quad_problem (checked exactly afterwards):
     conservative margins, so every clean row passes without the per-row check. xs, ys: the
     4 corners' (N,) coordinate arrays."""
-    ext = np.maximum(np.maximum(np.maximum(xs[0], xs[1]), np.maximum(xs[2], xs[3]))
-                     - np.minimum(np.minimum(xs[0], xs[1]), np.minimum(xs[2], xs[3])),
-                     np.maximum(np.maximum(ys[0], ys[1]), np.maximum(ys[2], ys[3]))
-                     - np.minimum(np.minimum(ys[0], ys[1]), np.minimum(ys[2], ys[3])))
+    ext = np.maximum(
+        np.maximum(np.maximum(xs[0], xs[1]), np.maximum(xs[2], xs[3]))
+        - np.minimum(np.minimum(xs[0], xs[1]), np.minimum(xs[2], xs[3])),
+        np.maximum(np.maximum(ys[0], ys[1]), np.maximum(ys[2], ys[3]))
+        - np.minimum(np.minimum(ys[0], ys[1]), np.minimum(ys[2], ys[3])),
+    )
     # Edge j runs from corner j to corner j + 1; corner j turns from edge j - 1 to edge j.
     ex = [xs[(j + 1) % 4] - xs[j] for j in range(4)]
     ey = [ys[(j + 1) % 4] - ys[j] for j in range(4)]
@@ -336,9 +402,7 @@ def _weak_perspective_pair_batch(us: np.ndarray, vs: np.ndarray, width: float, h
     kx, ky = rx * inv, ry * inv
     c, s = np.where(turned, np.cos(theta), 1.0), np.where(turned, np.sin(theta), 0.0)
     c1 = 1.0 - c
-    Rc = (c + c1 * (kx * kx), c1 * (kx * ky), s * ky,
-          c1 * (kx * ky), c + c1 * (ky * ky), -s * kx,
-          -s * ky, s * kx, c)
+    Rc = (c + c1 * (kx * kx), c1 * (kx * ky), s * ky, c1 * (kx * ky), c + c1 * (ky * ky), -s * kx, -s * ky, s * kx, c)
     c00, c01, c02, c10, c11, c12, c20, c21, c22 = Rc
     w2, h2 = 0.5 * width, 0.5 * height
     sa = sb = sc = sd = 0.0
@@ -386,8 +450,9 @@ def _mirror_batch(R_cam_marker: np.ndarray, tvec: np.ndarray) -> Tuple[np.ndarra
     return geometry.R_from_rvec(math.pi * v) @ R_cam_marker @ _R_FLIP_Z, np.array(tvec, dtype=np.float64)
 
 
-def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: str = "iterative",
-                        iterations: int = 5, refine: bool = True) -> BatchPoses:
+def estimate_pose_batch(
+    corners_px, camera: Camera, marker: Marker, *, method: str = "iterative", iterations: int = 5, refine: bool = True
+) -> BatchPoses:
     """``estimate_pose`` over N corner sets (N, 4, 2) pixels, vectorised; the same results.
 
     A bad row does not stop the batch: its ``ok`` is False and ``errors`` says why. Raises
@@ -424,8 +489,9 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
 
     area = marker.width * marker.height
     with np.errstate(all="ignore"):  # rows that go astray are caught below
-        res = loop.correction_loop(norm, 1.0, area, method=method, iterations=iterations,
-                                   aspect=marker.width / marker.height)
+        res = loop.correction_loop(
+            norm, 1.0, area, method=method, iterations=iterations, aspect=marker.width / marker.height
+        )
     R = res.R_cam_unrot * _UNROT_MARKER_COLUMNS
     t = np.einsum("nij,nj->ni", res.R_cam_unrot, res.position_unrot)
     obj = [(float(p[0]), float(p[1])) for p in marker.object_points]
@@ -435,12 +501,12 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
         # weak-perspective poses (fronto-parallel if none is usable).
         with np.errstate(all="ignore"):
             (Ra, ta), (Rb, tb) = _weak_perspective_pair_batch(xs, ys, marker.width, marker.height)
-            costs = []
+            start_costs = []
             for R0, t0 in ((R, t), (Ra, ta), (Rb, tb)):
                 _, c0, z0 = _residuals_batch(R0, t0, obj, list(xs.T), list(ys.T), wx, wy, False)
                 fin0 = np.all(np.isfinite(R0), axis=(1, 2)) & np.all(np.isfinite(t0), axis=1)
-                costs.append(np.where(fin0 & (z0 > 0.0) & np.isfinite(c0), c0, np.inf))
-        costs = np.stack(costs)
+                start_costs.append(np.where(fin0 & (z0 > 0.0) & np.isfinite(c0), c0, np.inf))
+        costs = np.stack(start_costs)
         pick = np.argmin(costs, axis=0)
         R = np.where((pick == 1)[:, None, None], Ra, np.where((pick == 2)[:, None, None], Rb, R))
         t = np.where((pick == 1)[:, None], ta, np.where((pick == 2)[:, None], tb, t))
@@ -462,19 +528,19 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
         cost_far = np.where(a_near, costs[2], costs[1])
         cost_near = np.where(a_near, costs[1], costs[2])
         cands = [(R, t, cost)]
-        for R0, t0, c0, rows in ((R_far, t_far, cost_far, None),
-                                 (R_near, t_near, cost_near, np.maximum(da, db) < COS_SAME_SIDE)):
+        for R0, t0, c0, rows in (
+            (R_far, t_far, cost_far, None),
+            (R_near, t_near, cost_near, np.maximum(da, db) < COS_SAME_SIDE),
+        ):
             if rows is not None and not np.any(rows):
                 continue
             act = None if rows is None else rows
-            R_c, t_c, cost_c = _polish_batch(R0, t0, obj, xs, ys, wx, wy, ALT_POLISH_ITER,
-                                             active=act, cost=c0)
+            R_c, t_c, cost_c = _polish_batch(R0, t0, obj, xs, ys, wx, wy, ALT_POLISH_ITER, active=act, cost=c0)
             finish = cost_c < ALT_FINISH * cost
             if act is not None:
                 finish &= act
             if np.any(finish):
-                R_c, t_c, cost_c = _polish_batch(R_c, t_c, obj, xs, ys, wx, wy, active=finish,
-                                                 cost=cost_c)
+                R_c, t_c, cost_c = _polish_batch(R_c, t_c, obj, xs, ys, wx, wy, active=finish, cost=cost_c)
             if act is not None:
                 cost_c = np.where(act, cost_c, np.inf)
             cands.append((R_c, t_c, cost_c))
@@ -512,11 +578,9 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
         err = error_px(R, t, cost)
         err_alt = np.where(zmin_alt > 0.0, error_px(R_alt, t_alt, cost_alt), np.inf)
     err_alt = np.where(np.isfinite(err_alt), err_alt, np.inf)
-    fin = (np.all(np.isfinite(R), axis=(1, 2)) & np.all(np.isfinite(t), axis=1)
-           & np.isfinite(err))
+    fin = np.all(np.isfinite(R), axis=(1, 2)) & np.all(np.isfinite(t), axis=1) & np.isfinite(err)
     for i in np.flatnonzero(good & ~(zmin > 0.0)):
-        errors[i] = (f"the {method} correction loop did not converge to a pose in front of "
-                     "the camera")
+        errors[i] = f"the {method} correction loop did not converge to a pose in front of the camera"
     for i in np.flatnonzero(good & (zmin > 0.0) & ~fin):
         errors[i] = "no finite pose fits these corners"
     ok = good & (zmin > 0.0) & fin
@@ -526,17 +590,38 @@ def estimate_pose_batch(corners_px, camera: Camera, marker: Marker, *, method: s
     t, t_alt = np.where(swap[:, None], t_alt, t), np.where(swap[:, None], t, t_alt)
     err, err_alt = np.where(swap, err_alt, err), np.where(swap, err, err_alt)
     with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = np.where(np.isfinite(err_alt),
-                         np.where(err_alt > 0.0, np.minimum(1.0, err / err_alt), 1.0), 0.0)
+        ratio = np.where(np.isfinite(err_alt), np.where(err_alt > 0.0, np.minimum(1.0, err / err_alt), 1.0), 0.0)
     a, b, g = geometry.paper_angles_from_R_cam_unrot(R * _UNROT_MARKER_COLUMNS)
     rvec = geometry.rvec_from_R(R)
     nan = ~ok
-    out = BatchPoses(rvec=rvec, tvec=t, R=R, alpha_deg=np.degrees(a), beta_deg=np.degrees(b),
-                     gamma_deg=np.degrees(g), reprojection_error_px=err, ambiguity_ratio=ratio,
-                     alternative_R=R_alt, alternative_tvec=t_alt, alternative_error_px=err_alt,
-                     ok=ok, errors=errors, method=method)
-    for name in ("rvec", "tvec", "R", "alpha_deg", "beta_deg", "gamma_deg",
-                 "reprojection_error_px", "ambiguity_ratio", "alternative_R",
-                 "alternative_tvec", "alternative_error_px"):
+    out = BatchPoses(
+        rvec=rvec,
+        tvec=t,
+        R=R,
+        alpha_deg=np.degrees(a),
+        beta_deg=np.degrees(b),
+        gamma_deg=np.degrees(g),
+        reprojection_error_px=err,
+        ambiguity_ratio=ratio,
+        alternative_R=R_alt,
+        alternative_tvec=t_alt,
+        alternative_error_px=err_alt,
+        ok=ok,
+        errors=errors,
+        method=method,
+    )
+    for name in (
+        "rvec",
+        "tvec",
+        "R",
+        "alpha_deg",
+        "beta_deg",
+        "gamma_deg",
+        "reprojection_error_px",
+        "ambiguity_ratio",
+        "alternative_R",
+        "alternative_tvec",
+        "alternative_error_px",
+    ):
         getattr(out, name)[nan] = np.nan
     return out

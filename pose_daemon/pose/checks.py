@@ -49,8 +49,7 @@ def quad_problem(xs: Sequence[float], ys: Sequence[float]) -> Optional[str]:
         bx, by = xs[(j + 1) % 4] - xs[j], ys[(j + 1) % 4] - ys[j]
         cross = ax * by - ay * bx
         if abs(cross) <= DEGENERATE_REL * math.hypot(ax, ay) * math.hypot(bx, by):
-            return (f"collinear corners: {_NAMES[j - 1]}, {_NAMES[j]} and "
-                    f"{_NAMES[(j + 1) % 4]} lie on one line")
+            return f"collinear corners: {_NAMES[j - 1]}, {_NAMES[j]} and {_NAMES[(j + 1) % 4]} lie on one line"
         turns.append(cross > 0)
     n_pos = sum(turns)
     if n_pos == 2:
@@ -58,8 +57,10 @@ def quad_problem(xs: Sequence[float], ys: Sequence[float]) -> Optional[str]:
     if n_pos in (1, 3):
         return "non-convex quadrilateral: a rectangle's image is always convex"
     if n_pos == 0:
-        return ("corners go counter-clockwise on the image: the marker would be behind the "
-                "camera or seen from its back; expected the order TL, TR, BR, BL")
+        return (
+            "corners go counter-clockwise on the image: the marker would be behind the "
+            "camera or seen from its back; expected the order TL, TR, BR, BL"
+        )
     return None
 
 

@@ -38,8 +38,9 @@ def choose_by_continuity(pose: Pose, normal_ref: Optional[np.ndarray]) -> Pose:
         return pose
     if _normal_angle_deg(alt.R[:, 2], normal_ref) >= _normal_angle_deg(pose.R[:, 2], normal_ref):
         return pose
-    return dataclasses.replace(alt, alternative=dataclasses.replace(pose, alternative=None),
-                               ambiguity_ratio=pose.ambiguity_ratio)
+    return dataclasses.replace(
+        alt, alternative=dataclasses.replace(pose, alternative=None), ambiguity_ratio=pose.ambiguity_ratio
+    )
 
 
 class Track:
@@ -66,5 +67,6 @@ class Track:
         if flipped:
             self.flips += 1
         n = chosen.R[:, 2]
-        self.normal_ref = n.copy() if self.normal_ref is None else (
-            (1.0 - NORMAL_SMOOTHING) * self.normal_ref + NORMAL_SMOOTHING * n)
+        self.normal_ref = (
+            n.copy() if self.normal_ref is None else ((1.0 - NORMAL_SMOOTHING) * self.normal_ref + NORMAL_SMOOTHING * n)
+        )

@@ -28,8 +28,9 @@ __all__ = ["METHODS", "LOOP_TOL_RAD", "estimate_pose", "quad_problem"]
 LOOP_TOL_RAD = 1e-10
 
 
-def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "iterative",
-                  iterations: int = 5, refine: bool = True) -> Pose:
+def estimate_pose(
+    corners_px, camera: Camera, marker: Marker, *, method: str = "iterative", iterations: int = 5, refine: bool = True
+) -> Pose:
     """The marker's pose from its four corners (4, 2) in pixels, order TL, TR, BR, BL.
 
     Corners are undistorted with ``camera``, the paper's correction loop runs on them
@@ -46,8 +47,16 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
         norm = camera.undistort_normalized(np.array(flat).reshape(4, 2)).ravel().tolist()
     else:
         fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
-        norm = [(flat[0] - cx) / fx, (flat[1] - cy) / fy, (flat[2] - cx) / fx, (flat[3] - cy) / fy,
-                (flat[4] - cx) / fx, (flat[5] - cy) / fy, (flat[6] - cx) / fx, (flat[7] - cy) / fy]
+        norm = [
+            (flat[0] - cx) / fx,
+            (flat[1] - cy) / fy,
+            (flat[2] - cx) / fx,
+            (flat[3] - cy) / fy,
+            (flat[4] - cx) / fx,
+            (flat[5] - cy) / fy,
+            (flat[6] - cx) / fx,
+            (flat[7] - cy) / fy,
+        ]
     us, vs = norm[0::2], norm[1::2]
     if not all_finite(norm):
         raise EstimationError("corners cannot be undistorted with this camera model")
@@ -95,18 +104,17 @@ def estimate_pose(corners_px, camera: Camera, marker: Marker, *, method: str = "
         R, t, cost, zmin = polish(R, t, obj, us, vs, wx, wy)
         # The other planar solution, polished too; the two ranked at their minima.
         (R, t, cost, zmin), (R_alt, t_alt, cost_alt, zmin_alt) = polished_pair(
-            R, t, cost, zmin, wp, obj, us, vs, wx, wy)
+            R, t, cost, zmin, wp, obj, us, vs, wx, wy
+        )
     else:
         R_alt, t_alt = mirror_pose(R, t)
         cost, zmin = reprojection_cost(R, t, obj, us, vs, wx, wy)
         cost_alt, zmin_alt = reprojection_cost(R_alt, t_alt, obj, us, vs, wx, wy)
     if not zmin > 0.0:
         # The input faced the camera (quad_problem), so the loop went astray.
-        raise EstimationError(f"the {method} correction loop did not converge to a pose in "
-                              "front of the camera")
+        raise EstimationError(f"the {method} correction loop did not converge to a pose in front of the camera")
     alt_valid = zmin_alt > 0.0 and math.isfinite(cost_alt)
-    errs = _errors_px([(R, t, cost)] + ([(R_alt, t_alt, cost_alt)] if alt_valid else []),
-                      camera, obj, flat)
+    errs = _errors_px([(R, t, cost)] + ([(R_alt, t_alt, cost_alt)] if alt_valid else []), camera, obj, flat)
     err, err_alt = errs[0], (errs[1] if alt_valid else math.inf)
     if not math.isfinite(err):
         raise EstimationError("no finite pose fits these corners")
@@ -127,13 +135,30 @@ def _ratio(err: float, err_alt: float) -> float:
     return min(1.0, err / err_alt)
 
 
-def _pose_from(R: Sequence[float], t: Sequence[float], error_px: float, method: str,
-               iterations: int, alternative: Optional[Pose] = None, ratio: float = 0.0) -> Pose:
+def _pose_from(
+    R: Sequence[float],
+    t: Sequence[float],
+    error_px: float,
+    method: str,
+    iterations: int,
+    alternative: Optional[Pose] = None,
+    ratio: float = 0.0,
+) -> Pose:
     a, b, g = geometry.paper_angles_deg_from_R_cam_marker_f(R)
     R_np = np.array(R).reshape(3, 3)
-    return Pose(rvec=geometry.rvec_from_R(R_np), tvec=np.array(t), R=R_np, alpha_deg=a,
-                beta_deg=b, gamma_deg=g, reprojection_error_px=error_px, method=method,
-                iterations=iterations, alternative=alternative, ambiguity_ratio=ratio)
+    return Pose(
+        rvec=geometry.rvec_from_R(R_np),
+        tvec=np.array(t),
+        R=R_np,
+        alpha_deg=a,
+        beta_deg=b,
+        gamma_deg=g,
+        reprojection_error_px=error_px,
+        method=method,
+        iterations=iterations,
+        alternative=alternative,
+        ambiguity_ratio=ratio,
+    )
 
 
 def _errors_px(poses, camera: Camera, obj, corners: List[float]) -> List[float]:
@@ -149,7 +174,7 @@ def _errors_px(poses, camera: Camera, obj, corners: List[float]) -> List[float]:
     out = []
     for k in range(0, len(proj), 8):
         s = 0.0
-        for p, c in zip(proj[k:k + 8], corners):
+        for p, c in zip(proj[k : k + 8], corners):
             s += (p - c) * (p - c)
         out.append(math.sqrt(s / 4.0))
     return out

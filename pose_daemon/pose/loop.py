@@ -121,8 +121,12 @@ def _angles(xs, ys, m: _Ops):
 
 
 def _area(xs, ys):
-    return 0.5 * ((xs[0] * ys[1] - xs[1] * ys[0]) + (xs[1] * ys[2] - xs[2] * ys[1])
-                  + (xs[2] * ys[3] - xs[3] * ys[2]) + (xs[3] * ys[0] - xs[0] * ys[3]))
+    return 0.5 * (
+        (xs[0] * ys[1] - xs[1] * ys[0])
+        + (xs[1] * ys[2] - xs[2] * ys[1])
+        + (xs[2] * ys[3] - xs[3] * ys[2])
+        + (xs[3] * ys[0] - xs[0] * ys[3])
+    )
 
 
 def _roll_vector(xs, ys, m: _Ops):
@@ -148,8 +152,7 @@ def _vanish(xs, ys, f, a, b, c, d):
     """Ray (vx, vy, vz) to the meeting point of lines a-b and c-d (rays (x, y, f))."""
     l1 = (f * (ys[a] - ys[b]), f * (xs[b] - xs[a]), xs[a] * ys[b] - ys[a] * xs[b])
     l2 = (f * (ys[c] - ys[d]), f * (xs[d] - xs[c]), xs[c] * ys[d] - ys[c] * xs[d])
-    return (l1[1] * l2[2] - l1[2] * l2[1], l1[2] * l2[0] - l1[0] * l2[2],
-            l1[0] * l2[1] - l1[1] * l2[0])
+    return (l1[1] * l2[2] - l1[2] * l2[1], l1[2] * l2[0] - l1[0] * l2[2], l1[0] * l2[1] - l1[1] * l2[0])
 
 
 def _rot_cols(R, i: int, j: int, c, s) -> None:
@@ -163,9 +166,19 @@ def _rot_cols(R, i: int, j: int, c, s) -> None:
         R[r][j] = c * rj - s * ri
 
 
-def _loop_core(xs, ys, f: float, area: float, method: str, iterations: int, m: _Ops,
-               table=None, rows: Optional[list] = None, tol_rad: float = 0.0,
-               aspect: float = 1.0):
+def _loop_core(
+    xs,
+    ys,
+    f: float,
+    area: float,
+    method: str,
+    iterations: int,
+    m: _Ops,
+    table=None,
+    rows: Optional[list] = None,
+    tol_rad: float = 0.0,
+    aspect: float = 1.0,
+):
     """The loop on corner lists xs, ys (4 entries each: arrays or floats). Returns
     (R, xs, ys, iterations run), R as a 3x3 list of entries (R_cam_unrot). With tol_rad > 0
     (floats only) it stops once an iteration's three corrections are all below tol_rad."""
@@ -217,7 +230,8 @@ def _loop_core(xs, ys, f: float, area: float, method: str, iterations: int, m: _
         _rot_cols(R, 1, 2, c, s)
         if rows is not None:
             rows.append((i, zeta, g, b, a, [list(r) for r in R], _position(xs, ys, f, ff, m)))
-        if tol_rad > 0.0 and abs(g) < tol_rad and abs(b) < tol_rad and abs(a) < tol_rad:
+        # g, b and a are None only when tol_rad is 0 (and no rows are kept).
+        if tol_rad > 0.0 and abs(g) < tol_rad and abs(b) < tol_rad and abs(a) < tol_rad:  # type: ignore[arg-type]
             break
     return R, xs, ys, i
 
@@ -237,8 +251,16 @@ def _stack_R(R, batch) -> np.ndarray:
     return out
 
 
-def correction_loop(points: np.ndarray, f: float, area: float, *, method: str = "iterative",
-                    iterations: int = 5, trace: bool = False, aspect: float = 1.0) -> LoopResult:
+def correction_loop(
+    points: np.ndarray,
+    f: float,
+    area: float,
+    *,
+    method: str = "iterative",
+    iterations: int = 5,
+    trace: bool = False,
+    aspect: float = 1.0,
+) -> LoopResult:
     """Run the paper's loop on (..., 4, 2) image points (see the module docstring).
 
     ``area`` is the marker's W*H (the paper's s^2) in the squared length unit the position
@@ -258,23 +280,32 @@ def correction_loop(points: np.ndarray, f: float, area: float, *, method: str = 
     xs = [np.array(pts[..., j, 0]) for j in range(4)]
     ys = [np.array(pts[..., j, 1]) for j in range(4)]
     raw: Optional[list] = [] if trace else None
-    R, xs, ys, _ = _loop_core(xs, ys, f, area, method, iterations, NUMPY_OPS, table, raw,
-                              aspect=float(aspect))
+    R, xs, ys, _ = _loop_core(xs, ys, f, area, method, iterations, NUMPY_OPS, table, raw, aspect=float(aspect))
     corrected = np.stack([np.stack([x, y], -1) for x, y in zip(xs, ys)], -2)
     pos = np.stack(np.broadcast_arrays(*_position(xs, ys, f, f * f * area, NUMPY_OPS)), -1)
     rows: Optional[List[IterationTrace]] = None
     if raw is not None:
         rows = []
         for i, zeta, g, b, a, Ri, (x, y, z) in raw:
-            rows.append(IterationTrace(
-                i=i, x=x, y=y, z=z, zeta_rad=np.stack(zeta, -1), gamma_step_rad=g,
-                beta_step_rad=b, alpha_step_rad=a, R_cam_unrot=_stack_R(Ri, batch)))
-    return LoopResult(R_cam_unrot=_stack_R(R, batch), position_unrot=pos, corrected=corrected,
-                      trace=rows)
+            rows.append(
+                IterationTrace(
+                    i=i,
+                    x=x,
+                    y=y,
+                    z=z,
+                    zeta_rad=np.stack(zeta, -1),
+                    gamma_step_rad=g,
+                    beta_step_rad=b,
+                    alpha_step_rad=a,
+                    R_cam_unrot=_stack_R(Ri, batch),
+                )
+            )
+    return LoopResult(R_cam_unrot=_stack_R(R, batch), position_unrot=pos, corrected=corrected, trace=rows)
 
 
-def project_unrot(R_cam_unrot: np.ndarray, position_unrot: np.ndarray, width: float,
-                  height: float, f: float) -> np.ndarray:
+def project_unrot(
+    R_cam_unrot: np.ndarray, position_unrot: np.ndarray, width: float, height: float, f: float
+) -> np.ndarray:
     """Image (..., 4, 2) TL, TR, BR, BL that a camera with rotation R_cam_unrot sees of a
     width x height marker fronto-parallel to the unrotated camera, centred at position_unrot
     (unrotated frame, y down): d_cam = R_cam_unrot d_unrot, x = f d_x / d_z, y = f d_y / d_z."""
@@ -287,8 +318,15 @@ def project_unrot(R_cam_unrot: np.ndarray, position_unrot: np.ndarray, width: fl
     return f * d_cam[..., :2] / d_cam[..., 2:3]
 
 
-def loop_one(us: List[float], vs: List[float], area: float, method: str, iterations: int,
-             tol_rad: float = 0.0, aspect: float = 1.0):
+def loop_one(
+    us: List[float],
+    vs: List[float],
+    area: float,
+    method: str,
+    iterations: int,
+    tol_rad: float = 0.0,
+    aspect: float = 1.0,
+):
     """The loop for one quadrilateral in normalized coordinates (f = 1), on plain floats and
     unrolled: the per-frame path. Same arithmetic as _loop_core. Returns
     (R_cam_unrot as 3x3 nested lists, position_unrot (x, y, z), iterations run)."""
@@ -307,8 +345,12 @@ def loop_one(us: List[float], vs: List[float], area: float, method: str, iterati
         bx, by = y2 - y1, x1 - x2
         cx, cy = x2 - x3, y2 - y3
         dx, dy = y3 - y0, x0 - x3
-        na, nb, nc, nd = (sqrt(ax * ax + ay * ay), sqrt(bx * bx + by * by),
-                          sqrt(cx * cx + cy * cy), sqrt(dx * dx + dy * dy))
+        na, nb, nc, nd = (
+            sqrt(ax * ax + ay * ay),
+            sqrt(bx * bx + by * by),
+            sqrt(cx * cx + cy * cy),
+            sqrt(dx * dx + dy * dy),
+        )
         gy, gx = ay / na + by / nb + cy / nc + dy / nd, ax / na + bx / nb + cx / nc + dx / nd
         g = atan2(gy, gx)
         h = sqrt(gx * gx + gy * gy)  # cos, sin of g as _cos_sin_atan2, written out
@@ -363,5 +405,8 @@ def loop_one(us: List[float], vs: List[float], area: float, method: str, iterati
     area_img = 0.5 * abs((x0 * y1 - x1 * y0) + (x1 * y2 - x2 * y1) + (x2 * y3 - x3 * y2) + (x3 * y0 - x0 * y3))
     z = sqrt(area / area_img)
     k = 0.25 * z
-    return ([[r00, r01, r02], [r10, r11, r12], [r20, r21, r22]],
-            ((x0 + x1 + x2 + x3) * k, (y0 + y1 + y2 + y3) * k, z), i)
+    return (
+        [[r00, r01, r02], [r10, r11, r12], [r20, r21, r22]],
+        ((x0 + x1 + x2 + x3) * k, (y0 + y1 + y2 + y3) * k, z),
+        i,
+    )

@@ -16,7 +16,7 @@ import bisect
 import json
 import math
 from importlib import resources
-from typing import Dict, Optional
+from typing import Any, Dict, Optional, Union, overload
 
 import numpy as np
 
@@ -37,7 +37,7 @@ class PaperTable:
             c = np.asarray(data[name], dtype=np.float64)  # (n, 4): a, b, c, d
             # Coefficients of the cubic in u = e * z_rel: nearly constant in depth, so they
             # interpolate well and extend beyond the grid (weak perspective: e ~ 1 / z_rel).
-            powers = np.stack([z_rel ** -3, z_rel ** -2, z_rel ** -1, np.ones_like(z_rel)], -1)
+            powers = np.stack([z_rel**-3, z_rel**-2, z_rel**-1, np.ones_like(z_rel)], -1)
             self._norm[name] = c * powers
             # Limit of |u| = |e| z_rel that the fit covered, per depth.
             self._u_max[name] = np.asarray(data[name + "_e_max"], dtype=np.float64) * z_rel
@@ -45,7 +45,7 @@ class PaperTable:
         self._norm_list = {k: v.tolist() for k, v in self._norm.items()}
         self._u_max_list = {k: v.tolist() for k, v in self._u_max.items()}
 
-    def _evaluate(self, name: str, e: np.ndarray, z_rel: np.ndarray) -> np.ndarray:
+    def _evaluate(self, name: str, e: Union[float, np.ndarray], z_rel: Any) -> Union[float, np.ndarray]:
         if isinstance(e, float):
             return self._evaluate_float(name, e, float(z_rel))
         table = self._norm[name]
@@ -78,11 +78,22 @@ class PaperTable:
         out = ((coeffs[0] * u + coeffs[1]) * u + coeffs[2]) * u + coeffs[3]
         return min(max(out, -STEP_LIMIT_RAD), STEP_LIMIT_RAD)
 
-    def yaw(self, e_beta_rad: np.ndarray, z_rel: np.ndarray) -> np.ndarray:
+    # Plain floats in, a float out (the per-frame path); arrays in, an array out.
+    @overload
+    def yaw(self, e_beta_rad: float, z_rel: float) -> float: ...
+    @overload
+    def yaw(self, e_beta_rad: np.ndarray, z_rel: Union[float, np.ndarray]) -> np.ndarray: ...
+
+    def yaw(self, e_beta_rad: Any, z_rel: Any) -> Any:
         """beta (radians) from e_beta (radians) at depth z_rel = z / sqrt(W*H)."""
         return self._evaluate("beta", e_beta_rad, z_rel)
 
-    def pitch(self, e_alpha_rad: np.ndarray, z_rel: np.ndarray) -> np.ndarray:
+    @overload
+    def pitch(self, e_alpha_rad: float, z_rel: float) -> float: ...
+    @overload
+    def pitch(self, e_alpha_rad: np.ndarray, z_rel: Union[float, np.ndarray]) -> np.ndarray: ...
+
+    def pitch(self, e_alpha_rad: Any, z_rel: Any) -> Any:
         """alpha (radians) from e_alpha (radians) at depth z_rel."""
         return self._evaluate("alpha", e_alpha_rad, z_rel)
 
@@ -94,6 +105,6 @@ def load_table() -> PaperTable:
     """The shipped table, read once."""
     global _TABLE
     if _TABLE is None:
-        text = resources.files("pose_daemon").joinpath("data", TABLE_FILE).read_text("utf-8")
+        text = resources.files("pose_daemon").joinpath("data").joinpath(TABLE_FILE).read_text("utf-8")
         _TABLE = PaperTable(json.loads(text))
     return _TABLE

@@ -21,8 +21,9 @@ LAM_FIRST, LAM_UP, LAM_DOWN = 1e-3, 10.0, 0.1
 _EPS = 2.220446049250313e-16
 
 
-def reprojection_cost(R: Sequence[float], t: Sequence[float], obj, us: Sequence[float],
-                      vs: Sequence[float], wx: float, wy: float) -> Tuple[float, float]:
+def reprojection_cost(
+    R: Sequence[float], t: Sequence[float], obj, us: Sequence[float], vs: Sequence[float], wx: float, wy: float
+) -> Tuple[float, float]:
     """Squared pixel error of the 4 undistorted corners (weights wx, wy = fx, fy) and the
     smallest corner depth; a NaN or infinite pose gives a NaN or infinite cost."""
     r00, r01, _, r10, r11, _, r20, r21, _ = R
@@ -40,8 +41,9 @@ def reprojection_cost(R: Sequence[float], t: Sequence[float], obj, us: Sequence[
     return cost, zmin
 
 
-def normal_equations(R: Sequence[float], t: Sequence[float], obj, us: Sequence[float],
-              vs: Sequence[float], wx: float, wy: float):
+def normal_equations(
+    R: Sequence[float], t: Sequence[float], obj, us: Sequence[float], vs: Sequence[float], wx: float, wy: float
+):
     """Gauss-Newton normal equations of the 8 weighted residuals for R <- exp(omega) R,
     t <- t + dt: the 21 upper entries of J^T J (row by row), J^T r (6), the cost (as
     reprojection_cost) and the smallest corner depth.
@@ -94,16 +96,19 @@ def normal_equations(R: Sequence[float], t: Sequence[float], obj, us: Sequence[f
         g3 += ax * ru
         g4 += by * rv
         g5 += az * ru + bz * rv
-    return ((a00, a01, a02, a03, a04, a05, a11, a12, a13, a14, a15, a22, a23, a24, a25, a33, 0.0,
-             a35, a44, a45, a55), (g0, g1, g2, g3, g4, g5), cost, zmin)
+    return (
+        (a00, a01, a02, a03, a04, a05, a11, a12, a13, a14, a15, a22, a23, a24, a25, a33, 0.0, a35, a44, a45, a55),
+        (g0, g1, g2, g3, g4, g5),
+        cost,
+        zmin,
+    )
 
 
 def solve6(A: Sequence[float], g: Sequence[float], lam: float) -> Optional[Tuple[float, ...]]:
     """x with (A + lam diag(A)) x = -g by Cholesky, A the 21 upper entries of a symmetric 6x6
     (row by row); None when it is not positive definite (as cv2.solve's DECOMP_CHOLESKY).
     Written out: loops would cost more than the arithmetic."""
-    a00, a01, a02, a03, a04, a05, a11, a12, a13, a14, a15, a22, a23, a24, a25, a33, a34, \
-        a35, a44, a45, a55 = A
+    a00, a01, a02, a03, a04, a05, a11, a12, a13, a14, a15, a22, a23, a24, a25, a33, a34, a35, a44, a45, a55 = A
     g0, g1, g2, g3, g4, g5 = g
     sqrt = math.sqrt
     damp = 1.0 + lam
@@ -158,8 +163,7 @@ def solve6(A: Sequence[float], g: Sequence[float], lam: float) -> Optional[Tuple
     return x0, x1, x2, x3, x4, x5
 
 
-def polish(R: Sequence[float], t: Sequence[float], obj, us, vs, wx: float, wy: float,
-            max_iter: int = POLISH_MAX_ITER):
+def polish(R: Sequence[float], t: Sequence[float], obj, us, vs, wx: float, wy: float, max_iter: int = POLISH_MAX_ITER):
     """Levenberg-Marquardt on the 6 pose parameters minimising the squared pixel error of the
     undistorted corners (the maximum-likelihood pose for four points). R a row-major 9-tuple,
     t a 3-tuple; returns R, t, cost and the smallest corner depth.

@@ -33,8 +33,17 @@ from ..geometry import (
 )
 from .types import Pose
 
-__all__ = ["PriorSettings", "Choice", "CornerNoise", "HeadingReference", "RESOLVED_BY", "choose_solution", "gate_bound_px",
-           "polish_toward", "polish_toward_down"]
+__all__ = [
+    "PriorSettings",
+    "Choice",
+    "CornerNoise",
+    "HeadingReference",
+    "RESOLVED_BY",
+    "choose_solution",
+    "gate_bound_px",
+    "polish_toward",
+    "polish_toward_down",
+]
 
 # flip_resolved_by: what picked the solution that was sent.
 #   "attitude":   the autopilot's roll/pitch ruled one solution out (or clearly favoured it)
@@ -59,24 +68,29 @@ VISION_DOWN_SIGMA_DEG = 1.0
 class PriorSettings:
     """The choice's bounds (config: [attitude] and [estimator] keys)."""
 
-    max_tilt_deg: float = 0.0          # 0: no tilt prior
-    attitude_bound_deg: float = 15.0   # a solution whose down is further from the attitude's disagrees
-    gate_rms_px: float = 1.0           # reprojection RMS bound for small markers, pixels
-    gate_rms_frac: float = 0.01        # ... and as a fraction of the marker's side for large ones
-    max_view_deg: float = 55.0         # a marker seen further off its face than this is not believed (0 = any)
+    max_tilt_deg: float = 0.0  # 0: no tilt prior
+    attitude_bound_deg: float = 15.0  # a solution whose down is further from the attitude's disagrees
+    gate_rms_px: float = 1.0  # reprojection RMS bound for small markers, pixels
+    gate_rms_frac: float = 0.01  # ... and as a fraction of the marker's side for large ones
+    max_view_deg: float = 55.0  # a marker seen further off its face than this is not believed (0 = any)
     gate: bool = True
-    attitude_sigma_deg: float = 1.0    # an attitude's accuracy when it does not state one
-    polish: bool = True                # re-fit the chosen pose with the attitude's down as a prior term
-    corner_sigma_px: float = 0.3       # corner noise the polish weighs the prior against, until measured
+    attitude_sigma_deg: float = 1.0  # an attitude's accuracy when it does not state one
+    polish: bool = True  # re-fit the chosen pose with the attitude's down as a prior term
+    corner_sigma_px: float = 0.3  # corner noise the polish weighs the prior against, until measured
 
     @classmethod
     def from_config(cls, cfg) -> PriorSettings:
         """From a Config's [attitude] and [gate] sections."""
-        return cls(max_tilt_deg=cfg.attitude.max_tilt_deg, attitude_bound_deg=cfg.attitude.max_error_deg,
-                   gate_rms_px=cfg.gate.max_rms_px, gate_rms_frac=cfg.gate.max_rms_frac,
-                   max_view_deg=cfg.gate.max_view_deg,
-                   gate=cfg.gate.max_rms_px > 0, attitude_sigma_deg=cfg.attitude.sigma_deg,
-                   polish=cfg.attitude.polish)
+        return cls(
+            max_tilt_deg=cfg.attitude.max_tilt_deg,
+            attitude_bound_deg=cfg.attitude.max_error_deg,
+            gate_rms_px=cfg.gate.max_rms_px,
+            gate_rms_frac=cfg.gate.max_rms_frac,
+            max_view_deg=cfg.gate.max_view_deg,
+            gate=cfg.gate.max_rms_px > 0,
+            attitude_sigma_deg=cfg.attitude.sigma_deg,
+            polish=cfg.attitude.polish,
+        )
 
 
 @dataclass(frozen=True)
@@ -113,13 +127,21 @@ def _swap(pose: Pose) -> Pose:
     """The alternative of ``pose`` as the pose sent, carrying ``pose`` as its alternative."""
     alt = pose.alternative
     assert alt is not None
-    return dataclasses.replace(alt, alternative=dataclasses.replace(pose, alternative=None),
-                               ambiguity_ratio=pose.ambiguity_ratio)
+    return dataclasses.replace(
+        alt, alternative=dataclasses.replace(pose, alternative=None), ambiguity_ratio=pose.ambiguity_ratio
+    )
 
 
-def polish_toward_down(pose: Pose, corners_px: np.ndarray, camera: Camera, marker: Marker,
-                       down_m: np.ndarray, down_cam: np.ndarray, weight_px: float,
-                       iterations: int = 3) -> Tuple[Pose, float]:
+def polish_toward_down(
+    pose: Pose,
+    corners_px: np.ndarray,
+    camera: Camera,
+    marker: Marker,
+    down_m: np.ndarray,
+    down_cam: np.ndarray,
+    weight_px: float,
+    iterations: int = 3,
+) -> Tuple[Pose, float]:
     """``pose`` re-fitted to its corners with a prior term pulling the down direction it
     implies (``R @ down_m``, ``down_m`` = down in the marker frame) towards ``down_cam``.
 
@@ -132,17 +154,21 @@ def polish_toward_down(pose: Pose, corners_px: np.ndarray, camera: Camera, marke
     return polish_toward(pose, corners_px, camera, marker, [(down_m, down_cam, weight_px)], iterations)
 
 
-def polish_toward(pose: Pose, corners_px: np.ndarray, camera: Camera, marker: Marker,
-                  terms: Sequence[Tuple[np.ndarray, np.ndarray, float]],
-                  iterations: int = 3) -> Tuple[Pose, float]:
+def polish_toward(
+    pose: Pose,
+    corners_px: np.ndarray,
+    camera: Camera,
+    marker: Marker,
+    terms: Sequence[Tuple[np.ndarray, np.ndarray, float]],
+    iterations: int = 3,
+) -> Tuple[Pose, float]:
     """``polish_toward_down`` with any number of direction terms (dir in the marker frame,
     wanted dir in the camera frame, weight px): down, and the heading once it is known."""
     obj = marker.object_points.astype(np.float64)
     uv = np.asarray(corners_px, dtype=np.float64).reshape(-1)
     rvec = np.asarray(pose.rvec, dtype=np.float64).reshape(3).copy()
     tvec = np.asarray(pose.tvec, dtype=np.float64).reshape(3).copy()
-    terms = [(np.asarray(d_m, dtype=np.float64), np.asarray(d_c, dtype=np.float64), float(w))
-             for d_m, d_c, w in terms]
+    terms = [(np.asarray(d_m, dtype=np.float64), np.asarray(d_c, dtype=np.float64), float(w)) for d_m, d_c, w in terms]
 
     def residual(rv: np.ndarray, tv: np.ndarray):
         img, J = cv2.projectPoints(obj, rv, tv, camera.K, camera.dist_coeffs)
@@ -184,8 +210,9 @@ def polish_toward(pose: Pose, corners_px: np.ndarray, camera: Camera, marker: Ma
     R = cv2.Rodrigues(rvec)[0]
     rms = float(np.sqrt(np.mean(np.sum(r[:8].reshape(4, 2) ** 2, axis=1))))
     a, b, c = paper_angles_deg_from_R_cam_marker(R)
-    polished = dataclasses.replace(pose, rvec=rvec, tvec=tvec, R=R, alpha_deg=a, beta_deg=b, gamma_deg=c,
-                                   reprojection_error_px=rms)
+    polished = dataclasses.replace(
+        pose, rvec=rvec, tvec=tvec, R=R, alpha_deg=a, beta_deg=b, gamma_deg=c, reprojection_error_px=rms
+    )
     return polished, cost
 
 
@@ -244,8 +271,9 @@ class HeadingReference:
             self.reset()
 
     def observe(self, yaw_marker_rad: float, yaw_autopilot_rad: float) -> None:
-        self._samples.append(math.atan2(math.sin(yaw_marker_rad - yaw_autopilot_rad),
-                                        math.cos(yaw_marker_rad - yaw_autopilot_rad)))
+        self._samples.append(
+            math.atan2(math.sin(yaw_marker_rad - yaw_autopilot_rad), math.cos(yaw_marker_rad - yaw_autopilot_rad))
+        )
         self._cached = None
 
     def _estimate(self) -> Optional[Tuple[float, float]]:
@@ -297,12 +325,20 @@ def _body_yaw(frames: VehicleFrames, pose: Pose) -> float:
     return math.atan2(R[1, 0], R[0, 0])
 
 
-def choose_solution(pose: Pose, frames: VehicleFrames, *, attitude: Optional[Attitude],
-                    settings: PriorSettings, side_px: float,
-                    by_continuity: Callable[[Pose], Pose],
-                    corners_px: Optional[np.ndarray] = None, camera: Optional[Camera] = None,
-                    marker: Optional[Marker] = None, heading: Optional[HeadingReference] = None,
-                    corner_sigma_px: Optional[float] = None) -> Choice:
+def choose_solution(
+    pose: Pose,
+    frames: VehicleFrames,
+    *,
+    attitude: Optional[Attitude],
+    settings: PriorSettings,
+    side_px: float,
+    by_continuity: Callable[[Pose], Pose],
+    corners_px: Optional[np.ndarray] = None,
+    camera: Optional[Camera] = None,
+    marker: Optional[Marker] = None,
+    heading: Optional[HeadingReference] = None,
+    corner_sigma_px: Optional[float] = None,
+) -> Choice:
     """The solution to send for the estimator's ``pose`` (the better fit, its other planar
     solution in ``pose.alternative``), or why none is sent.
 
@@ -315,54 +351,106 @@ def choose_solution(pose: Pose, frames: VehicleFrames, *, attitude: Optional[Att
     polishes the candidates (``polish_toward``) and the one with the lower cost is chosen."""
     bound_px = gate_bound_px(settings, side_px)
     if settings.gate and pose.reprojection_error_px > bound_px:
-        return Choice(None, withheld="gated",
-                      reason=f"reprojection RMS {pose.reprojection_error_px:.2f} px > {bound_px:.2f} px")
+        return Choice(
+            None, withheld="gated", reason=f"reprojection RMS {pose.reprojection_error_px:.2f} px > {bound_px:.2f} px"
+        )
     alt = pose.alternative
     max_view = settings.max_view_deg if settings.gate and settings.max_view_deg > 0 else 180.0
     view = view_angle_deg(pose)
-    alt_ok = (alt is not None and (not settings.gate or alt.reprojection_error_px <= bound_px)
-              and view_angle_deg(alt) <= max_view)
+    alt_ok = (
+        alt is not None
+        and (not settings.gate or alt.reprojection_error_px <= bound_px)
+        and view_angle_deg(alt) <= max_view
+    )
     if view > max_view and not alt_ok:
         # Long rectangles pass for squares seen very obliquely (measured on clutter: 58-71 deg);
         # a real marker that oblique is rarely found and its pose is poor anyway.
         return Choice(None, withheld="gated", reason=f"marker seen {view:.0f} deg off its face (> {max_view:g})")
     if view > max_view:
         # Only the alternative is believable: it is the one.
-        choice = _choose(_swap(pose), False, frames, attitude, settings, bound_px, by_continuity,
-                         corners_px, camera, marker, heading, corner_sigma_px)
+        choice = _choose(
+            _swap(pose),
+            False,
+            frames,
+            attitude,
+            settings,
+            bound_px,
+            by_continuity,
+            corners_px,
+            camera,
+            marker,
+            heading,
+            corner_sigma_px,
+        )
         return dataclasses.replace(choice, flipped=choice.pose is not None)
-    two = alt_ok and alt is not None and rotation_angle_deg_3x3(pose.R, alt.R) >= SAME_POSE_DEG
-    return _choose(pose, two, frames, attitude, settings, bound_px, by_continuity, corners_px, camera,
-                   marker, heading, corner_sigma_px)
+    two = bool(alt_ok and alt is not None and rotation_angle_deg_3x3(pose.R, alt.R) >= SAME_POSE_DEG)
+    return _choose(
+        pose,
+        two,
+        frames,
+        attitude,
+        settings,
+        bound_px,
+        by_continuity,
+        corners_px,
+        camera,
+        marker,
+        heading,
+        corner_sigma_px,
+    )
 
 
-def _choose(pose: Pose, two: bool, frames: VehicleFrames, attitude: Optional[Attitude],
-            settings: PriorSettings, bound_px: float, by_continuity: Callable[[Pose], Pose],
-            corners_px: Optional[np.ndarray], camera: Optional[Camera], marker: Optional[Marker],
-            heading: Optional[HeadingReference], corner_sigma_px: Optional[float]) -> Choice:
+def _choose(
+    pose: Pose,
+    two: bool,
+    frames: VehicleFrames,
+    attitude: Optional[Attitude],
+    settings: PriorSettings,
+    bound_px: float,
+    by_continuity: Callable[[Pose], Pose],
+    corners_px: Optional[np.ndarray],
+    camera: Optional[Camera],
+    marker: Optional[Marker],
+    heading: Optional[HeadingReference],
+    corner_sigma_px: Optional[float],
+) -> Choice:
     """choose_solution past the gate: ``two`` = the alternative is still a contender."""
     candidates: List[Pose] = [pose, _swap(pose)] if two else [pose]
     down_meas = [frames.down_cam_from_marker(c.R) for c in candidates]
 
     if attitude is not None:
-        return _choose_by_attitude(pose, candidates, down_meas, frames, attitude, settings, bound_px,
-                                   by_continuity, corners_px, camera, marker, heading,
-                                   settings.corner_sigma_px if corner_sigma_px is None else corner_sigma_px)
+        return _choose_by_attitude(
+            pose,
+            candidates,
+            down_meas,
+            frames,
+            attitude,
+            settings,
+            bound_px,
+            by_continuity,
+            corners_px,
+            camera,
+            marker,
+            heading,
+            settings.corner_sigma_px if corner_sigma_px is None else corner_sigma_px,
+        )
 
     if settings.max_tilt_deg > 0:
         level = frames.down_cam_level
         tilt = [angle_between_deg(d, level) for d in down_meas]
         agree = [i for i in range(len(candidates)) if tilt[i] <= settings.max_tilt_deg]
         if not agree:
-            return Choice(None, withheld="inconsistent",
-                          reason=f"the vehicle would be tilted {min(tilt):.1f} deg (max_tilt_deg {settings.max_tilt_deg:g})")
+            return Choice(
+                None,
+                withheld="inconsistent",
+                reason=f"the vehicle would be tilted {min(tilt):.1f} deg (max_tilt_deg {settings.max_tilt_deg:g})",
+            )
         if len(candidates) == 1:
             return Choice(pose, "clear", down_error_deg=tilt[0])
         if len(agree) == 1:
             return Choice(candidates[agree[0]], "tilt", down_error_deg=tilt[agree[0]], flipped=agree[0] == 1)
         chosen = by_continuity(pose)
-        return Choice(chosen, "continuity", down_error_deg=tilt[0 if chosen is pose else 1],
-                      flipped=chosen is not pose)
+        return Choice(chosen, "continuity", down_error_deg=tilt[0 if chosen is pose else 1], flipped=chosen is not pose)
 
     if len(candidates) == 1:
         return Choice(pose, "clear")
@@ -370,17 +458,25 @@ def _choose(pose: Pose, two: bool, frames: VehicleFrames, attitude: Optional[Att
     return Choice(chosen, "continuity", flipped=chosen is not pose)
 
 
-def _choose_by_attitude(pose: Pose, candidates: List[Pose], down_meas: List[np.ndarray],
-                        frames: VehicleFrames, attitude: Attitude, settings: PriorSettings,
-                        bound_px: float, by_continuity: Callable[[Pose], Pose],
-                        corners_px: Optional[np.ndarray], camera: Optional[Camera],
-                        marker: Optional[Marker], heading: Optional[HeadingReference],
-                        corner_sigma_px: float) -> Choice:
+def _choose_by_attitude(
+    pose: Pose,
+    candidates: List[Pose],
+    down_meas: List[np.ndarray],
+    frames: VehicleFrames,
+    attitude: Attitude,
+    settings: PriorSettings,
+    bound_px: float,
+    by_continuity: Callable[[Pose], Pose],
+    corners_px: Optional[np.ndarray],
+    camera: Optional[Camera],
+    marker: Optional[Marker],
+    heading: Optional[HeadingReference],
+    corner_sigma_px: float,
+) -> Choice:
     roll, pitch, yaw = attitude.rpy_rad
     down_att = frames.down_cam_from_attitude(roll, pitch)
     err = [angle_between_deg(d, down_att) for d in down_meas]
-    sigma_att_deg = (math.degrees(attitude.sigma_rad) if attitude.sigma_rad is not None
-                     else settings.attitude_sigma_deg)
+    sigma_att_deg = math.degrees(attitude.sigma_rad) if attitude.sigma_rad is not None else settings.attitude_sigma_deg
     bound_deg = max(settings.attitude_bound_deg, 3.0 * sigma_att_deg)
     sigma_down_deg = math.hypot(sigma_att_deg, VISION_DOWN_SIGMA_DEG)
     # Each candidate's cost in sigmas squared: its down, and its heading once that is known.
@@ -400,19 +496,27 @@ def _choose_by_attitude(pose: Pose, candidates: List[Pose], down_meas: List[np.n
     best = min(range(len(candidates)), key=lambda i: cost[i])
     decisive = len(candidates) == 1 or cost[1 - best] - cost[best] > 4.0  # 2 sigma
 
-    if heading is not None and (len(candidates) == 1 or err[1 - best] - err[best] > 4.0 * sigma_down_deg
-                                or abs(math.remainder(_body_yaw(frames, candidates[0])
-                                                      - _body_yaw(frames, candidates[1]), math.tau))
-                                < math.radians(2.0)):
+    if heading is not None and (
+        len(candidates) == 1
+        or err[1 - best] - err[best] > 4.0 * sigma_down_deg
+        or abs(math.remainder(_body_yaw(frames, candidates[0]) - _body_yaw(frames, candidates[1]), math.tau))
+        < math.radians(2.0)
+    ):
         # The heading of this frame is known without the heading prior: learn from it.
         heading.observe(_body_yaw(frames, candidates[best]), yaw)
 
     # Where the vision already agrees with the attitude to within the attitude's own noise,
     # the prior could move it by a fraction of that noise: not worth a re-fit per frame.
     agrees = err[best] <= max(sigma_att_deg, MIN_PRIOR_SIGMA_DEG) and (
-        reference is None or head[best] <= math.hypot(sigma_att_deg, reference[1]))
-    if (settings.polish and corners_px is not None and camera is not None and marker is not None
-            and not (agrees and decisive)):
+        reference is None or head[best] <= math.hypot(sigma_att_deg, reference[1])
+    )
+    if (
+        settings.polish
+        and corners_px is not None
+        and camera is not None
+        and marker is not None
+        and not (agrees and decisive)
+    ):
         # The image term carries the vision's own uncertainty: the prior's weight is the
         # attitude's alone (and the heading reference's).
         sigma_prior_deg = max(sigma_att_deg, MIN_PRIOR_SIGMA_DEG)
@@ -430,20 +534,28 @@ def _choose_by_attitude(pose: Pose, candidates: List[Pose], down_meas: List[np.n
         polished = results[best][0]
         e = angle_between_deg(frames.down_cam_from_marker(polished.R), down_att)
         if e > bound_deg or (settings.gate and polished.reprojection_error_px > bound_px):
-            return Choice(None, withheld="inconsistent",
-                          reason=(f"no solution agrees with the attitude: down {e:.1f} deg off (bound "
-                                  f"{bound_deg:.1f}), reprojection RMS {polished.reprojection_error_px:.2f} px "
-                                  f"(bound {bound_px:.2f})"))
+            return Choice(
+                None,
+                withheld="inconsistent",
+                reason=(
+                    f"no solution agrees with the attitude: down {e:.1f} deg off (bound "
+                    f"{bound_deg:.1f}), reprojection RMS {polished.reprojection_error_px:.2f} px "
+                    f"(bound {bound_px:.2f})"
+                ),
+            )
         if len(candidates) == 1:
             return Choice(polished, "clear", down_error_deg=e)
-        other = dataclasses.replace(results[1 - best][0] if 1 - best in results else candidates[1 - best],
-                                    alternative=None)
-        return Choice(dataclasses.replace(polished, alternative=other), "attitude", down_error_deg=e,
-                      flipped=best == 1)
+        other = dataclasses.replace(
+            results[1 - best][0] if 1 - best in results else candidates[1 - best], alternative=None
+        )
+        return Choice(dataclasses.replace(polished, alternative=other), "attitude", down_error_deg=e, flipped=best == 1)
 
     if err[best] > bound_deg:
-        return Choice(None, withheld="inconsistent",
-                      reason=f"the marker's down is {err[best]:.1f} deg from the attitude's (bound {bound_deg:.1f})")
+        return Choice(
+            None,
+            withheld="inconsistent",
+            reason=f"the marker's down is {err[best]:.1f} deg from the attitude's (bound {bound_deg:.1f})",
+        )
     if len(candidates) == 1:
         return Choice(pose, "clear", down_error_deg=err[0])
     if decisive:

@@ -55,8 +55,7 @@ def save_snapshot(frame: Frame, folder: Path) -> Path:
 class Recorder:
     """Writes the frames offered during ``seconds`` (capture time) into a new recording folder."""
 
-    def __init__(self, path: Path, camera, marker, seconds: float, *, source: str = "",
-                 fps: float = 0.0) -> None:
+    def __init__(self, path: Path, camera, marker, seconds: float, *, source: str = "", fps: float = 0.0) -> None:
         self.path = Path(path)
         self.seconds = float(seconds)
         self._writer = RecordingWriter(self.path, camera, marker, source=source, fps=fps)
@@ -97,8 +96,14 @@ class Recorder:
         return not self._thread.is_alive()
 
     def status(self) -> Dict[str, object]:
-        return {"path": str(self.path), "seconds": self.seconds, "frames": self._writer.count,
-                "dropped": self.dropped, "done": self.done.is_set(), "error": self.error}
+        return {
+            "path": str(self.path),
+            "seconds": self.seconds,
+            "frames": self._writer.count,
+            "dropped": self.dropped,
+            "done": self.done.is_set(),
+            "error": self.error,
+        }
 
     def _run(self) -> None:
         try:

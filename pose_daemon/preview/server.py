@@ -26,6 +26,7 @@ from urllib.parse import parse_qs, urlsplit
 
 import cv2
 
+from ..attitude import attitude_connection
 from ..errors import PoseDaemonError
 from ..pipeline import STAGES, summarize_ms
 from .page import PAGE_HTML
@@ -89,8 +90,15 @@ class PreviewServer:
         self._processed_seen = -1
         self._t_start = clock()
         self.recorder: Optional[Recorder] = None
-        self.counts = {"viewers": 0, "frames_sent": 0, "frames_skipped": 0, "viewers_dropped": 0,
-                       "encoded": 0, "snapshots": 0, "recordings": 0}
+        self.counts = {
+            "viewers": 0,
+            "frames_sent": 0,
+            "frames_skipped": 0,
+            "viewers_dropped": 0,
+            "encoded": 0,
+            "snapshots": 0,
+            "recordings": 0,
+        }
         # CPU time (thread time) the viewers' threads spent annotating, encoding and sending.
         self.stream_cpu_s = 0.0
         self.encode_s: Optional[float] = None
@@ -100,11 +108,11 @@ class PreviewServer:
             family, _, _, _, sockaddr = infos[0]
             self._httpd = _HTTPServer(sockaddr[:2], _Handler, family)
         except OSError as exc:
-            raise PreviewError(f"preview: cannot listen on {self.pcfg.listen}: "
-                               f"{exc.strerror or exc}") from None
+            raise PreviewError(f"preview: cannot listen on {self.pcfg.listen}: {exc.strerror or exc}") from None
         self._httpd.preview = self
-        self._thread = threading.Thread(target=self._httpd.serve_forever, kwargs={"poll_interval": 0.1},
-                                        name="preview-http", daemon=True)
+        self._thread = threading.Thread(
+            target=self._httpd.serve_forever, kwargs={"poll_interval": 0.1}, name="preview-http", daemon=True
+        )
 
     # ----------------------------------------------------------------- control
 
@@ -163,8 +171,15 @@ class PreviewServer:
         from ..draw import annotate_live
 
         texts = [w.text for w in self.warnings()]
-        image = annotate_live(item.frame.image, item.result, self.camera, self.marker,
-                              detector_step=item.detector_step, warnings=texts)
+        image = annotate_live(
+            item.frame.image,
+            item.result,
+            self.camera,
+            self.marker,
+            detector_step=item.detector_step,
+            search=item.search,
+            warnings=texts,
+        )
         h, w = image.shape[:2]
         if w > self.pcfg.max_width:
             scale = self.pcfg.max_width / w
@@ -220,11 +235,16 @@ class PreviewServer:
             return cached
         snap, old, _ = self._sample(now)
         recent = {k: v - old["drops"].get(k, 0) for k, v in snap["drops"].items()}
-        ctx = Context(last=self.tap.latest, history=list(self.tap.history),
-                      source_state=self.pipeline.source_state,
-                      since_frame_s=None if self._t_progress is None else now - self._t_progress,
-                      recent_drops={k: v for k, v in recent.items() if v > 0},
-                      outputs=self._outputs(), min_side_px=self.cfg.detector.min_side_px)
+        ctx = Context(
+            last=self.tap.latest,
+            history=list(self.tap.history),
+            source_state=self.pipeline.source_state,
+            since_frame_s=None if self._t_progress is None else now - self._t_progress,
+            recent_drops={k: v for k, v in recent.items() if v > 0},
+            outputs=self._outputs(),
+            min_side_px=self.cfg.detector.min_side_px,
+            attitude_expected=attitude_connection(self.cfg) is not None,
+        )
         found = evaluate(ctx)
         self._warnings_cache = (now, found)
         return found
@@ -234,7 +254,7 @@ class PreviewServer:
         now = self.clock()
         snap, old, dt = self._sample(now)
         item = self.tap.latest
-        history = list(self.tap.history)   # one C-level copy: the tap appends meanwhile
+        history = list(self.tap.history)  # one C-level copy: the tap appends meanwhile
         recent = [r for r in history if item is not None and item.result.t_capture_s - r.t_capture_s <= 2.0]
         fps = None
         if len(recent) >= 2:
@@ -253,18 +273,30 @@ class PreviewServer:
             "fps": None if fps is None else round(fps, 2),
             "camera_fps": round((snap["captured"] - old["captured"]) / dt, 2) if dt > 0 else None,
             "detected_pct": round(100.0 * sum(r.ok for r in recent) / len(recent), 1) if recent else None,
-            "captured": snap["captured"], "frames": snap["processed"], "detected": snap["detected"],
-            "drops": snap["drops"], "source": self.pipeline.source_state,
+            "captured": snap["captured"],
+            "frames": snap["processed"],
+            "detected": snap["detected"],
+            "drops": snap["drops"],
+            "source": self.pipeline.source_state,
             "latency_ms": latency,
             "outputs": self._outputs(),
             "detector_step": item.detector_step if item is not None else None,
             "warnings": [w.to_dict() for w in self.warnings()],
-            "preview": {**counts, "encode_ms": None if self.encode_s is None else round(self.encode_s * 1e3, 2),
-                        "stream_cpu_s": round(self.stream_cpu_s, 3),
-                        "max_fps": self.pcfg.max_fps, "max_width": self.pcfg.max_width},
+            "preview": {
+                **counts,
+                "encode_ms": None if self.encode_s is None else round(self.encode_s * 1e3, 2),
+                "stream_cpu_s": round(self.stream_cpu_s, 3),
+                "max_fps": self.pcfg.max_fps,
+                "max_width": self.pcfg.max_width,
+            },
             "recording": rec.status() if rec is not None else None,
-            "marker": {"type": self.marker.type, "id": self.marker.id, "dictionary": self.marker.dictionary,
-                       "width": self.marker.width, "height": self.marker.height},
+            "marker": {
+                "type": self.marker.type,
+                "id": self.marker.id,
+                "dictionary": self.marker.dictionary,
+                "width": self.marker.width,
+                "height": self.marker.height,
+            },
             "uptime_s": round(now - self._t_start, 1),
         }
         return {"status": status, "last": item.result.to_json_dict() if item is not None else None}
@@ -316,8 +348,9 @@ class PreviewServer:
             folder = self.data_dir / "recordings"
             path = unique_path(folder, f"rec-{utc_stamp()}")
             try:
-                rec = Recorder(path, self.camera, self.marker, seconds, source=self.cfg.camera.source,
-                               fps=self.cfg.camera.fps)
+                rec = Recorder(
+                    path, self.camera, self.marker, seconds, source=self.cfg.camera.source, fps=self.cfg.camera.fps
+                )
             except (OSError, PoseDaemonError) as exc:
                 raise _HttpError(HTTPStatus.INTERNAL_SERVER_ERROR, f"cannot record: {exc}") from None
             self.recorder = rec
@@ -343,8 +376,13 @@ class PreviewServer:
                 self.count("frames_skipped", item.seq - last.seq - 1)
             cpu0 = time.thread_time()
             data = self.jpeg(item)
-            write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
-                  + str(len(data)).encode() + b"\r\n\r\n" + data + b"\r\n")
+            write(
+                b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
+                + str(len(data)).encode()
+                + b"\r\n\r\n"
+                + data
+                + b"\r\n"
+            )
             with self._lock:
                 self.counts["frames_sent"] += 1
                 self.stream_cpu_s += time.thread_time() - cpu0
@@ -403,8 +441,10 @@ class _Handler(BaseHTTPRequestHandler):
 
     def _check_host(self, preview: PreviewServer) -> None:
         if not host_allowed(self.headers.get("Host"), preview.pcfg.address[0]):
-            raise _HttpError(HTTPStatus.FORBIDDEN, f"unexpected Host {self.headers.get('Host')!r}: "
-                             "use the address the daemon listens on")
+            raise _HttpError(
+                HTTPStatus.FORBIDDEN,
+                f"unexpected Host {self.headers.get('Host')!r}: use the address the daemon listens on",
+            )
 
     def do_GET(self) -> None:  # noqa: N802 - http.server's name
         preview = self.server.preview

@@ -11,7 +11,7 @@ from __future__ import annotations
 import collections
 import logging
 import threading
-from typing import Deque, NamedTuple, Optional
+from typing import Any, Deque, NamedTuple, Optional
 
 from ..capture.base import Frame
 from ..result import FrameResult
@@ -27,7 +27,8 @@ class Tapped(NamedTuple):
 
     frame: Frame
     result: FrameResult
-    detector_step: Optional[str]   # "follow", "roi", "full" or None (the detector's last_stage)
+    detector_step: Optional[str]  # "follow", "roi", "full" or None (the detector's last_stage)
+    search: Any = None  # the detector's last_search (a SearchRecord) or None
 
     @property
     def seq(self) -> int:
@@ -37,8 +38,9 @@ class Tapped(NamedTuple):
 class FrameTap:
     """Called as ``tap(frame, result)`` by the pipeline's processing thread (frame_observer).
 
-    ``processor``: the FrameProcessor, whose detector's ``last_stage`` (read in the processing
-    thread, so it belongs to this frame) says which search step found the marker.
+    ``processor``: the FrameProcessor, whose detector's ``last_stage`` and ``last_search``
+    (read in the processing thread, so they belong to this frame) say which search step
+    found the marker and where it searched.
     """
 
     def __init__(self, processor=None, history: int = HISTORY) -> None:
@@ -46,15 +48,20 @@ class FrameTap:
         self.latest: Optional[Tapped] = None
         self.history: Deque[FrameResult] = collections.deque(maxlen=history)
         self._cond = threading.Condition()
-        self._waiting = 0          # viewers blocked in wait_newer: only then is there a notify
-        self.recorder = None       # a Recorder while one records (set by the server)
+        self._waiting = 0  # viewers blocked in wait_newer: only then is there a notify
+        self.recorder = None  # a Recorder while one records (set by the server)
         self.frames = 0
         self.failures = 0
 
     def __call__(self, frame: Frame, result: FrameResult) -> None:
         try:
-            step = getattr(self._detector, "last_stage", None) if self._detector is not None else None
-            item = Tapped(frame, result, step)
+            detector = self._detector
+            if detector is not None:
+                item = Tapped(
+                    frame, result, getattr(detector, "last_stage", None), getattr(detector, "last_search", None)
+                )
+            else:
+                item = Tapped(frame, result, None)
             self.latest = item
             self.history.append(result)
             self.frames += 1

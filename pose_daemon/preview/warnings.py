@@ -1,8 +1,8 @@
 """Why there is no pose (or a doubtful one): the warnings the page and the annotated frame show.
 
 Each cause is one entry of RULES: a code and a function of the Context that returns the
-warning's text or None. A new cause (a gate that rejected the pose, a stale autopilot
-attitude) is one more function and one more entry; the page lists whatever comes back.
+warning's text or None. A new cause is one more function and one more entry; the page lists
+whatever comes back.
 """
 
 from __future__ import annotations
@@ -37,11 +37,12 @@ class Context:
     last: Optional[Tapped]
     history: Sequence[FrameResult]
     source_state: str
-    since_frame_s: Optional[float]         # seconds since the processed-frame count last moved
-    recent_drops: Dict[str, int]           # drops by cause over the last few seconds
-    outputs: List[dict] = field(default_factory=list)   # per output: name, link_up, link, ...
+    since_frame_s: Optional[float]  # seconds since the processed-frame count last moved
+    recent_drops: Dict[str, int]  # drops by cause over the last few seconds
+    outputs: List[dict] = field(default_factory=list)  # per output: name, link_up, link, ...
     min_side_px: float = 10.0
     ambiguous_ratio: float = 0.1
+    attitude_expected: bool = False  # [attitude] names a live source: frames should carry one
 
 
 def shortest_side_px(corners) -> float:
@@ -78,8 +79,10 @@ def _no_marker(ctx: Context) -> Optional[str]:
     if seen is not None:
         side = shortest_side_px(seen.corners)
         if side < SMALL_FACTOR * ctx.min_side_px:
-            return (f"no marker in view: last seen {side:.0f} px across, the detector needs "
-                    f"{ctx.min_side_px:g} px: move closer or use a bigger marker")
+            return (
+                f"no marker in view: last seen {side:.0f} px across, the detector needs "
+                f"{ctx.min_side_px:g} px: move closer or use a bigger marker"
+            )
     return "no marker in view"
 
 
@@ -88,28 +91,29 @@ def _small(ctx: Context) -> Optional[str]:
         return None
     side = shortest_side_px(ctx.last.result.corners)
     if side < SMALL_FACTOR * ctx.min_side_px:
-        return (f"marker too small: {side:.0f} px across, lost below {ctx.min_side_px:g} px "
-                f"([detector] min_side_px)")
+        return f"marker too small: {side:.0f} px across, lost below {ctx.min_side_px:g} px ([detector] min_side_px)"
     return None
 
 
 def _bad_frame(ctx: Context) -> Optional[str]:
     error = ctx.last.result.error if ctx.last is not None else None
-    return f"camera frame unusable: {error[len('bad frame: '):]}" if error and error.startswith("bad frame") else None
+    return f"camera frame unusable: {error[len('bad frame: ') :]}" if error and error.startswith("bad frame") else None
 
 
 def _pose_failed(ctx: Context) -> Optional[str]:
     error = ctx.last.result.error if ctx.last is not None else None
     if error and error.startswith("pose:"):
-        return f"corners found but no pose: {error[len('pose:'):].strip()}"
+        return f"corners found but no pose: {error[len('pose:') :].strip()}"
     return None
 
 
 def _ambiguous(ctx: Context) -> Optional[str]:
     pose = ctx.last.result.pose if ctx.last is not None else None
     if pose is not None and pose.alternative is not None and pose.ambiguity_ratio >= ctx.ambiguous_ratio:
-        return (f"two planar solutions fit almost equally (ambiguity {pose.ambiguity_ratio:.2f}): "
-                "the attitude may flip; view the marker at an angle or use a bigger marker")
+        return (
+            f"two planar solutions fit almost equally (ambiguity {pose.ambiguity_ratio:.2f}): "
+            "the attitude may flip; view the marker at an angle or use a bigger marker"
+        )
     return None
 
 
@@ -120,11 +124,26 @@ def _late(ctx: Context) -> Optional[str]:
     return None
 
 
+def _withheld(ctx: Context) -> Optional[str]:
+    gated, inconsistent = ctx.recent_drops.get("gated", 0), ctx.recent_drops.get("inconsistent", 0)
+    parts = []
+    if gated:
+        parts.append(f"{gated} rejected by the quality gate (the corners fit no marker well enough)")
+    if inconsistent:
+        parts.append(f"{inconsistent} inconsistent (neither planar solution agrees with the attitude or tilt)")
+    return "poses withheld in the last seconds: " + "; ".join(parts) if parts else None
+
+
+def _attitude_stale(ctx: Context) -> Optional[str]:
+    if not ctx.attitude_expected or ctx.last is None or ctx.last.result.attitude is not None:
+        return None
+    return "no fresh autopilot attitude for this frame: the planar solution is chosen without it"
+
+
 def _autopilot(ctx: Context) -> Optional[str]:
     for out in ctx.outputs:
         if out.get("wait_heartbeat") and out.get("link_up") and out.get("autopilot") is None:
-            return (f"autopilot not heard on {out.get('connection', out['name'])}: no HEARTBEAT yet, "
-                    "poses are held back")
+            return f"autopilot not heard on {out.get('connection', out['name'])}: no HEARTBEAT yet, poses are held back"
     return None
 
 
@@ -148,6 +167,8 @@ RULES: Tuple[Tuple[str, Rule], ...] = (
     ("pose_failed", _pose_failed),
     ("ambiguous", _ambiguous),
     ("late", _late),
+    ("withheld", _withheld),
+    ("attitude_stale", _attitude_stale),
     ("autopilot_not_heard", _autopilot),
     ("output_down", _output_down),
     ("output_drops", _output_drops),

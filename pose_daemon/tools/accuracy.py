@@ -29,7 +29,7 @@ class Accuracy:
         self.detected += 1
         if "true_corners" in metadata:
             d = np.asarray(result.corners, dtype=np.float64) - metadata["true_corners"]
-            self.corner_px.append(float(np.sqrt((d ** 2).sum(axis=1).mean())))
+            self.corner_px.append(float(np.sqrt((d**2).sum(axis=1).mean())))
         if result.pose is not None:
             R_true = R_from_rvec(np.asarray(metadata["true_rvec"], dtype=np.float64))
             self.rotation_deg.append(float(rotation_angle_deg(R_true, result.pose.R)))
@@ -42,8 +42,11 @@ class Accuracy:
             "detection_rate": self.detected / self.frames if self.frames else None,
             "poses": float(len(self.rotation_deg)),
         }
-        for name, values in (("corner_rms_px", self.corner_px), ("rotation_deg", self.rotation_deg),
-                             ("translation_m", self.translation_m)):
+        for name, values in (
+            ("corner_rms_px", self.corner_px),
+            ("rotation_deg", self.rotation_deg),
+            ("translation_m", self.translation_m),
+        ):
             out[f"{name}_median"] = float(np.median(values)) if values else None
             out[f"{name}_p95"] = float(np.percentile(values, 95)) if values else None
         return out
@@ -55,12 +58,14 @@ class Accuracy:
             return "-" if v is None else fmt.format(v * scale)
 
         rate = s["detection_rate"]
-        return "\n".join([
-            f"accuracy against the recorded truth ({self.frames} frames)",
-            f"  detection rate        {f(rate, 100, '{:.1f}')} % ({self.detected}/{self.frames})",
-            "                        median      p95",
-            f"  corner error px       {f(s['corner_rms_px_median']):>8} {f(s['corner_rms_px_p95']):>8}",
-            f"  rotation error deg    {f(s['rotation_deg_median']):>8} {f(s['rotation_deg_p95']):>8}",
-            f"  translation error mm  {f(s['translation_m_median'], 1e3, '{:.1f}'):>8} "
-            f"{f(s['translation_m_p95'], 1e3, '{:.1f}'):>8}",
-        ])
+        return "\n".join(
+            [
+                f"accuracy against the recorded truth ({self.frames} frames)",
+                f"  detection rate        {f(rate, 100, '{:.1f}')} % ({self.detected}/{self.frames})",
+                "                        median      p95",
+                f"  corner error px       {f(s['corner_rms_px_median']):>8} {f(s['corner_rms_px_p95']):>8}",
+                f"  rotation error deg    {f(s['rotation_deg_median']):>8} {f(s['rotation_deg_p95']):>8}",
+                f"  translation error mm  {f(s['translation_m_median'], 1e3, '{:.1f}'):>8} "
+                f"{f(s['translation_m_p95'], 1e3, '{:.1f}'):>8}",
+            ]
+        )

@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -70,16 +70,18 @@ class Flight:
     rpy_rad: List[Tuple[float, float, float]] = field(default_factory=list)
 
 
-def vehicle_at(placement: str, size: str, t_s: float, phases: np.ndarray) -> Tuple[np.ndarray, Tuple[float, float, float]]:
+def vehicle_at(
+    placement: str, size: str, t_s: float, phases: np.ndarray
+) -> Tuple[np.ndarray, Tuple[float, float, float]]:
     """The vehicle's position in the marker's local frame (FRD, z down, metres) and its
     (roll, pitch, yaw) at ``t_s``: it hovers with a wobble and drifts on slow sines, tilting
     into its accelerations as a multicopter does."""
     lo_px, hi_px = SIZES_PX[size]
     # Distance range that images the 0.2 m marker between lo_px and hi_px across.
     d_near, d_far = CAMERA.fx * MARKER.width / hi_px, CAMERA.fx * MARKER.width / lo_px
-    w = 2 * math.pi / np.array([11.0, 7.0, 9.0, 13.0])   # slow drifts, rad/s
+    w = 2 * math.pi / np.array([11.0, 7.0, 9.0, 13.0])  # slow drifts, rad/s
     s = np.sin(w * t_s + phases[:4])
-    a = -(w ** 2) * s                                      # their accelerations / amplitude
+    a = -(w**2) * s  # their accelerations / amplitude
     d_mid, d_amp = 0.5 * (d_near + d_far), 0.5 * (d_far - d_near)
     dist = d_mid + d_amp * s[0]
     lat_amp, vert_amp = 0.18 * d_mid, 0.12 * d_mid
@@ -109,7 +111,7 @@ def render_flight(placement: str, size: str, n_frames: int, seed: int) -> Flight
     background = make_background(rng, CAMERA.width, CAMERA.height)
     detector = MarkerDetector(MARKER, camera=CAMERA)
     flight = Flight(placement, size, frames)
-    effects = Effects()   # the renderer's blur and noise, as a camera gives them
+    effects = Effects()  # the renderer's blur and noise, as a camera gives them
     for i in range(n_frames):
         t = i / FPS
         p, rpy = vehicle_at(placement, size, t, phases)
@@ -128,9 +130,17 @@ def render_flight(placement: str, size: str, n_frames: int, seed: int) -> Flight
 def with_corner_noise(flight: Flight, noise_px: float, seed: int) -> Flight:
     """The same flight with Gaussian noise of ``noise_px`` added to every detected corner."""
     rng = np.random.default_rng(seed)
-    noisy = Flight(flight.placement, flight.size, flight.frames, noise_px, flight.t_s, flight.R_cam_marker,
-                   flight.tvec, [None if c is None else c + rng.normal(0.0, noise_px, c.shape) for c in flight.corners],
-                   flight.rpy_rad)
+    noisy = Flight(
+        flight.placement,
+        flight.size,
+        flight.frames,
+        noise_px,
+        flight.t_s,
+        flight.R_cam_marker,
+        flight.tvec,
+        [None if c is None else c + rng.normal(0.0, noise_px, c.shape) for c in flight.corners],
+        flight.rpy_rad,
+    )
     return noisy
 
 
@@ -169,14 +179,21 @@ class Row:
             return float(np.percentile(values, q)) * scale if values else None
 
         flips = sum(e > FLIP_DEG for e in self.rot_deg)
-        return {"strategy": self.strategy, "detected": self.detected, "sent": self.sent,
-                "withheld": self.withheld, "flips": flips,
-                "flip_pct": 100.0 * flips / self.sent if self.sent else None,
-                "rot_med_deg": pct(self.rot_deg, 50), "rot_p95_deg": pct(self.rot_deg, 95),
-                "trans_med_mm": pct(self.trans_m, 50, 1e3), "trans_p95_mm": pct(self.trans_m, 95, 1e3),
-                "both_right_med_deg": pct(self.both_right_deg, 50),
-                "estimator_both_right_med_deg": pct(self.estimator_both_right_deg, 50),
-                "estimate_ms": pct(self.estimate_s, 50, 1e3)}
+        return {
+            "strategy": self.strategy,
+            "detected": self.detected,
+            "sent": self.sent,
+            "withheld": self.withheld,
+            "flips": flips,
+            "flip_pct": 100.0 * flips / self.sent if self.sent else None,
+            "rot_med_deg": pct(self.rot_deg, 50),
+            "rot_p95_deg": pct(self.rot_deg, 95),
+            "trans_med_mm": pct(self.trans_m, 50, 1e3),
+            "trans_p95_mm": pct(self.trans_m, 95, 1e3),
+            "both_right_med_deg": pct(self.both_right_deg, 50),
+            "estimator_both_right_med_deg": pct(self.estimator_both_right_deg, 50),
+            "estimate_ms": pct(self.estimate_s, 50, 1e3),
+        }
 
 
 def _attitudes(flight: Flight, noise_deg: float, lag_s: float, seed: int) -> List[Attitude]:
@@ -188,18 +205,18 @@ def _attitudes(flight: Flight, noise_deg: float, lag_s: float, seed: int) -> Lis
     sigma = math.radians(noise_deg)
     noisy = lagged + rng.normal(0.0, sigma, lagged.shape)
     noisy[:, 2] += YAW_REFERENCE_OFFSET_RAD
-    return [Attitude(tuple(float(v) for v in r), sigma) for r in noisy]
+    return [Attitude((float(r[0]), float(r[1]), float(r[2])), sigma) for r in noisy]
 
 
-def run_strategy(flight: Flight, name: str, prior: Optional[PriorSettings],
-                 attitudes: Optional[List[Attitude]] = None) -> Row:
+def run_strategy(
+    flight: Flight, name: str, prior: Optional[PriorSettings], attitudes: Optional[List[Attitude]] = None
+) -> Row:
     """The flight's corners through one strategy; ``prior`` None = the estimator alone."""
     row = Row(name)
     image = np.zeros((CAMERA.height, CAMERA.width), np.uint8)
     proc = None
     if prior is not None:
-        proc = FrameProcessor(CAMERA, MARKER, detector=_Scripted(flight.corners), frames=flight.frames,
-                              prior=prior)
+        proc = FrameProcessor(CAMERA, MARKER, detector=_Scripted(flight.corners), frames=flight.frames, prior=prior)
     for i, corners in enumerate(flight.corners):
         if proc is not None:
             att = attitudes[i] if attitudes is not None else None
@@ -233,17 +250,25 @@ def run_strategy(flight: Flight, name: str, prior: Optional[PriorSettings],
 
 
 def strategies(flight: Flight, seed: int) -> List[Row]:
-    rows = [run_strategy(flight, "estimator alone", None),
-            run_strategy(flight, "continuity (before)", PriorSettings(gate=False)),
-            run_strategy(flight, f"tilt prior {TILT_PRIOR_DEG:g} deg", PriorSettings(max_tilt_deg=TILT_PRIOR_DEG))]
+    rows = [
+        run_strategy(flight, "estimator alone", None),
+        run_strategy(flight, "continuity (before)", PriorSettings(gate=False)),
+        run_strategy(flight, f"tilt prior {TILT_PRIOR_DEG:g} deg", PriorSettings(max_tilt_deg=TILT_PRIOR_DEG)),
+    ]
     for noise in ATTITUDE_NOISE_DEG:
         for lag in ATTITUDE_LAG_S:
             atts = _attitudes(flight, noise, lag, seed + int(noise * 10) + int(lag * 1000))
             label = f"{noise:g} deg, {lag * 1e3:.0f} ms"
-            rows.append(run_strategy(flight, f"attitude choice {label}",
-                                     PriorSettings(polish=False, attitude_sigma_deg=noise), atts))
-            rows.append(run_strategy(flight, f"attitude + polish {label}",
-                                     PriorSettings(polish=True, attitude_sigma_deg=noise), atts))
+            rows.append(
+                run_strategy(
+                    flight, f"attitude choice {label}", PriorSettings(polish=False, attitude_sigma_deg=noise), atts
+                )
+            )
+            rows.append(
+                run_strategy(
+                    flight, f"attitude + polish {label}", PriorSettings(polish=True, attitude_sigma_deg=noise), atts
+                )
+            )
     return rows
 
 
@@ -260,21 +285,34 @@ def clutter_texture(rng: np.random.Generator, width_px: int = 800, height_px: in
         long_side = rng.uniform(80, 300)
         aspect = rng.uniform(2.0, 6.0)
         w, h = (long_side, long_side / aspect) if rng.random() < 0.5 else (long_side / aspect, long_side)
-        box = ((float(rng.uniform(100, width_px - 100)), float(rng.uniform(100, height_px - 100))),
-               (float(w), float(h)), float(rng.uniform(-30, 30)))
+        box = (
+            (float(rng.uniform(100, width_px - 100)), float(rng.uniform(100, height_px - 100))),
+            (float(w), float(h)),
+            float(rng.uniform(-30, 30)),
+        )
         cv2.fillPoly(tex, [cv2.boxPoints(box).astype(np.int32)], dark)
     for _ in range(int(rng.integers(0, 3))):
         long_side = rng.uniform(100, 300)
         aspect = rng.uniform(1.5, 4.0)
         w, h = (long_side, long_side / aspect) if rng.random() < 0.5 else (long_side / aspect, long_side)
-        box = ((float(rng.uniform(150, width_px - 150)), float(rng.uniform(150, height_px - 150))),
-               (float(w), float(h)), float(rng.uniform(-20, 20)))
+        box = (
+            (float(rng.uniform(150, width_px - 150)), float(rng.uniform(150, height_px - 150))),
+            (float(w), float(h)),
+            float(rng.uniform(-20, 20)),
+        )
         cv2.polylines(tex, [cv2.boxPoints(box).astype(np.int32)], True, dark, int(rng.integers(6, 20)))
     letters = "ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789 "
     for _ in range(int(rng.integers(1, 5))):
         text = "".join(letters[int(k)] for k in rng.integers(0, len(letters), int(rng.integers(4, 14))))
-        cv2.putText(tex, text, (int(rng.uniform(10, width_px / 2)), int(rng.uniform(40, height_px - 10))),
-                    cv2.FONT_HERSHEY_SIMPLEX, float(rng.uniform(0.8, 2.5)), dark, int(rng.integers(2, 6)))
+        cv2.putText(
+            tex,
+            text,
+            (int(rng.uniform(10, width_px / 2)), int(rng.uniform(40, height_px - 10))),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            float(rng.uniform(0.8, 2.5)),
+            dark,
+            int(rng.integers(2, 6)),
+        )
     return tex.astype(np.float32)
 
 
@@ -286,11 +324,12 @@ def run_clutter(n_frames: int, seed: int) -> Dict[str, int]:
     frames = VehicleFrames.from_settings("forward", placement="wall")
     background = make_background(rng, CAMERA.width, CAMERA.height)
     effects = Effects()
-    counts = {"frames": 0, "detected": 0, "sent gate off": 0, "sent gate on": 0,
-              "sent gate + attitude": 0}
-    procs = {"sent gate off": FrameProcessor(CAMERA, MARKER, frames=frames, prior=PriorSettings(gate=False)),
-             "sent gate on": FrameProcessor(CAMERA, MARKER, frames=frames, prior=PriorSettings()),
-             "sent gate + attitude": FrameProcessor(CAMERA, MARKER, frames=frames, prior=PriorSettings())}
+    counts = {"frames": 0, "detected": 0, "sent gate off": 0, "sent gate on": 0, "sent gate + attitude": 0}
+    procs = {
+        "sent gate off": FrameProcessor(CAMERA, MARKER, frames=frames, prior=PriorSettings(gate=False)),
+        "sent gate on": FrameProcessor(CAMERA, MARKER, frames=frames, prior=PriorSettings()),
+        "sent gate + attitude": FrameProcessor(CAMERA, MARKER, frames=frames, prior=PriorSettings()),
+    }
     for i in range(n_frames):
         tex = clutter_texture(rng)
         rpy = (math.radians(rng.normal(0, 3)), math.radians(rng.normal(0, 3)), math.radians(rng.uniform(-25, 25)))
@@ -298,7 +337,8 @@ def run_clutter(n_frames: int, seed: int) -> Dict[str, int]:
         R_cm, tvec = frames.camera_pose(VehiclePose(p, R_from_euler_rpy(*rpy)))
         rvec = cv2.Rodrigues(R_cm)[0].reshape(3)
         image = render_plane(CAMERA, tex, (0.8, 0.6), rvec, tvec, effects=effects, rng=rng, background=background)
-        att = Attitude(tuple(float(v) + math.radians(rng.normal(0, 0.5)) for v in rpy), math.radians(0.5))
+        roll, pitch, yaw = (float(v) + math.radians(rng.normal(0, 0.5)) for v in rpy)
+        att = Attitude((roll, pitch, yaw), math.radians(0.5))
         counts["frames"] += 1
         for name, proc in procs.items():
             proc.reset()
@@ -322,8 +362,15 @@ def run_bench(n_frames: int = 300, n_clutter: int = 500, seed: int = 0) -> Dict[
             for noise in EXTRA_CORNER_NOISE_PX:
                 flight = with_corner_noise(rendered, noise, seed + 13 * k) if noise else rendered
                 rows = strategies(flight, seed + 7 * k)
-                flights.append({"placement": placement, "size_px": size, "frames": n_frames,
-                                "extra_corner_noise_px": noise, "rows": [r.summary() for r in rows]})
+                flights.append(
+                    {
+                        "placement": placement,
+                        "size_px": size,
+                        "frames": n_frames,
+                        "extra_corner_noise_px": noise,
+                        "rows": [r.summary() for r in rows],
+                    }
+                )
             k += 1
     clutter = run_clutter(n_clutter, seed + 999) if n_clutter else None
     return {"flights": flights, "clutter": clutter}
@@ -333,12 +380,14 @@ def _f(value: Optional[float], spec: str) -> str:
     return "-" if value is None else format(value, spec)
 
 
-def format_tables(result: Dict[str, object]) -> str:
+def format_tables(result: Dict[str, Any]) -> str:
     """The figures as Markdown tables (the README's form)."""
-    lines = ["| flight | marker | corner noise | strategy | sent/detected | withheld | flips | rot med / p95 deg "
-             "| trans med / p95 mm | rot med both right (estimator) | estimate+choice ms |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for flight in result["flights"]:  # type: ignore[union-attr]
+    lines = [
+        "| flight | marker | corner noise | strategy | sent/detected | withheld | flips | rot med / p95 deg "
+        "| trans med / p95 mm | rot med both right (estimator) | estimate+choice ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for flight in result["flights"]:
         extra = flight["extra_corner_noise_px"]
         noise = f"+{extra:g} px" if extra else "renderer"
         for r in flight["rows"]:
@@ -351,13 +400,17 @@ def format_tables(result: Dict[str, object]) -> str:
                 f"| {_f(r['rot_med_deg'], '.2f')} / {_f(r['rot_p95_deg'], '.1f')} "
                 f"| {_f(r['trans_med_mm'], '.0f')} / {_f(r['trans_p95_mm'], '.0f')} "
                 f"| {_f(r['both_right_med_deg'], '.2f')} ({_f(r['estimator_both_right_med_deg'], '.2f')}) "
-                f"| {_f(r['estimate_ms'], '.2f')} |")
+                f"| {_f(r['estimate_ms'], '.2f')} |"
+            )
     clutter = result.get("clutter")
     if clutter:
-        lines += ["", "| marker-free clutter frames | detected | sent, gate off | sent, gate on "
-                  "| sent, gate + attitude |", "|---|---|---|---|---|",
-                  f"| {clutter['frames']} | {clutter['detected']} | {clutter['sent gate off']} "
-                  f"| {clutter['sent gate on']} | {clutter['sent gate + attitude']} |"]
+        lines += [
+            "",
+            "| marker-free clutter frames | detected | sent, gate off | sent, gate on | sent, gate + attitude |",
+            "|---|---|---|---|---|",
+            f"| {clutter['frames']} | {clutter['detected']} | {clutter['sent gate off']} "
+            f"| {clutter['sent gate on']} | {clutter['sent gate + attitude']} |",
+        ]
     return "\n".join(lines)
 
 

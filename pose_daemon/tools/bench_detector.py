@@ -35,9 +35,9 @@ class Tally:
     name: str
     frames: int = 0
     detected: int = 0
-    wrong: int = 0                      # found, but not where the marker is (> 5 px off)
-    corner_err: List[np.ndarray] = field(default_factory=list)   # (4, 2) detected - true
-    outward: List[float] = field(default_factory=list)            # along centre -> corner, px
+    wrong: int = 0  # found, but not where the marker is (> 5 px off)
+    corner_err: List[np.ndarray] = field(default_factory=list)  # (4, 2) detected - true
+    outward: List[float] = field(default_factory=list)  # along centre -> corner, px
     rot_deg: List[float] = field(default_factory=list)
     trans_m: List[float] = field(default_factory=list)
     pose_failed: int = 0
@@ -46,7 +46,7 @@ class Tally:
     cpu_full_s: List[float] = field(default_factory=list)
     cpu_tracked_s: List[float] = field(default_factory=list)
     tracked_found: int = 0
-    tracked_followed: int = 0           # found by following the track (no search)
+    tracked_followed: int = 0  # found by following the track (no search)
     false_detections: int = 0
     empty_frames: int = 0
 
@@ -63,7 +63,7 @@ class Tally:
             "frames": self.frames,
             "detection_rate": self.detected / self.frames if self.frames else None,
             "wrong_detections": self.wrong,
-            "corner_rms_px": float(np.sqrt(np.mean(np.sum(err ** 2, axis=1)))) if len(err) else None,
+            "corner_rms_px": float(np.sqrt(np.mean(np.sum(err**2, axis=1)))) if len(err) else None,
             "corner_mean_dx_px": float(err[:, 0].mean()) if len(err) else None,
             "corner_mean_dy_px": float(err[:, 1].mean()) if len(err) else None,
             "corner_mean_outward_px": float(np.mean(self.outward)) if self.outward else None,
@@ -76,10 +76,8 @@ class Tally:
             "time_tracked_median_ms": med(self.t_tracked_s, 1e3),
             "cpu_full_median_ms": med(self.cpu_full_s, 1e3),
             "cpu_tracked_median_ms": med(self.cpu_tracked_s, 1e3),
-            "tracked_detection_rate": (self.tracked_found / len(self.t_tracked_s)
-                                       if self.t_tracked_s else None),
-            "tracked_follow_rate": (self.tracked_followed / len(self.t_tracked_s)
-                                    if self.t_tracked_s else None),
+            "tracked_detection_rate": (self.tracked_found / len(self.t_tracked_s) if self.t_tracked_s else None),
+            "tracked_follow_rate": (self.tracked_followed / len(self.t_tracked_s) if self.t_tracked_s else None),
             "false_detections": self.false_detections,
             "empty_frames": self.empty_frames,
         }
@@ -89,9 +87,13 @@ def _effects(rng: np.random.Generator):
 
     # Varied scenes: mostly textured backgrounds, some plain; lighting from even to strong.
     plain = rng.random() < 0.25
-    return Effects(blur_px=0.8, noise_gray=2.0, background="plain" if plain else "texture",
-                   plain_gray=float(rng.uniform(60.0, 200.0)),
-                   lighting_gradient=float(rng.uniform(0.0, 0.6)))
+    return Effects(
+        blur_px=0.8,
+        noise_gray=2.0,
+        background="plain" if plain else "texture",
+        plain_gray=float(rng.uniform(60.0, 200.0)),
+        lighting_gradient=float(rng.uniform(0.0, 0.6)),
+    )
 
 
 CLUTTER_SCENES = ("carpet", "board", "text", "rectangles")
@@ -120,15 +122,15 @@ def clutter_background(kind: str, rng: np.random.Generator, width: int, height: 
             for c in range(n):
                 y0, x0 = int(4 + r * cell), int(4 + c * cell)
                 if (r + c) % 2 == 0:
-                    board[y0:int(4 + (r + 1) * cell), x0:int(4 + (c + 1) * cell)] = 30.0
+                    board[y0 : int(4 + (r + 1) * cell), x0 : int(4 + (c + 1) * cell)] = 30.0
                 else:
                     # A ChArUco board: a marker-like dark square in every white one.
                     m0, m1 = int(0.2 * cell), int(0.8 * cell)
-                    board[y0 + m0:y0 + m1, x0 + m0:x0 + m1] = 30.0
+                    board[y0 + m0 : y0 + m1, x0 + m0 : x0 + m1] = 30.0
                     k = max(1, int(0.12 * cell))
                     for _ in range(3):
                         py, px = rng.integers(m0 + k, m1 - 2 * k, 2)
-                        board[y0 + py:y0 + py + k, x0 + px:x0 + px + k] = 235.0
+                        board[y0 + py : y0 + py + k, x0 + px : x0 + px + k] = 235.0
         h, w = board.shape
         src = np.float32([[0, 0], [w, 0], [w, h], [0, h]])
         jitter = rng.uniform(-0.12, 0.12, (4, 2)) * [width, height]
@@ -148,8 +150,16 @@ def clutter_background(kind: str, rng: np.random.Generator, width: int, height: 
             thickness = int(rng.integers(1, 3))
             line = "".join(rng.choice(list(letters + "     "), size=60))
             font = int(rng.choice([cv2.FONT_HERSHEY_SIMPLEX, cv2.FONT_HERSHEY_DUPLEX, cv2.FONT_HERSHEY_COMPLEX]))
-            cv2.putText(page, line, (int(rng.integers(-20, 10)), y), font, scale, int(rng.uniform(10, 60)),
-                        thickness, cv2.LINE_AA)
+            cv2.putText(
+                page,
+                line,
+                (int(rng.integers(-20, 10)), y),
+                font,
+                scale,
+                int(rng.uniform(10, 60)),
+                thickness,
+                cv2.LINE_AA,
+            )
             y += int(30 * scale + rng.integers(4, 12))
         return page.astype(np.float32)
     if kind == "rectangles":
@@ -170,8 +180,9 @@ def _align_labels(found: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return min(shifts, key=lambda c: float(np.sum((c - truth) ** 2)))
 
 
-def _score(tally: Tally, corners: Optional[np.ndarray], truth: np.ndarray, rvec_true: np.ndarray,
-           tvec_true: np.ndarray, pose) -> None:
+def _score(
+    tally: Tally, corners: Optional[np.ndarray], truth: np.ndarray, rvec_true: np.ndarray, tvec_true: np.ndarray, pose
+) -> None:
     """Record one full-search result; ``pose`` is (rvec, tvec), None or "failed"."""
     tally.frames += 1
     if corners is None:
@@ -190,18 +201,18 @@ def _score(tally: Tally, corners: Optional[np.ndarray], truth: np.ndarray, rvec_
         tally.pose_failed += 1
         return
     rvec, tvec = pose
-    tally.rot_deg.append(float(rotation_angle_deg(R_from_rvec(np.asarray(rvec, float).reshape(3)),
-                                                  R_from_rvec(rvec_true))))
+    tally.rot_deg.append(
+        float(rotation_angle_deg(R_from_rvec(np.asarray(rvec, float).reshape(3)), R_from_rvec(rvec_true)))
+    )
     tally.trans_m.append(float(np.linalg.norm(np.asarray(tvec, float).reshape(3) - tvec_true)))
 
 
-def _approach(rng: np.random.Generator, rvec: np.ndarray, tvec: np.ndarray, camera: Camera,
-              marker: Marker):
+def _approach(rng: np.random.Generator, rvec: np.ndarray, tvec: np.ndarray, camera: Camera, marker: Marker):
     """The two frames before (rvec, tvec) of a camera moving smoothly at 30 fps (up to
     0.6 m/s and 15 deg/s) with a little shake: [(rvec, tvec) at t-2, at t-1]."""
     R0 = R_from_rvec(np.asarray(rvec, float))
     for attempt in range(20):
-        scale = 0.5 ** attempt
+        scale = 0.5**attempt
         v_m = rng.normal(0.0, 1.0, 3)
         v_m *= scale * rng.uniform(0.0, 0.02) / max(float(np.linalg.norm(v_m)), 1e-12)
         w_rad = rng.normal(0.0, 1.0, 3)
@@ -236,8 +247,7 @@ def _timed(fn: Callable, repeat: int, before: Optional[Callable] = None):
     return result, (best, best_cpu)
 
 
-def _run_marker_type(kind: str, n_frames: int, seed: int, camera: Camera,
-                     repeat: int) -> Dict[str, Tally]:
+def _run_marker_type(kind: str, n_frames: int, seed: int, camera: Camera, repeat: int) -> Dict[str, Tally]:
     from ..detect import MarkerDetector, aruco_compat
     from ..pose.estimator import EstimationError, estimate_pose
 
@@ -252,7 +262,8 @@ def _run_marker_type(kind: str, n_frames: int, seed: int, camera: Camera,
         anchor = Tally("aruco (OpenCV ArUco + IPPE)")
         tallies["anchor"] = anchor
         anchor_finder = aruco_compat.ArucoMarkerFinder(
-            aruco_compat.get_dictionary(DICTIONARY), aruco_compat.make_parameters(corner_refine="subpix"))
+            aruco_compat.get_dictionary(DICTIONARY), aruco_compat.make_parameters(corner_refine="subpix")
+        )
     K, dist = camera.K, camera.dist_coeffs
     detector = MarkerDetector(marker)
     # The same poses and scenes for both marker types: one generator per role, same seed.
@@ -263,12 +274,14 @@ def _run_marker_type(kind: str, n_frames: int, seed: int, camera: Camera,
         scene_rng = np.random.default_rng([seed, 2, i])
         effects = _effects(scene_rng)
         background_seed = int(scene_rng.integers(2**31))
-        image, truth = render_frame(camera, marker, rvec_t, tvec_t, effects=effects,
-                                    rng=np.random.default_rng(background_seed))
+        image, truth = render_frame(
+            camera, marker, rvec_t, tvec_t, effects=effects, rng=np.random.default_rng(background_seed)
+        )
         # The same scene a frame and two frames earlier (new sensor noise each).
-        earlier = [render_frame(camera, marker, r, t, effects=effects,
-                                rng=np.random.default_rng(background_seed + 1 + k))[0]
-                   for k, (r, t) in enumerate(before)]
+        earlier = [
+            render_frame(camera, marker, r, t, effects=effects, rng=np.random.default_rng(background_seed + 1 + k))[0]
+            for k, (r, t) in enumerate(before)
+        ]
 
         # pose-daemon, whole-frame search (no track), then the next frame tracked.
         def ours_full(image=image):
@@ -310,19 +323,20 @@ def _run_marker_type(kind: str, n_frames: int, seed: int, camera: Camera,
             tracked, (seconds, cpu) = _timed(ours_tracked, repeat, before=prime)
             ours.t_tracked_s.append(seconds)
             ours.cpu_tracked_s.append(cpu)
-            ours.tracked_found += tracked is not None and \
-                float(np.abs(_align_labels(tracked, truth) - truth).max()) <= 5.0
+            ours.tracked_found += (
+                tracked is not None and float(np.abs(_align_labels(tracked, truth) - truth).max()) <= 5.0
+            )
             ours.tracked_followed += detector.last_stage == "follow"
 
         # The anchor: ArUco with CORNER_REFINE_SUBPIX, then IPPE_SQUARE.
         if anchor_finder is not None:
+
             def anchor_full(image=image):
                 found, ids = anchor_finder.detect(image)
                 for c, marker_id in zip(found, ids):
                     if int(marker_id) == MARKER_ID:
                         c = c.astype(np.float64)
-                        ok, rvec, tvec = cv2.solvePnP(marker.object_points, c, K, dist,
-                                                      flags=cv2.SOLVEPNP_IPPE_SQUARE)
+                        ok, rvec, tvec = cv2.solvePnP(marker.object_points, c, K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
                         return c, ((rvec, tvec) if ok else "failed")
                 return None, None
 
@@ -343,8 +357,9 @@ def _run_empty(tallies: Dict[str, Dict[str, Tally]], n_empty: int, seed: int, ca
         detectors["square"] = MarkerDetector(square)
     if "aruco" in tallies:
         detectors["aruco"] = MarkerDetector(aruco)
-        anchor_finder = aruco_compat.ArucoMarkerFinder(aruco_compat.get_dictionary(DICTIONARY),
-                                                       aruco_compat.make_parameters(corner_refine="subpix"))
+        anchor_finder = aruco_compat.ArucoMarkerFinder(
+            aruco_compat.get_dictionary(DICTIONARY), aruco_compat.make_parameters(corner_refine="subpix")
+        )
     for i in range(n_empty):
         scene_rng = np.random.default_rng([seed, 3, i])
         image = render_empty(camera, effects=_effects(scene_rng), rng=scene_rng)
@@ -375,11 +390,13 @@ def run_clutter(n_frames: int, seed: int, camera: Camera, repeat: int) -> List[d
     detection alone (no pose), each the fastest of ``repeat`` runs."""
     from ..detect import MarkerDetector, aruco_compat
 
-    markers = {"square": Marker(MARKER_SIZE_M, MARKER_SIZE_M),
-               "aruco": Marker(MARKER_SIZE_M, MARKER_SIZE_M, type="aruco", dictionary=DICTIONARY,
-                               id=MARKER_ID)}
+    markers = {
+        "square": Marker(MARKER_SIZE_M, MARKER_SIZE_M),
+        "aruco": Marker(MARKER_SIZE_M, MARKER_SIZE_M, type="aruco", dictionary=DICTIONARY, id=MARKER_ID),
+    }
     anchor_finder = aruco_compat.ArucoMarkerFinder(
-        aruco_compat.get_dictionary(DICTIONARY), aruco_compat.make_parameters(corner_refine="subpix"))
+        aruco_compat.get_dictionary(DICTIONARY), aruco_compat.make_parameters(corner_refine="subpix")
+    )
     rows = []
     for s_index, scene in enumerate(CLUTTER_SCENES):
         for kind, marker in markers.items():
@@ -391,11 +408,18 @@ def run_clutter(n_frames: int, seed: int, camera: Camera, repeat: int) -> List[d
                 effects = _clutter_effects(scene_rng)
                 background = clutter_background(scene, scene_rng, camera.width, camera.height)
                 rvec, tvec = random_pose(pose_rng, camera, marker, distance_m=(0.5, 3.0), max_tilt_deg=60.0)
-                image, truth = render_frame(camera, marker, rvec, tvec, effects=effects,
-                                            rng=np.random.default_rng([seed, 12, s_index, i]),
-                                            background=background)
-                empty = render_empty(camera, effects=effects, rng=np.random.default_rng([seed, 13, s_index, i]),
-                                     background=background)
+                image, truth = render_frame(
+                    camera,
+                    marker,
+                    rvec,
+                    tvec,
+                    effects=effects,
+                    rng=np.random.default_rng([seed, 12, s_index, i]),
+                    background=background,
+                )
+                empty = render_empty(
+                    camera, effects=effects, rng=np.random.default_rng([seed, 13, s_index, i]), background=background
+                )
 
                 def ours_full(image=image, detector=detector):
                     detector.reset()
@@ -418,7 +442,7 @@ def run_clutter(n_frames: int, seed: int, camera: Camera, repeat: int) -> List[d
                     anchor.cpu_full_s.append(cpu)
                     _score(anchor, corners, truth, rvec, tvec, None)
                 found, (seconds, _) = _timed(lambda empty=empty: ours_full(empty), repeat)
-                ours.t_tracked_s.append(seconds)   # here: the marker-free frame's search
+                ours.t_tracked_s.append(seconds)  # here: the marker-free frame's search
                 ours.empty_frames += 1
                 ours.false_detections += found is not None
                 if kind == "aruco":
@@ -432,18 +456,32 @@ def run_clutter(n_frames: int, seed: int, camera: Camera, repeat: int) -> List[d
 
 def _clutter_row(scene: str, kind: str, ours: Tally, anchor: Optional[Tally]) -> dict:
     s = ours.summary()
-    row = {"scene": scene, "marker": kind, "frames": s["frames"], "detection_rate": s["detection_rate"],
-           "wrong_detections": s["wrong_detections"], "corner_rms_px": s["corner_rms_px"],
-           "false_detections": s["false_detections"], "empty_frames": s["empty_frames"],
-           "time_median_ms": s["time_full_median_ms"], "time_empty_median_ms": s["time_tracked_median_ms"],
-           "cpu_median_ms": s["cpu_full_median_ms"]}
+    row = {
+        "scene": scene,
+        "marker": kind,
+        "frames": s["frames"],
+        "detection_rate": s["detection_rate"],
+        "wrong_detections": s["wrong_detections"],
+        "corner_rms_px": s["corner_rms_px"],
+        "false_detections": s["false_detections"],
+        "empty_frames": s["empty_frames"],
+        "time_median_ms": s["time_full_median_ms"],
+        "time_empty_median_ms": s["time_tracked_median_ms"],
+        "cpu_median_ms": s["cpu_full_median_ms"],
+    }
     if anchor is not None:
         a = anchor.summary()
-        row.update({"anchor_detection_rate": a["detection_rate"], "anchor_wrong_detections": a["wrong_detections"],
-                    "anchor_corner_rms_px": a["corner_rms_px"], "anchor_false_detections": a["false_detections"],
-                    "anchor_time_median_ms": a["time_full_median_ms"],
-                    "anchor_time_empty_median_ms": a["time_tracked_median_ms"],
-                    "anchor_cpu_median_ms": a["cpu_full_median_ms"]})
+        row.update(
+            {
+                "anchor_detection_rate": a["detection_rate"],
+                "anchor_wrong_detections": a["wrong_detections"],
+                "anchor_corner_rms_px": a["corner_rms_px"],
+                "anchor_false_detections": a["false_detections"],
+                "anchor_time_median_ms": a["time_full_median_ms"],
+                "anchor_time_empty_median_ms": a["time_tracked_median_ms"],
+                "anchor_cpu_median_ms": a["cpu_full_median_ms"],
+            }
+        )
         # Ratio of medians per frame pair: both timed on the same frames, one after the other.
         row["time_ratio_median"] = float(np.median(np.array(ours.t_full_s) / np.array(anchor.t_full_s)))
     return row
@@ -473,7 +511,8 @@ def run_blur_sweep(n_frames: int, seed: int, camera: Camera) -> List[dict]:
 
     marker = Marker(MARKER_SIZE_M, MARKER_SIZE_M, type="aruco", dictionary=DICTIONARY, id=MARKER_ID)
     anchor_finder = aruco_compat.ArucoMarkerFinder(
-        aruco_compat.get_dictionary(DICTIONARY), aruco_compat.make_parameters(corner_refine="subpix"))
+        aruco_compat.get_dictionary(DICTIONARY), aruco_compat.make_parameters(corner_refine="subpix")
+    )
     rows = []
     for label, overrides, detector_gamma in BLUR_SWEEP:
         detector = MarkerDetector(marker, gamma=detector_gamma)
@@ -483,11 +522,16 @@ def run_blur_sweep(n_frames: int, seed: int, camera: Camera) -> List[dict]:
         for i in range(n_frames):
             rvec, tvec = random_pose(pose_rng, camera, marker, distance_m=(0.5, 3.0), max_tilt_deg=60.0)
             scene_rng = np.random.default_rng([seed, 21, i])
-            fields = dict(noise_gray=2.0, background="texture", lighting_gradient=float(scene_rng.uniform(0, 0.4)),
-                          motion_blur_angle_deg=float(scene_rng.uniform(0, 180)))
+            fields = dict(
+                noise_gray=2.0,
+                background="texture",
+                lighting_gradient=float(scene_rng.uniform(0, 0.4)),
+                motion_blur_angle_deg=float(scene_rng.uniform(0, 180)),
+            )
             fields.update(overrides)
-            image, truth = render_frame(camera, marker, rvec, tvec, effects=Effects(**fields),
-                                        rng=np.random.default_rng([seed, 22, i]))
+            image, truth = render_frame(
+                camera, marker, rvec, tvec, effects=Effects(**fields), rng=np.random.default_rng([seed, 22, i])
+            )
             detector.reset()
             found = {"ours": detector.detect(image)}
             corners, ids = anchor_finder.detect(image)
@@ -500,9 +544,14 @@ def run_blur_sweep(n_frames: int, seed: int, camera: Camera) -> List[dict]:
         for key in ("ours", "anchor"):
             s = tallies[key].summary()
             prefix = "" if key == "ours" else "anchor_"
-            row.update({prefix + "detection_rate": s["detection_rate"], prefix + "corner_rms_px": s["corner_rms_px"],
-                        prefix + "size_bias_mean_pct": 100 * float(np.mean(sizes[key])) if sizes[key] else None,
-                        prefix + "size_bias_median_pct": 100 * float(np.median(sizes[key])) if sizes[key] else None})
+            row.update(
+                {
+                    prefix + "detection_rate": s["detection_rate"],
+                    prefix + "corner_rms_px": s["corner_rms_px"],
+                    prefix + "size_bias_mean_pct": 100 * float(np.mean(sizes[key])) if sizes[key] else None,
+                    prefix + "size_bias_median_pct": 100 * float(np.median(sizes[key])) if sizes[key] else None,
+                }
+            )
         rows.append(row)
     return rows
 
@@ -514,52 +563,68 @@ def _fmt(value: Optional[float], spec: str, suffix: str = "") -> str:
 def print_report(result: dict) -> None:
     """The report of ``run_bench`` as the two tables."""
     cfg = result["setup"]
-    print(f"pose-daemon bench detector: {cfg['frames']} frames per marker type, "
-          f"{cfg['width']}x{cfg['height']} fx={cfg['fx']:.0f}, {cfg['marker_m']} m marker at 0.5-3 m, "
-          f"tilt <= 60 deg, any in-plane rotation, blur 0.8 px, noise 2 grey levels, "
-          f"textured/plain backgrounds, lighting gradient 0-0.6, seed {cfg['seed']}; "
-          f"OpenCV {cfg['opencv']}")
+    print(
+        f"pose-daemon bench detector: {cfg['frames']} frames per marker type, "
+        f"{cfg['width']}x{cfg['height']} fx={cfg['fx']:.0f}, {cfg['marker_m']} m marker at 0.5-3 m, "
+        f"tilt <= 60 deg, any in-plane rotation, blur 0.8 px, noise 2 grey levels, "
+        f"textured/plain backgrounds, lighting gradient 0-0.6, seed {cfg['seed']}; "
+        f"OpenCV {cfg['opencv']}"
+    )
     print()
-    header = (f"{'detector':<30}{'detected':>9}{'wrong':>6}{'corner RMS':>12}{'mean dx,dy':>17}"
-              f"{'outward':>9}{'rot med':>10}{'rot p95':>9}{'trans med':>11}{'false':>9}")
+    header = (
+        f"{'detector':<30}{'detected':>9}{'wrong':>6}{'corner RMS':>12}{'mean dx,dy':>17}"
+        f"{'outward':>9}{'rot med':>10}{'rot p95':>9}{'trans med':>11}{'false':>9}"
+    )
     print(header)
     print("-" * len(header))
     for row in result["rows"]:
         s = row
         rate = _fmt(None if s["detection_rate"] is None else 100 * s["detection_rate"], ".1f", "%")
-        dxdy = ("-" if s["corner_mean_dx_px"] is None
-                else f"{s['corner_mean_dx_px']:+.3f},{s['corner_mean_dy_px']:+.3f}")
-        print(f"{row['name']:<30}{rate:>9}{s['wrong_detections']:>6}"
-              f"{_fmt(s['corner_rms_px'], '.3f', ' px'):>12}{dxdy:>17}"
-              f"{_fmt(s['corner_mean_outward_px'], '+.3f'):>9}"
-              f"{_fmt(s['rotation_err_median_deg'], '.3f', '°'):>10}"
-              f"{_fmt(s['rotation_err_p95_deg'], '.2f', '°'):>9}"
-              f"{_fmt(s['translation_err_median_mm'], '.2f', ' mm'):>11}"
-              f"{s['false_detections']:>4}/{s['empty_frames']:<4}")
+        dxdy = "-" if s["corner_mean_dx_px"] is None else f"{s['corner_mean_dx_px']:+.3f},{s['corner_mean_dy_px']:+.3f}"
+        print(
+            f"{row['name']:<30}{rate:>9}{s['wrong_detections']:>6}"
+            f"{_fmt(s['corner_rms_px'], '.3f', ' px'):>12}{dxdy:>17}"
+            f"{_fmt(s['corner_mean_outward_px'], '+.3f'):>9}"
+            f"{_fmt(s['rotation_err_median_deg'], '.3f', '°'):>10}"
+            f"{_fmt(s['rotation_err_p95_deg'], '.2f', '°'):>9}"
+            f"{_fmt(s['translation_err_median_mm'], '.2f', ' mm'):>11}"
+            f"{s['false_detections']:>4}/{s['empty_frames']:<4}"
+        )
     print()
-    print("corner error: detected - true, pixels (RMS over corners; mean dx,dy and mean outward"
-          " = systematic offset); square labels aligned to the truth (a plain square's labels"
-          " are continuous, not absolute); pose error with estimate_pose's default method for"
-          " pose-daemon, IPPE_SQUARE for the anchor; false = detections on marker-free frames")
+    print(
+        "corner error: detected - true, pixels (RMS over corners; mean dx,dy and mean outward"
+        " = systematic offset); square labels aligned to the truth (a plain square's labels"
+        " are continuous, not absolute); pose error with estimate_pose's default method for"
+        " pose-daemon, IPPE_SQUARE for the anchor; false = detections on marker-free frames"
+    )
     print()
-    header = (f"{'time per frame, detect + estimate (median)':<44}{'here':>10}{'Pi 2 (x20)':>12}"
-              f"{'vs anchor':>11}{'CPU':>10}{'vs anchor':>11}")
+    header = (
+        f"{'time per frame, detect + estimate (median)':<44}{'here':>10}{'Pi 2 (x20)':>12}"
+        f"{'vs anchor':>11}{'CPU':>10}{'vs anchor':>11}"
+    )
     print(header)
     print("-" * len(header))
     anchor_ms, anchor_cpu_ms = result.get("anchor_full_ms"), result.get("anchor_full_cpu_ms")
-    follow = [(row["name"], row["tracked_follow_rate"]) for row in result["rows"]
-              if row.get("tracked_follow_rate") is not None]
+    follow = [
+        (row["name"], row["tracked_follow_rate"])
+        for row in result["rows"]
+        if row.get("tracked_follow_rate") is not None
+    ]
     for label, ms, cpu_ms in result["timing_rows"]:
         ratio = "-" if (ms is None or not anchor_ms) else f"{ms / anchor_ms:.2f}x"
         cpu_ratio = "-" if (cpu_ms is None or not anchor_cpu_ms) else f"{cpu_ms / anchor_cpu_ms:.2f}x"
-        print(f"{label:<44}{_fmt(ms, '.2f', ' ms'):>10}{_fmt(None if ms is None else ms * PI2_FACTOR, '.0f', ' ms'):>12}"
-              f"{ratio:>11}{_fmt(cpu_ms, '.2f', ' ms'):>10}{cpu_ratio:>11}")
+        print(
+            f"{label:<44}{_fmt(ms, '.2f', ' ms'):>10}{_fmt(None if ms is None else ms * PI2_FACTOR, '.0f', ' ms'):>12}"
+            f"{ratio:>11}{_fmt(cpu_ms, '.2f', ' ms'):>10}{cpu_ratio:>11}"
+        )
     print()
-    print("tracked: the same frames, as the third of a smooth camera motion (up to 0.6 m/s and"
-          " 15 deg/s at 30 fps, with shake); found by following the track: "
-          + ", ".join(f"{name} {100 * rate:.1f}%" for name, rate in follow)
-          + f"; each time the fastest of {result['setup']['repeat']} runs, median over frames;"
-          " CPU = processor time of all threads (OpenCV's detector also uses idle cores)")
+    print(
+        "tracked: the same frames, as the third of a smooth camera motion (up to 0.6 m/s and"
+        " 15 deg/s at 30 fps, with shake); found by following the track: "
+        + ", ".join(f"{name} {100 * rate:.1f}%" for name, rate in follow)
+        + f"; each time the fastest of {result['setup']['repeat']} runs, median over frames;"
+        " CPU = processor time of all threads (OpenCV's detector also uses idle cores)"
+    )
     if "clutter" in result:
         _print_clutter(result["clutter"], result["setup"]["clutter_frames"])
     if "blur_sweep" in result:
@@ -568,41 +633,56 @@ def print_report(result: dict) -> None:
 
 def _print_clutter(rows: List[dict], n_frames: int) -> None:
     print()
-    print(f"whole-frame search in clutter: {n_frames} frames per scene and marker type with the marker,"
-          f" as many without (false); detection alone, fastest of the repeats, median; anchor ="
-          f" OpenCV ArucoDetector + CORNER_REFINE_SUBPIX, interleaved on the same frames")
-    header = (f"{'scene, marker':<22}{'detected':>9}{'wrong':>6}{'false':>7}{'time':>10}{'no marker':>11}"
-              f"{'anchor det.':>12}{'anchor':>10}{'no marker':>11}{'ratio':>8}")
+    print(
+        f"whole-frame search in clutter: {n_frames} frames per scene and marker type with the marker,"
+        f" as many without (false); detection alone, fastest of the repeats, median; anchor ="
+        f" OpenCV ArucoDetector + CORNER_REFINE_SUBPIX, interleaved on the same frames"
+    )
+    header = (
+        f"{'scene, marker':<22}{'detected':>9}{'wrong':>6}{'false':>7}{'time':>10}{'no marker':>11}"
+        f"{'anchor det.':>12}{'anchor':>10}{'no marker':>11}{'ratio':>8}"
+    )
     print(header)
     print("-" * len(header))
     for r in rows:
         rate = _fmt(None if r["detection_rate"] is None else 100 * r["detection_rate"], ".0f", "%")
-        line = (f"{r['scene'] + ', ' + r['marker']:<22}{rate:>9}{r['wrong_detections']:>6}"
-                f"{r['false_detections']:>3}/{r['empty_frames']:<3}{_fmt(r['time_median_ms'], '.2f', ' ms'):>10}"
-                f"{_fmt(r['time_empty_median_ms'], '.2f', ' ms'):>11}")
+        line = (
+            f"{r['scene'] + ', ' + r['marker']:<22}{rate:>9}{r['wrong_detections']:>6}"
+            f"{r['false_detections']:>3}/{r['empty_frames']:<3}{_fmt(r['time_median_ms'], '.2f', ' ms'):>10}"
+            f"{_fmt(r['time_empty_median_ms'], '.2f', ' ms'):>11}"
+        )
         if "anchor_time_median_ms" in r:
             a_rate = _fmt(None if r["anchor_detection_rate"] is None else 100 * r["anchor_detection_rate"], ".0f", "%")
-            line += (f"{a_rate:>12}{_fmt(r['anchor_time_median_ms'], '.2f', ' ms'):>10}"
-                     f"{_fmt(r['anchor_time_empty_median_ms'], '.2f', ' ms'):>11}"
-                     f"{_fmt(r['time_ratio_median'], '.2f', 'x'):>8}")
+            line += (
+                f"{a_rate:>12}{_fmt(r['anchor_time_median_ms'], '.2f', ' ms'):>10}"
+                f"{_fmt(r['anchor_time_empty_median_ms'], '.2f', ' ms'):>11}"
+                f"{_fmt(r['time_ratio_median'], '.2f', 'x'):>8}"
+            )
         print(line)
     print("ratio: median over frames of pose-daemon's time / the anchor's on the same frame")
 
 
 def _print_sweep(rows: List[dict], n_frames: int) -> None:
     print()
-    print(f"blur sweep, aruco marker, {n_frames} frames per condition (same poses): marker size bias ="
-          f" detected / true perimeter - 1")
-    header = (f"{'condition':<30}{'detector gamma':>15}{'detected':>9}{'corner RMS':>12}{'size bias mean':>16}"
-              f"{'anchor det.':>12}{'anchor RMS':>12}{'anchor bias':>13}")
+    print(
+        f"blur sweep, aruco marker, {n_frames} frames per condition (same poses): marker size bias ="
+        f" detected / true perimeter - 1"
+    )
+    header = (
+        f"{'condition':<30}{'detector gamma':>15}{'detected':>9}{'corner RMS':>12}{'size bias mean':>16}"
+        f"{'anchor det.':>12}{'anchor RMS':>12}{'anchor bias':>13}"
+    )
     print(header)
     print("-" * len(header))
     for r in rows:
-        print(f"{r['condition']:<30}{str(r['detector_gamma']):>15}"
-              f"{_fmt(None if r['detection_rate'] is None else 100 * r['detection_rate'], '.0f', '%'):>9}"
-              f"{_fmt(r['corner_rms_px'], '.3f', ' px'):>12}{_fmt(r['size_bias_mean_pct'], '+.3f', ' %'):>16}"
-              f"{_fmt(None if r['anchor_detection_rate'] is None else 100 * r['anchor_detection_rate'], '.0f', '%'):>12}"
-              f"{_fmt(r['anchor_corner_rms_px'], '.3f', ' px'):>12}{_fmt(r['anchor_size_bias_mean_pct'], '+.3f', ' %'):>13}")
+        print(
+            f"{r['condition']:<30}{str(r['detector_gamma']):>15}"
+            f"{_fmt(None if r['detection_rate'] is None else 100 * r['detection_rate'], '.0f', '%'):>9}"
+            f"{_fmt(r['corner_rms_px'], '.3f', ' px'):>12}{_fmt(r['size_bias_mean_pct'], '+.3f', ' %'):>16}"
+            f"{_fmt(None if r['anchor_detection_rate'] is None else 100 * r['anchor_detection_rate'], '.0f', '%'):>12}"
+            f"{_fmt(r['anchor_corner_rms_px'], '.3f', ' px'):>12}"
+            f"{_fmt(r['anchor_size_bias_mean_pct'], '+.3f', ' %'):>13}"
+        )
 
 
 def run_bench(frames: int = 300, empty: int = 200, seed: int = 0, repeat: int = 3) -> dict:
@@ -612,8 +692,7 @@ def run_bench(frames: int = 300, empty: int = 200, seed: int = 0, repeat: int = 
     if frames < 1 or repeat < 1 or empty < 0:
         raise ValueError(f"frames and repeat must be >= 1, empty >= 0 (got {frames}, {repeat}, {empty})")
     camera = CAMERA
-    tallies = {kind: _run_marker_type(kind, frames, seed, camera, repeat)
-               for kind in ("square", "aruco")}
+    tallies = {kind: _run_marker_type(kind, frames, seed, camera, repeat) for kind in ("square", "aruco")}
     _run_empty(tallies, empty, seed, camera)
     rows = []
     for kind in ("square", "aruco"):
@@ -621,8 +700,11 @@ def run_bench(frames: int = 300, empty: int = 200, seed: int = 0, repeat: int = 
             if key in tallies[kind]:
                 tally = tallies[kind][key]
                 rows.append(dict(name=tally.name, **tally.summary()))
-    sq, ar, an = (tallies["square"]["ours"].summary(), tallies["aruco"]["ours"].summary(),
-                  tallies["aruco"]["anchor"].summary())
+    sq, ar, an = (
+        tallies["square"]["ours"].summary(),
+        tallies["aruco"]["ours"].summary(),
+        tallies["aruco"]["anchor"].summary(),
+    )
     timing_rows = [
         ("square, tracked", sq["time_tracked_median_ms"], sq["cpu_tracked_median_ms"]),
         ("square, whole-frame search", sq["time_full_median_ms"], sq["cpu_full_median_ms"]),
@@ -631,10 +713,20 @@ def run_bench(frames: int = 300, empty: int = 200, seed: int = 0, repeat: int = 
         ("anchor: ArUco subpix + IPPE_SQUARE", an["time_full_median_ms"], an["cpu_full_median_ms"]),
     ]
     result = {
-        "setup": {"frames": frames, "empty_frames": empty, "seed": seed,
-                  "width": camera.width, "height": camera.height, "fx": camera.fx,
-                  "marker_m": MARKER_SIZE_M, "dictionary": DICTIONARY, "id": MARKER_ID,
-                  "opencv": cv2.__version__, "pi2_factor": PI2_FACTOR, "repeat": repeat},
+        "setup": {
+            "frames": frames,
+            "empty_frames": empty,
+            "seed": seed,
+            "width": camera.width,
+            "height": camera.height,
+            "fx": camera.fx,
+            "marker_m": MARKER_SIZE_M,
+            "dictionary": DICTIONARY,
+            "id": MARKER_ID,
+            "opencv": cv2.__version__,
+            "pi2_factor": PI2_FACTOR,
+            "repeat": repeat,
+        },
         "rows": rows,
         "timing_rows": timing_rows,
         "anchor_full_ms": an["time_full_median_ms"],

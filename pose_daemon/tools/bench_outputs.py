@@ -40,8 +40,16 @@ def _results(frames: VehicleFrames, n: int) -> List[FrameResult]:
         v = VehiclePose(np.array([-2.0, 0.2 * np.sin(k / 20), -0.1]), R_from_euler_rpy(0.0, 0.0, 0.1 * np.sin(k / 30)))
         R, t = frames.camera_pose(v)
         a, b, c = paper_angles_deg_from_R_cam_marker(R)
-        pose = Pose(rvec=rvec_from_R(R), tvec=t, R=R, alpha_deg=a, beta_deg=b, gamma_deg=c,
-                    reprojection_error_px=0.2, ambiguity_ratio=0.05)
+        pose = Pose(
+            rvec=rvec_from_R(R),
+            tvec=t,
+            R=R,
+            alpha_deg=a,
+            beta_deg=b,
+            gamma_deg=c,
+            reprojection_error_px=0.2,
+            ambiguity_ratio=0.05,
+        )
         out.append(FrameResult(seq=k, t_capture_s=1000.0 + k / 30.0, pose=pose))
     return out
 
@@ -59,20 +67,31 @@ def run_bench(poses: int = 3000) -> Dict[str, Any]:
     os.set_blocking(master, False)
     tmp = tempfile.TemporaryDirectory(prefix="pose-daemon-bench-")
     udp = f"udpout:127.0.0.1:{sink.getsockname()[1]}"
-    common = dict(camera=Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5), marker=Marker(width=0.2), queue_size=0)
+    common: Dict[str, Any] = dict(
+        camera=Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5), marker=Marker(width=0.2), queue_size=0
+    )
     all_three = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
     rows = []
     try:
         outputs = [
-            ("mavlink ODOMETRY, UDP",
-             lambda: MavlinkOutput(MavlinkOutputConfig(connection=udp, wait_heartbeat=False), frames, **common)),
-            ("mavlink ODOMETRY+VPE+LANDING_TARGET, UDP",
-             lambda: MavlinkOutput(MavlinkOutputConfig(connection=udp, wait_heartbeat=False, messages=all_three),
-                                   frames, **common)),
-            ("plain $POSE, pty",
-             lambda: PlainSerialOutput(SerialOutputConfig(port=os.ttyname(slave)), frames, queue_size=0)),
-            ("jsonl, file",
-             lambda: JsonlOutput(JsonlOutputConfig(path=os.path.join(tmp.name, "poses.jsonl")), queue_size=0)),
+            (
+                "mavlink ODOMETRY, UDP",
+                lambda: MavlinkOutput(MavlinkOutputConfig(connection=udp, wait_heartbeat=False), frames, **common),
+            ),
+            (
+                "mavlink ODOMETRY+VPE+LANDING_TARGET, UDP",
+                lambda: MavlinkOutput(
+                    MavlinkOutputConfig(connection=udp, wait_heartbeat=False, messages=all_three), frames, **common
+                ),
+            ),
+            (
+                "plain $POSE, pty",
+                lambda: PlainSerialOutput(SerialOutputConfig(port=os.ttyname(slave)), frames, queue_size=0),
+            ),
+            (
+                "jsonl, file",
+                lambda: JsonlOutput(JsonlOutputConfig(path=os.path.join(tmp.name, "poses.jsonl")), queue_size=0),
+            ),
         ]
         for name, make in outputs:
             out = make()
@@ -97,8 +116,10 @@ def print_report(report: Dict[str, Any]) -> None:
     print(f"publish -> bytes written, {report['poses']} poses per output (this machine, {report['platform']}):")
     for row in report["rows"]:
         ms = row["publish_s"] * 1e3
-        print(f"  {row['name']:42s} median {np.median(ms):.3f} ms, p99 {np.percentile(ms, 99):.3f} ms, "
-              f"max {ms.max():.3f} ms ({row['sent']} messages)")
+        print(
+            f"  {row['name']:42s} median {np.median(ms):.3f} ms, p99 {np.percentile(ms, 99):.3f} ms, "
+            f"max {ms.max():.3f} ms ({row['sent']} messages)"
+        )
 
 
 def _drain(sink: socket.socket, master: int) -> None:

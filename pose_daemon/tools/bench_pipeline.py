@@ -24,7 +24,7 @@ from typing import Any, Callable, Dict, List, Optional
 import numpy as np
 
 from ..capture.base import Frame
-from ..config import parse_config
+from ..config import Config, parse_config
 from ..errors import EndOfStream
 
 # A Raspberry Pi 2 (900 MHz Cortex-A7) runs this Python/OpenCV path about this many times slower
@@ -81,7 +81,7 @@ def rss_bytes() -> int:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
-def render_frames(cfg, n: int, seed: int) -> List[np.ndarray]:
+def render_frames(cfg: Config, n: int, seed: int) -> List[np.ndarray]:
     from ..render import Effects, render_marker, trajectory
 
     camera, marker = cfg.camera.model(), cfg.marker.model()
@@ -92,7 +92,8 @@ def render_frames(cfg, n: int, seed: int) -> List[np.ndarray]:
 
 
 def _bench_config(port: int):
-    return parse_config(f"""
+    return parse_config(
+        f"""
 [camera]
 source = "synthetic"
 width = 640
@@ -110,7 +111,9 @@ wait_heartbeat = false
 messages = ["ODOMETRY"]
 [output.jsonl]
 path = "{os.devnull}"
-""", "<bench>")
+""",
+        "<bench>",
+    )
 
 
 # The viewer of --preview watch: a separate process, so its reading is not the daemon's CPU.
@@ -143,8 +146,14 @@ def _percentiles_ms(values: np.ndarray) -> str:
 PREVIEW_MODES = ("off", "idle", "watch")
 
 
-def run_bench(frames: int = 3000, fps: float = 100.0, distinct: int = 48, seed: int = 0,
-              progress: Callable[[str], None] = print, preview: str = "off") -> Dict[str, Any]:
+def run_bench(
+    frames: int = 3000,
+    fps: float = 100.0,
+    distinct: int = 48,
+    seed: int = 0,
+    progress: Callable[[str], None] = print,
+    preview: str = "off",
+) -> Dict[str, Any]:
     """The daemon's pipeline over ``frames`` frames (``distinct`` rendered ones played forth
     and back) handed out at ``fps``: the report for ``print_report``; ``progress`` gets a line
     before the rendering and before the run. ``preview``: one of PREVIEW_MODES."""
@@ -165,8 +174,17 @@ def run_bench(frames: int = 3000, fps: float = 100.0, distinct: int = 48, seed: 
         sys.setswitchinterval(previous_interval)
 
 
-def _run(n_frames: int, fps: float, distinct: int, seed: int, progress: Callable[[str], None],
-         Pipeline, FrameProcessor, open_outputs, preview: str) -> Dict[str, Any]:
+def _run(
+    n_frames: int,
+    fps: float,
+    distinct: int,
+    seed: int,
+    progress: Callable[[str], None],
+    Pipeline,
+    FrameProcessor,
+    open_outputs,
+    preview: str,
+) -> Dict[str, Any]:
     # A ground station stand-in that drains the UDP port.
     sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sink.bind(("127.0.0.1", 0))
@@ -215,9 +233,15 @@ def _run(n_frames: int, fps: float, distinct: int, seed: int, progress: Callable
     # Garbage collection between frames, as `pose-daemon run` does.
     from ..service import IdleCollector
 
-    pipeline = Pipeline.from_config(cfg, source, processor, functools.partial(open_outputs, cfg),
-                                    on_written=on_written, on_idle=IdleCollector().run,
-                                    frame_observer=tap)
+    pipeline = Pipeline.from_config(
+        cfg,
+        source,
+        processor,
+        functools.partial(open_outputs, cfg),
+        on_written=on_written,
+        on_idle=IdleCollector().run,
+        frame_observer=tap,
+    )
     outputs = pipeline.outputs
     totals = {o.name: np.zeros(n_frames) for o in outputs}  # filled by on_written once started
     counts = dict.fromkeys(totals, 0)
@@ -227,15 +251,18 @@ def _run(n_frames: int, fps: float, distinct: int, seed: int, progress: Callable
         server = PreviewServer(cfg, pipeline, tap)
         server.start()
         if preview == "watch":
-            viewer = subprocess.Popen([sys.executable, "-c", VIEWER, server.url + "stream.mjpg"],
-                                      stdout=subprocess.PIPE, text=True)
+            viewer = subprocess.Popen(
+                [sys.executable, "-c", VIEWER, server.url + "stream.mjpg"], stdout=subprocess.PIPE, text=True
+            )
             while server.counts["viewers"] < 1 and viewer.poll() is None:
                 time.sleep(0.01)
     rss_start = rss_bytes()
     cpu0 = time.process_time()
     t0 = time.monotonic()
-    progress(f"running {n_frames} frames at {fps:g} fps through detect -> estimate -> "
-             f"{', '.join(o.name for o in outputs)} ...")
+    progress(
+        f"running {n_frames} frames at {fps:g} fps through detect -> estimate -> "
+        f"{', '.join(o.name for o in outputs)} ..."
+    )
     pipeline.start()
     pipeline.wait()
     elapsed = time.monotonic() - t0
@@ -252,10 +279,12 @@ def _run(n_frames: int, fps: float, distinct: int, seed: int, progress: Callable
             out = viewer.communicate(timeout=10)[0].split()
             seen = f"; the viewer received {out[-2]} frames, {int(out[-1]) / 1e6:.1f} MB" if len(out) >= 2 else ""
         cpu = server.stream_cpu_s
-        preview_line = (f"preview ({preview}): {c['encoded']} frames annotated and encoded, "
-                        f"{c['frames_sent']} sent, {c['frames_skipped']} skipped{seen}; viewer thread CPU "
-                        f"{cpu * 1e3 / max(c['frames_sent'], 1):.2f} ms per frame sent, "
-                        f"{100 * cpu / max(elapsed, 1e-9):.2f} % of one core")
+        preview_line = (
+            f"preview ({preview}): {c['encoded']} frames annotated and encoded, "
+            f"{c['frames_sent']} sent, {c['frames_skipped']} skipped{seen}; viewer thread CPU "
+            f"{cpu * 1e3 / max(c['frames_sent'], 1):.2f} ms per frame sent, "
+            f"{100 * cpu / max(elapsed, 1e-9):.2f} % of one core"
+        )
     data_dir.cleanup()
     for o in outputs:
         o.close()
@@ -264,11 +293,18 @@ def _run(n_frames: int, fps: float, distinct: int, seed: int, progress: Callable
     rss_end = rss_bytes()
     sink.close()
     return {
-        "stats": pipeline.stats.snapshot(), "elapsed_s": elapsed, "status_line": status,
-        "received_datagrams": received[0], "received_bytes": received[1],
-        "latency_s": {name: values[:counts[name]] for name, values in totals.items()},
-        "rss_start_bytes": rss_start, "rss_warm_bytes": rss_warm[0] or rss_start,
-        "rss_end_bytes": rss_end, "warm_at": warm_at, "cpu_s": cpu_s, "preview_line": preview_line,
+        "stats": pipeline.stats.snapshot(),
+        "elapsed_s": elapsed,
+        "status_line": status,
+        "received_datagrams": received[0],
+        "received_bytes": received[1],
+        "latency_s": {name: values[: counts[name]] for name, values in totals.items()},
+        "rss_start_bytes": rss_start,
+        "rss_warm_bytes": rss_warm[0] or rss_start,
+        "rss_end_bytes": rss_end,
+        "warm_at": warm_at,
+        "cpu_s": cpu_s,
+        "preview_line": preview_line,
     }
 
 
@@ -276,16 +312,19 @@ def print_report(report: Dict[str, Any]) -> None:
     """The report of ``run_bench``: frames and drops, latency per output, the Pi 2 equivalent,
     stages and memory."""
     snap = report["stats"]
-    print(f"frames: {snap['captured']} captured, {snap['processed']} processed, "
-          f"{snap['detected']} with a pose, in {report['elapsed_s']:.1f} s; drops: "
-          + (", ".join(f"{k} {v}" for k, v in sorted(snap["drops"].items())) or "none"))
+    print(
+        f"frames: {snap['captured']} captured, {snap['processed']} processed, "
+        f"{snap['detected']} with a pose, in {report['elapsed_s']:.1f} s; drops: "
+        + (", ".join(f"{k} {v}" for k, v in sorted(snap["drops"].items())) or "none")
+    )
     cpu_s, elapsed = report["cpu_s"], report["elapsed_s"]
-    print(f"CPU: {cpu_s * 1e3 / max(snap['processed'], 1):.2f} ms per processed frame "
-          f"({100 * cpu_s / max(elapsed, 1e-9):.1f} % of one core over the run, all threads)")
+    print(
+        f"CPU: {cpu_s * 1e3 / max(snap['processed'], 1):.2f} ms per processed frame "
+        f"({100 * cpu_s / max(elapsed, 1e-9):.1f} % of one core over the run, all threads)"
+    )
     if report["preview_line"]:
         print(report["preview_line"])
-    print(f"UDP ground station received {report['received_datagrams']} datagrams, "
-          f"{report['received_bytes']} bytes")
+    print(f"UDP ground station received {report['received_datagrams']} datagrams, {report['received_bytes']} bytes")
     print("end-to-end latency, capture -> bytes written (this machine):")
     worst = None
     for name, v in report["latency_s"].items():
@@ -294,14 +333,18 @@ def print_report(report: Dict[str, Any]) -> None:
             p50, p99 = np.percentile(v, (50, 99))
             worst = (max(p50, worst[0]), max(p99, worst[1])) if worst else (p50, p99)
     if worst:
-        print(f"Pi 2 equivalent (x{PI2_FACTOR:g}): median {worst[0] * PI2_FACTOR * 1e3:.1f} ms, "
-              f"p99 {worst[1] * PI2_FACTOR * 1e3:.1f} ms (goal: median < 50 ms, p99 < 100 ms; "
-              f"here median <= 2.5 ms, p99 <= 5 ms: "
-              f"{'met' if worst[0] <= 0.0025 and worst[1] <= 0.005 else 'NOT met'})")
+        print(
+            f"Pi 2 equivalent (x{PI2_FACTOR:g}): median {worst[0] * PI2_FACTOR * 1e3:.1f} ms, "
+            f"p99 {worst[1] * PI2_FACTOR * 1e3:.1f} ms (goal: median < 50 ms, p99 < 100 ms; "
+            f"here median <= 2.5 ms, p99 <= 5 ms: "
+            f"{'met' if worst[0] <= 0.0025 and worst[1] <= 0.005 else 'NOT met'})"
+        )
     print(f"per stage (last {min(snap['processed'], 4096)} frames): {report['status_line'].split('; ')[2]}")
     mib = 1024 * 1024
     warm, warm_at = report["rss_warm_bytes"], report["warm_at"]
     growth = (report["rss_end_bytes"] - warm) / mib
-    print(f"resident memory: {report['rss_start_bytes'] / mib:.1f} MiB at start, {warm / mib:.1f} MiB after "
-          f"{warm_at} frames, {report['rss_end_bytes'] / mib:.1f} MiB at the end: growth {growth:+.2f} MiB over "
-          f"{snap['captured'] - warm_at} frames (goal < 5 MB)")
+    print(
+        f"resident memory: {report['rss_start_bytes'] / mib:.1f} MiB at start, {warm / mib:.1f} MiB after "
+        f"{warm_at} frames, {report['rss_end_bytes'] / mib:.1f} MiB at the end: growth {growth:+.2f} MiB over "
+        f"{snap['captured'] - warm_at} frames (goal < 5 MB)"
+    )

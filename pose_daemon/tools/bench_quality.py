@@ -54,7 +54,7 @@ MARGIN_PX = 4.0
 
 
 def _old_quality(err_px: float, ratio: float) -> int:
-    return int(min(100, max(1, round(100.0 / (1.0 + err_px ** 2) * (1.0 - min(max(ratio, 0.0), 1.0))))))
+    return int(min(100, max(1, round(100.0 / (1.0 + err_px**2) * (1.0 - min(max(ratio, 0.0), 1.0))))))
 
 
 def _hover(rng: np.random.Generator, n: int, height_m: float, tilt_deg: float) -> List[VehiclePose]:
@@ -103,13 +103,20 @@ def run_case(height_m: float, tilt_deg: float, n_frames: int, seed: int) -> Dict
         pos_err = float(np.linalg.norm(est.p_local_body_m - vehicle.p_local_body_m))
         rot_err = rotation_angle_deg_3x3(est.R_local_body, vehicle.R_local_body)
         alt = pose.alternative
-        flipped = alt is not None and rot_err > FLIP_DEG and (
-            rotation_angle_deg_3x3(alt.R, R_cm) < rotation_angle_deg_3x3(pose.R, R_cm))
-        rows.append({"q": pose_quality(pose, CAMERA.fx, MARKER.width),
-                     "q_old": _old_quality(pose.reprojection_error_px, pose.ambiguity_ratio),
-                     "correct": pos_err < CORRECT_M and rot_err < CORRECT_DEG,
-                     "wrong": rot_err > WRONG_DEG or flipped,
-                     "imprecise": pos_err > IMPRECISE_M})
+        flipped = (
+            alt is not None
+            and rot_err > FLIP_DEG
+            and (rotation_angle_deg_3x3(alt.R, R_cm) < rotation_angle_deg_3x3(pose.R, R_cm))
+        )
+        rows.append(
+            {
+                "q": pose_quality(pose, CAMERA.fx, MARKER.width),
+                "q_old": _old_quality(pose.reprojection_error_px, pose.ambiguity_ratio),
+                "correct": pos_err < CORRECT_M and rot_err < CORRECT_DEG,
+                "wrong": rot_err > WRONG_DEG or flipped,
+                "imprecise": pos_err > IMPRECISE_M,
+            }
+        )
         # The same corners with one knocked BAD_CORNER_PX off: gate-worthy, judged wrong when
         # its pose is not correct.
         if result.corners is not None:
@@ -125,17 +132,32 @@ def run_case(height_m: float, tilt_deg: float, n_frames: int, seed: int) -> Dict
                 b_pos = float(np.linalg.norm(be.p_local_body_m - vehicle.p_local_body_m))
                 b_rot = rotation_angle_deg_3x3(be.R_local_body, vehicle.R_local_body)
                 ok = b_pos < CORRECT_M and b_rot < CORRECT_DEG
-                rows.append({"q": pose_quality(bp, CAMERA.fx, MARKER.width),
-                             "q_old": _old_quality(bp.reprojection_error_px, bp.ambiguity_ratio),
-                             "correct": False, "wrong": not ok, "imprecise": b_pos > IMPRECISE_M, "gate": True})
+                rows.append(
+                    {
+                        "q": pose_quality(bp, CAMERA.fx, MARKER.width),
+                        "q_old": _old_quality(bp.reprojection_error_px, bp.ambiguity_ratio),
+                        "correct": False,
+                        "wrong": not ok,
+                        "imprecise": b_pos > IMPRECISE_M,
+                        "gate": True,
+                    }
+                )
         # The same frame had the estimator taken the other solution by a coin flip: a wrong
         # pose whenever that solution is more than 10 deg off the truth.
         if alt is not None and rotation_angle_deg_3x3(alt.R, R_cm) > WRONG_DEG:
-            flip = dataclasses.replace(alt, alternative=dataclasses.replace(pose, alternative=None),
-                                       ambiguity_ratio=1.0)
-            rows.append({"q": pose_quality(flip, CAMERA.fx, MARKER.width),
-                         "q_old": _old_quality(flip.reprojection_error_px, 1.0),
-                         "correct": False, "wrong": True, "imprecise": True, "coin_flip": True})
+            flip = dataclasses.replace(
+                alt, alternative=dataclasses.replace(pose, alternative=None), ambiguity_ratio=1.0
+            )
+            rows.append(
+                {
+                    "q": pose_quality(flip, CAMERA.fx, MARKER.width),
+                    "q_old": _old_quality(flip.reprojection_error_px, 1.0),
+                    "correct": False,
+                    "wrong": True,
+                    "imprecise": True,
+                    "coin_flip": True,
+                }
+            )
     return {"height_m": height_m, "tilt_deg": tilt_deg, "rendered": rendered, "rows": rows}
 
 
@@ -144,8 +166,12 @@ def _summary(rows: Sequence[Dict], key: str, thresholds: Sequence[int]) -> Dict:
     correct = np.array([r["correct"] for r in rows], dtype=bool)
     wrong = np.array([r["wrong"] for r in rows], dtype=bool)
     imprecise = np.array([r["imprecise"] for r in rows], dtype=bool)
-    out: Dict = {"poses": int(len(rows)), "correct": int(correct.sum()), "wrong": int(wrong.sum()),
-                 "imprecise": int(imprecise.sum())}
+    out: Dict = {
+        "poses": int(len(rows)),
+        "correct": int(correct.sum()),
+        "wrong": int(wrong.sum()),
+        "imprecise": int(imprecise.sum()),
+    }
     if len(q):
         out.update(q_p5=float(np.percentile(q, 5)), q_median=float(np.median(q)), q_min=float(q.min()))
     if correct.any():
@@ -159,16 +185,27 @@ def _summary(rows: Sequence[Dict], key: str, thresholds: Sequence[int]) -> Dict:
     return out
 
 
-def run_bench(n_frames: int = 60, seed: int = 0, heights_m: Sequence[float] = HEIGHTS_M,
-              tilts_deg: Sequence[float] = TILTS_DEG, thresholds: Sequence[int] = THRESHOLDS) -> Dict:
+def run_bench(
+    n_frames: int = 60,
+    seed: int = 0,
+    heights_m: Sequence[float] = HEIGHTS_M,
+    tilts_deg: Sequence[float] = TILTS_DEG,
+    thresholds: Sequence[int] = THRESHOLDS,
+) -> Dict:
     """The report: per case (height x tilt) and over all, for the new and the old quality."""
     cases = [run_case(h, tilt, n_frames, seed) for tilt in tilts_deg for h in heights_m]
     rows_all = [r for c in cases for r in c["rows"]]
     report: Dict = {"frames_per_case": n_frames, "seed": seed, "thresholds": list(thresholds), "cases": []}
     for c in cases:
-        report["cases"].append({"height_m": c["height_m"], "tilt_deg": c["tilt_deg"], "rendered": c["rendered"],
-                                "new": _summary(c["rows"], "q", thresholds),
-                                "old": _summary(c["rows"], "q_old", thresholds)})
+        report["cases"].append(
+            {
+                "height_m": c["height_m"],
+                "tilt_deg": c["tilt_deg"],
+                "rendered": c["rendered"],
+                "new": _summary(c["rows"], "q", thresholds),
+                "old": _summary(c["rows"], "q_old", thresholds),
+            }
+        )
     report["all"] = {"new": _summary(rows_all, "q", thresholds), "old": _summary(rows_all, "q_old", thresholds)}
     return report
 
@@ -180,9 +217,19 @@ def _pct(v: Optional[float]) -> str:
 def print_report(report: Dict) -> None:
     ths = report["thresholds"]
     print(f"quality against truth, {report['frames_per_case']} hover frames per case, seed {report['seed']}")
-    head = ("tilt", "height", "poses", "correct", "wrong", ">10 cm", "quality p5/median", "old p5/median",
-            "q >10 cm median",
-            *[f"drop correct @{t}" for t in ths], *[f"wrong passed @{t}" for t in ths])
+    head = (
+        "tilt",
+        "height",
+        "poses",
+        "correct",
+        "wrong",
+        ">10 cm",
+        "quality p5/median",
+        "old p5/median",
+        "q >10 cm median",
+        *[f"drop correct @{t}" for t in ths],
+        *[f"wrong passed @{t}" for t in ths],
+    )
     print(" | ".join(head))
     lines = [(f"+-{c['tilt_deg']:g} deg", f"{c['height_m']:g} m", c["new"]) for c in report["cases"]]
     lines.append(("all", "", report["all"]["new"]))
@@ -191,11 +238,24 @@ def print_report(report: Dict) -> None:
         qs = f"{s.get('q_p5', 0):.0f}/{s.get('q_median', 0):.0f}" if s["poses"] else "-"
         qo = f"{o.get('q_p5', 0):.0f}/{o.get('q_median', 0):.0f}" if o["poses"] else "-"
         qi = f"{s['q_imprecise_median']:.0f}" if "q_imprecise_median" in s else "-"
-        cells = [tilt, h, str(s["poses"]), str(s["correct"]), str(s["wrong"]), str(s["imprecise"]), qs, qo, qi,
-                 *[_pct(s[f"drop_correct_{t}"]) for t in ths], *[str(s[f"pass_wrong_{t}"]) for t in ths]]
+        cells = [
+            tilt,
+            h,
+            str(s["poses"]),
+            str(s["correct"]),
+            str(s["wrong"]),
+            str(s["imprecise"]),
+            qs,
+            qo,
+            qi,
+            *[_pct(s[f"drop_correct_{t}"]) for t in ths],
+            *[str(s[f"pass_wrong_{t}"]) for t in ths],
+        ]
         print(" | ".join(cells))
     a_new, a_old = report["all"]["new"], report["all"]["old"]
     for t in ths:
-        print(f"min quality {t}: drops {_pct(a_new[f'drop_correct_{t}'])} of correct poses and lets "
-              f"{a_new[f'pass_wrong_{t}']} of {a_new['wrong']} wrong through (old model: "
-              f"{_pct(a_old[f'drop_correct_{t}'])}, {a_old[f'pass_wrong_{t}']})")
+        print(
+            f"min quality {t}: drops {_pct(a_new[f'drop_correct_{t}'])} of correct poses and lets "
+            f"{a_new[f'pass_wrong_{t}']} of {a_new['wrong']} wrong through (old model: "
+            f"{_pct(a_old[f'drop_correct_{t}'])}, {a_old[f'pass_wrong_{t}']})"
+        )

@@ -89,12 +89,13 @@ class BoardSpec:
     def describe(self) -> str:
         if self.kind == "chessboard":
             return f"chessboard {self.cols}x{self.rows} inner corners, {self.square_m * 1000:g} mm squares"
-        return (f"charuco {self.cols}x{self.rows} squares, {self.square_m * 1000:g} mm squares, "
-                f"{self.marker_m * 1000:g} mm markers, {self.dictionary}")
+        return (
+            f"charuco {self.cols}x{self.rows} squares, {self.square_m * 1000:g} mm squares, "
+            f"{self.marker_m * 1000:g} mm markers, {self.dictionary}"
+        )
 
 
-BOARD_SYNTAX = ("chessboard:COLSxROWS:SQUARE_M (inner corners) or "
-                "charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT (squares)")
+BOARD_SYNTAX = "chessboard:COLSxROWS:SQUARE_M (inner corners) or charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT (squares)"
 
 
 def parse_board(text: str) -> BoardSpec:
@@ -118,8 +119,9 @@ def parse_board(text: str) -> BoardSpec:
     if kind == "chessboard":
         if cols < 2 or rows < 2 or cols == rows:
             # A square grid of corners has no defined orientation: views would disagree.
-            raise UserError(f"--board {text!r}: a chessboard needs at least 2x2 inner corners and "
-                            "COLS different from ROWS")
+            raise UserError(
+                f"--board {text!r}: a chessboard needs at least 2x2 inner corners and COLS different from ROWS"
+            )
         return BoardSpec("chessboard", cols, rows, square_m)
     if cols < 3 or rows < 3:
         raise UserError(f"--board {text!r}: a ChArUco board needs at least 3x3 squares")
@@ -148,7 +150,7 @@ class BoardDetector:
 
     def __init__(self, spec: BoardSpec, fast: bool = False) -> None:
         self.spec = spec
-        self.fast = fast   # live views: cheap rejection of frames without a board
+        self.fast = fast  # live views: cheap rejection of frames without a board
         if spec.kind == "chessboard":
             xs, ys = np.meshgrid(np.arange(spec.cols), np.arange(spec.rows))
             self._object = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1) * spec.square_m
@@ -265,7 +267,7 @@ def view_signature(view: BoardView, width: int, height: int) -> np.ndarray:
     """Where the board is: (centre x, centre y) as fractions of the image, log of its apparent
     size, and its tilt about the camera's x and y axes in radians, from a rough pose."""
     pts = view.image_points
-    f = 0.9 * max(width, height)   # a typical lens; the signature only compares views
+    f = 0.9 * max(width, height)  # a typical lens; the signature only compares views
     K = np.array([[f, 0, width / 2.0], [0, f, height / 2.0], [0, 0, 1.0]])
     ok, rvec, tvec = cv2.solvePnP(view.object_points.astype(np.float64), pts, K, None)
     centre = pts.mean(axis=0)
@@ -274,7 +276,7 @@ def view_signature(view: BoardView, width: int, height: int) -> np.ndarray:
     tilt_x = tilt_y = 0.0
     if ok:
         normal = R_from_rvec(rvec.reshape(3))[:, 2]
-        normal = normal if normal[2] < 0 else -normal   # the face turned towards the camera
+        normal = normal if normal[2] < 0 else -normal  # the face turned towards the camera
         tilt_x, tilt_y = math.asin(float(np.clip(normal[1], -1, 1))), math.asin(float(np.clip(normal[0], -1, 1)))
     return np.array([centre[0] / width, centre[1] / height, math.log(size), tilt_x, tilt_y])
 
@@ -324,8 +326,9 @@ class CalibrationResult:
 
 def _fit(obj: List[np.ndarray], img: List[np.ndarray], width: int, height: int, flags: int):
     try:
-        rms, K, dist, _, _ = cv2.calibrateCamera(obj, img, (width, height), None, None,
-                                                 flags=flags, criteria=_CALIB_CRITERIA)
+        rms, K, dist, _, _ = cv2.calibrateCamera(
+            obj, img, (width, height), None, None, flags=flags, criteria=_CALIB_CRITERIA
+        )
     except cv2.error as exc:
         raise UserError(f"calibration failed in OpenCV: {' '.join(str(exc).split())[-160:]}") from None
     dist = np.asarray(dist, dtype=np.float64).reshape(-1)[:5]
@@ -339,8 +342,9 @@ def _residuals_px(obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndar
     """Each corner's reprojection residual (px) with the view's pose fitted to its corners
     under (K, dist) by a robust PnP, so that one bad corner does not move the pose; None when
     no pose is found."""
-    ok, rvec, tvec, inliers = cv2.solvePnPRansac(obj, img, K, dist, reprojectionError=2.0,
-                                                 iterationsCount=100, flags=cv2.SOLVEPNP_ITERATIVE)
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+        obj, img, K, dist, reprojectionError=2.0, iterationsCount=100, flags=cv2.SOLVEPNP_ITERATIVE
+    )
     if ok and inliers is not None and len(inliers) >= 6:
         idx = np.asarray(inliers).reshape(-1)
         rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], K, dist, rvec, tvec)
@@ -352,9 +356,15 @@ def _residuals_px(obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndar
     return np.linalg.norm(proj.reshape(-1, 2) - img.reshape(-1, 2), axis=1)
 
 
-def calibrate_views(views: Sequence[BoardView], width: int, height: int, *,
-                    fit_k3: bool = False, fit_tangential: bool = True,
-                    robust: bool = True) -> CalibrationResult:
+def calibrate_views(
+    views: Sequence[BoardView],
+    width: int,
+    height: int,
+    *,
+    fit_k3: bool = False,
+    fit_tangential: bool = True,
+    robust: bool = True,
+) -> CalibrationResult:
     """calibrateCamera on ``views`` of a ``width`` x ``height`` image; k3 fixed at 0 unless
     ``fit_k3``, the tangential terms p1, p2 at 0 unless ``fit_tangential``.
 
@@ -387,15 +397,21 @@ def calibrate_views(views: Sequence[BoardView], width: int, height: int, *,
         if len(used) < 3:
             break
         keep = new_keep
-        rms, K, dist = _fit([obj[n][keep[n]] for n in used], [img[n][keep[n]] for n in used],
-                            width, height, flags)
+        rms, K, dist = _fit([obj[n][keep[n]] for n in used], [img[n][keep[n]] for n in used], width, height, flags)
     errors = []
     for o, i in zip(obj, img):
         # Each view's error over all its corners, its pose fitted to the consistent ones.
         r = _residuals_px(o, i, K, dist)
-        errors.append(float("inf") if r is None else float(np.sqrt(np.mean(r ** 2))))
-    camera = Camera(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]),
-                    dist=tuple(float(d) for d in dist), width=width, height=height)
+        errors.append(float("inf") if r is None else float(np.sqrt(np.mean(r**2))))
+    camera = Camera(
+        fx=float(K[0, 0]),
+        fy=float(K[1, 1]),
+        cx=float(K[0, 2]),
+        cy=float(K[1, 2]),
+        dist=tuple(float(d) for d in dist),
+        width=width,
+        height=height,
+    )
     median = float(np.median(errors))
     limit = max(OUTLIER_FACTOR * median, OUTLIER_FLOOR_PX)
     outliers = [k for k, e in enumerate(errors) if e > limit]
@@ -406,8 +422,9 @@ def calibrate_views(views: Sequence[BoardView], width: int, height: int, *,
     return CalibrationResult(camera, rms, errors, list(views), outliers, cov.fraction, rejected)
 
 
-def distortion_difference_px(a: Camera, b: Camera, step_px: float = 10.0,
-                             box_px: Optional[Tuple[float, float, float, float]] = None) -> float:
+def distortion_difference_px(
+    a: Camera, b: Camera, step_px: float = 10.0, box_px: Optional[Tuple[float, float, float, float]] = None
+) -> float:
     """Largest difference over the image between the distortion corrections of two models, px.
 
     For each pixel p on a grid covering the whole image (or ``box_px`` = x0, y0, x1, y1 of it):
@@ -438,8 +455,10 @@ STATUS_INTERVAL_S = 5.0
 def refuse_too_few(views: List[BoardView], name: str) -> None:
     """UserError when ``views`` are fewer than MIN_VIEWS."""
     if len(views) < MIN_VIEWS:
-        raise UserError(f"{name}: only {len(views)} usable view(s) of the board; calibration needs at "
-                        f"least {MIN_VIEWS} (show the board at more places, tilts and distances)")
+        raise UserError(
+            f"{name}: only {len(views)} usable view(s) of the board; calibration needs at "
+            f"least {MIN_VIEWS} (show the board at more places, tilts and distances)"
+        )
 
 
 def report(result: CalibrationResult, say: Callable[[str], None]) -> None:
@@ -448,13 +467,14 @@ def report(result: CalibrationResult, say: Callable[[str], None]) -> None:
     say(f"RMS reprojection error: {result.rms_px:.3f} px over {len(result.views)} views")
     median = float(np.median(result.view_errors_px))
     for k, (view, err) in enumerate(zip(result.views, result.view_errors_px)):
-        flag = f"  OUTLIER (> {max(OUTLIER_FACTOR * median, OUTLIER_FLOOR_PX):.2f} px)" \
-            if k in result.outliers else ""
+        flag = f"  OUTLIER (> {max(OUTLIER_FACTOR * median, OUTLIER_FLOOR_PX):.2f} px)" if k in result.outliers else ""
         say(f"  view {k + 1:3d} {view.name:<28s} {len(view.image_points):4d} corners  {err:6.3f} px{flag}")
     if result.rejected_corners:
         whole = sum(1 for v, n in zip(result.views, result.rejected) if n == len(v.image_points))
-        say(f"{result.rejected_corners} corner(s) in {sum(1 for n in result.rejected if n)} view(s) left out of "
-            f"the fit, their residual far above the rest ({whole} view(s) left out whole)")
+        say(
+            f"{result.rejected_corners} corner(s) in {sum(1 for n in result.rejected if n)} view(s) left out of "
+            f"the fit, their residual far above the rest ({whole} view(s) left out whole)"
+        )
     cov = Coverage(cam.width, cam.height)
     for v in result.views:
         cov.add(v.image_points)
@@ -462,13 +482,18 @@ def report(result: CalibrationResult, say: Callable[[str], None]) -> None:
     for line in cov.map():
         say("  " + line)
     d = ", ".join(f"{x:.5f}" for x in cam.dist[:5])
-    say(f"fx {cam.fx:.2f} fy {cam.fy:.2f} cx {cam.cx:.2f} cy {cam.cy:.2f} px; dist [{d}] "
-        f"({cam.width}x{cam.height})")
+    say(f"fx {cam.fx:.2f} fy {cam.fy:.2f} cx {cam.cx:.2f} cy {cam.cy:.2f} px; dist [{d}] ({cam.width}x{cam.height})")
 
 
-def views_from_path(path: Path, spec: BoardSpec, *, max_views: int = 20, seconds: Optional[float] = None,
-                    save_views: Optional[Union[str, Path]] = None,
-                    say: Callable[[str], None] = print) -> Tuple[List[BoardView], Tuple[int, int], str]:
+def views_from_path(
+    path: Path,
+    spec: BoardSpec,
+    *,
+    max_views: int = 20,
+    seconds: Optional[float] = None,
+    save_views: Optional[Union[str, Path]] = None,
+    say: Callable[[str], None] = print,
+) -> Tuple[List[BoardView], Tuple[int, int], str]:
     """Views of the board in a folder of images (every image a view) or in a recording
     (``views_from_source``): (views, (width, height), name for messages)."""
     from ..capture import recording
@@ -478,8 +503,15 @@ def views_from_path(path: Path, spec: BoardSpec, *, max_views: int = 20, seconds
     if path.is_dir() and recording.is_recording(path):
         from ..capture.replay import ReplaySource
 
-        return views_from_source(ReplaySource(path, realtime=False), spec, max_views=max_views,
-                                 seconds=seconds, save_views=save_views, say=say, name=str(path))
+        return views_from_source(
+            ReplaySource(path, realtime=False),
+            spec,
+            max_views=max_views,
+            seconds=seconds,
+            save_views=save_views,
+            say=say,
+            name=str(path),
+        )
     if not path.is_dir():
         raise UserError(f"{path}: expected a folder of images or a recording folder")
     files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
@@ -503,8 +535,9 @@ def views_from_path(path: Path, spec: BoardSpec, *, max_views: int = 20, seconds
         if size is None:
             size = this
         elif this != size:
-            raise UserError(f"{f}: image is {this[0]}x{this[1]}, the others {size[0]}x{size[1]}; "
-                            "calibrate one resolution at a time")
+            raise UserError(
+                f"{f}: image is {this[0]}x{this[1]}, the others {size[0]}x{size[1]}; calibrate one resolution at a time"
+            )
         view = detector.detect(gray, f.name)
         if view is None:
             say(f"  {f.name}: no board found")
@@ -513,15 +546,23 @@ def views_from_path(path: Path, spec: BoardSpec, *, max_views: int = 20, seconds
     if size is None:
         raise UserError(f"{path}: none of its {len(files)} image file(s) could be read")
     if not views:
-        raise UserError(f"{path}: no {spec.noun} found in any of its {len(files) - unreadable} "
-                        f"image(s) (check --board: {spec.describe()})")
+        raise UserError(
+            f"{path}: no {spec.noun} found in any of its {len(files) - unreadable} "
+            f"image(s) (check --board: {spec.describe()})"
+        )
     say(f"board found in {len(views)} of {len(files)} image(s)")
     return views, size, str(path)
 
 
-def views_live(spec: BoardSpec, config: Optional[str] = None, *, max_views: int = 20,
-               seconds: Optional[float] = None, save_views: Optional[Union[str, Path]] = None,
-               say: Callable[[str], None] = print) -> Tuple[List[BoardView], Tuple[int, int], str]:
+def views_live(
+    spec: BoardSpec,
+    config: Optional[str] = None,
+    *,
+    max_views: int = 20,
+    seconds: Optional[float] = None,
+    save_views: Optional[Union[str, Path]] = None,
+    say: Callable[[str], None] = print,
+) -> Tuple[List[BoardView], Tuple[int, int], str]:
     """Views from the camera source of ``config`` (the default config without one)."""
     from ..capture import open_source
     from ..config import load_config_or_default
@@ -532,18 +573,31 @@ def views_live(spec: BoardSpec, config: Optional[str] = None, *, max_views: int 
     except SourceError as exc:
         raise UserError(str(exc)) from None
     if seconds is None:
-        say(f"live from {cfg.camera.source}: move the board around until {max_views} views are "
-            "kept (Ctrl-C stops)")
+        say(f"live from {cfg.camera.source}: move the board around until {max_views} views are kept (Ctrl-C stops)")
     else:
         say(f"live from {cfg.camera.source}: up to {max_views} views or {seconds:g} s")
-    return views_from_source(source, spec, max_views=max_views, seconds=seconds, save_views=save_views,
-                             say=say, name=f"camera {cfg.camera.source}")
+    return views_from_source(
+        source,
+        spec,
+        max_views=max_views,
+        seconds=seconds,
+        save_views=save_views,
+        say=say,
+        name=f"camera {cfg.camera.source}",
+    )
 
 
-def views_from_source(source, spec: BoardSpec, *, max_views: int = 20, seconds: Optional[float] = None,
-                      save_views: Optional[Union[str, Path]] = None, say: Callable[[str], None] = print,
-                      name: str = "source",
-                      clock: Callable[[], float] = time.monotonic) -> Tuple[List[BoardView], Tuple[int, int], str]:
+def views_from_source(
+    source,
+    spec: BoardSpec,
+    *,
+    max_views: int = 20,
+    seconds: Optional[float] = None,
+    save_views: Optional[Union[str, Path]] = None,
+    say: Callable[[str], None] = print,
+    name: str = "source",
+    clock: Callable[[], float] = time.monotonic,
+) -> Tuple[List[BoardView], Tuple[int, int], str]:
     """Views from a frame source, kept only when the board is somewhere new; stops after
     ``max_views`` views, ``seconds`` s on ``clock``, the end of the stream or Ctrl-C. With
     ``save_views`` the kept frames are also written there as PNG files."""
@@ -581,8 +635,10 @@ def views_from_source(source, spec: BoardSpec, *, max_views: int = 20, seconds: 
                 size = (gray.shape[1], gray.shape[0])
                 selector, coverage = ViewSelector(*size), Coverage(*size)
             elif (gray.shape[1], gray.shape[0]) != size:
-                raise UserError(f"{name}: frame {frame.seq} is {gray.shape[1]}x{gray.shape[0]}, the first was "
-                                f"{size[0]}x{size[1]}; calibrate one resolution at a time")
+                raise UserError(
+                    f"{name}: frame {frame.seq} is {gray.shape[1]}x{gray.shape[0]}, the first was "
+                    f"{size[0]}x{size[1]}; calibrate one resolution at a time"
+                )
             now = clock()
             if now - last_status >= STATUS_INTERVAL_S:
                 # Something on screen while nobody holds the board up.
@@ -602,9 +658,11 @@ def views_from_source(source, spec: BoardSpec, *, max_views: int = 20, seconds: 
                 if not cv2.imwrite(str(save_dir / view.name), gray):
                     raise UserError(f"{save_dir}: cannot write {view.name}")
             sig = selector.signatures[-1]
-            say(f"  kept view {len(views):3d}/{max_views} (frame {frame.seq}): centre "
+            say(
+                f"  kept view {len(views):3d}/{max_views} (frame {frame.seq}): centre "
                 f"({sig[0]:.2f}, {sig[1]:.2f}) size {np.exp(sig[2]):.2f} tilt "
-                f"({np.degrees(sig[3]):+.0f}, {np.degrees(sig[4]):+.0f}) deg; coverage {coverage.fraction:.0%}")
+                f"({np.degrees(sig[3]):+.0f}, {np.degrees(sig[4]):+.0f}) deg; coverage {coverage.fraction:.0%}"
+            )
     except KeyboardInterrupt:
         # Ctrl-C ends the collection; the views kept so far are calibrated.
         say(f"stopped after {frames} frame(s)")
@@ -613,16 +671,24 @@ def views_from_source(source, spec: BoardSpec, *, max_views: int = 20, seconds: 
     if size is None:
         raise UserError(f"{name}: no frames")
     if not views:
-        raise UserError(f"{name}: no {spec.noun} found in any of {frames} frame(s) "
-                        f"(check --board: {spec.describe()})")
+        raise UserError(f"{name}: no {spec.noun} found in any of {frames} frame(s) (check --board: {spec.describe()})")
     say(f"board seen in {seen} of {frames} frame(s); {len(views)} distinct view(s) kept")
     return views, size, name
 
 
-def run_calibration(spec: BoardSpec, input_path: Optional[str] = None, *, config: Optional[str] = None,
-                    out: Optional[str] = None, max_views: int = 20, seconds: Optional[float] = None,
-                    save_views: Optional[Union[str, Path]] = None, drop_outliers: bool = False,
-                    min_coverage: float = DEFAULT_MIN_COVERAGE, fit_k3: bool = False) -> int:
+def run_calibration(
+    spec: BoardSpec,
+    input_path: Optional[str] = None,
+    *,
+    config: Optional[str] = None,
+    out: Optional[str] = None,
+    max_views: int = 20,
+    seconds: Optional[float] = None,
+    save_views: Optional[Union[str, Path]] = None,
+    drop_outliers: bool = False,
+    min_coverage: float = DEFAULT_MIN_COVERAGE,
+    fit_k3: bool = False,
+) -> int:
     """``pose-daemon calibrate``: views from ``input_path`` (a folder of images or a recording)
     or live from ``config``'s camera, the fit, its report, and the [camera] section written to
     ``out`` ('-' = stdout, the default without ``config``) and/or into ``config`` in place.
@@ -630,7 +696,7 @@ def run_calibration(spec: BoardSpec, input_path: Optional[str] = None, *, config
     if config:
         from ..config import load_config
 
-        load_config(config)   # a broken config is reported before the work, not after
+        load_config(config)  # a broken config is reported before the work, not after
     # The TOML goes to stdout when nothing else is asked for: the report then goes to stderr.
     to_stdout = out == "-" or (out is None and not config)
     stream = sys.stderr if to_stdout else sys.stdout
@@ -640,11 +706,13 @@ def run_calibration(spec: BoardSpec, input_path: Optional[str] = None, *, config
 
     say(f"board: {spec.describe()}")
     if input_path:
-        views, size, name = views_from_path(Path(input_path), spec, max_views=max_views, seconds=seconds,
-                                            save_views=save_views, say=say)
+        views, size, name = views_from_path(
+            Path(input_path), spec, max_views=max_views, seconds=seconds, save_views=save_views, say=say
+        )
     else:
-        views, size, name = views_live(spec, config, max_views=max_views, seconds=seconds,
-                                       save_views=save_views, say=say)
+        views, size, name = views_live(
+            spec, config, max_views=max_views, seconds=seconds, save_views=save_views, say=say
+        )
     width, height = size
     refuse_too_few(views, name)
 
@@ -657,16 +725,22 @@ def run_calibration(spec: BoardSpec, input_path: Optional[str] = None, *, config
         result = calibrate_views(keep, width, height, fit_k3=fit_k3)
         report(result, say)
     elif result.outliers:
-        say(f"{len(result.outliers)} view(s) flagged as outliers: check them, or run again with "
-            "--drop-outliers to leave them out")
+        say(
+            f"{len(result.outliers)} view(s) flagged as outliers: check them, or run again with "
+            "--drop-outliers to leave them out"
+        )
     if result.coverage < min_coverage:
-        raise UserError(f"poor coverage: the board's corners reached {result.coverage:.0%} of the image "
-                        f"(need {min_coverage:.0%}); add views with the board near the edges and corners")
+        raise UserError(
+            f"poor coverage: the board's corners reached {result.coverage:.0%} of the image "
+            f"(need {min_coverage:.0%}); add views with the board near the edges and corners"
+        )
 
     cam = result.camera
     stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    comment = (f"pose-daemon calibrate, {stamp}: {len(result.views)} views of {spec.describe()}\n"
-               f"RMS reprojection error {result.rms_px:.3f} px, image coverage {result.coverage:.0%}")
+    comment = (
+        f"pose-daemon calibrate, {stamp}: {len(result.views)} views of {spec.describe()}\n"
+        f"RMS reprojection error {result.rms_px:.3f} px, image coverage {result.coverage:.0%}"
+    )
     section = camera_toml(cam, comment)
     if out and out != "-":
         try:
@@ -693,11 +767,16 @@ def _fmt(value: float, digits: int) -> str:
 
 def camera_values(camera: Camera) -> Dict[str, str]:
     """The [camera] keys CAMERA_KEYS as TOML value text."""
-    dist = ", ".join(f"{d:.8g}" if "e" in f"{d:.8g}" or "." in f"{d:.8g}" else f"{d:.8g}.0"
-                     for d in camera.dist[:5])
-    return {"width": str(camera.width), "height": str(camera.height), "fx": _fmt(camera.fx, 4),
-            "fy": _fmt(camera.fy, 4), "cx": _fmt(camera.cx, 4), "cy": _fmt(camera.cy, 4),
-            "dist": f"[{dist}]"}
+    dist = ", ".join(f"{d:.8g}" if "e" in f"{d:.8g}" or "." in f"{d:.8g}" else f"{d:.8g}.0" for d in camera.dist[:5])
+    return {
+        "width": str(camera.width),
+        "height": str(camera.height),
+        "fx": _fmt(camera.fx, 4),
+        "fy": _fmt(camera.fy, 4),
+        "cx": _fmt(camera.cx, 4),
+        "cy": _fmt(camera.cy, 4),
+        "dist": f"[{dist}]",
+    }
 
 
 def camera_toml(camera: Camera, comment: str = "") -> str:
@@ -746,7 +825,7 @@ def update_camera_text(text: str, camera: Camera, name: str = "<config>") -> str
     """``text`` (a TOML config) with the [camera] table's width, height, fx, fy, cx, cy and
     dist set to ``camera``'s; every other line, comment and table is kept as it was."""
     values = camera_values(camera)
-    nl = "\r\n" if "\r\n" in text else "\n"   # new lines written as the file writes them
+    nl = "\r\n" if "\r\n" in text else "\n"  # new lines written as the file writes them
     lines = text.splitlines(keepends=True)
     start = end = None
     for k, line in enumerate(lines):
@@ -764,8 +843,8 @@ def update_camera_text(text: str, camera: Camera, name: str = "<config>") -> str
         sep = "" if not text.strip() else (nl if text.endswith("\n") else nl + nl)
         return text + sep + camera_toml(camera).replace("\n", nl)
     end = len(lines) if end is None else end
-    body = "".join(lines[start + 1:end])
-    head = "".join(lines[:start + 1])
+    body = "".join(lines[start + 1 : end])
+    head = "".join(lines[: start + 1])
     tail = "".join(lines[end:])
     missing = []
     for key in CAMERA_KEYS:
@@ -774,12 +853,11 @@ def update_camera_text(text: str, camera: Camera, name: str = "<config>") -> str
             missing.append(key)
             continue
         v_end = _value_end(body, m.end())
-        body = body[:m.end()] + values[key] + body[v_end:]
+        body = body[: m.end()] + values[key] + body[v_end:]
     if missing:
         # New keys go after the table's last key line, before trailing blanks and comments.
         body_lines = body.splitlines(keepends=True)
-        last = max((k for k, ln in enumerate(body_lines) if ln.strip() and not ln.lstrip().startswith("#")),
-                   default=-1)
+        last = max((k for k, ln in enumerate(body_lines) if ln.strip() and not ln.lstrip().startswith("#")), default=-1)
         if last >= 0 and not body_lines[last].endswith("\n"):
             body_lines[last] += nl
         new = "".join(f"{key} = {values[key]}{nl}" for key in missing)
@@ -801,7 +879,7 @@ def update_config_file(path: Union[str, Path], camera: Camera) -> None:
         raise UserError(f"{p}: cannot read config: {exc.strerror or exc}") from None
     except UnicodeDecodeError:
         raise UserError(f"{p}: cannot update: not UTF-8 text") from None
-    load_config(p)   # a config that is already broken is reported as it is, not rewritten
+    load_config(p)  # a config that is already broken is reported as it is, not rewritten
     new_text = update_camera_text(text, camera, str(p))
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=str(p.parent.resolve()))
     try:
@@ -817,8 +895,9 @@ def update_config_file(path: Union[str, Path], camera: Camera) -> None:
         for key in ("fx", "fy", "cx", "cy"):
             if abs(getattr(got, key) - float(want[key])) > 1e-9:
                 raise UserError(f"{p}: the updated [camera] {key} did not read back; file left unchanged")
-        if (got.width, got.height) != (camera.width, camera.height) or \
-                np.max(np.abs(np.asarray(got.dist[:5]) - np.asarray(camera.dist[:5]))) > 1e-6:
+        if (got.width, got.height) != (camera.width, camera.height) or np.max(
+            np.abs(np.asarray(got.dist[:5]) - np.asarray(camera.dist[:5]))
+        ) > 1e-6:
             raise UserError(f"{p}: the updated [camera] did not read back; file left unchanged")
         try:
             os.chmod(tmp, p.stat().st_mode & 0o7777)

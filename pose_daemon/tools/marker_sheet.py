@@ -80,8 +80,7 @@ def aruco_cells(dictionary: str, marker_id: int) -> np.ndarray:
     return aruco_compat.marker_image(d, marker_id, side) > 127
 
 
-def config_lines(marker_type: str, size_m: float, dictionary: Optional[str],
-                 marker_id: Optional[int]) -> List[str]:
+def config_lines(marker_type: str, size_m: float, dictionary: Optional[str], marker_id: Optional[int]) -> List[str]:
     """The ``[marker]`` section matching this sheet."""
     lines = ["[marker]", f'type = "{marker_type}"', f"width = {size_m:g}", f"height = {size_m:g}"]
     if marker_type == "aruco":
@@ -116,13 +115,26 @@ def _needed_mm(marker_type: str, size_mm: float, cells: int, caption_lines: int)
     # The quiet zone is bare paper, so it may run into the printer's margin but not off the sheet;
     # ink (marker, bar, caption) stays inside the margin.
     width = max(size_mm + 2 * quiet, size_mm + 2 * PRINTER_MARGIN_MM, SCALE_BAR_MM + 2 * PRINTER_MARGIN_MM)
-    height = (max(PRINTER_MARGIN_MM, quiet) + size_mm + quiet + BAR_GAP_MM + BAR_BLOCK_MM
-              + LINE_MM * (caption_lines + 0.5) + PRINTER_MARGIN_MM)
+    height = (
+        max(PRINTER_MARGIN_MM, quiet)
+        + size_mm
+        + quiet
+        + BAR_GAP_MM
+        + BAR_BLOCK_MM
+        + LINE_MM * (caption_lines + 0.5)
+        + PRINTER_MARGIN_MM
+    )
     return width, height
 
 
-def layout(marker_type: str, size_m: float, *, dictionary: Optional[str] = None,
-           marker_id: Optional[int] = None, paper: str = "a4") -> Sheet:
+def layout(
+    marker_type: str,
+    size_m: float,
+    *,
+    dictionary: Optional[str] = None,
+    marker_id: Optional[int] = None,
+    paper: str = "a4",
+) -> Sheet:
     """Place marker, quiet zone, scale bar and caption on the paper; UserError if it does not fit.
 
     ``size_m`` is the outer edge of the black border in metres; the sheet is in millimetres.
@@ -154,17 +166,21 @@ def layout(marker_type: str, size_m: float, *, dictionary: Optional[str] = None,
         raise UserError(
             f"a {size_mm:g} mm marker does not fit on {paper} paper with its quiet zone, scale bar "
             f"and caption (needs {need_w:.0f} x {need_h:.0f} mm, the sheet is {paper_w:g} x "
-            f"{paper_h:g} mm); the largest that fits is {math.floor(largest + 1e-6):.0f} mm")
+            f"{paper_h:g} mm); the largest that fits is {math.floor(largest + 1e-6):.0f} mm"
+        )
     top_mm = max(PRINTER_MARGIN_MM, quiet_mm)
 
     x0 = (paper_w - size_mm) / 2.0
     y0 = top_mm
-    sheet = Sheet(paper=paper, width_mm=paper_w, height_mm=paper_h,
-                  marker_rect=(x0, y0, size_mm, size_mm),
-                  config=config_lines(marker_type, size_m, dictionary, marker_id))
+    sheet = Sheet(
+        paper=paper,
+        width_mm=paper_w,
+        height_mm=paper_h,
+        marker_rect=(x0, y0, size_mm, size_mm),
+        config=config_lines(marker_type, size_m, dictionary, marker_id),
+    )
     sheet.fills.append((0.0, [(x0, y0, size_mm, size_mm)]))
-    whites = [(x0 + c * cell_mm, y0 + r * cell_mm, n * cell_mm, cell_mm)
-              for r, c, n in _runs(cells)]
+    whites = [(x0 + c * cell_mm, y0 + r * cell_mm, n * cell_mm, cell_mm) for r, c, n in _runs(cells)]
     if whites:
         sheet.fills.append((1.0, whites))
     # Cut marks at the quiet zone's corners. Not a closed outline: a printed frame around the
@@ -199,13 +215,17 @@ def _cut_marks(x: float, y: float, side: float, paper_w: float, paper_h: float) 
         for cy, sy in ((y, 1.0), (y + side, -1.0)):
             horiz = (min(cx, cx + sx * n), cy - t / 2, n, t)
             vert = (cx - t / 2, min(cy, cy + sy * n), t, n)
-            marks += [r for r in (horiz, vert)
-                      if r[0] >= 0 and r[1] >= 0 and r[0] + r[2] <= paper_w and r[1] + r[3] <= paper_h]
+            marks += [
+                r
+                for r in (horiz, vert)
+                if r[0] >= 0 and r[1] >= 0 and r[0] + r[2] <= paper_w and r[1] + r[3] <= paper_h
+            ]
     return marks
 
 
-def _caption(marker_type: str, size_m: float, dictionary: Optional[str],
-             marker_id: Optional[int], paper: str) -> List[str]:
+def _caption(
+    marker_type: str, size_m: float, dictionary: Optional[str], marker_id: Optional[int], paper: str
+) -> List[str]:
     size_mm = size_m * 1000.0
     if marker_type == "aruco":
         what = f"ArUco marker {dictionary}, id {marker_id}"
@@ -261,15 +281,19 @@ def to_pdf(sheet: Sheet) -> bytes:
     ops.append("0 g")
     for t in sheet.texts:
         font = "F2" if t.mono else "F1"
-        ops.append(f"BT /{font} {_num(t.size_pt)} Tf {_num(t.x_mm * k)} {_num((h - t.y_mm) * k)} Td "
-                   f"({_pdf_text(t.text)}) Tj ET")
+        ops.append(
+            f"BT /{font} {_num(t.size_pt)} Tf {_num(t.x_mm * k)} {_num((h - t.y_mm) * k)} Td "
+            f"({_pdf_text(t.text)}) Tj ET"
+        )
     content = "\n".join(ops).encode("latin-1", errors="replace")
     media = f"[0 0 {_num(sheet.width_mm * k)} {_num(sheet.height_mm * k)}]"
     objects = [
         b"<< /Type /Catalog /Pages 2 0 R >>",
         b"<< /Type /Pages /Kids [3 0 R] /Count 1 >>",
-        (f"<< /Type /Page /Parent 2 0 R /MediaBox {media} /Contents 4 0 R "
-         f"/Resources << /Font << /F1 5 0 R /F2 6 0 R >> >> >>").encode(),
+        (
+            f"<< /Type /Page /Parent 2 0 R /MediaBox {media} /Contents 4 0 R "
+            f"/Resources << /Font << /F1 5 0 R /F2 6 0 R >> >> >>"
+        ).encode(),
         b"<< /Length %d >>\nstream\n" % len(content) + content + b"\nendstream",
         b"<< /Type /Font /Subtype /Type1 /BaseFont /Helvetica /Encoding /WinAnsiEncoding >>",
         b"<< /Type /Font /Subtype /Type1 /BaseFont /Courier /Encoding /WinAnsiEncoding >>",
@@ -303,12 +327,16 @@ def to_svg(sheet: Sheet) -> str:
         d = " ".join(f"M{_num(x)} {_num(y)}h{_num(w)}v{_num(h)}h{_num(-w)}z" for x, y, w, h in rects)
         parts.append(f'<path fill="{_svg_gray(gray)}" d="{d}"/>')
     for gray, width_mm, (x, y, w, h) in sheet.strokes:
-        parts.append(f'<rect x="{_num(x)}" y="{_num(y)}" width="{_num(w)}" height="{_num(h)}" '
-                     f'fill="none" stroke="{_svg_gray(gray)}" stroke-width="{_num(width_mm)}"/>')
+        parts.append(
+            f'<rect x="{_num(x)}" y="{_num(y)}" width="{_num(w)}" height="{_num(h)}" '
+            f'fill="none" stroke="{_svg_gray(gray)}" stroke-width="{_num(width_mm)}"/>'
+        )
     for t in sheet.texts:
         family = "Courier, monospace" if t.mono else "Helvetica, Arial, sans-serif"
-        parts.append(f'<text x="{_num(t.x_mm)}" y="{_num(t.y_mm)}" font-family="{family}" '
-                     f'font-size="{_num(t.size_pt * MM_PER_PT)}">{_xml(t.text)}</text>')
+        parts.append(
+            f'<text x="{_num(t.x_mm)}" y="{_num(t.y_mm)}" font-family="{family}" '
+            f'font-size="{_num(t.size_pt * MM_PER_PT)}">{_xml(t.text)}</text>'
+        )
     parts.append("</svg>")
     return "\n".join(parts) + "\n"
 
@@ -340,34 +368,40 @@ def to_image(sheet: Sheet, dpi: float) -> np.ndarray:
     for gray, rects in sheet.fills:
         for x, y, w, h in rects:
             # Each edge is rounded on its own, so neighbouring cells share edges exactly.
-            img[max(0, py(y)):py(y + h), max(0, px(x)):px(x + w)] = int(round(gray * 255))
+            img[max(0, py(y)) : py(y + h), max(0, px(x)) : px(x + w)] = int(round(gray * 255))
     for gray, width_mm, (x, y, w, h) in sheet.strokes:
-        cv2.rectangle(img, (px(x), py(y)), (px(x + w) - 1, py(y + h) - 1), int(round(gray * 255)),
-                      max(1, int(round(width_mm * k))))
+        cv2.rectangle(
+            img,
+            (px(x), py(y)),
+            (px(x + w) - 1, py(y + h) - 1),
+            int(round(gray * 255)),
+            max(1, int(round(width_mm * k))),
+        )
     for t in sheet.texts:
         font = cv2.FONT_HERSHEY_PLAIN if t.mono else cv2.FONT_HERSHEY_SIMPLEX
         cap_px = 0.7 * t.size_pt * MM_PER_PT * k  # cap height is about 0.7 em
         (_, base_h), _ = cv2.getTextSize("H", font, 1.0, 1)
         scale = cap_px / max(base_h, 1)
-        cv2.putText(img, t.text, (px(t.x_mm), py(t.y_mm)), font, scale, 0,
-                    max(1, int(round(scale * 1.2))), cv2.LINE_AA)
+        cv2.putText(img, t.text, (px(t.x_mm), py(t.y_mm)), font, scale, 0, max(1, int(round(scale * 1.2))), cv2.LINE_AA)
     return img
 
 
 def png_bytes(img: np.ndarray, dpi: float) -> bytes:
     """8-bit greyscale PNG carrying its resolution (pHYs), so viewers print it at true size."""
+
     def chunk(kind: bytes, data: bytes) -> bytes:
-        return (struct.pack(">I", len(data)) + kind + data
-                + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
 
     h, w = img.shape
     raw = np.hstack([np.zeros((h, 1), np.uint8), img]).tobytes()  # filter byte 0 per row
     ppm = int(round(dpi / 0.0254))
-    return (b"\x89PNG\r\n\x1a\n"
-            + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
-            + chunk(b"pHYs", struct.pack(">IIB", ppm, ppm, 1))
-            + chunk(b"IDAT", zlib.compress(raw, 6))
-            + chunk(b"IEND", b""))
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
+        + chunk(b"pHYs", struct.pack(">IIB", ppm, ppm, 1))
+        + chunk(b"IDAT", zlib.compress(raw, 6))
+        + chunk(b"IEND", b"")
+    )
 
 
 def check_out_path(path: Path) -> str:
@@ -393,3 +427,48 @@ def write_sheet(sheet: Sheet, path: Path, *, dpi: float = 300.0) -> None:
         path.write_bytes(data)
     except OSError as exc:
         raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+def pad_layout(
+    size_m: float, *, dictionary: Optional[str] = None, outer_id: Optional[int] = None, paper: str = "a4"
+) -> Sheet:
+    """The nested landing pad (marker_map.landing_pad) on one sheet: the outer marker as
+    ``layout`` places it, the inner marker drawn inside its white centre; ``config`` holds the
+    matching [map] lines. UserError when the outer marker does not fit on the paper."""
+    from ..marker_map import landing_pad
+
+    dictionary = (dictionary or DEFAULT_DICTIONARY).strip().upper()
+    if not (isinstance(size_m, (int, float)) and math.isfinite(size_m) and size_m > 0):
+        raise UserError(f"--size must be a positive number of metres, got {size_m}")
+    try:
+        pad = landing_pad(dictionary, outer_m=float(size_m), outer_id=outer_id)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    outer, inner = pad.markers
+    sheet = layout("aruco", outer.size_m, dictionary=dictionary, marker_id=outer.id, paper=paper)
+    x0, y0, side_mm, _ = sheet.marker_rect
+    inner_mm = inner.size_m * 1000.0
+    ix, iy = x0 + (side_mm - inner_mm) / 2.0, y0 + (side_mm - inner_mm) / 2.0
+    cells = aruco_cells(dictionary, inner.id)
+    cell_mm = inner_mm / cells.shape[0]
+    sheet.fills.append((0.0, [(ix, iy, inner_mm, inner_mm)]))
+    sheet.fills.append((1.0, [(ix + c * cell_mm, iy + r * cell_mm, n * cell_mm, cell_mm) for r, c, n in _runs(cells)]))
+    # The caption's [marker] lines become a pointer to the [map] lines (printed with the sheet).
+    mono = [t for t in sheet.texts if t.mono]
+    for t in mono:
+        sheet.texts.remove(t)
+    if mono:
+        sheet.texts.append(
+            Text(
+                mono[0].x_mm,
+                mono[0].y_mm,
+                f"landing pad: outer id {outer.id} ({outer.size_m * 1000:g} mm), inner id "
+                f"{inner.id} ({inner.size_m * 1000:.4g} mm), centres together; [map] lines "
+                "printed by pose-daemon marker --pad",
+                size_pt=7.0,
+            )
+        )
+    sheet.config = pad.to_toml_lines()
+    while sheet.config and not sheet.config[-1]:
+        sheet.config.pop()
+    return sheet

@@ -11,7 +11,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Mapping, Optional, Tuple
 
 import numpy as np
 
@@ -20,7 +20,7 @@ from ..errors import UserError
 ANGLE_KEYS = ("alpha_deg", "beta_deg", "gamma_deg")
 ANGLE_LABELS = ("alpha (pitch)", "beta (yaw)", "gamma (roll)")
 # Reading stops here: a pose log this long is a mistake (or not a pose log).
-MAX_BYTES = 2 * 1024 ** 3
+MAX_BYTES = 2 * 1024**3
 
 
 @dataclass
@@ -53,9 +53,16 @@ class PoseSeries:
 
     def select(self, start: int, end: int) -> PoseSeries:
         """The frames [start, end) as a series of their own."""
-        return PoseSeries(self.t_s[start:end], self.ok[start:end], self.position_m[start:end],
-                          self.angles_deg[start:end], self.latency_ms[start:end], self.has_time,
-                          self.skipped, None if self.line is None else self.line[start:end])
+        return PoseSeries(
+            self.t_s[start:end],
+            self.ok[start:end],
+            self.position_m[start:end],
+            self.angles_deg[start:end],
+            self.latency_ms[start:end],
+            self.has_time,
+            self.skipped,
+            None if self.line is None else self.line[start:end],
+        )
 
 
 def _finite_vector(obj: Dict[str, Any], key: str, n: int) -> Optional[List[float]]:
@@ -90,11 +97,13 @@ def _parse_line(obj: Any) -> Tuple[Optional[float], bool, List[float], List[floa
     nan3 = [math.nan] * 3
     position, angles = nan3, nan3
     if ok:
-        position = _finite_vector(obj, "camera_position", 3)
-        if position is None:
+        found = _finite_vector(obj, "camera_position", 3)
+        if found is None:
             raise ValueError('"ok": true without a "camera_position" of 3 numbers')
-        angles = [_number(obj.get(k)) for k in ANGLE_KEYS]
-        if any(a is None for a in angles):
+        position = found
+        numbers = [_number(obj.get(k)) for k in ANGLE_KEYS]
+        angles = [a for a in numbers if a is not None]
+        if len(angles) != len(ANGLE_KEYS):
             raise ValueError('"ok": true without numeric ' + ", ".join(ANGLE_KEYS))
     latency = _number(obj.get("latency_ms"))
     return t, ok, position, angles, (math.nan if latency is None else latency)
@@ -113,7 +122,7 @@ def read_poses(path: Path) -> PoseSeries:
         raise UserError(f"{name}: is a directory, expected a JSON lines file")
     try:
         if path.stat().st_size > MAX_BYTES:
-            raise UserError(f"{name}: larger than {MAX_BYTES // 1024 ** 3} GB, not a pose log")
+            raise UserError(f"{name}: larger than {MAX_BYTES // 1024**3} GB, not a pose log")
         with open(path, "rb") as fh:
             raw = fh.read()
     except OSError as exc:
@@ -135,8 +144,8 @@ def read_poses(path: Path) -> PoseSeries:
     if not rows:
         if not skipped:
             raise UserError(f"{name}: is empty, expected per-frame JSON lines from replay or the daemon")
-        line, why = skipped[0]
-        raise UserError(f"{name}: no per-frame JSON object in {len(skipped)} line(s) (line {line}: {why})")
+        line_no, why = skipped[0]
+        raise UserError(f"{name}: no per-frame JSON object in {len(skipped)} line(s) (line {line_no}: {why})")
     has_time = all(r[0] is not None for r in rows)
     t = np.array([r[0] for r in rows] if has_time else np.arange(len(rows)), dtype=np.float64)
     return PoseSeries(
@@ -181,7 +190,9 @@ def summarise(series: PoseSeries) -> Dict[str, Optional[float]]:
         "duration_s": float(series.t_s[-1] - series.t_s[0]) if frames else 0.0,
         "gaps": float(len(gaps)),
         "longest_gap_s": max((b - a for a, b in gaps), default=0.0),
-        "latency_median_ms": None, "latency_p95_ms": None, "latency_max_ms": None,
+        "latency_median_ms": None,
+        "latency_p95_ms": None,
+        "latency_max_ms": None,
     }
     if lat.size:
         out["latency_median_ms"] = float(np.median(lat))
@@ -190,14 +201,19 @@ def summarise(series: PoseSeries) -> Dict[str, Optional[float]]:
     return out
 
 
-def summary_line(series: PoseSeries, stats: Dict[str, Optional[float]]) -> str:
+def summary_line(series: PoseSeries, stats: Mapping[str, Any]) -> str:
+    """One line from ``summarise``'s dict: its counts are numbers, only the latencies may be None."""
     unit = "s" if series.has_time else "frames"
-    line = (f"{int(stats['frames'])} frames over {stats['duration_s']:.2f} {unit}, pose in "
-            f"{int(stats['detected'])} ({100.0 * stats['detection_rate']:.1f} %), {int(stats['gaps'])} "
-            f"gap(s), longest {stats['longest_gap_s']:.3f} {unit}")
+    line = (
+        f"{int(stats['frames'])} frames over {stats['duration_s']:.2f} {unit}, pose in "
+        f"{int(stats['detected'])} ({100.0 * stats['detection_rate']:.1f} %), {int(stats['gaps'])} "
+        f"gap(s), longest {stats['longest_gap_s']:.3f} {unit}"
+    )
     if stats["latency_median_ms"] is not None:
-        line += (f"; latency median {stats['latency_median_ms']:.1f} ms, p95 "
-                 f"{stats['latency_p95_ms']:.1f} ms, max {stats['latency_max_ms']:.1f} ms")
+        line += (
+            f"; latency median {stats['latency_median_ms']:.1f} ms, p95 "
+            f"{stats['latency_p95_ms']:.1f} ms, max {stats['latency_max_ms']:.1f} ms"
+        )
     return line
 
 
@@ -214,8 +230,9 @@ def top_view_axes(placement: str) -> Tuple[int, int, str, str]:
     raise UserError(f"unknown placement {placement!r}; one of: wall, floor")
 
 
-def make_figure(series: PoseSeries, *, placement: str = "wall", title: str = "",
-                latency_budget_ms: Optional[float] = 100.0) -> Any:
+def make_figure(
+    series: PoseSeries, *, placement: str = "wall", title: str = "", latency_budget_ms: Optional[float] = 100.0
+) -> Any:
     """The four-panel figure: position, attitude, trajectory from above, detection and latency."""
     from ..plotting import new_figure
 
@@ -229,8 +246,14 @@ def make_figure(series: PoseSeries, *, placement: str = "wall", title: str = "",
 
     def shade(ax: Any) -> None:
         for k, (a, b) in enumerate(gaps):
-            ax.axvspan(a, b if b > a else a + _typical_step(t), color="tab:red", alpha=0.15, lw=0,
-                       label="no pose" if k == 0 else None)
+            ax.axvspan(
+                a,
+                b if b > a else a + _typical_step(t),
+                color="tab:red",
+                alpha=0.15,
+                lw=0,
+                label="no pose" if k == 0 else None,
+            )
 
     for k, (name, colour) in enumerate(zip("xyz", ("tab:blue", "tab:orange", "tab:green"))):
         ax_pos.plot(t, series.position_m[:, k], color=colour, lw=1.2, label=name)
@@ -263,15 +286,17 @@ def make_figure(series: PoseSeries, *, placement: str = "wall", title: str = "",
         if latency_budget_ms is not None:
             # A budget far above every latency would squash them against the axis: name it only.
             if np.nanmax(series.latency_ms) >= 0.3 * latency_budget_ms:
-                ax_det.axhline(latency_budget_ms, color="tab:red", ls="--", lw=1,
-                               label=f"budget {latency_budget_ms:g} ms")
+                ax_det.axhline(
+                    latency_budget_ms, color="tab:red", ls="--", lw=1, label=f"budget {latency_budget_ms:g} ms"
+                )
             else:
                 ax_det.plot([], [], " ", label=f"budget {latency_budget_ms:g} ms (off scale)")
         ax_det.set_ylim(bottom=0.0)
         ax_det.set_ylabel("latency (ms)")
     else:
-        ax_det.text(0.5, 0.5, "no latency_ms in this log", transform=ax_det.transAxes,
-                    ha="center", va="center", color="0.4")
+        ax_det.text(
+            0.5, 0.5, "no latency_ms in this log", transform=ax_det.transAxes, ha="center", va="center", color="0.4"
+        )
         ax_det.set_yticks([])
     shade(ax_det)
     # Detection as a strip along the bottom: one tick per frame with a pose.
@@ -308,8 +333,14 @@ def pick_run(series: PoseSeries, run: Optional[int]) -> Tuple[PoseSeries, str]:
     return series.select(start, end), note
 
 
-def plot_poses(path: Path, out: Path, *, placement: str = "wall", latency_budget_ms: Optional[float] = 100.0,
-               run: Optional[int] = None) -> Tuple[PoseSeries, Dict[str, Optional[float]], str]:
+def plot_poses(
+    path: Path,
+    out: Path,
+    *,
+    placement: str = "wall",
+    latency_budget_ms: Optional[float] = 100.0,
+    run: Optional[int] = None,
+) -> Tuple[PoseSeries, Dict[str, Optional[float]], str]:
     """Read ``path``, draw the figure of one run into ``out``: the series, its summary figures and
     a note naming the run when the log holds several (the daemon appends after each restart)."""
     from ..plotting import check_plot_path, require_matplotlib, save_figure

@@ -17,6 +17,7 @@ the feed, 1 when not; a config or link that cannot be used is a UserError (exit 
 
 from __future__ import annotations
 
+import functools
 import math
 import statistics
 import struct
@@ -39,16 +40,45 @@ QUALITY_MIN = 30
 HEARTBEAT_TIMEOUT_S = 10.0
 PARAM_TIMEOUT_S = 2.0
 # ArduPilot's SERIALn_BAUD codes for the usual rates (the rest are rate / 1000).
-_AP_BAUD = {1200: 1, 2400: 2, 4800: 4, 9600: 9, 19200: 19, 38400: 38, 57600: 57, 111100: 111, 115200: 115,
-            230400: 230, 256000: 256, 460800: 460, 500000: 500, 921600: 921, 1500000: 1500}
+_AP_BAUD = {
+    1200: 1,
+    2400: 2,
+    4800: 4,
+    9600: 9,
+    19200: 19,
+    38400: 38,
+    57600: 57,
+    111100: 111,
+    115200: 115,
+    230400: 230,
+    256000: 256,
+    460800: 460,
+    500000: 500,
+    921600: 921,
+    1500000: 1500,
+}
 
-ARDUPILOT_PARAMS = (["VISO_TYPE", "VISO_QUAL_MIN", "VISO_DELAY_MS", "VISO_ORIENT", "EK3_SRC1_POSXY",
-                     "EK3_SRC1_POSZ", "EK3_SRC1_VELXY", "EK3_SRC1_YAW", "GPS1_TYPE", "GPS_TYPE",
-                     "PLND_ENABLED", "PLND_TYPE"]
-                    + [f"SERIAL{n}_{k}" for n in range(1, 9) for k in ("PROTOCOL", "BAUD")]
-                    + [f"SR{n}_{k}" for n in range(0, 7) for k in ("EXTRA1", "POSITION")])
-PX4_PARAMS = (["EKF2_EV_CTRL", "EKF2_HGT_REF", "EKF2_EV_DELAY", "EKF2_GPS_CTRL", "EKF2_EV_QMIN"]
-              + [f"MAV_{n}_{k}" for n in range(0, 3) for k in ("CONFIG", "MODE", "RATE")])
+ARDUPILOT_PARAMS = (
+    [
+        "VISO_TYPE",
+        "VISO_QUAL_MIN",
+        "VISO_DELAY_MS",
+        "VISO_ORIENT",
+        "EK3_SRC1_POSXY",
+        "EK3_SRC1_POSZ",
+        "EK3_SRC1_VELXY",
+        "EK3_SRC1_YAW",
+        "GPS1_TYPE",
+        "GPS_TYPE",
+        "PLND_ENABLED",
+        "PLND_TYPE",
+    ]
+    + [f"SERIAL{n}_{k}" for n in range(1, 9) for k in ("PROTOCOL", "BAUD")]
+    + [f"SR{n}_{k}" for n in range(0, 7) for k in ("EXTRA1", "POSITION")]
+)
+PX4_PARAMS = ["EKF2_EV_CTRL", "EKF2_HGT_REF", "EKF2_EV_DELAY", "EKF2_GPS_CTRL", "EKF2_EV_QMIN"] + [
+    f"MAV_{n}_{k}" for n in range(0, 3) for k in ("CONFIG", "MODE", "RATE")
+]
 
 
 @dataclass
@@ -76,10 +106,10 @@ def _fmt(v: Optional[float]) -> str:
 class Observation:
     """What the link showed during the watch."""
 
-    autopilot: Optional[str] = None             # "ardupilot" / "px4" / "other"
+    autopilot: Optional[str] = None  # "ardupilot" / "px4" / "other"
     system: Optional[int] = None
     component: int = 1
-    params: Dict[str, Tuple[float, int]] = field(default_factory=dict)   # name -> (value, MAV_PARAM_TYPE)
+    params: Dict[str, Tuple[float, int]] = field(default_factory=dict)  # name -> (value, MAV_PARAM_TYPE)
     statustexts: List[Tuple[int, str]] = field(default_factory=list)
     ekf_flags: Optional[int] = None
     origin_seen: bool = False
@@ -125,10 +155,13 @@ def _link_fix(m, obs: Observation, kind: str, baud: int) -> List[Finding]:
     if proto == 2:
         out.append(Finding("OK", f"SERIAL{n}_PROTOCOL = 2 (MAVLink 2), SERIAL{n}_BAUD = {code}"))
     else:
-        out += [Finding("PROBLEM", f"SERIAL{n}_PROTOCOL = {_fmt(proto)}: the daemon speaks MAVLink 2"),
-                Finding("FIX", param=f"SERIAL{n}_PROTOCOL", value=2)]
-    rates = [f"SR{n}_{k} = {_fmt(obs.params[f'SR{n}_{k}'][0])}" for k in ("EXTRA1", "POSITION")
-             if f"SR{n}_{k}" in obs.params]
+        out += [
+            Finding("PROBLEM", f"SERIAL{n}_PROTOCOL = {_fmt(proto)}: the daemon speaks MAVLink 2"),
+            Finding("FIX", param=f"SERIAL{n}_PROTOCOL", value=2),
+        ]
+    rates = [
+        f"SR{n}_{k} = {_fmt(obs.params[f'SR{n}_{k}'][0])}" for k in ("EXTRA1", "POSITION") if f"SR{n}_{k}" in obs.params
+    ]
     if rates:
         out.append(Finding("OK", "stream rates " + ", ".join(rates) + " (the daemon asks for what it needs)"))
     return out
@@ -157,14 +190,21 @@ def check_ardupilot(cfg, obs: Observation, link_kind: str = "udpout") -> List[Fi
     qmin = p.get("VISO_QUAL_MIN")
     if qmin is not None:
         if "VISION_POSITION_ESTIMATE" in m.messages and qmin > 0:
-            out += [Finding("PROBLEM", f"VISO_QUAL_MIN = {_fmt(qmin)} drops every VISION_POSITION_ESTIMATE "
-                                       "(no quality field: ArduPilot takes 0)"),
-                    Finding("FIX", param="VISO_QUAL_MIN", value=0)]
+            out += [
+                Finding(
+                    "PROBLEM",
+                    f"VISO_QUAL_MIN = {_fmt(qmin)} drops every VISION_POSITION_ESTIMATE "
+                    "(no quality field: ArduPilot takes 0)",
+                ),
+                Finding("FIX", param="VISO_QUAL_MIN", value=0),
+            ]
         elif obs.qualities and qmin > 0:
             dropped = sum(q < qmin for q in obs.qualities) / len(obs.qualities)
             if dropped > 0.05:
-                out += [Finding("PROBLEM", f"VISO_QUAL_MIN = {_fmt(qmin)} drops {100 * dropped:.0f} % of the "
-                                           "poses sent"), Finding("FIX", param="VISO_QUAL_MIN", value=QUALITY_MIN)]
+                out += [
+                    Finding("PROBLEM", f"VISO_QUAL_MIN = {_fmt(qmin)} drops {100 * dropped:.0f} % of the poses sent"),
+                    Finding("FIX", param="VISO_QUAL_MIN", value=QUALITY_MIN),
+                ]
             else:
                 out.append(Finding("OK", f"VISO_QUAL_MIN = {_fmt(qmin)} drops {100 * dropped:.0f} % of the poses sent"))
         else:
@@ -174,20 +214,40 @@ def check_ardupilot(cfg, obs: Observation, link_kind: str = "udpout") -> List[Fi
     if delay is not None and vd is not None:
         p50, p90 = delay
         if vd < math.floor(p50):
-            out += [Finding("PROBLEM", f"VISO_DELAY_MS = {_fmt(vd)} is shorter than the measured capture-to-send "
-                                       f"delay (median {p50:.0f} ms, p90 {p90:.0f} ms)"),
-                    Finding("FIX", param="VISO_DELAY_MS", value=min(250, math.ceil(p50)))]
+            out += [
+                Finding(
+                    "PROBLEM",
+                    f"VISO_DELAY_MS = {_fmt(vd)} is shorter than the measured capture-to-send "
+                    f"delay (median {p50:.0f} ms, p90 {p90:.0f} ms)",
+                ),
+                Finding("FIX", param="VISO_DELAY_MS", value=min(250, math.ceil(p50))),
+            ]
         else:
-            out.append(Finding("OK", f"VISO_DELAY_MS = {_fmt(vd)} (measured capture-to-send delay: median "
-                                     f"{p50:.0f} ms, p90 {p90:.0f} ms)"))
+            out.append(
+                Finding(
+                    "OK",
+                    f"VISO_DELAY_MS = {_fmt(vd)} (measured capture-to-send delay: median "
+                    f"{p50:.0f} ms, p90 {p90:.0f} ms)",
+                )
+            )
     gps = p.get("GPS1_TYPE", p.get("GPS_TYPE"))
     if gps is not None:
         if gps == 0 and m.origin is None and not obs.origin_seen:
-            out.append(Finding("PROBLEM", "no GPS (GPS1_TYPE = 0) and no origin: set [output.mavlink] origin, "
-                                          "or arming fails with 'AHRS: waiting for home'"))
+            out.append(
+                Finding(
+                    "PROBLEM",
+                    "no GPS (GPS1_TYPE = 0) and no origin: set [output.mavlink] origin, "
+                    "or arming fails with 'AHRS: waiting for home'",
+                )
+            )
         else:
-            out.append(Finding("OK", f"GPS1_TYPE = {_fmt(gps)}" + (" (no GPS: the daemon sends the origin)"
-                                                                   if gps == 0 and m.origin is not None else "")))
+            out.append(
+                Finding(
+                    "OK",
+                    f"GPS1_TYPE = {_fmt(gps)}"
+                    + (" (no GPS: the daemon sends the origin)" if gps == 0 and m.origin is not None else ""),
+                )
+            )
     if "LANDING_TARGET" in m.messages:
         want("PLND_ENABLED", (1,), 1, "precision landing is off")
         want("PLND_TYPE", (1,), 1, "precision landing does not take MAVLink (companion) targets")
@@ -204,18 +264,25 @@ def check_px4(cfg, obs: Observation, link_kind: str = "udpout") -> List[Finding]
     if ctrl is None:
         out.append(Finding("PROBLEM", "EKF2_EV_CTRL not reported by the autopilot"))
     else:
-        wanted = (int(ctrl) | 1 | 8) & ~4     # horizontal position and yaw; no velocity is sent
+        wanted = (int(ctrl) | 1 | 8) & ~4  # horizontal position and yaw; no velocity is sent
         if wanted != int(ctrl):
-            out += [Finding("PROBLEM", f"EKF2_EV_CTRL = {int(ctrl)}: EKF2 needs bit 0 (horizontal position) and "
-                                       "bit 3 (yaw), not bit 2 (no velocity is sent)"),
-                    Finding("FIX", param="EKF2_EV_CTRL", value=wanted)]
+            out += [
+                Finding(
+                    "PROBLEM",
+                    f"EKF2_EV_CTRL = {int(ctrl)}: EKF2 needs bit 0 (horizontal position) and "
+                    "bit 3 (yaw), not bit 2 (no velocity is sent)",
+                ),
+                Finding("FIX", param="EKF2_EV_CTRL", value=wanted),
+            ]
         else:
             out.append(Finding("OK", f"EKF2_EV_CTRL = {int(ctrl)}"))
     hgt = p.get("EKF2_HGT_REF")
     if hgt is not None:
         if hgt == 1 and p.get("EKF2_GPS_CTRL", 0) == 0:
-            out += [Finding("PROBLEM", "EKF2_HGT_REF = 1 (GPS) with GPS off"), Finding("FIX", param="EKF2_HGT_REF",
-                                                                                       value=3)]
+            out += [
+                Finding("PROBLEM", "EKF2_HGT_REF = 1 (GPS) with GPS off"),
+                Finding("FIX", param="EKF2_HGT_REF", value=3),
+            ]
         else:
             out.append(Finding("OK", f"EKF2_HGT_REF = {_fmt(hgt)}"))
     if "EKF2_GPS_CTRL" in p:
@@ -223,11 +290,18 @@ def check_px4(cfg, obs: Observation, link_kind: str = "udpout") -> List[Finding]
     qmin = p.get("EKF2_EV_QMIN")
     if qmin is not None:
         if "VISION_POSITION_ESTIMATE" in m.messages and qmin > 0:
-            out += [Finding("PROBLEM", f"EKF2_EV_QMIN = {_fmt(qmin)} drops every VISION_POSITION_ESTIMATE "
-                                       "(no quality field: taken as 0)"), Finding("FIX", param="EKF2_EV_QMIN", value=0)]
+            out += [
+                Finding(
+                    "PROBLEM",
+                    f"EKF2_EV_QMIN = {_fmt(qmin)} drops every VISION_POSITION_ESTIMATE (no quality field: taken as 0)",
+                ),
+                Finding("FIX", param="EKF2_EV_QMIN", value=0),
+            ]
         elif qmin > QUALITY_MIN:
-            out += [Finding("PROBLEM", f"EKF2_EV_QMIN = {_fmt(qmin)} is above the README's {QUALITY_MIN}"),
-                    Finding("FIX", param="EKF2_EV_QMIN", value=QUALITY_MIN)]
+            out += [
+                Finding("PROBLEM", f"EKF2_EV_QMIN = {_fmt(qmin)} is above the README's {QUALITY_MIN}"),
+                Finding("FIX", param="EKF2_EV_QMIN", value=QUALITY_MIN),
+            ]
         else:
             out.append(Finding("OK", f"EKF2_EV_QMIN = {_fmt(qmin)}"))
     delay = _delay_ms(obs)
@@ -236,13 +310,22 @@ def check_px4(cfg, obs: Observation, link_kind: str = "udpout") -> List[Finding]
         p50, p90 = delay
         synced = obs.timesync_answered > 0
         if not synced and ev_delay < math.floor(p50):
-            out += [Finding("PROBLEM", f"EKF2_EV_DELAY = {_fmt(ev_delay)} ms and no TIMESYNC: PX4 stamps poses "
-                                       f"on arrival, the measured delay is median {p50:.0f} ms"),
-                    Finding("FIX", param="EKF2_EV_DELAY", value=min(300, math.ceil(p50)))]
+            out += [
+                Finding(
+                    "PROBLEM",
+                    f"EKF2_EV_DELAY = {_fmt(ev_delay)} ms and no TIMESYNC: PX4 stamps poses "
+                    f"on arrival, the measured delay is median {p50:.0f} ms",
+                ),
+                Finding("FIX", param="EKF2_EV_DELAY", value=min(300, math.ceil(p50))),
+            ]
         else:
-            out.append(Finding("OK", f"EKF2_EV_DELAY = {_fmt(ev_delay)} ms (measured capture-to-send delay: median "
-                                     f"{p50:.0f} ms, p90 {p90:.0f} ms" + ("; TIMESYNC answered" if synced else "")
-                               + ")"))
+            out.append(
+                Finding(
+                    "OK",
+                    f"EKF2_EV_DELAY = {_fmt(ev_delay)} ms (measured capture-to-send delay: median "
+                    f"{p50:.0f} ms, p90 {p90:.0f} ms" + ("; TIMESYNC answered" if synced else "") + ")",
+                )
+            )
     for n in range(3):
         keys = [f"MAV_{n}_{k}" for k in ("CONFIG", "MODE", "RATE") if f"MAV_{n}_{k}" in p]
         if keys:
@@ -265,10 +348,17 @@ def _watched(cfg, obs: Observation, ekf: str) -> List[Finding]:
         flags = "no status report" if obs.ekf_flags is None else f"flags 0x{obs.ekf_flags:x}"
         out.append(Finding("PROBLEM", f"{ekf} does not use the feed ({flags})"))
     if m.origin is not None or obs.origin_seen:
-        out.append(Finding("OK" if obs.origin_seen else "PROBLEM",
-                           "GPS_GLOBAL_ORIGIN reported" if obs.origin_seen else "the origin was not taken"))
-        out.append(Finding("OK" if obs.home_seen else "PROBLEM",
-                           "HOME_POSITION reported" if obs.home_seen else "no HOME_POSITION"))
+        out.append(
+            Finding(
+                "OK" if obs.origin_seen else "PROBLEM",
+                "GPS_GLOBAL_ORIGIN reported" if obs.origin_seen else "the origin was not taken",
+            )
+        )
+        out.append(
+            Finding(
+                "OK" if obs.home_seen else "PROBLEM", "HOME_POSITION reported" if obs.home_seen else "no HOME_POSITION"
+            )
+        )
     for severity, text in obs.statustexts:
         if severity <= 3 or "PreArm" in text or "unsupported" in text:
             out.append(Finding("PROBLEM", f"the autopilot says: {text}"))
@@ -292,8 +382,10 @@ class _Watcher:
             if kind == "PARAM_VALUE":
                 name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode("ascii", "replace")
                 name = name.rstrip("\x00")
-                self.obs.params[name] = (param_value(msg.param_value, msg.param_type, self.obs.autopilot),
-                                         int(msg.param_type))
+                self.obs.params[name] = (
+                    param_value(msg.param_value, msg.param_type, self.obs.autopilot),
+                    int(msg.param_type),
+                )
             elif kind == "STATUSTEXT":
                 text = msg.text if isinstance(msg.text, str) else msg.text.decode("ascii", "replace")
                 self.obs.statustexts.append((int(msg.severity), text.rstrip("\x00")))
@@ -301,7 +393,7 @@ class _Watcher:
                 self._flags(int(msg.flags))
             elif kind == f"UNKNOWN_{EKF_STATUS_REPORT_ID}":
                 buf = bytes(msg.data)
-                payload = buf[10:10 + buf[1]] + bytes(22)
+                payload = buf[10 : 10 + buf[1]] + bytes(22)
                 self._flags(struct.unpack("<fffffH", payload[:22])[5])
             elif kind == "GPS_GLOBAL_ORIGIN":
                 self.obs.origin_seen = True
@@ -309,7 +401,6 @@ class _Watcher:
                 self.obs.home_seen = True
             elif kind == "TIMESYNC" and msg.tc1 == 0:
                 self.obs.timesync_answered += 1
-
 
     def _flags(self, flags: int) -> None:
         # The watch asks "did the EKF use the feed": a report that it did is kept over later
@@ -324,8 +415,14 @@ def _request_params(out, obs_system: int, component: int, names: Sequence[str]) 
         out.send(lambda mav, n=name: mav.param_request_read_send(obs_system, component, n.encode("ascii"), -1))
 
 
-def run_preflight(cfg, *, seconds: float = 8.0, apply: bool = False, emit: Callable[[str], None] = print,
-                  heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S) -> int:
+def run_preflight(
+    cfg,
+    *,
+    seconds: float = 8.0,
+    apply: bool = False,
+    emit: Callable[[str], None] = print,
+    heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S,
+) -> int:
     """The checks (module docstring); prints each finding with ``emit``; 0 / 1 as documented.
     UserError for a config without [output.mavlink], a source that cannot open, or no autopilot."""
     from ..capture.sources import open_source
@@ -338,12 +435,22 @@ def run_preflight(cfg, *, seconds: float = 8.0, apply: bool = False, emit: Calla
         raise UserError(f"{cfg.name}: preflight needs an [output.mavlink] table")
     link_kind = parse_connection(m.connection, m.baud)[0]
     delays_s: List[float] = []
-    out = MavlinkOutput.from_config(cfg, queue_size=0, on_written=lambda _name, result, t_written: delays_s.append(
-        t_written - float(result.t_capture_s)))
+    out = MavlinkOutput.from_config(
+        cfg,
+        queue_size=0,
+        on_written=lambda _name, result, t_written: delays_s.append(t_written - float(result.t_capture_s)),
+    )
     watcher = _Watcher(out)
     watcher.obs.delays_s = delays_s
-    for kind in ("PARAM_VALUE", "STATUSTEXT", "ESTIMATOR_STATUS", f"UNKNOWN_{EKF_STATUS_REPORT_ID}",
-                 "GPS_GLOBAL_ORIGIN", "HOME_POSITION", "TIMESYNC"):
+    for kind in (
+        "PARAM_VALUE",
+        "STATUSTEXT",
+        "ESTIMATOR_STATUS",
+        f"UNKNOWN_{EKF_STATUS_REPORT_ID}",
+        "GPS_GLOBAL_ORIGIN",
+        "HOME_POSITION",
+        "TIMESYNC",
+    ):
         out.listen(kind, watcher.handle)
     obs = watcher.obs
     try:
@@ -361,19 +468,19 @@ def run_preflight(cfg, *, seconds: float = 8.0, apply: bool = False, emit: Calla
             source = open_source(cfg.camera, cfg)
             source.open()
         except SourceError as exc:
-            raise UserError(f"camera source {cfg.camera.source!r}: {exc} (stop the daemon first if it "
-                            "holds the camera)") from None
+            raise UserError(
+                f"camera source {cfg.camera.source!r}: {exc} (stop the daemon first if it holds the camera)"
+            ) from None
         processor = FrameProcessor.from_config(cfg)
         end = time.monotonic() + seconds
         retried = False
         asked_t = -1e18
         try:
             while time.monotonic() < end:
-                if time.monotonic() - asked_t >= 1.0:   # GPS_GLOBAL_ORIGIN and HOME_POSITION, once a second
+                if time.monotonic() - asked_t >= 1.0:  # GPS_GLOBAL_ORIGIN and HOME_POSITION, once a second
                     asked_t = time.monotonic()
                     for msg_id in (49, 242):
-                        out.send(lambda mav, i=msg_id: mav.command_long_send(
-                            obs.system, obs.component, 512, 0, float(i), 0, 0, 0, 0, 0, 0))
+                        out.send(functools.partial(_request_message, obs.system, obs.component, msg_id))
                 result = processor.process(source.read())
                 if result.pose is not None:
                     obs.qualities.append(pose_quality(result.pose, cfg.camera.fx, cfg.marker.width))
@@ -405,19 +512,27 @@ def run_preflight(cfg, *, seconds: float = 8.0, apply: bool = False, emit: Calla
         out.close()
 
 
+def _request_message(system: int, component: int, msg_id: int, mav: Any) -> None:
+    """MAV_CMD_REQUEST_MESSAGE (512) for ``msg_id`` (GPS_GLOBAL_ORIGIN 49, HOME_POSITION 242)."""
+    mav.command_long_send(system, component, 512, 0, float(msg_id), 0, 0, 0, 0, 0, 0)
+
+
 def _apply(out, watcher: _Watcher, fixes: Sequence[Finding], emit: Callable[[str], None]) -> bool:
     obs = watcher.obs
     for f in fixes:
+        assert f.param is not None and f.value is not None  # a FIX names its parameter and value
         name, value = f.param, float(f.value)
-        _, ptype = obs.params.get(name, (None, MAV_PARAM_TYPE_REAL32))
+        _, ptype = obs.params.get(name, (0.0, MAV_PARAM_TYPE_REAL32))
         wire = param_wire(value, ptype, obs.autopilot)
         with watcher.lock:
             obs.params.pop(name, None)
-        out.send(lambda mav, n=name, w=wire, t=ptype: mav.param_set_send(obs.system, obs.component,
-                                                                         n.encode("ascii"), w, t))
+        out.send(
+            lambda mav, n=name, w=wire, t=ptype: mav.param_set_send(obs.system, obs.component, n.encode("ascii"), w, t)
+        )
     end = time.monotonic() + PARAM_TIMEOUT_S * 2
     ok = True
     for f in fixes:
+        assert f.param is not None and f.value is not None
         while time.monotonic() < end and f.param not in obs.params:
             time.sleep(0.02)
         got = obs.params.get(f.param)

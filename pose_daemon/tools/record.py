@@ -14,8 +14,13 @@ from ..errors import EndOfStream, SourceError, UserError
 class Progress:
     """A one-line progress bar on stderr, redrawn at most ten times a second."""
 
-    def __init__(self, total_frames: Optional[int], total_s: Optional[float],
-                 stream: Optional[TextIO] = None, enabled: bool = True) -> None:
+    def __init__(
+        self,
+        total_frames: Optional[int],
+        total_s: Optional[float],
+        stream: Optional[TextIO] = None,
+        enabled: bool = True,
+    ) -> None:
         self.total_frames, self.total_s = total_frames, total_s
         # sys.stderr looked up now, not at import: it may have been replaced since.
         self.stream = sys.stderr if stream is None else stream
@@ -42,8 +47,14 @@ class Progress:
         self.stream.flush()
 
 
-def record(out: str, config: Optional[str] = None, *, seconds: Optional[float] = None,
-           frames: Optional[int] = None, progress_bar: bool = True) -> int:
+def record(
+    out: str,
+    config: Optional[str] = None,
+    *,
+    seconds: Optional[float] = None,
+    frames: Optional[int] = None,
+    progress_bar: bool = True,
+) -> int:
     """Frames from ``config``'s camera source (the embedded demo config without one) into the
     new folder ``out`` until ``frames`` frames, ``seconds`` s of frames, the end of the source
     or Ctrl-C. Returns the exit status; UserError when the source or the folder fails."""
@@ -61,8 +72,7 @@ def record(out: str, config: Optional[str] = None, *, seconds: Optional[float] =
         raise UserError(f"cannot open camera source {cfg.camera.source!r}: {exc}") from None
     marker = cfg.marker.model()
     try:
-        writer = RecordingWriter(out, cfg.camera.model(), marker, source=cfg.camera.source,
-                                 fps=cfg.camera.fps)
+        writer = RecordingWriter(out, cfg.camera.model(), marker, source=cfg.camera.source, fps=cfg.camera.fps)
     except (SourceError, OSError) as exc:
         source.close()
         raise UserError(f"cannot record into {out}: {exc}") from None

@@ -14,6 +14,7 @@ from ..config import load_config_or_default
 from ..errors import EndOfStream, SourceError, UserError
 from ..geometry import VehicleFrames
 from ..outputs.jsonl import json_line
+from ..pipeline import Processor
 from ..pose.prior import PriorSettings
 from ..processing import FrameProcessor
 from ..result import FrameResult
@@ -30,8 +31,9 @@ def _json_line(result: FrameResult) -> str:
         return json_line(result)
 
 
-def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = None,
-           annotate: Optional[str] = None) -> int:
+def replay(
+    path: str, config: Optional[str] = None, out_path: Optional[str] = None, annotate: Optional[str] = None
+) -> int:
     """Every frame of ``path`` through detection and pose estimation, one JSON line per frame
     to ``out_path`` (stdout without one), annotated images into the folder ``annotate``; the
     camera and marker are the recording's own when it has them, else ``config``'s. Returns
@@ -54,16 +56,34 @@ def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = No
     if config:
         # The recording's own camera and marker are what its frames were taken with; say so
         # when --config names others, so that new intrinsics are not thought to be in use.
-        ignored = [name for name, rec, conf, to_dict in (
-            ("[camera]", rec_camera, cfg.camera.model(), recording.camera_to_dict),
-            ("[marker]", rec_marker, cfg.marker.model(), recording.marker_to_dict))
-            if rec is not None and to_dict(rec) != to_dict(conf)]
+        ignored = []
+        if rec_camera is not None and (
+            recording.camera_to_dict(rec_camera) != recording.camera_to_dict(cfg.camera.model())
+        ):
+            ignored.append("[camera]")
+        if rec_marker is not None and (
+            recording.marker_to_dict(rec_marker) != recording.marker_to_dict(cfg.marker.model())
+        ):
+            ignored.append("[marker]")
         if ignored:
-            print(f"pose-daemon: note: {path} has its own {' and '.join(ignored)}, used instead of "
-                  f"those of {config}", file=sys.stderr)
-    processor = FrameProcessor.from_models(
-        camera, marker, cfg.estimator, cfg.detector, prior=PriorSettings.from_config(cfg),
-        frames=VehicleFrames.from_config(cfg.mount, cfg.marker.placement))
+            print(
+                f"pose-daemon: note: {path} has its own {' and '.join(ignored)}, used instead of those of {config}",
+                file=sys.stderr,
+            )
+    processor: Processor
+    if cfg.map is not None:  # a map names its own markers: the recording's [marker] is not used
+        from ..map_processing import MapFrameProcessor
+
+        processor = MapFrameProcessor.from_models(camera, cfg.map.model(), cfg.estimator, cfg.detector)
+    else:
+        processor = FrameProcessor.from_models(
+            camera,
+            marker,
+            cfg.estimator,
+            cfg.detector,
+            prior=PriorSettings.from_config(cfg),
+            frames=VehicleFrames.from_config(cfg.mount, cfg.placement),
+        )
     annotate_dir: Optional[Path] = None
     if annotate:
         annotate_dir = Path(annotate)
@@ -110,8 +130,11 @@ def replay(path: str, config: Optional[str] = None, out_path: Optional[str] = No
             out.flush()
         source.close()
     if source.skipped:
-        print(f"pose-daemon: skipped {len(source.skipped)} unreadable frame(s): "
-              + ", ".join(Path(f).name for f, _ in source.skipped[:10]), file=sys.stderr)
+        print(
+            f"pose-daemon: skipped {len(source.skipped)} unreadable frame(s): "
+            + ", ".join(Path(f).name for f, _ in source.skipped[:10]),
+            file=sys.stderr,
+        )
     if lost:
         print(f"pose-daemon: {lost}", file=sys.stderr)
     if accuracy.frames:
