@@ -63,6 +63,17 @@ def test_run_config_error_is_one_line_exit_2(tmp_path):
     assert "Traceback" not in res.stderr + missing.stderr
 
 
+def _run_daemon(cfg, timeout_s: float) -> subprocess.CompletedProcess:
+    """`pose-daemon run --config CFG` to its end; the timeout only ends a run that never does."""
+    return subprocess.run(
+        [sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        env=ENV,
+    )
+
+
 def _udp_sink():
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.bind(("127.0.0.1", 0))
@@ -88,13 +99,7 @@ wait_heartbeat = false
 path = "-"
 """,
     )
-    res = subprocess.run(
-        [sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        env=ENV,
-    )
+    res = _run_daemon(cfg, timeout_s=120)
     assert res.returncode == 0, res.stderr
     lines = [json.loads(line) for line in res.stdout.splitlines()]
     # The renderer's first frames come late (warm-up) and are dropped as such, never sent late.
@@ -219,13 +224,7 @@ def test_run_with_a_missing_video_or_recording_exits_2_at_once(tmp_path, source,
     # Reopening it every few seconds, as for an unplugged camera, would never end.
     source = source.format(tmp=tmp_path)
     cfg = _config(tmp_path, f'[camera]\nsource = "{source}"\n')
-    res = subprocess.run(
-        [sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
-        capture_output=True,
-        text=True,
-        timeout=20,
-        env=ENV,
-    )
+    res = _run_daemon(cfg, timeout_s=20)
     assert res.returncode == 2
     assert res.stderr == (
         f'pose-daemon: error: {cfg}: [camera] source: expected {expected}, got "{source}" (no such file or folder)\n'
@@ -436,13 +435,7 @@ def test_run_on_a_recording_whose_index_jumps_1e6_s_does_not_sleep_and_says_so(t
         tmp_path,
         f'[camera]\nsource = "replay:{rec}"\n[output.jsonl]\npath = "-"\n[pipeline]\nlatency_budget_s = 10.0\n',
     )
-    res = subprocess.run(
-        [sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        env=ENV,
-    )
+    res = _run_daemon(cfg, timeout_s=60)
     assert res.returncode == 0, res.stderr
     assert f"{rec}: frame 5 is recorded 1e+06 s after the previous one; replayed 0.033 s after it" in res.stderr
     assert "stopping: end of stream" in res.stderr
@@ -460,13 +453,7 @@ def test_run_on_a_damaged_video_says_how_many_frames_were_lost(tmp_path):
         tmp_path,
         f'[camera]\nsource = "video:{path}"\n[output.jsonl]\npath = "-"\n[pipeline]\nlatency_budget_s = 10.0\n',
     )
-    res = subprocess.run(
-        [sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        env=ENV,
-    )
+    res = _run_daemon(cfg, timeout_s=60)
     assert res.returncode == 0, res.stderr
 
     sent = [json.loads(line)["frame"] for line in res.stdout.splitlines()]
