@@ -38,7 +38,17 @@ COMMANDS = (
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse that reports errors as one line and exit status 2 (its own default)."""
+    """argparse that reports errors as one line and exit status 2 (its own default).
+
+    Descriptions come from the modules' docstrings, whose ````literal```` markup is for the
+    source reader: it is dropped from ``--help``.
+    """
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        description = kwargs.get("description")
+        if isinstance(description, str):
+            kwargs["description"] = description.replace("``", "")
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
 
     def error(self, message: str) -> None:  # type: ignore[override]
         self.exit(2, f"{self.prog}: error: {message}\n")

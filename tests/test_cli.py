@@ -16,7 +16,9 @@ def test_every_subcommand_has_help(name, capsys):
     with pytest.raises(SystemExit) as exc:
         main([name.replace("_", "-"), "--help"])
     assert exc.value.code == 0
-    assert "usage: pose-daemon" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "usage: pose-daemon" in out
+    assert "``" not in out, "docstring markup leaked into --help"
 
 
 def test_no_command_prints_help_and_exits_2(capsys):
