@@ -252,12 +252,13 @@ def test_tiled_pdf_has_a_plan_and_every_sheet_at_true_size(tmp_path: Path, capsy
     canvas, _ = _assemble_by_crosses(sheets, tiling)
     ou, ov = tiling.origin_uv_mm
     found = _detect(canvas, mmap.dictionary)
-    _check_markers(
+    worst = _check_markers(
         found,
         mmap,
         lambda x, y: ((ou + x * 1000.0) * PX_PER_MM - 0.5, (ov - y * 1000.0) * PX_PER_MM - 0.5),
         tol_px=1.5,
     )
+    print(f"tiled PDF via pdftoppm: worst corner error {worst:.2f} px at {DPI:g} dpi")
     # Each sheet's scale bar: the first black centimetre to the fifth is 80 mm.
     page = sheets[0]
     y = int(round((tiling.frame.footer_y_mm + 2.0 + 1.5) * PX_PER_MM))
@@ -432,3 +433,106 @@ def test_grid_map_refuses_markers_that_cannot_be_printed() -> None:
             lambda x, y, win=win: ((x * 1e3 - win[0]) * PX_PER_MM - 0.5, (-y * 1e3 - win[1]) * PX_PER_MM - 0.5),
         )
     assert grid_map("DICT_4X4_50", 1, 2, (0.3, 0.3), (0.1,), (4, 9)).ids == (4, 9)
+
+
+def test_map_file_prints_the_same_sheets_as_the_grid_and_turned_markers(tmp_path: Path, capsys) -> None:
+    """--map: the [map] lines --grid printed give the same pages; a hand-made [[markers]] list
+    (with --dictionary) with a quarter-turned marker prints each marker where the list says."""
+    code, out, _ = _run(
+        ["--grid", "2x2", "--spacing", "0.3", "--size", "0.1", "--out", str(tmp_path / "a.pdf")], capsys
+    )
+    assert code == 0
+    (tmp_path / "grid.toml").write_text(out)
+    code, out2, err = _run(["--map", str(tmp_path / "grid.toml"), "--out", str(tmp_path / "b.pdf")], capsys)
+    assert code == 0, err
+    assert out2 == out and (tmp_path / "a.pdf").read_bytes() == (tmp_path / "b.pdf").read_bytes()
+
+    (tmp_path / "hand.toml").write_text(
+        "[[markers]]\nid = 3\nsize = 0.1\nposition = [0.0, 0.0, 0.0]\n\n"
+        "[[markers]]\nid = 4\nsize = 0.07\nposition = [0.4, 0.1, 0.0]\nrotation_deg = [0.0, 0.0, 90.0]\n"
+    )
+    svg = tmp_path / "hand.svg"
+    code, _, err = _run(["--map", str(tmp_path / "hand.toml"), "--out", str(svg)], capsys)
+    assert code == 2 and "give --dictionary" in err and err.count("\n") == 1
+    code, out, err = _run(
+        ["--map", str(tmp_path / "hand.toml"), "--dictionary", "DICT_4X4_50", "--out", str(svg)], capsys
+    )
+    assert code == 0, err
+    mmap = parse_config(out, "stdout").map.model()
+    assert mmap.marker(4).rotation_deg == (0.0, 0.0, 90.0)
+    # One SVG per page, in millimetres; paint each sheet's rectangles and find its marker.
+    import re
+    import xml.etree.ElementTree as ET
+
+    pages, plan = grid_sheets(mmap, "a4")
+    assert sorted(p.name for p in tmp_path.glob("hand-*.svg")) == ["hand-1.svg", "hand-2.svg", "hand-plan.svg"]
+    for k, (ids, win) in enumerate(zip(plan.groups, plan.windows), start=1):
+        root = ET.parse(tmp_path / f"hand-{k}.svg").getroot()
+        assert (root.get("width"), root.get("height")) == ("210mm", "297mm")
+        img = np.full((int(round(297 * PX_PER_MM)), int(round(210 * PX_PER_MM))), 255, np.uint8)
+        num = r"(-?[\d.]+)"
+        for el in root.iter():
+            if el.tag.endswith("path") and el.get("fill") in ("#000000", "#ffffff"):
+                value = 0 if el.get("fill") == "#000000" else 255
+                for x, y, w, h in re.findall(rf"M{num} {num}h{num}v{num}h-?[\d.]+z", el.get("d")):
+                    x, y, w, h = (float(v) for v in (x, y, w, h))
+                    img[
+                        int(round(y * PX_PER_MM)) : int(round((y + h) * PX_PER_MM)),
+                        int(round(x * PX_PER_MM)) : int(round((x + w) * PX_PER_MM)),
+                    ] = value
+        sub = MarkerMap(mmap.dictionary, tuple(mmap.marker(i) for i in ids))
+        _check_sheet(
+            _detect(img, mmap.dictionary),
+            sub,
+            lambda x, y, win=win: ((x * 1e3 - win[0]) * PX_PER_MM - 0.5, (-y * 1e3 - win[1]) * PX_PER_MM - 0.5),
+        )
+    for args, message in (
+        (["--map", str(tmp_path / "nope.toml")], "cannot read"),
+        (["--map", str(tmp_path / "grid.toml"), "--size", "0.1"], "--map takes its markers from the file: no --size"),
+        (["--map", str(tmp_path / "grid.toml"), "--tiled"], "no --pad, --tiled or --type square"),
+        ([], "--size is required"),
+    ):
+        code, out, err = _run(args + ["--out", str(tmp_path / "x.png")], capsys)
+        assert code == 2 and out == "" and err.count("\n") == 1 and message in err, err
+    assert not list(tmp_path.glob("x*.png"))
+
+
+def test_readme_commands_for_several_sheets_run_and_the_option_table_is_complete(
+    tmp_path: Path, monkeypatch, capsys
+) -> None:
+    """The README's commands of "A landing pad or a floor map on several sheets" work as shown
+    (stdout into the file they name), and its option table names every option of the command."""
+    import argparse
+    import shlex
+
+    from pose_daemon.commands import marker as marker_command
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = readme.split("#### A landing pad or a floor map on several sheets", 1)[1]
+    block = section.split("```sh", 1)[1].split("```", 1)[0]
+    monkeypatch.chdir(tmp_path)
+    lines = [line.split("#")[0].strip() for line in block.strip().splitlines()]
+    assert len(lines) == 6
+    for line in lines:
+        command, _, target = line.partition(">")
+        words = shlex.split(command)
+        assert words[:2] == ["pose-daemon", "marker"], line
+        if "--map" in words:  # the map a user already has: here, the grid printed above
+            Path("field.toml").write_text(Path("floor.toml").read_text())
+        code = main(words[1:] + (["--dpi", "50"] if words[-1].endswith(".png") else []))
+        out, err = capsys.readouterr()
+        assert code == 0, (line, err)
+        if target.strip():
+            Path(target.strip()).write_text(out)
+    assert parse_config(Path("pad.toml").read_text(), "pad.toml").map.model() == landing_pad(outer_m=0.6)
+    assert len(parse_config(Path("floor.toml").read_text(), "floor.toml").map.model().markers) == 12
+    assert Path("big.pdf").exists() and Path("field.pdf").exists()
+    assert Path("floor-plan.png").exists() and Path("floor-6.png").exists()
+    parser = argparse.ArgumentParser()
+    marker_command.register(parser.add_subparsers())
+    sub = parser._subparsers._group_actions[0].choices["marker"]  # type: ignore[union-attr]
+    table = readme.split("### Printing a marker: `pose-daemon marker`", 1)[1].split("###", 1)[0]
+    for action in sub._actions:
+        for option in action.option_strings:
+            if option.startswith("--") and option != "--help":
+                assert f"| `{option}" in table, option

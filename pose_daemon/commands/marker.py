@@ -23,7 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--size",
-        required=True,
+        default=None,
         metavar="METRES",
         help="outer edge of the black border, metres (e.g. 0.15); with --pad the outer marker's; "
         "with --grid a comma list the markers take in turn (0.2,0.15)",
@@ -52,6 +52,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="METRES[,METRES]",
         default=None,
         help="--grid: centre-to-centre distance along x (columns) [and y (rows)], metres",
+    )
+    parser.add_argument(
+        "--map",
+        type=Path,
+        default=None,
+        metavar="MAP.toml",
+        help="map sheets for the markers of a map file ([map] with [[map.markers]], as --grid or "
+        "`map build` print, or a [[markers]] list with --dictionary); every marker flat in the z = 0 plane",
     )
     parser.add_argument("--ids", metavar="LIST", default=None, help="--grid: the ids, comma-separated, row by row")
     parser.add_argument("--dictionary", default=None, help="ArUco dictionary, OpenCV's name (default DICT_4X4_50)")
@@ -87,6 +95,10 @@ def run(args: argparse.Namespace) -> int:
     from ..tools.marker_sheet import DEFAULT_DICTIONARY, check_out_path, layout, pad_layout, write_pages
 
     check_out_path(args.out)
+    if args.map is not None:
+        return _print_map(args)
+    if args.size is None:
+        raise UserError("--size is required (the outer edge of the black border, metres), except with --map")
     sizes = _numbers("--size", args.size)
     if args.grid is None and len(sizes) > 1:
         raise UserError("--size takes one number (a comma list only with --grid)")
@@ -148,6 +160,59 @@ def run(args: argparse.Namespace) -> int:
     files = write_pages(sheets, args.out, dpi=args.dpi, names=names)
     shown = str(files[0]) if len(files) == 1 else f"{files[0]} ... {files[-1]} ({len(files)} files)"
     print(f"wrote {shown}: {what}, {args.paper}; print at 100% and check the 10 cm bar", file=sys.stderr)
+    print("\n".join(config))
+    return 0
+
+
+def _print_map(args: argparse.Namespace) -> int:
+    import json
+
+    from ..config import parse_config
+    from ..errors import UserError
+    from ..tools.marker_sheet import write_pages
+    from ..tools.marker_tiles import grid_sheets
+
+    for option in ("size", "grid", "spacing", "ids", "id"):
+        if getattr(args, option) is not None:
+            raise UserError(f"--map takes its markers from the file: no --{option}")
+    if args.pad or args.tiled or args.type != "aruco":
+        raise UserError("--map prints the map's ArUco markers: no --pad, --tiled or --type square")
+    path = args.map.resolve()
+    text = f"[map]\nfile = {json.dumps(str(path))}\n"
+    if args.dictionary is not None:
+        text += f"dictionary = {json.dumps(args.dictionary.strip().upper())}\n"
+    try:
+        from ..config import tomllib
+
+        inner = tomllib.loads(path.read_text(encoding="utf-8")).get("map")
+        if isinstance(inner, dict) and isinstance(inner.get("placement"), str):
+            text += f"placement = {json.dumps(inner['placement'])}\n"
+    except (OSError, UnicodeDecodeError, ValueError):
+        pass  # the map loader below names what is wrong with the file
+    from ..errors import ConfigError
+
+    try:
+        cfg = parse_config(text, "--map")
+    except ConfigError as exc:
+        if args.dictionary is None and "[map] dictionary: expected an OpenCV dictionary name such as" in str(exc):
+            raise UserError(f"--map {args.map}: the file names no [map] dictionary; give --dictionary") from None
+        raise
+    if cfg.map is None:
+        raise UserError(f"--map {args.map}: no [map] in the file")
+    mmap = cfg.map.model()
+    pages, plan = grid_sheets(mmap, args.paper)
+    config = mmap.to_toml_lines()
+    while config and not config[-1]:
+        config.pop()
+    names = ["plan"] + [str(k) for k in range(1, len(pages))]
+    files = write_pages(pages, args.out, dpi=args.dpi, names=names)
+    print(
+        f"wrote {files[0]} ... {files[-1]} ({len(files)} files)" if len(files) > 1 else f"wrote {files[0]}",
+        f"map of {len(mmap.markers)} markers on {len(plan.groups)} sheets and a plan page, {args.paper}; "
+        "print at 100% and check the 10 cm bar",
+        sep=": ",
+        file=sys.stderr,
+    )
     print("\n".join(config))
     return 0
 
