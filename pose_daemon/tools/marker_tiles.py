@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import List, Optional, Sequence, Tuple
+from typing import Any, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -531,7 +531,7 @@ def _place(group: List[int], boxes: dict, squares: dict, labels: dict, frame: Pa
     return (wx, wy, frame.win_w_mm, frame.win_h_mm)
 
 
-def _hits(box: Rect, square: Tuple[float, float, float, float, float, np.ndarray]) -> bool:
+def _hits(box: Rect, square: Tuple[Any, ...]) -> bool:
     """Does the black square of one marker reach into another's white border or label?"""
     x, y, side = square[:3]
     return box[0] < x + side and x < box[0] + box[2] and box[1] < y + side and y < box[1] + box[3]
@@ -580,7 +580,10 @@ def _plan_page(
     def tr(r: Rect) -> Rect:
         return (ox + r[0] * scale, oy + r[1] * scale, r[2] * scale, r[3] * scale)
 
-    sheet.fills.append((0.55, [tr(r) for _, r in markers]))
+    # Larger markers first; one inside another (a nested pad) lighter, so it shows.
+    for _, r in sorted(markers, key=lambda item: -item[1][2]):
+        inside = any(o is not r and o[2] > r[2] and _hits(o, r + (0.0, None)) for _, o in markers)
+        sheet.fills.append((0.8 if inside else 0.55, [tr(r)]))
     for k, r in papers:
         t = tr(r)
         sheet.strokes.append((0.3, 0.25, t))
