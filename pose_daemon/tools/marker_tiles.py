@@ -106,11 +106,12 @@ def _cross(plane: Plane, u: float, v: float) -> None:
     plane.fills.append((0.0, (u - t / 2, v - a, t, 2 * a)))
 
 
-def _corner_marks(plane: Plane, u: float, v: float, side: float) -> None:
-    """Grey L marks at the corners of the square (u, v, side): where to cut at most."""
+def _corner_marks(plane: Plane, u: float, v: float, side: float, height: Optional[float] = None) -> None:
+    """Grey L marks at the corners of the rectangle (u, v, side, height or side): where to cut at most."""
     t, n = ms.CUT_LINE_MM, ms.CUT_MARK_MM
+    h = side if height is None else height
     for cu, su in ((u, 1.0), (u + side, -1.0)):
-        for cv, sv in ((v, 1.0), (v + side, -1.0)):
+        for cv, sv in ((v, 1.0), (v + h, -1.0)):
             plane.fills.append((ms.CUT_GRAY, (min(cu, cu + su * n), cv - t / 2, n, t)))
             plane.fills.append((ms.CUT_GRAY, (cu - t / 2, min(cv, cv + sv * n), t, n)))
 
@@ -254,7 +255,7 @@ def tiled_sheets(
     for cells, x_m, y_m, side in sorted(items, key=lambda it: -it[3]):  # inner markers over outer ones
         u, v = _map_to_plane(origin, x_m, y_m)
         _draw_marker(plane, cells, u - side / 2, v - side / 2, side)
-    _corner_marks(plane, BORDER_MM, BORDER_MM, plane_w - 2 * BORDER_MM)
+    _corner_marks(plane, BORDER_MM, BORDER_MM, plane_w - 2 * BORDER_MM, plane_h - 2 * BORDER_MM)
     b = BORDER_MM / 2.0
     crosses = [(b, b), (plane_w - b, b), (b, plane_h - b), (plane_w - b, plane_h - b)]
     crosses += [(c * step_x, v) for c in range(1, cols) for v in (b, plane_h - b)]
@@ -317,7 +318,7 @@ def tiled_sheets(
             "Assemble row by row from sheet 1: cut each sheet along its grey line(s), lay it over its left",
             "and upper neighbours so that the grey ticks mark its cut edge and the half crosses meet,",
             f"and tape it from behind ({OVERLAP_MM:g} mm of each sheet's right and bottom edge goes under the next).",
-            "Origin: the centre of the pad (arrows: the map's x and y; y = the markers' top edges).",
+            "Origin: the centre of the pad or marker (arrows: the map's x and y; y = the markers' top edges).",
             "Config lines (also printed by the command):",
         ],
         config,
