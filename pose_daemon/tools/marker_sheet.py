@@ -12,7 +12,7 @@ import struct
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Optional, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -263,6 +263,10 @@ def _pdf_text(s: str) -> str:
 
 def to_pdf(sheet: Sheet) -> bytes:
     """One-page PDF at true scale (1 pt = 1/72 in); shapes are exact vector rectangles."""
+    return to_pdf_pages([sheet])
+
+
+def _pdf_content(sheet: Sheet) -> bytes:
     k = 72.0 / 25.4
     h = sheet.height_mm
 
@@ -285,19 +289,29 @@ def to_pdf(sheet: Sheet) -> bytes:
             f"BT /{font} {_num(t.size_pt)} Tf {_num(t.x_mm * k)} {_num((h - t.y_mm) * k)} Td "
             f"({_pdf_text(t.text)}) Tj ET"
         )
-    content = "\n".join(ops).encode("latin-1", errors="replace")
-    media = f"[0 0 {_num(sheet.width_mm * k)} {_num(sheet.height_mm * k)}]"
+    return "\n".join(ops).encode("latin-1", errors="replace")
+
+
+def to_pdf_pages(sheets: Sequence[Sheet]) -> bytes:
+    """A PDF with one page per sheet, each at true scale; shapes are exact vector rectangles."""
+    k = 72.0 / 25.4
+    n = len(sheets)
+    # Objects: 1 catalog, 2 pages, 3 and 4 the fonts, then per page its page and its content.
+    kids = " ".join(f"{5 + 2 * i} 0 R" for i in range(n))
     objects = [
         b"<< /Type /Catalog /Pages 2 0 R >>",
-        b"<< /Type /Pages /Kids [3 0 R] /Count 1 >>",
-        (
-            f"<< /Type /Page /Parent 2 0 R /MediaBox {media} /Contents 4 0 R "
-            f"/Resources << /Font << /F1 5 0 R /F2 6 0 R >> >> >>"
-        ).encode(),
-        b"<< /Length %d >>\nstream\n" % len(content) + content + b"\nendstream",
+        f"<< /Type /Pages /Kids [{kids}] /Count {n} >>".encode(),
         b"<< /Type /Font /Subtype /Type1 /BaseFont /Helvetica /Encoding /WinAnsiEncoding >>",
         b"<< /Type /Font /Subtype /Type1 /BaseFont /Courier /Encoding /WinAnsiEncoding >>",
     ]
+    for i, sheet in enumerate(sheets):
+        content = _pdf_content(sheet)
+        media = f"[0 0 {_num(sheet.width_mm * k)} {_num(sheet.height_mm * k)}]"
+        objects.append(
+            f"<< /Type /Page /Parent 2 0 R /MediaBox {media} /Contents {6 + 2 * i} 0 R "
+            f"/Resources << /Font << /F1 3 0 R /F2 4 0 R >> >> >>".encode()
+        )
+        objects.append(b"<< /Length %d >>\nstream\n" % len(content) + content + b"\nendstream")
     out = bytearray(b"%PDF-1.4\n%\xe2\xe3\xcf\xd3\n")
     offsets = []
     for i, body in enumerate(objects, start=1):
@@ -416,17 +430,34 @@ def check_out_path(path: Path) -> str:
 
 def write_sheet(sheet: Sheet, path: Path, *, dpi: float = 300.0) -> None:
     """Write the sheet in the format named by the file's extension (.pdf, .png, .svg)."""
+    write_pages([sheet], path, dpi=dpi)
+
+
+def page_paths(path: Path, names: Sequence[str]) -> List[Path]:
+    """Files of a multi-page PNG or SVG print: ``STEM-NAME.EXT`` for each page name."""
+    return [path.with_name(f"{path.stem}-{name}{path.suffix}") for name in names]
+
+
+def write_pages(sheets: Sequence[Sheet], path: Path, *, dpi: float = 300.0, names: Sequence[str] = ()) -> List[Path]:
+    """Write the pages: one PDF holding them all, or (PNG, SVG, more than one page) one file per
+    page named by ``page_paths(path, names)``. Returns the files written."""
     fmt = check_out_path(path)
+    if fmt == "png" and not (math.isfinite(dpi) and MIN_DPI <= dpi <= MAX_DPI):
+        raise UserError(f"--dpi must be between {MIN_DPI} and {MAX_DPI}, got {dpi:g}")
     if fmt == "pdf":
-        data = to_pdf(sheet)
-    elif fmt == "svg":
-        data = to_svg(sheet).encode("utf-8")
+        files = [(path, to_pdf_pages(sheets))]
     else:
-        data = png_bytes(to_image(sheet, dpi), dpi)
-    try:
-        path.write_bytes(data)
-    except OSError as exc:
-        raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None
+        paths = [path] if len(sheets) == 1 else page_paths(path, names)
+        if len(paths) != len(sheets):
+            raise ValueError("one name per page is needed for a multi-page PNG or SVG")
+        render = (lambda s: to_svg(s).encode("utf-8")) if fmt == "svg" else (lambda s: png_bytes(to_image(s, dpi), dpi))
+        files = [(p, render(s)) for p, s in zip(paths, sheets)]
+    for p, data in files:
+        try:
+            p.write_bytes(data)
+        except OSError as exc:
+            raise UserError(f"cannot write {p}: {exc.strerror or exc}") from None
+    return [p for p, _ in files]
 
 
 def pad_layout(
