@@ -157,3 +157,20 @@ def test_opencv_step_on_a_second_core_gives_the_same_results(kind: str) -> None:
         if found is not None:
             break
     assert found is not None and float(np.abs(found - truth).max()) < 0.5
+
+
+def test_config_search_budget_reaches_the_detector_and_zero_means_no_cap() -> None:
+    from pose_daemon.config import parse_config
+    from pose_daemon.processing import FrameProcessor
+
+    def detector_for(text: str):
+        cfg = parse_config(text, "c.toml")
+        return FrameProcessor.from_config(cfg).detector
+
+    assert detector_for('[marker]\ntype = "aruco"\ndictionary = "DICT_4X4_50"\nid = 7\n').search_budget_s is None
+    capped = detector_for(
+        '[marker]\ntype = "aruco"\ndictionary = "DICT_4X4_50"\nid = 7\n[detector]\nsearch_budget_ms = 40\n'
+    )
+    assert capped.search_budget_s == pytest.approx(0.040)
+    with pytest.raises(Exception, match=r"search_budget_ms: expected a number in \[0, 10000\]"):
+        parse_config("[detector]\nsearch_budget_ms = -1\n", "c.toml")
