@@ -341,6 +341,11 @@ class DetectorConfig:
         Rule("float", lo=0.2, hi=5),
         "camera response exponent: edges located in linear light (1.0 linear, about 2.2 for sRGB/Rec. 709 cameras)",
     )
+    search_budget_ms: float = _key(
+        0.0,
+        Rule("float", lo=0, hi=10_000),
+        "time cap of a whole-frame search per frame, ms; the rest goes on next frame (0 = no cap)",
+    )
 
 
 @dataclass(frozen=True)

@@ -102,6 +102,7 @@ class FrameProcessor:
                 min_side_px=detector.min_side_px,
                 camera=camera,
                 gamma=detector.gamma,
+                search_budget_ms=detector.search_budget_ms or None,
             ),
             frames=frames,
             prior=prior,

@@ -38,6 +38,8 @@ def test_bench_prints_figures_for_both_markers_and_the_anchor(capsys) -> None:
         if kind == "aruco":
             assert row["detection_rate"] == 1.0 and row["false_detections"] == 0
             assert row["anchor_time_median_ms"] > 0 and row["time_ratio_median"] > 0
+            assert row["time_empty_mean_ms"] > 0 and row["anchor_time_empty_mean_ms"] > 0
+            assert row["time_empty_ratio_median"] > 0 and row["cpu_empty_ratio_median"] > 0
     # The blur sweep: every condition, size bias against the renderer's truth.
     sweep = {row["condition"]: row for row in result["blur_sweep"]}
     assert list(sweep) == [label for label, _, _ in BLUR_SWEEP]

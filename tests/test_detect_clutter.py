@@ -8,6 +8,7 @@ import pytest
 from detect_helpers import ARUCO, CAM, render
 
 from pose_daemon import MarkerDetector
+from pose_daemon.detect.aruco import OPENCV_EVERY
 from pose_daemon.render import Effects, random_pose, render_empty
 from pose_daemon.tools.bench_detector import CLUTTER_SCENES, clutter_background
 
@@ -69,18 +70,45 @@ def test_time_cap_leaves_the_rest_of_the_search_to_the_next_frame() -> None:
 
 
 def test_time_cap_on_marker_free_frames_cycles_through_every_step() -> None:
-    """Without the marker a capped search never stalls on one step: it reaches OpenCV's
-    detector (the last step) and starts over."""
+    """Without the marker a capped search never stalls on one step: each search runs both
+    own passes, every OPENCV_EVERY-th also OpenCV's detector (the last step), and starts over."""
     empty, _ = _scene("text", 1, with_marker=False)
     capped = MarkerDetector(ARUCO, search_budget_ms=0.5, clock=StepClock(1e-3))
-    stages = set()
-    for _ in range(400):
+    stages, searches = set(), 0
+    for _ in range(1000):
         assert capped.detect(empty) is None
         stages.add(capped._cursor[0])
-        if capped._cursor == (0, 0) and len(stages) > 1:
-            break
-    assert capped._cursor == (0, 0) and stages >= {1, 2}
+        if capped._cursor == (0, 0):
+            searches += 1
+            if searches == OPENCV_EVERY:
+                break
+    assert searches == OPENCV_EVERY and stages >= {0, 1, 2}
+    assert capped._finder.fruitless_searches == OPENCV_EVERY
     assert capped.search_deferrals >= 3
+
+
+def test_opencv_step_runs_in_one_of_every_few_fruitless_searches() -> None:
+    """OpenCV's detector is the whole-frame search's safety net: it runs in one of every
+    OPENCV_EVERY searches that find nothing (counted by the finder), and a found marker
+    starts the count again."""
+    empty, _ = _scene("carpet", 0, with_marker=False)
+    image, _ = _scene("carpet", 0)
+    detector = MarkerDetector(ARUCO)
+    finder = detector._finder
+    ran = []
+    real = finder._search_opencv
+
+    def spy(*args, **kwargs):
+        ran.append(finder.fruitless_searches)
+        return real(*args, **kwargs)
+
+    finder._search_opencv = spy
+    for _ in range(2 * OPENCV_EVERY):
+        detector.reset()
+        assert detector.detect(empty) is None
+    assert ran == [OPENCV_EVERY - 1, 2 * OPENCV_EVERY - 1]
+    detector.reset()
+    assert detector.detect(image) is not None and finder.fruitless_searches == 0
 
 
 def test_no_cap_never_defers_and_an_ample_cap_gives_the_same_corners() -> None:
@@ -129,3 +157,20 @@ def test_opencv_step_on_a_second_core_gives_the_same_results(kind: str) -> None:
         if found is not None:
             break
     assert found is not None and float(np.abs(found - truth).max()) < 0.5
+
+
+def test_config_search_budget_reaches_the_detector_and_zero_means_no_cap() -> None:
+    from pose_daemon.config import parse_config
+    from pose_daemon.processing import FrameProcessor
+
+    def detector_for(text: str):
+        cfg = parse_config(text, "c.toml")
+        return FrameProcessor.from_config(cfg).detector
+
+    assert detector_for('[marker]\ntype = "aruco"\ndictionary = "DICT_4X4_50"\nid = 7\n').search_budget_s is None
+    capped = detector_for(
+        '[marker]\ntype = "aruco"\ndictionary = "DICT_4X4_50"\nid = 7\n[detector]\nsearch_budget_ms = 40\n'
+    )
+    assert capped.search_budget_s == pytest.approx(0.040)
+    with pytest.raises(Exception, match=r"search_budget_ms: expected a number in \[0, 10000\]"):
+        parse_config("[detector]\nsearch_budget_ms = -1\n", "c.toml")

@@ -57,6 +57,27 @@ def test_quads_are_clockwise_and_within_a_pixel(frame) -> None:
         assert err < 1.5 * downscale
 
 
+def test_quads_keep_elongated_and_tilted_outlines_and_drop_ragged_ones() -> None:
+    """The compactness bound (quads.MIN_COMPACTNESS) before any polygon fit: a 6:1
+    rectangle and a small square turned 30 deg stay candidates; a square whose rim is
+    combed into teeth (texture, pile) has a four-point hull but is no candidate."""
+    import cv2
+
+    image = np.full((240, 320), 220, np.uint8)
+    cv2.rectangle(image, (20, 20), (109, 34), 30, -1)  # 90 x 15: 6:1
+    box = cv2.boxPoints(((200.0, 60.0), (14.0, 14.0), 30.0))
+    cv2.fillConvexPoly(image, np.round(box * 16).astype(np.int32), 30, cv2.LINE_AA, shift=4)
+    image[140:200, 200:260] = 30
+    for k in range(0, 60, 3):  # light notches 1 px wide, 3 px deep, all round the rim
+        image[140:143, 200 + k] = image[197:200, 200 + k] = 220
+        image[140 + k, 200:203] = image[140 + k, 257:260] = 220
+    quads = find_quads(image, min_side_px=10, block_px=25, offset_gray=10.0)
+    centres = sorted((round(float(x)), round(float(y))) for x, y in (q.mean(axis=0) for q in quads))
+    assert len(centres) == 2, centres
+    assert abs(centres[0][0] - 65) <= 1 and abs(centres[0][1] - 27) <= 1
+    assert abs(centres[1][0] - 200) <= 1 and abs(centres[1][1] - 60) <= 1
+
+
 def test_no_quads_in_a_smooth_empty_scene() -> None:
     image, _ = render(
         SQUARE, *facing_pose(0, 50.0), seed=801, effects=Effects(background="plain", lighting_gradient=0.5)

@@ -136,7 +136,8 @@ class MarkerDetector:
       so that blur does not shrink the marker (see detect/response.py).
     - ``search_budget_ms`` (None = no cap): time cap per frame, from the call to ``detect``,
       for a whole-frame search. The search runs cheapest first (half-size threshold, full
-      size, then OpenCV's ArUco detector) and checks the clock before each candidate; at
+      size, then OpenCV's ArUco detector in one of every ``aruco.OPENCV_EVERY`` searches
+      that find nothing) and checks the clock before each candidate; at
       the cap it stops and the next frame's search goes on from there (``search_deferrals``
       counts such frames). Each frame does at least one step, so the search always advances.
     - ``clock`` (time.perf_counter): the clock of that cap, seconds.

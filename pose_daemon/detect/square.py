@@ -229,6 +229,9 @@ class OutlineFinder:
     def prepare_stage(self, gray: np.ndarray, plan: List[Tuple[str, int]], stage_i: int, roi: Optional[Roi]) -> None:
         """Called as stage ``stage_i`` of ``plan`` starts (a finder may start later work early)."""
 
+    def search_ended(self, roi: Optional[Roi], found: bool) -> None:
+        """Called when a search ran to its end (not when it stopped at the time cap)."""
+
     def search(
         self, gray: np.ndarray, roi: Optional[Roi] = None, expected_side_px: Optional[float] = None
     ) -> List[Candidate]:
@@ -265,13 +268,18 @@ class OutlineFinder:
             out: List[Candidate] = []
             for k in range(min(skip, len(items)), len(items)):
                 if not first and over is not None and over():
-                    return out, (None if out else (stage_i, k))
+                    if out:
+                        self.search_ended(roi, True)
+                        return out, None
+                    return out, (stage_i, k)
                 first = False
                 out.extend(self.process(gray, stage, items[k], roi, out))
             first = False
             if out:
+                self.search_ended(roi, True)
                 return out, None
             stage_i, skip = stage_i + 1, 0
+        self.search_ended(roi, False)
         return [], None
 
     def follow(self, gray: np.ndarray, predicted: np.ndarray) -> Optional[Candidate]:
