@@ -110,7 +110,14 @@ def test_quality_and_covariance_follow_residual_and_a_real_flip_risk():
     c = odo(clear).pose_covariance
     assert all(c[k] > 0 for k in (0, 6, 11, 15, 18, 20))
     assert odo(noisy).pose_covariance[0] > 50 * c[0]
-    assert odo(flip).pose_covariance[0] > 50 * c[0]
+
+    def position_variance(m):
+        return sum(m.pose_covariance[k] for k in (0, 6, 11))
+
+    # A coin flip: the covariance about the pose sent takes in the step to the other solution
+    # (the camera swings 2 sin 20 deg x 1 m sideways), in position and attitude alike.
+    assert position_variance(odo(flip)) > 50 * position_variance(odo(clear))
+    assert sum(odo(flip).pose_covariance[k] for k in (15, 18, 20)) > 50 * sum(c[k] for k in (15, 18, 20))
     assert (
         odo(level).pose_covariance[0]
         < 2 * odo(camera_pose(np.diag([1.0, -1.0, -1.0]), [0, 0, 1.0], 0.1)).pose_covariance[0]
@@ -565,10 +572,10 @@ def test_origin_sent_again_when_the_autopilot_stops_reporting_it(monkeypatch):
     assert out.stats()["origin_forgotten"] == 1
 
 
-def test_odometry_quality_leaves_out_the_flip_risk_only_when_the_attitude_chose():
+def test_odometry_quality_and_covariance_leave_out_the_flip_risk_only_when_a_prior_chose():
     """A near-tie between two planar solutions 40 deg apart: the ODOMETRY the output sends
-    carries pose_quality(flip_resolved=True) when the result's choice was the attitude's, and
-    the risk-weighted quality for any other choice."""
+    carries pose_quality(flip_resolved=True) when the result's choice was the attitude's or the
+    tilt prior's, and the risk-weighted quality for any other choice; its covariance likewise."""
     import dataclasses
 
     from pose_daemon.pose.prior import Choice
@@ -587,10 +594,19 @@ def test_odometry_quality_leaves_out_the_flip_risk_only_when_the_attitude_chose(
     )
     try:
         t0 = time.monotonic()
-        for k, by in enumerate(("attitude", "continuity", "clear", "attitude")):
+        for k, by in enumerate(("attitude", "continuity", "clear", "attitude", "tilt")):
             out.submit(FrameResult(seq=k, t_capture_s=t0 + 0.05 * k, pose=pose, choice=Choice(pose, by)))
-        msgs = peer.collect(5.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 4)
+        msgs = peer.collect(5.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 5)
     finally:
         out.close()
         peer.close()
-    assert [m.quality for m in of_type(msgs, "ODOMETRY")] == [resolved, at_risk, at_risk, resolved]
+    odo = of_type(msgs, "ODOMETRY")
+    assert [m.quality for m in odo] == [resolved, at_risk, at_risk, resolved, resolved]
+    # The covariance follows the same ambiguity (issue 11): where a prior ruled the other
+    # solution out it is the solve's alone; where it remains, the step to the other pose
+    # (40 deg of tilt, ~0.7 m of camera swing at 1 m) is in it.
+    position = [sum(m.pose_covariance[k] for k in (0, 6, 11)) for m in odo]
+    attitude = [sum(m.pose_covariance[k] for k in (15, 18, 20)) for m in odo]
+    assert position[0] == position[3] == position[4] and attitude[0] == attitude[3] == attitude[4]
+    assert position[1] > 100 * position[0] and attitude[1] > 100 * attitude[0]
+    assert position[1] == position[2]

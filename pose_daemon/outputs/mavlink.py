@@ -83,7 +83,7 @@ from ..geometry import (
 from ..pose.types import Pose
 from ..result import FrameResult, time_usec_from_s
 from .base import ClosedHook, WrittenHook
-from .quality import pose_covariance_local, pose_quality, uncertainty
+from .quality import Uncertainty, pose_covariance_local, pose_quality, result_uncertainty, uncertainty
 from .worker import (
     LinkBusy,
     LinkError,
@@ -1079,7 +1079,7 @@ class MavlinkOutput(QueuedOutput):
             marker_height_m=self.marker_height_m,
             reset_counter=self.reset_counter,
             target_local_ned_m=target_ned,
-            flip_resolved=(result.choice is not None and result.choice.resolved_by == "attitude"),
+            u=result_uncertainty(result, self.frames, self.fx_px, self.marker_width_m),
         )
         n = self._send_pose(inputs)
         self._last_sent_t = t
@@ -1139,15 +1139,19 @@ class PoseMessageInputs:
         vehicle: Optional[VehiclePose] = None,
         target_local_ned_m: Optional[np.ndarray] = None,
         flip_resolved: bool = False,
+        u: Optional[Uncertainty] = None,
     ) -> PoseMessageInputs:
         """From the camera's pose (``pose``: R_cam_marker, tvec) and the mounting; ``vehicle``:
         ``frames.vehicle_pose`` of the same pose when the caller has it already;
-        ``flip_resolved``: the vehicle's attitude chose the planar solution (quality.pose_quality)."""
+        ``flip_resolved``: a prior ruled the other planar solution out (quality.pose_quality);
+        ``u``: the pose's ``quality.Uncertainty`` (``result_uncertainty`` of its frame), which
+        then decides the quality and covariance instead of ``flip_resolved``."""
         if vehicle is None:
             vehicle = frames.vehicle_pose(pose.R, pose.tvec)
         t_cam = np.asarray(pose.tvec, dtype=np.float64)
         width_m = float(marker_width_m)
-        u = uncertainty(pose, fx_px, width_m)  # the solve's covariance, once per pose
+        if u is None:  # the solve's covariance, once per pose
+            u = uncertainty(pose, fx_px, width_m, flip_resolved=flip_resolved)
         height_m = float(marker_height_m) if marker_height_m is not None else width_m
         return cls(
             t_us=int(t_us),
@@ -1155,7 +1159,7 @@ class PoseMessageInputs:
             R_local_body=np.asarray(vehicle.R_local_body, dtype=np.float64),
             covariance=pose_covariance_local(pose, frames, fx_px, width_m, u=u),
             reset_counter=int(reset_counter),
-            quality=pose_quality(pose, fx_px, width_m, u=u, flip_resolved=flip_resolved),
+            quality=pose_quality(pose, fx_px, width_m, u=u),
             p_marker_cam_m=t_cam,
             p_marker_body_m=np.asarray(frames.marker_in_body(t_cam)),
             R_body_marker=frames.R_body_cam @ np.asarray(pose.R),
