@@ -98,6 +98,26 @@ def _skew3(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
+def _solve(
+    pose: Pose,
+    fx_px: float,
+    marker_width_m: float,
+    marker_height_m: Optional[float] = None,
+    *,
+    corner_sigma_px: Optional[float] = None,
+    down_m: Optional[np.ndarray] = None,
+    down_sigma_rad: Optional[float] = None,
+) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``solve_covariance`` and the 3x3 covariance of tvec (the marker centre in the camera
+    frame, m^2); a map pose's tvec covariance is its camera centre's, rotated (an upper bound:
+    the two are correlated through the attitude)."""
+    solved = getattr(pose, "solve_covariance_map", None)
+    if solved is not None:  # a map pose (pose/map_solve.py) carries the covariance of its own solve
+        R = np.asarray(pose.R, dtype=np.float64)
+        return solved[0], solved[1], R @ solved[0] @ R.T
+    return _linearised(pose, fx_px, marker_width_m, marker_height_m, corner_sigma_px, down_m, down_sigma_rad)
+
+
 def solve_covariance(
     pose: Pose,
     fx_px: float,
@@ -120,9 +140,27 @@ def solve_covariance(
     the marker's tilt is weakly seen and the camera centre moves with it (distance x tilt):
     this is where a planar pose's real error lies.
     """
-    solved = getattr(pose, "solve_covariance_map", None)
-    if solved is not None:  # a map pose (pose/map_solve.py) carries the covariance of its own solve
-        return solved
+    cov_c, cov_w, _ = _solve(
+        pose,
+        fx_px,
+        marker_width_m,
+        marker_height_m,
+        corner_sigma_px=corner_sigma_px,
+        down_m=down_m,
+        down_sigma_rad=down_sigma_rad,
+    )
+    return cov_c, cov_w
+
+
+def _linearised(
+    pose: Pose,
+    fx_px: float,
+    marker_width_m: float,
+    marker_height_m: Optional[float],
+    corner_sigma_px: Optional[float],
+    down_m: Optional[np.ndarray],
+    down_sigma_rad: Optional[float],
+) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     w2 = marker_width_m / 2.0
     h2 = (marker_height_m if marker_height_m is not None else marker_width_m) / 2.0
     R = np.asarray(pose.R, dtype=np.float64)
@@ -156,7 +194,7 @@ def solve_covariance(
         cov_x = np.linalg.inv(info)
     except np.linalg.LinAlgError:
         cov_x = np.linalg.pinv(info)
-    return Jc @ cov_x @ Jc.T, cov_x[:3, :3]
+    return Jc @ cov_x @ Jc.T, cov_x[:3, :3], cov_x[3:, 3:]
 
 
 def _worst_std(cov: np.ndarray) -> float:
@@ -181,6 +219,8 @@ class Uncertainty:
     step_rotation_rad: Optional[np.ndarray] = None
     corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX
     pending: bool = False
+    cov_tvec_cam_m2: Optional[np.ndarray] = None
+    step_tvec_m: Optional[np.ndarray] = None
 
     @property
     def position_std_m(self) -> float:
@@ -199,6 +239,15 @@ class Uncertainty:
             return self.cov_centre_m2
         d = self.step_centre_m
         return self.cov_centre_m2 + self.p_other * np.outer(d, d)
+
+    @property
+    def sent_cov_tvec_cam_m2(self) -> np.ndarray:
+        """The marker centre's (tvec, camera frame) mean squared error about the pose sent;
+        without the solve's tvec covariance, the camera centre's (an upper bound)."""
+        cov = self.cov_tvec_cam_m2 if self.cov_tvec_cam_m2 is not None else self.cov_centre_m2
+        if self.step_tvec_m is None or self.p_other <= 0.0:
+            return cov
+        return cov + self.p_other * np.outer(self.step_tvec_m, self.step_tvec_m)
 
     @property
     def sent_cov_rotation_rad2(self) -> np.ndarray:
@@ -250,19 +299,21 @@ def uncertainty(
     covariance functions (pass it as ``u`` to work it out once per pose). ``corner_sigma_px``:
     the measured corner noise; ``flip_resolved``: a prior ruled the other solution out;
     ``down_m``/``down_sigma_rad``: the attitude's down the choice used (``solve_covariance``)."""
-    cov_c, cov_w = solve_covariance(
+    cov_c, cov_w, cov_t = _solve(
         pose, fx_px, marker_width_m, corner_sigma_px=corner_sigma_px, down_m=down_m, down_sigma_rad=down_sigma_rad
     )
+    sigma = noise_sigma_px(corner_sigma_px)
     alt = pose.alternative
     if flip_resolved or alt is None:
-        return Uncertainty(cov_c, cov_w, 0.0, corner_sigma_px=noise_sigma_px(corner_sigma_px))
+        return Uncertainty(cov_c, cov_w, 0.0, corner_sigma_px=sigma, cov_tvec_cam_m2=cov_t)
     p = other_probability(pose, corner_sigma_px)
     risk = _disagreement(pose, _worst_std(cov_w)) * min(1.0, 2.0 * p)
-    step_c = step_w = None
+    step_c = step_w = step_t = None
     if np.all(np.isfinite(alt.R)) and np.all(np.isfinite(alt.tvec)):
         step_c = np.asarray(alt.camera_position, dtype=np.float64) - np.asarray(pose.camera_position, dtype=np.float64)
         step_w = np.asarray(rvec_from_R(np.asarray(pose.R).T @ np.asarray(alt.R)), dtype=np.float64).reshape(3)
-    return Uncertainty(cov_c, cov_w, risk, p, step_c, step_w, noise_sigma_px(corner_sigma_px))
+        step_t = np.asarray(alt.tvec, dtype=np.float64).reshape(3) - np.asarray(pose.tvec, dtype=np.float64).reshape(3)
+    return Uncertainty(cov_c, cov_w, risk, p, step_c, step_w, sigma, cov_tvec_cam_m2=cov_t, step_tvec_m=step_t)
 
 
 def result_uncertainty(
