@@ -9,6 +9,7 @@ pose/continuity.py's track.
 
 from __future__ import annotations
 
+import math
 import time
 from contextlib import contextmanager
 from typing import Any, Callable, Iterator, Optional
@@ -23,7 +24,7 @@ from .detect import MarkerDetector
 from .geometry import VehicleFrames
 from .pose.continuity import Track, choose_by_continuity
 from .pose.estimator import estimate_pose
-from .pose.prior import CornerNoise, HeadingReference, PriorSettings, choose_solution
+from .pose.prior import MIN_PRIOR_SIGMA_DEG, CornerNoise, HeadingReference, PriorSettings, choose_solution
 from .pose.types import EstimationError, Pose
 from .result import FrameResult
 
@@ -202,10 +203,18 @@ class FrameProcessor:
             heading=self.heading,
             corner_sigma_px=self.corner_noise.sigma_px,
         )
+        result.corner_sigma_px = self.corner_noise.sigma_px
+        result.corner_noise_pending = result.corner_sigma_px is None
         self.corner_noise.observe(pose.reprojection_error_px)
         result.choice = choice
         if choice.pose is None:
             result.error = f"{choice.withheld}: {choice.reason}"
             return None
+        if result.attitude is not None and self.prior.polish:
+            # The choice re-fitted the pose towards the attitude's down (or found it agreeing):
+            # the covariance sent takes that information in.
+            sigma = result.attitude.sigma_rad
+            sigma_deg = math.degrees(sigma) if sigma is not None else self.prior.attitude_sigma_deg
+            result.prior_down_sigma_rad = math.radians(max(sigma_deg, MIN_PRIOR_SIGMA_DEG))
         self.track.follow(choice.pose, flipped=choice.flipped)
         return choice.pose

@@ -34,6 +34,15 @@ class FrameResult:
     choice: Optional[Choice] = None
     # Monotonic time the pipeline handed the result to the outputs (None outside a pipeline).
     t_dispatch_s: Optional[float] = None
+    # What processing learnt about the pose's reliability, for the quality and covariance sent
+    # (outputs/quality.py): the corner noise measured on this camera (pixels, None until
+    # measured), and the sigma (radians) with which the attitude's down was weighed in the
+    # choice's polish (None when no attitude re-fitted the pose).
+    # ``corner_noise_pending``: the processor has not measured the noise yet (its first frames),
+    # so the fit cannot be judged.
+    corner_sigma_px: Optional[float] = None
+    corner_noise_pending: bool = False
+    prior_down_sigma_rad: Optional[float] = None
 
     @property
     def ok(self) -> bool:

@@ -22,6 +22,14 @@ PX4 (mavlink_receiver.cpp, mavlink_timesync, EKF2):
 - ODOMETRY / VISION_POSITION_ESTIMATE quality against EKF2_EV_QMIN (VPE: 0).
 - TIMESYNC requests every ``timesync_s``; once answered, a pose's ``time_usec`` is mapped onto
   its clock, before that the arrival time stands in (``stamped_by``).
+- TARGET_RELATIVE (#511, the development dialect PX4 builds its vision target estimator with):
+  decoded as PX4's C library lays it out (mavlink_msg_target_relative.h: timestamp at 0, x/y/z
+  at 8, pos_std at 20, yaw_std at 32, q_target at 36, q_sensor at 52, id/frame/type at 68-70,
+  CRC extra 28, MAVLink 2's trailing zeros restored); a BODY_FRD report is rotated into NED with
+  q_sensor, or with the vehicle's own attitude when q_sensor is zero, LOCAL_OFFSET_NED taken as
+  it is, and published as a fiducial marker report (``tally.fiducial_reports``: relative
+  position NED, variances pos_std^2, the time it is stamped by); other frames, types other than
+  VISION_FIDUCIAL, and non-finite or non-positive deviations are refused (``tally.target_refused``).
 - LOCAL_POSITION_NED and ATTITUDE at the rate MAV_CMD_SET_MESSAGE_INTERVAL asks for, from
   ``vehicle_state(t_s) -> (p_ned_m, (roll, pitch, yaw))``, stamped ``time_boot_ms`` on a boot
   clock that started ``boot_age_s`` before the fake.
@@ -99,6 +107,8 @@ class Tally:
     set_home_position: int = 0  # SET_HOME_POSITION (ArduPilot: no handler)
     landing_targets: List[Any] = field(default_factory=list)  # accepted LANDING_TARGET messages
     landing_refused: int = 0
+    fiducial_reports: List[Dict[str, Any]] = field(default_factory=list)  # PX4: TARGET_RELATIVE taken
+    target_refused: Dict[str, int] = field(default_factory=dict)  # PX4: TARGET_RELATIVE refused, by cause
     timesync_answers: List[Tuple[int, int, int]] = field(default_factory=list)  # (tc1, ts1, our now ns)
     stamped_by: Dict[str, int] = field(default_factory=dict)  # PX4: "timesync" / "arrival"
     received: List[Any] = field(default_factory=list)  # every message from the daemon
@@ -281,6 +291,8 @@ class FakeAutopilot:
             self._pose(msg, now)
         elif kind == "LANDING_TARGET":
             self._landing_target(msg)
+        elif kind == "UNKNOWN_511" and self.kind == "px4":
+            self._target_relative(bytes(msg.get_msgbuf()), now)
         elif kind == "REQUEST_DATA_STREAM":
             self.data_stream_requests.append((msg.req_stream_id, msg.req_message_rate, msg.start_stop))
             msg_id = {10: 30, 6: 32}.get(msg.req_stream_id)  # EXTRA1: ATTITUDE, POSITION: LOCAL_POSITION_NED
@@ -366,6 +378,51 @@ class FakeAutopilot:
                 return
         self.tally.landing_targets.append(msg)
 
+    def _refuse_target(self, cause: str) -> None:
+        self.tally.target_refused[cause] = self.tally.target_refused.get(cause, 0) + 1
+
+    def _target_relative(self, frame_bytes: bytes, now: float) -> None:
+        from pymavlink.generator.mavcrc import x25crc
+
+        if frame_bytes[0] != 0xFD or len(frame_bytes) < 12:
+            return self._refuse_target("not MAVLink 2")
+        n = frame_bytes[1]
+        body = frame_bytes[: 10 + n + 2]
+        crc = x25crc(body[1 : 10 + n] + bytes([28])).crc
+        if crc != struct.unpack("<H", body[10 + n : 12 + n])[0]:
+            return self._refuse_target("crc")
+        payload = body[10 : 10 + n] + bytes(71 - n)  # MAVLink 2 trims trailing zeros
+        t_us, x, y, z = struct.unpack_from("<Qfff", payload, 0)
+        pos_std = struct.unpack_from("<3f", payload, 20)
+        (yaw_std,) = struct.unpack_from("<f", payload, 32)
+        q_target = struct.unpack_from("<4f", payload, 36)
+        q_sensor = struct.unpack_from("<4f", payload, 52)
+        _target_id, frame, target_type = struct.unpack_from("<BBB", payload, 68)
+        if target_type != 2:  # LANDING_TARGET_TYPE_VISION_FIDUCIAL
+            return self._refuse_target(f"type {target_type}")
+        values = (x, y, z, *pos_std, yaw_std, *q_target, *q_sensor)
+        if not all(math.isfinite(v) for v in values) or not all(s_ > 0 for s_ in pos_std):
+            return self._refuse_target("values")
+        if abs(math.sqrt(sum(c * c for c in q_target)) - 1.0) > 1e-3:
+            return self._refuse_target("q_target")
+        if frame == 1:  # TARGET_OBS_FRAME_BODY_FRD: into NED with q_sensor, else the attitude
+            if any(q_sensor):
+                R = _R_from_q(q_sensor)
+            elif self.vehicle_state is not None:
+                R = _R_from_rpy(*self.vehicle_state(now)[1])
+            else:
+                return self._refuse_target("no attitude")
+            rel = [sum(R[i][k] * (x, y, z)[k] for k in range(3)) for i in range(3)]
+        elif frame == 2:  # TARGET_OBS_FRAME_LOCAL_OFFSET_NED
+            rel = [x, y, z]
+        else:
+            self._text(2, f"Target relative: frame {frame} unsupported")
+            return self._refuse_target(f"frame {frame}")
+        by = "timesync" if self.timesync_offset_ns is not None else "arrival"
+        self.tally.fiducial_reports.append(
+            {"t_us": t_us, "rel_pos_ned": rel, "var": [s_ * s_ for s_ in pos_std], "yaw_std": yaw_std, "by": by}
+        )
+
     def _send_param(self, name: str, index: int) -> None:
         value, ptype = self.params[name]
         if self.kind == "px4" and ptype == MAV_PARAM_TYPE_INT32:
@@ -398,3 +455,30 @@ class FakeAutopilot:
                 value = int(round(msg.param_value)) if math.isfinite(msg.param_value) else 0
             self.params[name][0] = value
         self._send_param(name, names.index(name))
+
+
+def _R_from_q(q) -> List[List[float]]:
+    w, x, y, z = q
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+
+
+def _R_from_rpy(roll: float, pitch: float, yaw: float) -> List[List[float]]:
+    cr, sr, cp, sp, cy, sy = (
+        math.cos(roll),
+        math.sin(roll),
+        math.cos(pitch),
+        math.sin(pitch),
+        math.cos(yaw),
+        math.sin(yaw),
+    )
+    return [
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ]

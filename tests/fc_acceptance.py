@@ -15,6 +15,7 @@ VISION_POSITION_ESTIMATE (no quality field: taken as 0) is dropped whenever it i
 from __future__ import annotations
 
 import math
+import struct
 import sys
 from dataclasses import dataclass, field
 from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple
@@ -33,7 +34,10 @@ MAVLINK2_MAGIC = 0xFD
 EKF_MIN_INTERVAL_S = 0.020  # AP_NavEKF3.h extNavIntervalMin_ms
 HEALTH_TIMEOUT_S = 0.300  # AP_VISUALODOM_TIMEOUT_MS
 HEARTBEAT_MAX_GAP_S = 1.5  # "1 Hz" with some slack for scheduling
-POSE_TYPES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
+POSE_TYPES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET", "TARGET_RELATIVE")
+TARGET_OBS_FRAME_BODY_FRD, TARGET_OBS_FRAME_LOCAL_OFFSET_NED = 1, 2
+LANDING_TARGET_TYPE_VISION_FIDUCIAL = 2
+TARGET_RELATIVE_CRC_EXTRA = 28  # development.xml's definition, as the C library has it
 # PX4 reads variances from these covariance indices (x, y, z, roll, pitch, yaw).
 PX4_VARIANCE_INDICES = (0, 6, 11, 15, 18, 20)
 
@@ -67,7 +71,49 @@ def _finite(values: Iterable[float]) -> bool:
 
 
 def _time_us(msg: Any) -> int:
-    return int(msg.usec if msg.get_type() == "VISION_POSITION_ESTIMATE" else msg.time_usec)
+    kind = msg.get_type()
+    if kind == "TARGET_RELATIVE":
+        return int(msg.timestamp)
+    return int(msg.usec if kind == "VISION_POSITION_ESTIMATE" else msg.time_usec)
+
+
+class TargetRelative:
+    """TARGET_RELATIVE (#511, MAVLink's development dialect, not in pymavlink's common) decoded
+    from its MAVLink 2 frame as the C library lays it out (mavlink_msg_target_relative.h)."""
+
+    def __init__(self, frame: bytes) -> None:
+        n = frame[1]
+        payload = bytes(frame[10 : 10 + n]) + bytes(71 - n)  # MAVLink 2 trims trailing zeros
+        self._frame = frame
+        self.timestamp, self.x, self.y, self.z = struct.unpack_from("<Qfff", payload, 0)
+        self.pos_std = list(struct.unpack_from("<3f", payload, 20))
+        (self.yaw_std,) = struct.unpack_from("<f", payload, 32)
+        self.q_target = list(struct.unpack_from("<4f", payload, 36))
+        self.q_sensor = list(struct.unpack_from("<4f", payload, 52))
+        self.id, self.frame, self.type = struct.unpack_from("<BBB", payload, 68)
+        self.crc_ok = (
+            x25(bytes(frame[1 : 10 + n]) + bytes([TARGET_RELATIVE_CRC_EXTRA]))
+            == struct.unpack_from("<H", frame, 10 + n)[0]
+        )
+
+    def get_type(self) -> str:
+        return "TARGET_RELATIVE"
+
+    def get_msgbuf(self) -> bytes:
+        return self._frame
+
+    def get_srcComponent(self) -> int:
+        return self._frame[6]
+
+
+def x25(data: bytes) -> int:
+    """MAVLink's CRC-16/MCRF4XX."""
+    crc = 0xFFFF
+    for b in data:
+        tmp = b ^ (crc & 0xFF)
+        tmp = (tmp ^ (tmp << 4)) & 0xFF
+        crc = ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
+    return crc
 
 
 AUTOPILOTS = ("ardupilot", "px4")
@@ -105,6 +151,11 @@ def check(
         if kind == "BAD_DATA":
             v.append(f"#{i}: undecodable bytes")
             continue
+        if kind == "UNKNOWN_511":  # a parser without the development dialect: decode it here
+            m = TargetRelative(bytes(m.get_msgbuf()))
+            kind = m.get_type()
+            if not m.crc_ok:
+                v.append(f"#{i} TARGET_RELATIVE: CRC does not match (CRC extra 28)")
         rep.counts[kind] = rep.counts.get(kind, 0) + 1
         buf = m.get_msgbuf()
         if not buf or buf[0] != MAVLINK2_MAGIC:
@@ -126,7 +177,18 @@ def check(
         t_us = _time_us(m)
         if not 0 < t_us < 2**63:
             v.append(f"#{i} {kind}: time_usec {t_us} out of range")
-        if kind == "ODOMETRY":
+        if kind == "TARGET_RELATIVE":
+            if m.frame not in (TARGET_OBS_FRAME_BODY_FRD, TARGET_OBS_FRAME_LOCAL_OFFSET_NED):
+                v.append(f"#{i} TARGET_RELATIVE: frame {m.frame}, expected BODY_FRD (1) or LOCAL_OFFSET_NED (2)")
+            if m.type != LANDING_TARGET_TYPE_VISION_FIDUCIAL:
+                v.append(f"#{i} TARGET_RELATIVE: type {m.type}, expected VISION_FIDUCIAL (2)")
+            if not _finite([m.x, m.y, m.z, *m.pos_std, m.yaw_std, *m.q_target, *m.q_sensor]):
+                v.append(f"#{i} TARGET_RELATIVE: NaN or inf")
+            elif not all(sd > 0 for sd in m.pos_std) or not m.yaw_std > 0:
+                v.append(f"#{i} TARGET_RELATIVE: a standard deviation is not positive")
+            elif abs(math.sqrt(sum(c * c for c in m.q_target)) - 1.0) > 1e-3:
+                v.append(f"#{i} TARGET_RELATIVE: q_target not of unit length")
+        elif kind == "ODOMETRY":
             if (m.frame_id, m.child_frame_id) != (MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD):
                 v.append(
                     f"#{i} ODOMETRY: frames ({m.frame_id}, {m.child_frame_id}); ArduPilot uses only "
@@ -182,7 +244,7 @@ def check(
             continue
         if dt < EKF_MIN_INTERVAL_S - 1e-6:
             v.append(f"#{i} {kind}: {dt * 1e3:.1f} ms after the previous one (EKF3 drops < 20 ms)")
-        if kind == "LANDING_TARGET":
+        if kind in ("LANDING_TARGET", "TARGET_RELATIVE"):
             continue
         step = m.reset_counter - prev.reset_counter
         if step not in (0, 1, -255):

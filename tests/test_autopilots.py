@@ -176,3 +176,33 @@ def test_live_attitude_from_an_older_ardupilot_through_request_data_stream():
     assert a is not None and a.rpy_rad == pytest.approx((roll, pitch, yaw), abs=1e-4)
     assert att.freshness(time.monotonic())["sync"] == "timesync"
     assert out.stats()["data_stream_requested"] >= 1
+
+
+def test_px4_takes_target_relative_in_the_body_frame_with_its_attitude_at_capture():
+    """Issue 10 item 5 (PX4 1.18's vision target estimator): TARGET_RELATIVE in BODY_FRD, the
+    marker centre with its standard deviations, q_sensor the vehicle's attitude at capture time
+    (PX4's own ATTITUDE, mapped by TIMESYNC); PX4 rotates it into NED: the marker relative to
+    the vehicle, whatever PX4's own origin."""
+    yaw = math.radians(20.0)
+    fc = FakeAutopilot(
+        "px4", heartbeat_s=0.2, timesync_s=0.3, vehicle_state=lambda t: ((5.0, 2.0, -1.5), (0.0, 0.0, yaw))
+    )
+    out = mavlink_output(fc.connection, DOWN, messages=("ODOMETRY", "TARGET_RELATIVE"), queue_size=0)
+    try:
+        assert wait_for(lambda: out.autopilot_system == 1, 5.0)
+        assert wait_for(lambda: fc.intervals_us.get(32) == 20_000 and fc.intervals_us.get(30) == 20_000, 5.0)
+        _stream(out, 45, p_local=(0.3, -0.2, -1.5), yaw_deg=20.0)
+        assert wait_for(lambda: len(fc.tally.fiducial_reports) >= 45, 10.0), fc.tally.target_refused
+    finally:
+        out.close()
+        fc.close()
+    assert not fc.tally.target_refused and not [t for t in fc.statustexts if "unsupported" in t]
+    for r in fc.tally.fiducial_reports:
+        # The marker 0.3 m south, 0.2 m east of the vehicle and 1.5 m below, in NED.
+        assert r["rel_pos_ned"] == pytest.approx([-0.3, 0.2, 1.5], abs=1e-3)
+        assert all(0.0 < v < 0.25**2 for v in r["var"]) and 0.0 < r["yaw_std"] < 0.1
+    odo = {m.time_usec for m in of_type(fc.tally.received, "ODOMETRY")}
+    assert {r["t_us"] for r in fc.tally.fiducial_reports} <= odo  # the same capture time stamps
+    assert fc.tally.stamped_by.get("timesync", 0) > 0
+    report = check(fc.tally.received, autopilot="px4")
+    assert report.ok and report.counts.get("TARGET_RELATIVE", 0) >= 45, str(report)

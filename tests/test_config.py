@@ -147,12 +147,13 @@ def test_marker_placement_drives_the_synthetic_trajectory():
         (
             '[output.mavlink]\nmessages = ["ODOMETRY", "ODOMETRY"]\n',
             'config.toml: [output.mavlink] messages: expected a list of strings, each one of "ODOMETRY", '
-            '"VISION_POSITION_ESTIMATE", "LANDING_TARGET", not empty, no repeats, got ["ODOMETRY", "ODOMETRY"]',
+            '"VISION_POSITION_ESTIMATE", "LANDING_TARGET", "TARGET_RELATIVE", not empty, no repeats, '
+            'got ["ODOMETRY", "ODOMETRY"]',
         ),
         (
             "[output.mavlink]\nmessages = []\n",
             'config.toml: [output.mavlink] messages: expected a list of strings, each one of "ODOMETRY", '
-            '"VISION_POSITION_ESTIMATE", "LANDING_TARGET", not empty, no repeats, got []',
+            '"VISION_POSITION_ESTIMATE", "LANDING_TARGET", "TARGET_RELATIVE", not empty, no repeats, got []',
         ),
         (
             '[camera]\nsource = "webcam"\n',

@@ -110,7 +110,14 @@ def test_quality_and_covariance_follow_residual_and_a_real_flip_risk():
     c = odo(clear).pose_covariance
     assert all(c[k] > 0 for k in (0, 6, 11, 15, 18, 20))
     assert odo(noisy).pose_covariance[0] > 50 * c[0]
-    assert odo(flip).pose_covariance[0] > 50 * c[0]
+
+    def position_variance(m):
+        return sum(m.pose_covariance[k] for k in (0, 6, 11))
+
+    # A coin flip: the covariance about the pose sent takes in the step to the other solution
+    # (the camera swings 2 sin 20 deg x 1 m sideways), in position and attitude alike.
+    assert position_variance(odo(flip)) > 50 * position_variance(odo(clear))
+    assert sum(odo(flip).pose_covariance[k] for k in (15, 18, 20)) > 50 * sum(c[k] for k in (15, 18, 20))
     assert (
         odo(level).pose_covariance[0]
         < 2 * odo(camera_pose(np.diag([1.0, -1.0, -1.0]), [0, 0, 1.0], 0.1)).pose_covariance[0]
@@ -565,10 +572,10 @@ def test_origin_sent_again_when_the_autopilot_stops_reporting_it(monkeypatch):
     assert out.stats()["origin_forgotten"] == 1
 
 
-def test_odometry_quality_leaves_out_the_flip_risk_only_when_the_attitude_chose():
+def test_odometry_quality_and_covariance_leave_out_the_flip_risk_only_when_a_prior_chose():
     """A near-tie between two planar solutions 40 deg apart: the ODOMETRY the output sends
-    carries pose_quality(flip_resolved=True) when the result's choice was the attitude's, and
-    the risk-weighted quality for any other choice."""
+    carries pose_quality(flip_resolved=True) when the result's choice was the attitude's or the
+    tilt prior's, and the risk-weighted quality for any other choice; its covariance likewise."""
     import dataclasses
 
     from pose_daemon.pose.prior import Choice
@@ -587,10 +594,58 @@ def test_odometry_quality_leaves_out_the_flip_risk_only_when_the_attitude_chose(
     )
     try:
         t0 = time.monotonic()
-        for k, by in enumerate(("attitude", "continuity", "clear", "attitude")):
+        for k, by in enumerate(("attitude", "continuity", "clear", "attitude", "tilt")):
             out.submit(FrameResult(seq=k, t_capture_s=t0 + 0.05 * k, pose=pose, choice=Choice(pose, by)))
-        msgs = peer.collect(5.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 4)
+        msgs = peer.collect(5.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 5)
     finally:
         out.close()
         peer.close()
-    assert [m.quality for m in of_type(msgs, "ODOMETRY")] == [resolved, at_risk, at_risk, resolved]
+    odo = of_type(msgs, "ODOMETRY")
+    assert [m.quality for m in odo] == [resolved, at_risk, at_risk, resolved, resolved]
+    # The covariance follows the same ambiguity (issue 11): where a prior ruled the other
+    # solution out it is the solve's alone; where it remains, the step to the other pose
+    # (40 deg of tilt, ~0.7 m of camera swing at 1 m) is in it.
+    position = [sum(m.pose_covariance[k] for k in (0, 6, 11)) for m in odo]
+    attitude = [sum(m.pose_covariance[k] for k in (15, 18, 20)) for m in odo]
+    assert position[0] == position[3] == position[4] and attitude[0] == attitude[3] == attitude[4]
+    assert position[1] > 100 * position[0] and attitude[1] > 100 * attitude[0]
+    assert position[1] == position[2]
+
+
+def test_target_relative_is_packed_by_pymavlink_as_the_c_library_lays_it_out():
+    """TARGET_RELATIVE (#511, the development dialect pymavlink's common lacks): pymavlink packs
+    and parses it once registered, the bytes are the C library's layout (read back
+    independently by fc_acceptance), the marker in the body frame with its deviations, q_target
+    marker -> body, and q_sensor the attitude given (zeros without)."""
+    from fc_acceptance import TargetRelative
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    from pose_daemon.outputs import target_relative
+
+    assert target_relative.crc_extra() == target_relative.CRC_EXTRA == 28
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
+    frames = g.VehicleFrames.from_settings("down", placement="floor")
+    R_cm, t = frames.camera_pose(g.VehiclePose(np.array([0.3, -0.2, -1.5]), g.R_from_euler_rpy(0.0, 0.0, 0.35)))
+    pose = camera_pose(R_cm, t, 0.1)
+    R_ned_body = g.R_from_euler_rpy(0.02, -0.01, 0.35)
+    for R_sensor in (R_ned_body, None):
+        inputs = PoseMessageInputs.from_pose(
+            123_456_789, pose, frames, fx_px=500.0, marker_width_m=0.2, R_ned_body=R_sensor
+        )
+        (msg,) = encode_pose_messages(mav, ["TARGET_RELATIVE"], inputs, autopilot="px4")
+        wire = msg.pack(mav)
+        assert wire[0] == 0xFD and int.from_bytes(wire[7:10], "little") == 511
+        (back,) = mavlink2.MAVLink(None).parse_buffer(wire)
+        raw = TargetRelative(wire)
+        assert raw.crc_ok and back.get_type() == "TARGET_RELATIVE"
+        for m in (back, raw):
+            assert m.timestamp == 123_456_789 and (m.frame, m.type) == (1, 2)
+            # The marker 1.5 m below, 0.3 m behind and 0.2 m left of... in the body frame.
+            expected = g.R_from_euler_rpy(0.0, 0.0, 0.35).T @ np.array([-0.3, 0.2, 1.5])
+            assert (m.x, m.y, m.z) == pytest.approx(tuple(expected), abs=1e-5)
+            assert all(0 < s < 0.2 for s in m.pos_std) and 0 < m.yaw_std < 0.1
+            assert np.linalg.norm(m.q_target) == pytest.approx(1.0, abs=1e-6)
+            if R_sensor is None:
+                assert list(m.q_sensor) == [0.0, 0.0, 0.0, 0.0]
+            else:
+                assert list(m.q_sensor) == pytest.approx(list(g.quaternion_from_R_3x3(R_ned_body)), abs=1e-6)

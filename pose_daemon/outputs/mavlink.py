@@ -54,6 +54,7 @@ import math
 import select
 import socket
 import struct
+import sys
 import time
 from dataclasses import dataclass
 from typing import (
@@ -82,8 +83,9 @@ from ..geometry import (
 )
 from ..pose.types import Pose
 from ..result import FrameResult, time_usec_from_s
+from . import target_relative
 from .base import ClosedHook, WrittenHook
-from .quality import pose_covariance_local, pose_quality, uncertainty
+from .quality import Uncertainty, pose_covariance_local, pose_quality, result_uncertainty, uncertainty
 from .worker import (
     LinkBusy,
     LinkError,
@@ -98,7 +100,7 @@ from .worker import (
 if TYPE_CHECKING:  # config.py may import this module's choices: no import back at run time
     from ..config import Config, MavlinkOutputConfig
 
-MESSAGES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET")
+MESSAGES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET", "TARGET_RELATIVE")
 AUTOPILOTS = ("auto", "ardupilot", "px4")
 # ArduPilot's AP_VISUALODOM_TIMEOUT_MS: a longer silence makes the feed unhealthy, so the next
 # pose starts a new track (reset_counter + 1).
@@ -972,6 +974,8 @@ class MavlinkOutput(QueuedOutput):
         wanted: Tuple[int, ...] = ()
         if self.autopilot_kind == "px4" and "LANDING_TARGET" in self.messages:
             wanted = (MSG_ID_LOCAL_POSITION_NED, MSG_ID_ATTITUDE)
+        elif self.autopilot_kind == "px4" and "TARGET_RELATIVE" in self.messages:
+            wanted = (MSG_ID_LOCAL_POSITION_NED, MSG_ID_ATTITUDE)  # q_sensor: the attitude at capture
         elif self._attitude_sink is not None:
             wanted = (MSG_ID_ATTITUDE,)
         return wanted
@@ -1063,12 +1067,12 @@ class MavlinkOutput(QueuedOutput):
             self._send_text(MAV_SEVERITY_INFO, "pose-daemon: marker found")
         self._lost = False
         self._tracked = True
-        target_ned = None
-        if self.autopilot_kind == "px4" and "LANDING_TARGET" in self.messages:
+        target_ned = R_ned_body_at = None
+        if self.autopilot_kind == "px4" and ("LANDING_TARGET" in self.messages or "TARGET_RELATIVE" in self.messages):
             state = self._state.at(t)
             if state is not None:
-                p_ned, R_ned_body = state
-                target_ned = p_ned + R_ned_body @ np.asarray(self.frames.marker_in_body(pose.tvec))
+                p_ned, R_ned_body_at = state
+                target_ned = p_ned + R_ned_body_at @ np.asarray(self.frames.marker_in_body(pose.tvec))
         inputs = PoseMessageInputs.from_pose(
             time_usec_from_s(t),
             pose,
@@ -1079,7 +1083,8 @@ class MavlinkOutput(QueuedOutput):
             marker_height_m=self.marker_height_m,
             reset_counter=self.reset_counter,
             target_local_ned_m=target_ned,
-            flip_resolved=(result.choice is not None and result.choice.resolved_by == "attitude"),
+            R_ned_body=R_ned_body_at,
+            u=result_uncertainty(result, self.frames, self.fx_px, self.marker_width_m),
         )
         n = self._send_pose(inputs)
         self._last_sent_t = t
@@ -1110,7 +1115,10 @@ class PoseMessageInputs:
     the camera frame (LANDING_TARGET's angles and distance), ``p_marker_body_m`` in the body
     FRD frame, ``R_body_marker`` its orientation; ``marker_size_m``: (width, height);
     ``target_local_ned_m``: the marker centre in the autopilot's local NED frame at capture
-    time (PX4's LANDING_TARGET), None when the vehicle's state was not known then.
+    time (PX4's LANDING_TARGET), None when the vehicle's state was not known then;
+    ``target_std_body_m``/``target_yaw_std_rad``: the marker centre's standard deviation per
+    body axis and its heading's, about the pose sent (TARGET_RELATIVE); ``R_ned_body``: the
+    vehicle's attitude in PX4's NED at capture time (TARGET_RELATIVE's q_sensor), or None.
     """
 
     t_us: int
@@ -1124,6 +1132,9 @@ class PoseMessageInputs:
     R_body_marker: np.ndarray
     marker_size_m: Tuple[float, float]
     target_local_ned_m: Optional[np.ndarray] = None
+    target_std_body_m: Tuple[float, float, float] = (NAN, NAN, NAN)
+    target_yaw_std_rad: float = NAN
+    R_ned_body: Optional[np.ndarray] = None
 
     @classmethod
     def from_pose(
@@ -1139,28 +1150,39 @@ class PoseMessageInputs:
         vehicle: Optional[VehiclePose] = None,
         target_local_ned_m: Optional[np.ndarray] = None,
         flip_resolved: bool = False,
+        u: Optional[Uncertainty] = None,
+        R_ned_body: Optional[np.ndarray] = None,
     ) -> PoseMessageInputs:
         """From the camera's pose (``pose``: R_cam_marker, tvec) and the mounting; ``vehicle``:
         ``frames.vehicle_pose`` of the same pose when the caller has it already;
-        ``flip_resolved``: the vehicle's attitude chose the planar solution (quality.pose_quality)."""
+        ``flip_resolved``: a prior ruled the other planar solution out (quality.pose_quality);
+        ``u``: the pose's ``quality.Uncertainty`` (``result_uncertainty`` of its frame), which
+        then decides the quality and covariance instead of ``flip_resolved``."""
         if vehicle is None:
             vehicle = frames.vehicle_pose(pose.R, pose.tvec)
         t_cam = np.asarray(pose.tvec, dtype=np.float64)
         width_m = float(marker_width_m)
-        u = uncertainty(pose, fx_px, width_m)  # the solve's covariance, once per pose
+        if u is None:  # the solve's covariance, once per pose
+            u = uncertainty(pose, fx_px, width_m, flip_resolved=flip_resolved)
         height_m = float(marker_height_m) if marker_height_m is not None else width_m
+        R_body_marker = frames.R_body_cam @ np.asarray(pose.R)
+        cov_t_body = frames.R_body_cam @ u.sent_cov_tvec_cam_m2 @ frames.R_body_cam.T
+        cov_w_body = R_body_marker @ u.sent_cov_rotation_rad2 @ R_body_marker.T
         return cls(
             t_us=int(t_us),
             p_local_m=np.asarray(vehicle.p_local_body_m, dtype=np.float64),
             R_local_body=np.asarray(vehicle.R_local_body, dtype=np.float64),
             covariance=pose_covariance_local(pose, frames, fx_px, width_m, u=u),
             reset_counter=int(reset_counter),
-            quality=pose_quality(pose, fx_px, width_m, u=u, flip_resolved=flip_resolved),
+            quality=pose_quality(pose, fx_px, width_m, u=u),
             p_marker_cam_m=t_cam,
             p_marker_body_m=np.asarray(frames.marker_in_body(t_cam)),
-            R_body_marker=frames.R_body_cam @ np.asarray(pose.R),
+            R_body_marker=R_body_marker,
             marker_size_m=(width_m, height_m),
             target_local_ned_m=target_local_ned_m,
+            target_std_body_m=tuple(math.sqrt(max(float(cov_t_body[i, i]), 0.0)) for i in range(3)),  # type: ignore[arg-type]
+            target_yaw_std_rad=math.sqrt(max(float(cov_w_body[2, 2]), 0.0)),
+            R_ned_body=None if R_ned_body is None else np.asarray(R_ned_body, dtype=np.float64),
         )
 
 
@@ -1204,6 +1226,8 @@ def encode_pose_messages(
             out.append(mav.vision_position_estimate_encode(t_us, x, y, z, roll, pitch, yaw, cov, inputs.reset_counter))
         elif name == "LANDING_TARGET":
             out.append(_landing_target(mav, inputs, autopilot))
+        elif name == "TARGET_RELATIVE":
+            out.append(_target_relative(mav, inputs))
         else:
             raise ValueError(f"unknown pose message {name!r}")
     return out
@@ -1257,4 +1281,29 @@ def _landing_target(mav: Any, inputs: PoseMessageInputs, autopilot: str) -> Any:
         q,
         LANDING_TARGET_TYPE_VISION_FIDUCIAL,
         1,
+    )
+
+
+def _target_relative(mav: Any, inputs: PoseMessageInputs) -> Any:
+    """TARGET_RELATIVE (#511, PX4's vision target estimator): the marker centre in the body FRD
+    frame with its standard deviations, its orientation (q_target: marker -> body) and the
+    vehicle's attitude at capture time (q_sensor: body -> PX4's NED; zeros when not known,
+    and PX4 uses its own)."""
+    cls = target_relative.register(sys.modules[type(mav).__module__])
+    x, y, z = (float(v) for v in inputs.p_marker_body_m)
+    q_sensor = [0.0, 0.0, 0.0, 0.0]
+    if inputs.R_ned_body is not None:
+        q_sensor = [float(v) for v in quaternion_from_R_3x3(inputs.R_ned_body)]
+    return cls(
+        inputs.t_us,
+        0,
+        target_relative.TARGET_OBS_FRAME_BODY_FRD,
+        x,
+        y,
+        z,
+        [float(v) for v in inputs.target_std_body_m],
+        float(inputs.target_yaw_std_rad),
+        [float(v) for v in quaternion_from_R_3x3(inputs.R_body_marker)],
+        q_sensor,
+        LANDING_TARGET_TYPE_VISION_FIDUCIAL,
     )

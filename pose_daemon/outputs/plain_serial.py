@@ -24,7 +24,7 @@ import numpy as np
 from ..geometry import VehicleFrames
 from ..result import FrameResult, time_usec_from_s
 from .base import ClosedHook, WrittenHook
-from .quality import LOST_QUALITY, pose_quality
+from .quality import LOST_QUALITY, pose_quality, result_uncertainty
 from .worker import (
     LinkBusy,
     LinkError,
@@ -66,7 +66,8 @@ def pose_line(
         rpy = np.degrees(v.rpy_rad)
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(rpy))):
             return None
-        q = pose_quality(pose, fx_px, marker_width_m)
+        u = result_uncertainty(result, frames, fx_px, marker_width_m) if fx_px and marker_width_m else None
+        q = pose_quality(pose, fx_px, marker_width_m, u=u, corner_sigma_px=result.corner_sigma_px)
         # "+ 0.0" turns -0.0 into 0.0 so that a still vehicle prints the same line every time.
         fields = [f"{float(x) + 0.0:.4f}" for x in p] + [f"{float(a) + 0.0:.2f}" for a in rpy]
         body = f"POSE,{t_us}," + ",".join(fields) + f",{q}"

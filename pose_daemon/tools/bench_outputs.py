@@ -3,7 +3,10 @@
 Writes direct (``publish`` returns once the bytes are written) to local links: MAVLink over
 UDP to 127.0.0.1, ``$POSE`` lines to a pseudo-terminal, JSON lines to a file, and prints
 median / p99 / max per output. The daemon's whole capture -> bytes-written latency is
-``pose-daemon bench pipeline``; this is the outputs' share of it.
+``pose-daemon bench pipeline``; this is the outputs' share of it. Then the MAVLink share of one
+pose, its parts timed side by side on the same poses (interleaved, so a loaded machine slows
+them alike): the quality and covariance (``PoseMessageInputs.from_pose``), pymavlink's
+``odometry_encode`` and ``pack`` (the bytes on the wire), and the two together.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from ..geometry import (
     rvec_from_R,
 )
 from ..outputs.jsonl import JsonlOutput
-from ..outputs.mavlink import MavlinkOutput
+from ..outputs.mavlink import MavlinkOutput, PoseMessageInputs, encode_pose_messages
 from ..outputs.plain_serial import PlainSerialOutput
 from ..pose.types import Pose
 from ..result import FrameResult
@@ -108,7 +111,27 @@ def run_bench(poses: int = 3000) -> Dict[str, Any]:
         os.close(master)
         os.close(slave)
         tmp.cleanup()
-    return {"poses": poses, "platform": sys.platform, "rows": rows}
+    return {"poses": poses, "platform": sys.platform, "rows": rows, "parts": mavlink_parts(frames, results, common)}
+
+
+def mavlink_parts(frames: VehicleFrames, results: List[FrameResult], common: Dict[str, Any]) -> Dict[str, np.ndarray]:
+    """Per pose, seconds: the quality and covariance (``from_pose``), pymavlink's encode and
+    pack of the ODOMETRY it makes, timed one after the other on each pose."""
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
+    fx, width = float(common["camera"].fx), float(common["marker"].width)
+    inputs_s, encode_s = np.empty(len(results)), np.empty(len(results))
+    for i, r in enumerate(results):
+        assert r.pose is not None
+        t0 = time.perf_counter()
+        inputs = PoseMessageInputs.from_pose(1_000_000 + i, r.pose, frames, fx_px=fx, marker_width_m=width)
+        t1 = time.perf_counter()
+        for msg in encode_pose_messages(mav, ("ODOMETRY",), inputs):
+            msg.pack(mav)
+        t2 = time.perf_counter()
+        inputs_s[i], encode_s[i] = t1 - t0, t2 - t1
+    return {"quality and covariance": inputs_s, "pymavlink encode + pack": encode_s}
 
 
 def print_report(report: Dict[str, Any]) -> None:
@@ -120,6 +143,12 @@ def print_report(report: Dict[str, Any]) -> None:
             f"  {row['name']:42s} median {np.median(ms):.3f} ms, p99 {np.percentile(ms, 99):.3f} ms, "
             f"max {ms.max():.3f} ms ({row['sent']} messages)"
         )
+    parts = report.get("parts")
+    if parts:
+        print("one ODOMETRY pose, its parts side by side:")
+        for name, seconds in parts.items():
+            ms = seconds * 1e3
+            print(f"  {name:42s} median {np.median(ms):.3f} ms, p99 {np.percentile(ms, 99):.3f} ms")
 
 
 def _drain(sink: socket.socket, master: int) -> None:

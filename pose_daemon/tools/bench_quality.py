@@ -2,15 +2,19 @@
 
 Rendered hovers of a down-looking camera over a floor square (640x480, fx = 600, 0.2 m
 marker), level, within +-5 deg and within +-15 deg of tilt, at 0.5, 1, 2 and 3 m, each frame
-through the daemon's own detector, estimator and continuity choice (FrameProcessor). Each pose
-is judged against the renderer's truth: "correct" (vehicle position within 2 cm and attitude
-within 2 deg), "wrong" (attitude off by more than 10 deg, or the wrong planar solution where
-the two are more than 5 deg apart), or neither; "imprecise" counts poses more than 10 cm off.
-Each frame is also estimated with one corner knocked 3 px off (gate-worthy: wrong unless its
-pose is still correct) and, where the other planar solution is more than 10 deg off the
-truth, as if that one had been taken by a coin flip (wrong). Printed per case: the
-quality distribution (today's model and the old 100/(1+e^2)(1-ambiguity_ratio)), the fraction
-of correct poses a minimum quality would drop and the wrong poses it would let through.
+through the daemon's own detector, estimator, gate and continuity choice (FrameProcessor), its
+quality as the outputs send it (``result_uncertainty``: the corner noise the processor
+measured, the choice). Each pose is judged against the renderer's truth: "correct" (vehicle
+position within 2 cm and attitude within 2 deg), "wrong" (attitude off by more than 10 deg, or
+the other planar solution taken where the two are more than 5 deg apart and the other is the
+nearer to the truth), or neither; "imprecise" counts poses more than 10 cm off. Each frame is
+also estimated with one corner knocked 3 px off and put through the same gate and choice
+(gate-worthy: wrong unless its pose is still correct; "withheld" when the gate or the choice
+sends nothing for it) and, where the other planar solution is more than 10 deg off the truth,
+as if that one had been taken by a coin flip (wrong). Printed per case: the quality
+distribution (today's model and the old 100/(1+e^2)(1-ambiguity_ratio)), the fraction of
+correct poses a minimum quality would drop and the wrong poses it would let through (a
+withheld pose is never let through).
 """
 
 from __future__ import annotations
@@ -30,8 +34,10 @@ from ..geometry import (
     rotation_angle_deg_3x3,
     rvec_from_R,
 )
-from ..outputs.quality import pose_quality
+from ..outputs.quality import pose_quality, resolved_by_prior, result_uncertainty, uncertainty
+from ..pose.continuity import choose_by_continuity
 from ..pose.estimator import estimate_pose
+from ..pose.prior import choose_solution
 from ..pose.types import EstimationError
 from ..processing import FrameProcessor
 from ..render import Effects, render_frame
@@ -51,6 +57,9 @@ WRONG_DEG, FLIP_DEG = 10.0, 5.0
 # Right solution, imprecise: the vehicle position off by more than this.
 IMPRECISE_M = 0.10
 MARGIN_PX = 4.0
+# Frames each hover runs before the judged ones: the daemon's steady state, its corner noise
+# measured (its first frames are sent with at most quality.PENDING_QUALITY).
+WARMUP_FRAMES = 30
 
 
 def _old_quality(err_px: float, ratio: float) -> int:
@@ -84,20 +93,20 @@ def _visible(R_cm: np.ndarray, t: np.ndarray) -> bool:
 
 def run_case(height_m: float, tilt_deg: float, n_frames: int, seed: int) -> Dict:
     rng = np.random.default_rng([seed, int(height_m * 10), int(tilt_deg)])
-    proc = FrameProcessor(CAMERA, MARKER)
+    proc = FrameProcessor(CAMERA, MARKER, frames=FRAMES)
     effects = Effects()
     rows: List[Dict] = []
     rendered = 0
-    for k, vehicle in enumerate(_hover(rng, n_frames, height_m, tilt_deg)):
+    for k, vehicle in enumerate(_hover(rng, n_frames + WARMUP_FRAMES, height_m, tilt_deg)):
         R_cm, t = FRAMES.camera_pose(vehicle)
         if not _visible(R_cm, t):
             proc.reset()
             continue
-        rendered += 1
+        rendered += k >= WARMUP_FRAMES
         image, _ = render_frame(CAMERA, MARKER, rvec_from_R(R_cm), t, effects=effects, rng=rng)
         result = proc.process(Frame(seq=k, t_capture_s=k / 30.0, image=image))
         pose = result.pose
-        if pose is None:
+        if pose is None or k < WARMUP_FRAMES:
             continue
         est = FRAMES.vehicle_pose(pose.R, pose.tvec)
         pos_err = float(np.linalg.norm(est.p_local_body_m - vehicle.p_local_body_m))
@@ -105,16 +114,22 @@ def run_case(height_m: float, tilt_deg: float, n_frames: int, seed: int) -> Dict
         alt = pose.alternative
         flipped = (
             alt is not None
-            and rot_err > FLIP_DEG
+            and rotation_angle_deg_3x3(pose.R, alt.R) > FLIP_DEG
             and (rotation_angle_deg_3x3(alt.R, R_cm) < rotation_angle_deg_3x3(pose.R, R_cm))
         )
+        sigma_px = result.corner_sigma_px
         rows.append(
             {
-                "q": pose_quality(pose, CAMERA.fx, MARKER.width),
+                "q": pose_quality(pose, u=result_uncertainty(result, FRAMES, CAMERA.fx, MARKER.width)),
                 "q_old": _old_quality(pose.reprojection_error_px, pose.ambiguity_ratio),
                 "correct": pos_err < CORRECT_M and rot_err < CORRECT_DEG,
                 "wrong": rot_err > WRONG_DEG or flipped,
                 "imprecise": pos_err > IMPRECISE_M,
+                "kind": "sent",
+                "pos_err_m": pos_err,
+                "rot_err_deg": rot_err,
+                "pose": pose,
+                "sigma_px": sigma_px,
             }
         )
         # The same corners with one knocked BAD_CORNER_PX off: gate-worthy, judged wrong when
@@ -124,21 +139,51 @@ def run_case(height_m: float, tilt_deg: float, n_frames: int, seed: int) -> Dict
             a = rng.uniform(0, 2 * math.pi)
             bad[rng.integers(4)] += BAD_CORNER_PX * np.array([math.cos(a), math.sin(a)])
             try:
-                bp = estimate_pose(bad, CAMERA, MARKER)
+                estimated = estimate_pose(bad, CAMERA, MARKER)
             except EstimationError:
-                bp = None
-            if bp is not None:
+                estimated = None
+            if estimated is not None:
+                # The same gate and choice as the frame itself (the track as it stands).
+                side_px = float(np.mean(np.linalg.norm(bad - np.roll(bad, 1, axis=0), axis=1)))
+                choice = choose_solution(
+                    estimated,
+                    FRAMES,
+                    attitude=None,
+                    settings=proc.prior,
+                    side_px=side_px,
+                    by_continuity=lambda p: choose_by_continuity(p, proc.track.normal_ref),
+                    corners_px=bad,
+                    camera=CAMERA,
+                    marker=MARKER,
+                    corner_sigma_px=sigma_px,
+                )
+                bp = choice.pose if choice.pose is not None else estimated
                 be = FRAMES.vehicle_pose(bp.R, bp.tvec)
                 b_pos = float(np.linalg.norm(be.p_local_body_m - vehicle.p_local_body_m))
                 b_rot = rotation_angle_deg_3x3(be.R_local_body, vehicle.R_local_body)
                 ok = b_pos < CORRECT_M and b_rot < CORRECT_DEG
+                sent = choice.pose is not None
+                u = uncertainty(
+                    bp,
+                    CAMERA.fx,
+                    MARKER.width,
+                    corner_sigma_px=sigma_px,
+                    flip_resolved=resolved_by_prior(choice.resolved_by),
+                )
                 rows.append(
                     {
-                        "q": pose_quality(bp, CAMERA.fx, MARKER.width),
-                        "q_old": _old_quality(bp.reprojection_error_px, bp.ambiguity_ratio),
+                        # Withheld: nothing is sent, below any minimum quality.
+                        "q": pose_quality(bp, u=u) if sent else 0,
+                        "q_old": _old_quality(bp.reprojection_error_px, bp.ambiguity_ratio) if sent else 0,
                         "correct": False,
                         "wrong": not ok,
+                        "withheld": not sent,
                         "imprecise": b_pos > IMPRECISE_M,
+                        "kind": "bad corner",
+                        "pos_err_m": b_pos,
+                        "rot_err_deg": b_rot,
+                        "pose": bp,
+                        "sigma_px": sigma_px,
                         "gate": True,
                     }
                 )
@@ -150,11 +195,14 @@ def run_case(height_m: float, tilt_deg: float, n_frames: int, seed: int) -> Dict
             )
             rows.append(
                 {
-                    "q": pose_quality(flip, CAMERA.fx, MARKER.width),
+                    "q": pose_quality(flip, CAMERA.fx, MARKER.width, corner_sigma_px=sigma_px),
                     "q_old": _old_quality(flip.reprojection_error_px, 1.0),
                     "correct": False,
                     "wrong": True,
                     "imprecise": True,
+                    "kind": "coin flip",
+                    "pose": flip,
+                    "sigma_px": sigma_px,
                     "coin_flip": True,
                 }
             )
@@ -170,12 +218,15 @@ def _summary(rows: Sequence[Dict], key: str, thresholds: Sequence[int]) -> Dict:
         "poses": int(len(rows)),
         "correct": int(correct.sum()),
         "wrong": int(wrong.sum()),
+        "withheld": int(sum(1 for r in rows if r.get("withheld"))),
         "imprecise": int(imprecise.sum()),
     }
-    if len(q):
-        out.update(q_p5=float(np.percentile(q, 5)), q_median=float(np.median(q)), q_min=float(q.min()))
+    sent_q = q[[not r.get("withheld") for r in rows]] if len(rows) else q
+    if len(sent_q):
+        out.update(q_p5=float(np.percentile(sent_q, 5)), q_median=float(np.median(sent_q)), q_min=float(sent_q.min()))
     if correct.any():
         out["q_correct_p1"] = float(np.percentile(q[correct], 1))
+        out["q_correct_median"] = float(np.median(q[correct]))
     if imprecise.any():
         out["q_imprecise_median"] = float(np.median(q[imprecise]))
     for th in thresholds:
@@ -223,6 +274,7 @@ def print_report(report: Dict) -> None:
         "poses",
         "correct",
         "wrong",
+        "wrong withheld",
         ">10 cm",
         "quality p5/median",
         "old p5/median",
@@ -244,6 +296,7 @@ def print_report(report: Dict) -> None:
             str(s["poses"]),
             str(s["correct"]),
             str(s["wrong"]),
+            str(s["withheld"]),
             str(s["imprecise"]),
             qs,
             qo,

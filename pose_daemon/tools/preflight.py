@@ -427,7 +427,7 @@ def run_preflight(
     UserError for a config without [output.mavlink], a source that cannot open, or no autopilot."""
     from ..capture.sources import open_source
     from ..outputs.mavlink import MavlinkOutput, parse_connection
-    from ..outputs.quality import pose_quality
+    from ..outputs.quality import pose_quality, result_uncertainty
     from ..processing import FrameProcessor
 
     m = cfg.output.mavlink
@@ -483,7 +483,11 @@ def run_preflight(
                         out.send(functools.partial(_request_message, obs.system, obs.component, msg_id))
                 result = processor.process(source.read())
                 if result.pose is not None:
-                    obs.qualities.append(pose_quality(result.pose, cfg.camera.fx, cfg.marker.width))
+                    obs.qualities.append(
+                        pose_quality(
+                            result.pose, u=result_uncertainty(result, out.frames, cfg.camera.fx, cfg.marker.width)
+                        )
+                    )
                 out.submit(result)
                 if not retried and time.monotonic() > end - seconds + PARAM_TIMEOUT_S:
                     retried = True
