@@ -158,6 +158,14 @@ class _Fit:
         return np.sqrt((self.r_px * self.r_px).reshape(n_markers, 8).sum(axis=1) / 4.0)
 
 
+def _prior_cost(prior: Optional[GravityPrior], R: np.ndarray) -> float:
+    """The prior's whitened term at rotation R (0 without a prior)."""
+    if prior is None:
+        return 0.0
+    rp = (R @ prior.down_map - prior.down_cam) / prior.sigma_rad
+    return float(rp @ rp)
+
+
 def _fit(
     camera: Camera,
     obj: np.ndarray,
@@ -437,8 +445,9 @@ def solve_map_pose(
     obj, img = obj_all[rows], img_all[rows]
     n_img = obj.shape[0]
     # The other planar branch, for the ambiguity ratio (and taken when it fits better): the
-    # mirror of the largest marker's plane, solved over every inlier corner. With the prior,
-    # "fits better" counts the prior's term too: the attitude picks the branch.
+    # mirror of the largest marker's plane, solved over every inlier corner without the prior
+    # (the ratio says how well the image alone tells the two apart). "Fits better" counts the
+    # prior's term too: the attitude picks the branch.
     largest = max(ids, key=lambda i: float(np.ptp(obs[i], axis=0).sum()))
     R_mm, _ = marker_map.T_map_marker(largest)
     normal_map = R_mm[:, 2]
@@ -446,15 +455,18 @@ def solve_map_pose(
     mirror = _mirror_start(fit.R, fit.t, obj, normal_map)
     if mirror is not None:
         try:
-            alt = _fit(camera, obj, img.reshape(-1), mirror[0], mirror[1], prior, ALT_ITER, CORNER_SIGMA_PX)
+            alt = _fit(camera, obj, img.reshape(-1), mirror[0], mirror[1], None, ALT_ITER, CORNER_SIGMA_PX)
         except EstimationError:
             alt = None
-        n_main, n_alt = fit.R @ normal_map, None if alt is None else alt.R @ normal_map
-        if alt is not None and float(n_main @ n_alt) < math.cos(math.radians(2.0)):  # a distinct minimum
-            if alt.cost < fit.cost:  # the far branch fits better: take it (and polish it)
-                fit, alt = _fit(camera, obj, img.reshape(-1), alt.R, alt.t, prior, MAX_ITER, CORNER_SIGMA_PX), fit
+        if alt is not None and float((fit.R @ normal_map) @ (alt.R @ normal_map)) < math.cos(math.radians(2.0)):
+            # A distinct minimum.
             err, err_alt = math.sqrt(fit.sse_px / n_img), math.sqrt(alt.sse_px / n_img)
             ambiguity = 1.0 if err_alt <= 0.0 else min(1.0, err / err_alt)
+            if alt.cost + _prior_cost(prior, alt.R) < fit.cost:  # the other branch fits better: take it
+                other = fit
+                fit = _fit(camera, obj, img.reshape(-1), alt.R, alt.t, prior, MAX_ITER, CORNER_SIGMA_PX)
+                err = math.sqrt(fit.sse_px / n_img)
+                ambiguity = min(1.0, err / max(math.sqrt(other.sse_px / n_img), 1e-12))
     R, t = fit.R, fit.t
     rms = fit.marker_rms(len(ids))
     err = math.sqrt(fit.sse_px / n_img)
