@@ -194,3 +194,30 @@ def test_a_config_with_a_map_gives_the_map_processor_the_live_attitude_and_the_m
     prior = proc.gravity_prior(Attitude((0.1, -0.05, 1.0)))
     assert math.isclose(prior.sigma_rad, math.radians(0.7))
     assert np.allclose(prior.down_cam, DOWN_MOUNT.down_cam_from_attitude(0.1, -0.05))
+
+
+def test_a_marker_leaving_the_frame_is_followed_partly_and_its_visible_corners_stay_in_the_solve():
+    # Three markers in a row; the camera slides so that the left one leaves the frame.
+    row = floor_grid(rows=1, cols=3, spacing_m=0.5, sizes_m=(0.2,))
+    left = min(row.ids, key=lambda i: row.marker(i).position_m[0])
+    proc = MapFrameProcessor(CAM, row)
+    rng = np.random.default_rng(8)
+    partial_used = whole_frames = 0
+    for k in range(24):
+        rvec, tvec = map_pose_looking_down(0.1 + 0.015 * k, 0.02, 1.2, 0.0)
+        frame = render_map(CAM, row, rvec, tvec, effects=Effects(), rng=rng)
+        res = proc.process(Frame(image=frame.image, t_capture_s=k / 30.0, seq=k))
+        assert res.ok, res.error
+        err = float(np.linalg.norm(camera_position_map(res.pose.rvec, res.pose.tvec) - camera_position_map(rvec, tvec)))
+        assert err < 0.005, (k, err)
+        if left in frame.visible:
+            whole_frames += 1
+        elif left in frame.corners_px and proc.detector.last_stages.get(left) == "partial":
+            # Partly out: followed by its visible sides, and in the solve with the corners inside.
+            assert left in res.pose.marker_ids
+            inside = ((proc.last_found[left] >= 1.0) & (proc.last_found[left] <= [638.0, 478.0])).all(axis=1)
+            assert 2 <= int(inside.sum()) < 4
+            # The corners inside are measured, as well as a whole marker's.
+            assert float(np.abs(proc.last_found[left][inside] - frame.corners_px[left][inside]).max()) < 0.15
+            partial_used += 1
+    assert whole_frames >= 3 and partial_used >= 3

@@ -154,8 +154,16 @@ class _Fit:
     def sse_px(self) -> float:
         return float(self.r_px @ self.r_px)
 
-    def marker_rms(self, n_markers: int) -> np.ndarray:
-        return np.sqrt((self.r_px * self.r_px).reshape(n_markers, 8).sum(axis=1) / 4.0)
+    def marker_rms(self, marker_of_row: np.ndarray, n_markers: int) -> np.ndarray:
+        """RMS residual of each marker (``marker_of_row``: the marker index of each corner)."""
+        return _rms_by_marker(self.r_px.reshape(-1, 2), marker_of_row, n_markers)
+
+
+def _rms_by_marker(d_px: np.ndarray, marker_of_row: np.ndarray, n_markers: int) -> np.ndarray:
+    d2 = np.einsum("ij,ij->i", d_px, d_px)
+    counts = np.bincount(marker_of_row, minlength=n_markers)
+    sums = np.bincount(marker_of_row, weights=d2, minlength=n_markers)
+    return np.sqrt(sums / np.maximum(counts, 1))
 
 
 def _prior_cost(prior: Optional[GravityPrior], R: np.ndarray) -> float:
@@ -268,13 +276,22 @@ def refine_pose(
     return fit.R, fit.t, fit.sse_px, info
 
 
-def _project_rms(camera: Camera, obj: np.ndarray, img: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """RMS corner residual of each marker (4 rows of ``obj`` / ``img`` each) under (R, t)."""
+def _project_rms(
+    camera: Camera, obj: np.ndarray, img: np.ndarray, R: np.ndarray, t: np.ndarray, marker_of_row: np.ndarray, n: int
+) -> np.ndarray:
+    """RMS corner residual of each of ``n`` markers under (R, t) (inf where none is given)."""
     pts = obj @ R.T + t
     if not np.all(pts[:, 2] > 1e-6):
-        return np.full(len(obj) // 4, np.inf)
-    d2 = np.sum((camera.project(pts) - img) ** 2, axis=1).reshape(-1, 4)
-    return np.sqrt(d2.mean(axis=1))
+        return np.full(n, np.inf)
+    rms = _rms_by_marker(camera.project(pts) - img, marker_of_row, n)
+    rms[np.bincount(marker_of_row, minlength=n) == 0] = np.inf
+    return rms
+
+
+def _in_image(px: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Which of the (N, 2) pixels lie inside the image, a pixel in from its border (where the
+    detector follows a marker's corners)."""
+    return ((px >= 1.0) & (px <= [width - 2.0, height - 2.0])).all(axis=1)
 
 
 def _robust_cost(camera: Camera, obj: np.ndarray, img: np.ndarray, R: np.ndarray, t: np.ndarray) -> float:
@@ -357,21 +374,36 @@ def solve_map_pose(
     def estimate(corners, cam, marker):
         return estimate_pose(corners, cam, marker, method=method, iterations=iterations)
 
+    # A corner outside the image (of a marker partly out of the frame) was extrapolated from
+    # the visible parts of its sides: it is left out, the marker's other corners count.
+    w, h = camera.width, camera.height
+    obs = {i: c for i, c in obs.items() if int(_in_image(c, w, h).sum()) >= 2}
+    if not obs:
+        raise EstimationError("no marker of the map in view")
     all_ids = sorted(obs)
     n_all = len(all_ids)
     obj_all = np.vstack([marker_map.corners_map(i) for i in all_ids])
     img_all = np.vstack([obs[i] for i in all_ids])
+    seen = _in_image(img_all, w, h)
+    if not seen.reshape(-1, 4).all(axis=1).any():
+        seen[:] = True  # no marker wholly in view: the extrapolated corners are all there is
+    marker_of_row = np.repeat(np.arange(n_all), 4)
+
+    def rows_of(keep: np.ndarray) -> np.ndarray:
+        return np.repeat(keep, 4) & seen
 
     def fit_subset(keep: np.ndarray, R, t, max_iter: int = MAX_ITER) -> _Fit:
-        rows = np.repeat(keep, 4)
+        rows = rows_of(keep)
         return _fit(camera, obj_all[rows], img_all[rows].reshape(-1), R, t, prior, max_iter, CORNER_SIGMA_PX)
 
+    def rms_under(R, t, keep: np.ndarray) -> np.ndarray:
+        rows = rows_of(keep)
+        return _project_rms(camera, obj_all[rows], img_all[rows], R, t, marker_of_row[rows], n_all)
+
     def rms_of_all(fit: _Fit, keep: np.ndarray) -> np.ndarray:
-        rms = np.empty(n_all)
-        rms[keep] = fit.marker_rms(int(keep.sum()))
+        rms = fit.marker_rms(marker_of_row[rows_of(keep)], n_all)
         if not keep.all():
-            rows = np.repeat(~keep, 4)
-            rms[~keep] = _project_rms(camera, obj_all[rows], img_all[rows], fit.R, fit.t)
+            rms[~keep] = rms_under(fit.R, fit.t, ~keep)[~keep]
         return rms
 
     def solve_from(R, t, keep: np.ndarray):
@@ -410,7 +442,7 @@ def solve_map_pose(
         starts = _starts(camera, marker_map, obs, estimate, previous)
         if not starts:
             raise EstimationError("no marker of the map gives a pose")
-        costs = [_robust_cost(camera, obj_all, img_all, R, t) for R, t in starts]
+        costs = [_robust_cost(camera, obj_all[seen], img_all[seen], R, t) for R, t in starts]
         order = np.argsort(costs)
         if not math.isfinite(costs[order[0]]):
             raise EstimationError("no start puts the map in front of the camera")
@@ -427,7 +459,7 @@ def solve_map_pose(
             tried.append(R0)
             # Inliers under the start: generous, a start from one marker is only roughly right
             # for the others.
-            rms0 = _project_rms(camera, obj_all, img_all, R0, t0)
+            rms0 = rms_under(R0, t0, np.ones(n_all, dtype=bool))
             sol = solve_from(R0, t0, rms0 < max(START_INLIER_PX, float(np.min(rms0)) * 4.0))
             if sol is None:
                 continue
@@ -441,7 +473,7 @@ def solve_map_pose(
     fit, keep, rms_all = best
     ids = [i for i, k in zip(all_ids, keep) if k]
     outliers = [i for i, k in zip(all_ids, keep) if not k]
-    rows = np.repeat(keep, 4)
+    rows = rows_of(keep)
     obj, img = obj_all[rows], img_all[rows]
     n_img = obj.shape[0]
     # The other planar branch, for the ambiguity ratio (and taken when it fits better): the
@@ -468,7 +500,7 @@ def solve_map_pose(
                 err = math.sqrt(fit.sse_px / n_img)
                 ambiguity = min(1.0, err / max(math.sqrt(other.sse_px / n_img), 1e-12))
     R, t = fit.R, fit.t
-    rms = fit.marker_rms(len(ids))
+    rms = fit.marker_rms(marker_of_row[rows], n_all)[keep]
     err = math.sqrt(fit.sse_px / n_img)
     # Covariance: the corners' information at the measured corner noise (never below the
     # assumed one) plus the prior's own (its sigma is the attitude's, not scaled).
