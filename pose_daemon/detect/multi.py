@@ -116,6 +116,23 @@ def _intersect(l1: np.ndarray, l2: np.ndarray) -> Optional[np.ndarray]:
     return np.linalg.solve(A, np.array([l1[2], l2[2]]))
 
 
+def _inside(px: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Which corners lie in the frame, a pixel in from its border."""
+    return ((px >= 1.0) & (px <= [width - 2.0, height - 2.0])).all(axis=1)
+
+
+def _undistort(camera: Optional[Camera], px: np.ndarray) -> np.ndarray:
+    if camera is None or not camera.has_distortion:
+        return px
+    return camera.undistort_normalized(px) * [camera.fx, camera.fy] + [camera.cx, camera.cy]
+
+
+def _line_through(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    d = b - a
+    n = np.array([-d[1], d[0]]) / max(float(np.hypot(d[0], d[1])), 1e-12)
+    return np.array([n[0], n[1], float(n @ a)])
+
+
 def _distort(camera: Camera, pt_undistorted_px: np.ndarray) -> np.ndarray:
     norm = (pt_undistorted_px - [camera.cx, camera.cy]) / [camera.fx, camera.fy]
     return camera.project(np.array([[norm[0], norm[1], 1.0]]))[0]
@@ -285,7 +302,14 @@ class MapDetector:
         lost = False
         if h >= 8 and w >= 8:
             for marker_id, track in self._tracks.items():
-                corners, stage = self._find_tracked(gray, marker_id, track.predict(), track.last)
+                start = track.predict()
+                if marker_id in (predicted or {}) and not _inside(start, w, h).all():
+                    # Partly out of the frame: where the map pose puts its corners outside is
+                    # better than where its track (corners extrapolated before) would.
+                    pts = np.asarray(predicted[marker_id], dtype=np.float64).reshape(4, 2)  # type: ignore[index]
+                    if np.all(np.isfinite(pts)):
+                        start = pts + (start - track.last).mean(axis=0)
+                corners, stage = self._find_tracked(gray, marker_id, start, track.last)
                 if corners is not None:
                     found[marker_id], stages[marker_id] = corners, stage
                 elif track.misses == 0:
@@ -368,15 +392,20 @@ class MapDetector:
                 lines.append(line[0])
                 residuals.append(line[1])
                 contrasts.append(line[2])
+            # A side wholly out of the frame keeps its predicted line; a corner is where its
+            # two lines meet (a fitted one and a predicted one for a corner out of the frame).
+            und = _undistort(self.camera, corners)
+            pred_lines = [_line_through(und[k], und[(k + 1) % 4]) for k in range(4)]
             new = corners.copy()
-            inside = ((corners >= 1.0) & (corners <= [w - 2.0, h - 2.0])).all(axis=1)
+            # Every corner in the image (the solve uses those) must be measured.
+            inside = ((corners >= -0.5) & (corners <= [w - 0.5, h - 0.5])).all(axis=1)
             for k in range(4):
                 a, b = lines[(k - 1) % 4], lines[k]
-                if a is None or b is None:
-                    if inside[k]:
-                        return None  # a corner in the frame whose sides cannot be fitted
+                if (a is None or b is None) and inside[k]:
+                    return None  # a corner in the frame whose sides cannot be fitted
+                if a is None and b is None:
                     continue
-                pt = _intersect(a, b)
+                pt = _intersect(pred_lines[(k - 1) % 4] if a is None else a, pred_lines[k] if b is None else b)
                 if pt is None:
                     return None
                 new[k] = pt if self.camera is None or not self.camera.has_distortion else _distort(self.camera, pt)

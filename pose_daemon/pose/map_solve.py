@@ -289,9 +289,8 @@ def _project_rms(
 
 
 def _in_image(px: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Which of the (N, 2) pixels lie inside the image, a pixel in from its border (where the
-    detector follows a marker's corners)."""
-    return ((px >= 1.0) & (px <= [width - 2.0, height - 2.0])).all(axis=1)
+    """Which of the (N, 2) pixels lie inside the image (pixel centres at integers)."""
+    return ((px >= -0.5) & (px <= [width - 0.5, height - 0.5])).all(axis=1)
 
 
 def _robust_cost(camera: Camera, obj: np.ndarray, img: np.ndarray, R: np.ndarray, t: np.ndarray) -> float:
@@ -386,7 +385,8 @@ def solve_map_pose(
     img_all = np.vstack([obs[i] for i in all_ids])
     seen = _in_image(img_all, w, h)
     if not seen.reshape(-1, 4).all(axis=1).any():
-        seen[:] = True  # no marker wholly in view: the extrapolated corners are all there is
+        # Only markers partly in view: three corners or fewer of each hold no pose.
+        raise EstimationError("no marker of the map wholly in view")
     marker_of_row = np.repeat(np.arange(n_all), 4)
 
     def rows_of(keep: np.ndarray) -> np.ndarray:
