@@ -1,32 +1,58 @@
 """Per-frame processing with a marker map: detect every map marker in view, one pose from all.
 
 The same face as processing.FrameProcessor (``process(frame) -> FrameResult``, ``reset()``,
-``from_config(cfg)``), so the daemon, replay and the outputs take either. The last pose
-predicts where untracked map markers should appear (the detector follows them from there)
-and is a start of the next solve (continuity on the planar branch).
+``status()``, ``from_config(cfg)``), so the daemon, replay and the outputs take either. The
+last pose predicts where untracked map markers should appear (the detector follows them from
+there) and is the start of the next solve (continuity on the planar branch).
+
+The attitude (the frame's own, from a recording, else the live one: ``attitude_source``) is a
+term of the solve: its roll and pitch give gravity in the camera frame (through the mount),
+weighed at the attitude's accuracy. The branch it favours is taken; a pose whose down still
+disagrees with it by more than ``[attitude] max_error_deg`` is withheld as "inconsistent",
+as on the single-marker path (pose/prior.py).
 """
 
 from __future__ import annotations
 
+import math
 import time
-from typing import Dict, Optional, Tuple
+from typing import Any, Callable, Dict, Optional, Tuple
 
 import cv2
 import numpy as np
 
 from .camera import Camera
 from .capture.base import Frame
+from .detect.square import side_lengths
+from .geometry import VehicleFrames, angle_between_deg
 from .marker_map import MarkerMap
 from .pose.map_solve import GravityPrior, map_corners_px, solve_map_pose
+from .pose.prior import MIN_PRIOR_SIGMA_DEG, Choice, PriorSettings, gate_bound_px
 from .pose.types import EstimationError
 from .result import FrameResult
 
 
 class MapFrameProcessor:
-    """detect (MapDetector) -> solve (solve_map_pose) for one map and one camera."""
+    """detect (MapDetector) -> solve (solve_map_pose) for one map and one camera.
+
+    ``frames``: the camera mount and the map's placement (default: a forward camera);
+    ``prior``: the attitude's bounds and default accuracy (PriorSettings);
+    ``attitude_source``: an ``attitude_at(t_capture_s, t_now_s)`` (attitude.AutopilotAttitude) asked when a frame
+    carries no attitude of its own.
+    """
 
     def __init__(
-        self, camera: Camera, marker_map: MarkerMap, *, method: str = "iterative", iterations: int = 5, detector=None
+        self,
+        camera: Camera,
+        marker_map: MarkerMap,
+        *,
+        method: str = "iterative",
+        iterations: int = 5,
+        detector=None,
+        frames: Optional[VehicleFrames] = None,
+        prior: Optional[PriorSettings] = None,
+        attitude_source: Any = None,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         from .detect.multi import MapDetector
 
@@ -35,15 +61,29 @@ class MapFrameProcessor:
         self.method = method
         self.iterations = iterations
         self.detector = detector if detector is not None else MapDetector(marker_map, camera=camera)
+        self.frames = frames if frames is not None else VehicleFrames.from_settings(placement=marker_map.placement)
+        self.prior = prior if prior is not None else PriorSettings()
+        self.attitude_source = attitude_source
+        self._clock = clock
         self._last: Optional[Tuple[np.ndarray, np.ndarray]] = None
         #: The corners found in the last frame, by id (outliers included).
         self.last_found: Dict[int, np.ndarray] = {}
-        #: An attitude prior for the next frame (set by whoever knows the attitude), or None.
-        self.prior: Optional[GravityPrior] = None
+        self.frames_seen = self.frames_with_attitude = 0
 
     @classmethod
-    def from_models(cls, camera: Camera, marker_map: MarkerMap, estimator, detector) -> MapFrameProcessor:
-        """The processor for a camera and a map with a Config's [estimator] and [detector] keys."""
+    def from_models(
+        cls,
+        camera: Camera,
+        marker_map: MarkerMap,
+        estimator,
+        detector,
+        *,
+        frames: Optional[VehicleFrames] = None,
+        prior: Optional[PriorSettings] = None,
+        attitude_source: Any = None,
+    ) -> MapFrameProcessor:
+        """The processor for a camera and a map with a Config's [estimator] and [detector] keys;
+        ``frames``, ``prior`` and ``attitude_source`` as for the constructor."""
         from .detect.multi import MapDetector
 
         return cls(
@@ -54,19 +94,57 @@ class MapFrameProcessor:
             detector=MapDetector(
                 marker_map, camera=camera, max_misses=detector.max_misses, min_side_px=detector.min_side_px
             ),
+            frames=frames,
+            prior=prior,
+            attitude_source=attitude_source,
         )
 
     @classmethod
-    def from_config(cls, cfg) -> MapFrameProcessor:
-        """The processor of a Config with a [map]."""
-        return cls.from_models(cfg.camera.model(), cfg.map.model(), cfg.estimator, cfg.detector)
+    def from_config(cls, cfg, *, attitude_source: Any = None) -> MapFrameProcessor:
+        """The processor of a Config with a [map]: its camera, map, estimator, detector, mount
+        and [attitude] keys; ``attitude_source`` as for the constructor."""
+        return cls.from_models(
+            cfg.camera.model(),
+            cfg.map.model(),
+            cfg.estimator,
+            cfg.detector,
+            frames=VehicleFrames.from_config(cfg.mount, cfg.placement),
+            prior=PriorSettings.from_config(cfg),
+            attitude_source=attitude_source,
+        )
+
+    def status(self) -> Optional[str]:
+        """The attitude's freshness for the status line (as FrameProcessor.status)."""
+        status = getattr(self.attitude_source, "status", None)
+        if callable(status):
+            return status(self._clock())
+        if self.frames_with_attitude:
+            return f"attitude in {self.frames_with_attitude}/{self.frames_seen} frames"
+        return None
 
     def reset(self) -> None:
         self.detector.reset()
         self._last = None
 
+    def gravity_prior(self, attitude) -> Optional[GravityPrior]:
+        """The solve's prior term for an attitude.Attitude (None for None): gravity in the
+        camera frame from roll and pitch through the mount, at the attitude's stated accuracy
+        (else ``[attitude] sigma_deg``), never trusted below MIN_PRIOR_SIGMA_DEG."""
+        if attitude is None:
+            return None
+        roll, pitch, _yaw = attitude.rpy_rad
+        sigma_deg = (
+            math.degrees(attitude.sigma_rad) if attitude.sigma_rad is not None else self.prior.attitude_sigma_deg
+        )
+        sigma_rad = math.radians(max(sigma_deg, MIN_PRIOR_SIGMA_DEG))
+        return GravityPrior(self.frames.down_cam_from_attitude(roll, pitch), sigma_rad, self.map.down_map())
+
     def process(self, frame: Frame) -> FrameResult:
-        result = FrameResult(seq=frame.seq, t_capture_s=frame.t_capture_s)
+        result = FrameResult(seq=frame.seq, t_capture_s=frame.t_capture_s, attitude=frame.attitude)
+        if result.attitude is None and self.attitude_source is not None:
+            result.attitude = self.attitude_source.attitude_at(frame.t_capture_s, self._clock())
+        self.frames_seen += 1
+        self.frames_with_attitude += result.attitude is not None
         t0 = time.perf_counter()
         predicted = None
         if self._last is not None:
@@ -85,13 +163,14 @@ class MapFrameProcessor:
             result.error = "no marker"
             self._last = None
             return result
+        prior = self.gravity_prior(result.attitude)
         try:
             pose = solve_map_pose(
                 found,
                 self.camera,
                 self.map,
                 previous=self._last,
-                prior=self.prior,
+                prior=prior,
                 method=self.method,
                 iterations=self.iterations,
             )
@@ -99,10 +178,39 @@ class MapFrameProcessor:
             result.error = f"pose: {exc}"
             self._last = None
         else:
-            result.pose = pose
-            # The largest marker used stands for the frame in the 4-corner "corners" key.
-            used = max(pose.marker_ids, key=lambda i: float(np.ptp(found[i], axis=0).sum()))
-            result.corners = found[used]
-            self._last = (pose.R, pose.tvec)
+            self._accept(pose, found, prior, result)
         result.stage_s["estimate"] = time.perf_counter() - t1
         return result
+
+    def _accept(self, pose, found: Dict[int, np.ndarray], prior: Optional[GravityPrior], result: FrameResult) -> None:
+        """The pose into ``result``, or withheld when it disagrees with the attitude."""
+        down_err = None
+        if prior is not None:
+            down_err = angle_between_deg(pose.R @ prior.down_map, prior.down_cam)
+            bound_deg = max(self.prior.attitude_bound_deg, 3.0 * math.degrees(prior.sigma_rad))
+            # With the prior a term, a pose can follow an attitude the corners disagree with
+            # (a small far marker hardly holds its tilt): the corners' fit says so then.
+            side_px = max(float(np.mean(side_lengths(found[i]))) for i in pose.marker_ids)
+            bound_px = gate_bound_px(self.prior, side_px)
+            reason = ""
+            if down_err > bound_deg:
+                reason = f"the map's down is {down_err:.1f} deg from the attitude's (bound {bound_deg:.1f})"
+            elif pose.reprojection_error_px > bound_px:
+                reason = (
+                    f"no pose agrees with the attitude and the corners: reprojection RMS "
+                    f"{pose.reprojection_error_px:.2f} px (bound {bound_px:.2f}), down {down_err:.1f} deg off"
+                )
+            if reason:
+                result.choice = Choice(None, withheld="inconsistent", reason=reason)
+                result.error = f"inconsistent: {reason}"
+                self._last = None
+                return
+        # The attitude settled the branch when there was one to settle (a map pose with an
+        # ambiguity ratio > 0 had a distinct other branch).
+        resolved = "attitude" if prior is not None and pose.ambiguity_ratio > 0 else "clear"
+        result.choice = Choice(pose, resolved, down_error_deg=down_err)
+        result.pose = pose
+        # The largest marker used stands for the frame in the 4-corner "corners" key.
+        used = max(pose.marker_ids, key=lambda i: float(np.ptp(found[i], axis=0).sum()))
+        result.corners = found[used]
+        self._last = (pose.R, pose.tvec)

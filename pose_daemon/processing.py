@@ -113,12 +113,12 @@ class FrameProcessor:
     @classmethod
     def from_config(cls, cfg: Config, *, attitude_source: Any = None) -> FrameProcessor:
         """The processor a Config asks for: its camera, marker (or map), estimator, detector,
-        mount, [attitude] and [gate] keys; ``attitude_source`` as for the constructor (not yet
-        for a [map]: MapFrameProcessor takes its own)."""
+        mount, [attitude] and [gate] keys; ``attitude_source`` as for the constructor (a [map]
+        gives a MapFrameProcessor, asking the same source)."""
         if cfg.map is not None:
             from .map_processing import MapFrameProcessor
 
-            return MapFrameProcessor.from_config(cfg)  # type: ignore[return-value]
+            return MapFrameProcessor.from_config(cfg, attitude_source=attitude_source)  # type: ignore[return-value]
         return cls.from_models(
             cfg.camera.model(),
             cfg.marker.model(),

@@ -378,6 +378,8 @@ def test_synthetic_source_flies_over_the_configured_map_and_the_processor_follow
         realtime=False,
         marker_map=cfg.map.model(),
         height_m=(0.8, 1.2),
+        # The attitude on the frames is for the config's mount, as the daemon's source has it.
+        frames_on_vehicle=g.VehicleFrames.from_config(cfg.mount, cfg.placement),
     )
     src.open()
     seen = 0

@@ -1,13 +1,19 @@
 """One camera pose from every visible marker of a map: a least-squares solve over all corners.
 
-1. Starts: each visible marker's own pose (the paper's estimator, both planar solutions),
-   carried into the map frame, and the previous frame's pose when there is one.
-2. The start that fits every corner best under a robust (capped) cost is polished by
-   Levenberg-Marquardt over all corners at once, through the lens distortion
-   (cv2.projectPoints gives residuals and their Jacobian), with an optional attitude prior.
+1. Start: while tracking, the previous frame's pose (no per-marker estimate); otherwise, or
+   when that start does not fit, each visible marker's own pose (the paper's estimator, both
+   planar solutions) carried into the map frame, the best under a robust (capped) cost first.
+2. Gauss-Newton over all corners at once on the 6 camera parameters, damped
+   (Levenberg-Marquardt) only when a full step does not lower the cost, through the lens
+   distortion (one cv2.projectPoints call per step gives the residuals and their analytic
+   Jacobian), with the attitude's gravity as a prior term (three closed-form rows).
 3. Outliers: a marker whose corners stay far off the common pose (a marker that was moved, a
    wrong id) is left out and the solve repeated without it.
-4. The covariance of (rotation, translation) comes from the solve: s^2 (J^T J)^-1.
+4. The other planar branch: the plane's normal mirrored about the line of sight, solved too;
+   the branch with the lower cost (prior included) is the pose, the ratio of their residuals
+   the ambiguity.
+5. The covariance of (rotation, translation): the inverse of the corners' information at the
+   measured corner noise plus the prior's information.
 
 The pose is the map frame in the camera frame (X_cam = R X_map + tvec).
 """
@@ -49,6 +55,8 @@ MAX_STARTS = 4
 #: covariance's residual scale (a tiny residual does not prove a tiny error).
 CORNER_SIGMA_PX = 0.3
 MAX_ITER = 12
+#: Steps of the other planar branch's solve (it starts close to its minimum).
+ALT_ITER = 6
 
 
 @dataclass(frozen=True)
@@ -122,14 +130,127 @@ class MapPose(Pose):
         return math.sqrt(max(float(np.trace(self.covariance[:3, :3])) / 3.0, 0.0))
 
 
-def _project(camera: Camera, P: np.ndarray, t: np.ndarray, jac: bool):
-    """Pixels of points P (already rotated into the camera axes) + t, and the Jacobian with
-    respect to a small rotation w (exp(w) P) and t, through the lens."""
-    img, J = cv2.projectPoints(P, np.zeros(3), t.reshape(3, 1), camera._K, camera._dist)
-    img = img.reshape(-1, 2)
-    if not jac:
-        return img, None
-    return img, J[:, :6]
+_ZERO3 = np.zeros(3)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+@dataclass
+class _Fit:
+    """One Gauss-Newton / Levenberg-Marquardt solve: the pose, the pixel residuals (2N,) at it,
+    the pixel information J^T J (6x6, unit weights), the prior's information (6x6, its own
+    sigma) and the whitened total cost (pixels at ``sigma_px`` plus the prior)."""
+
+    R: np.ndarray
+    t: np.ndarray
+    r_px: np.ndarray
+    JtJ_px: np.ndarray
+    info_prior: Optional[np.ndarray]
+    cost: float
+
+    @property
+    def sse_px(self) -> float:
+        return float(self.r_px @ self.r_px)
+
+    def marker_rms(self, marker_of_row: np.ndarray, n_markers: int) -> np.ndarray:
+        """RMS residual of each marker (``marker_of_row``: the marker index of each corner)."""
+        return _rms_by_marker(self.r_px.reshape(-1, 2), marker_of_row, n_markers)
+
+
+def _rms_by_marker(d_px: np.ndarray, marker_of_row: np.ndarray, n_markers: int) -> np.ndarray:
+    d2 = np.einsum("ij,ij->i", d_px, d_px)
+    counts = np.bincount(marker_of_row, minlength=n_markers)
+    sums = np.bincount(marker_of_row, weights=d2, minlength=n_markers)
+    return np.sqrt(sums / np.maximum(counts, 1))
+
+
+def _prior_cost(prior: Optional[GravityPrior], R: np.ndarray) -> float:
+    """The prior's whitened term at rotation R (0 without a prior)."""
+    if prior is None:
+        return 0.0
+    rp = (R @ prior.down_map - prior.down_cam) / prior.sigma_rad
+    return float(rp @ rp)
+
+
+def _fit(
+    camera: Camera,
+    obj: np.ndarray,
+    obs: np.ndarray,
+    R0: np.ndarray,
+    t0: np.ndarray,
+    prior: Optional[GravityPrior],
+    max_iter: int,
+    sigma_px: float,
+) -> _Fit:
+    """Gauss-Newton from (R0, t0), damped (Levenberg-Marquardt) only when a full step does not
+    lower the cost. One cv2.projectPoints call per step gives the residuals and their analytic
+    Jacobian through the lens; the prior's three rows are closed form."""
+    K, dist = camera._K, camera._dist
+    inv_s2 = 1.0 / (sigma_px * sigma_px)
+
+    def linearise(R_: np.ndarray, t_: np.ndarray):
+        P = obj @ R_.T
+        if not np.all(P[:, 2] + t_[2] > 1e-6):
+            return None
+        proj, J = cv2.projectPoints(P, _ZERO3, t_, K, dist)
+        r = proj.reshape(-1) - obs
+        cost = float(r @ r) * inv_s2
+        if prior is not None:
+            g = R_ @ prior.down_map
+            rp = (g - prior.down_cam) / prior.sigma_rad
+            cost += float(rp @ rp)
+        else:
+            g = rp = None
+        return r, J[:, :6], cost, g, rp
+
+    R, t = np.array(R0, dtype=np.float64), np.array(t0, dtype=np.float64).reshape(3)
+    cur = linearise(R, t)
+    if cur is None:
+        raise EstimationError("the start puts the map behind the camera")
+    lam = 0.0
+    for _ in range(max_iter):
+        r, J, cost, g, rp = cur
+        H = (J.T @ J) * inv_s2
+        grad = (J.T @ r) * inv_s2
+        if prior is not None:
+            Jp = _skew(g) * (-1.0 / prior.sigma_rad)
+            H[:3, :3] += Jp.T @ Jp
+            grad[:3] += Jp.T @ rp
+        accepted = False
+        for _ in range(6):
+            A = H if lam == 0.0 else H + lam * np.diag(np.diag(H) + 1e-12)
+            try:
+                step = -np.linalg.solve(A, grad)
+            except np.linalg.LinAlgError:
+                lam = max(lam * 10.0, 1e-3)
+                continue
+            # The model's gain (-grad . step for cost r^T r): when far below the noise, this
+            # is the minimum, and no further evaluation is needed.
+            if -float(grad @ step) <= 1e-7 * max(cost, 1.0):
+                break
+            R_new = R_from_rvec(step[:3]) @ R
+            t_new = t + step[3:]
+            new = linearise(R_new, t_new)
+            if new is not None and new[2] <= cost:
+                accepted = True
+                break
+            lam = max(lam * 10.0, 1e-3)
+        if not accepted:
+            break
+        R, t, cur = R_new, t_new, new
+        lam = lam * 0.1 if lam > 1e-6 else 0.0
+        # Converged: the step gained far less than the noise's share of the cost.
+        if cost - new[2] <= 1e-7 * max(cost, 1.0):
+            break
+    r, J, cost, g, _rp = cur
+    info_prior = None
+    if prior is not None:
+        Jp = _skew(g) * (-1.0 / prior.sigma_rad)
+        info_prior = np.zeros((6, 6))
+        info_prior[:3, :3] = Jp.T @ Jp
+    return _Fit(R, t, r, J.T @ J, info_prior, cost)
 
 
 def refine_pose(
@@ -143,76 +264,33 @@ def refine_pose(
     max_iter: int = MAX_ITER,
     sigma_px: float = CORNER_SIGMA_PX,
 ) -> Tuple[np.ndarray, np.ndarray, float, np.ndarray]:
-    """Levenberg-Marquardt of (R, t) minimising the reprojection error of ``obj`` (N, 3) onto
-    ``img`` (N, 2) pixels, plus the prior's term. Returns (R, t, sum of squared pixel
-    residuals, J^T J of the whitened problem at the minimum (6x6))."""
-    R, t = np.array(R0, dtype=np.float64), np.array(t0, dtype=np.float64).reshape(3)
-    obs = img.reshape(-1)
-    w_px = 1.0 / sigma_px
-
-    def evaluate(R_, t_, jac):
-        P = obj @ R_.T
-        proj, J = _project(camera, P, t_, jac)
-        r = (proj.reshape(-1) - obs) * w_px
-        if J is not None:
-            J = J * w_px
-        if prior is not None:
-            g = R_ @ prior.down_map
-            rp = (g - prior.down_cam) / prior.sigma_rad
-            r = np.concatenate([r, rp])
-            if J is not None:
-                # d(exp(w) g)/dw = -[g]x ; translation does not move it.
-                gx = np.array([[0.0, -g[2], g[1]], [g[2], 0.0, -g[0]], [-g[1], g[0], 0.0]])
-                Jp = np.hstack([-gx / prior.sigma_rad, np.zeros((3, 3))])
-                J = np.vstack([J, Jp])
-        return r, J, P
-
-    r, J, P = evaluate(R, t, True)
-    cost = float(r @ r)
-    lam = 1e-3
-    for _ in range(max_iter):
-        A = J.T @ J
-        g = J.T @ r
-        step = None
-        for _ in range(6):
-            try:
-                step = -np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-9), g)
-            except np.linalg.LinAlgError:
-                step = None
-                lam *= 10.0
-                continue
-            R_new = R_from_rvec(step[:3]) @ R
-            t_new = t + step[3:]
-            if float(np.abs(step).max()) < 1e-9:
-                step = None  # nothing left to gain: converged
-                break
-            r_new, _, P_new = evaluate(R_new, t_new, False)
-            if np.all((P_new[:, 2] + t_new[2]) > 0) and float(r_new @ r_new) < cost:
-                break
-            lam *= 10.0
-            step = None
-        if step is None:
-            break
-        R, t = R_new, t_new
-        r, J, P = evaluate(R, t, True)
-        new_cost = float(r @ r)
-        # Converged when a step gains less than a millionth of the cost (far below noise).
-        done = cost - new_cost < 1e-6 * max(cost, 1e-12) or float(np.abs(step).max()) < 1e-9
-        cost = new_cost
-        lam = max(lam / 10.0, 1e-9)
-        if done:
-            break
-    n_px = 2 * len(obj)
-    sse_px = float(r[:n_px] @ r[:n_px]) / (w_px * w_px)
-    return R, t, sse_px, J.T @ J
+    """Gauss-Newton (damped when needed) of (R, t) minimising the reprojection error of ``obj``
+    (N, 3) onto ``img`` (N, 2) pixels, plus the prior's term. Returns (R, t, sum of squared
+    pixel residuals, the information matrix of (rotation increment, translation) with the
+    corners at ``sigma_px``: J^T J / sigma_px^2 plus the prior's)."""
+    obj = np.asarray(obj, dtype=np.float64).reshape(-1, 3)
+    fit = _fit(camera, obj, np.asarray(img, dtype=np.float64).reshape(-1), R0, t0, prior, max_iter, sigma_px)
+    info = fit.JtJ_px / (sigma_px * sigma_px)
+    if fit.info_prior is not None:
+        info = info + fit.info_prior
+    return fit.R, fit.t, fit.sse_px, info
 
 
-def _marker_rms(
-    camera: Camera, obj: np.ndarray, img: np.ndarray, R: np.ndarray, t: np.ndarray, n_markers: int
+def _project_rms(
+    camera: Camera, obj: np.ndarray, img: np.ndarray, R: np.ndarray, t: np.ndarray, marker_of_row: np.ndarray, n: int
 ) -> np.ndarray:
-    proj = camera.project(obj @ R.T + t)
-    d2 = np.sum((proj - img) ** 2, axis=1).reshape(n_markers, 4)
-    return np.sqrt(d2.mean(axis=1))
+    """RMS corner residual of each of ``n`` markers under (R, t) (inf where none is given)."""
+    pts = obj @ R.T + t
+    if not np.all(pts[:, 2] > 1e-6):
+        return np.full(n, np.inf)
+    rms = _rms_by_marker(camera.project(pts) - img, marker_of_row, n)
+    rms[np.bincount(marker_of_row, minlength=n) == 0] = np.inf
+    return rms
+
+
+def _in_image(px: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Which of the (N, 2) pixels lie inside the image (pixel centres at integers)."""
+    return ((px >= -0.5) & (px <= [width - 0.5, height - 0.5])).all(axis=1)
 
 
 def _robust_cost(camera: Camera, obj: np.ndarray, img: np.ndarray, R: np.ndarray, t: np.ndarray) -> float:
@@ -229,11 +307,11 @@ def _starts(
     observed: Dict[int, np.ndarray],
     estimate,
     previous: Optional[Tuple[np.ndarray, np.ndarray]],
-) -> List[Tuple[np.ndarray, np.ndarray, float]]:
-    """(R_cam_map, t, ambiguity of the marker it came from) for every start."""
+) -> List[Tuple[np.ndarray, np.ndarray]]:
+    """(R_cam_map, t) for every start: the previous pose, each marker's two planar poses."""
     out = []
     if previous is not None:
-        out.append((np.asarray(previous[0], dtype=np.float64), np.asarray(previous[1], dtype=np.float64), 0.0))
+        out.append((np.asarray(previous[0], dtype=np.float64), np.asarray(previous[1], dtype=np.float64)))
     for marker_id, corners in observed.items():
         try:
             pose = estimate(corners, camera, marker_map.single(marker_id))
@@ -245,9 +323,25 @@ def _starts(
                 continue
             # T_cam_map = T_cam_marker T_marker_map
             R = cand.R @ R_map_marker.T
-            t = cand.tvec - R @ p
-            out.append((R, t, float(pose.ambiguity_ratio)))
+            out.append((R, cand.tvec - R @ p))
     return out
+
+
+def _mirror_start(R: np.ndarray, t: np.ndarray, obj: np.ndarray, normal_map: np.ndarray):
+    """The other planar branch's start: the plane's normal reflected about the line of sight
+    to the corners' centre (the two poses a plane seen from afar cannot tell apart), the
+    rotation taking one to the other turning about that centre. None when they coincide."""
+    c = (obj @ R.T + t).mean(axis=0)
+    v = c / np.linalg.norm(c)
+    n = R @ normal_map
+    n2 = 2.0 * float(n @ v) * v - n
+    axis = np.cross(n, n2)
+    s = float(np.linalg.norm(axis))
+    angle = math.atan2(s, float(n @ n2))
+    if angle < math.radians(2.0) or s < 1e-12:
+        return None
+    Rm = R_from_rvec(axis / s * angle)
+    return Rm @ R, Rm @ (t - c) + c
 
 
 def solve_map_pose(
@@ -264,8 +358,10 @@ def solve_map_pose(
     """The map's pose in the camera frame from the corners of every visible map marker.
 
     ``observed``: {id: (4, 2) pixels TL, TR, BR, BL}; ids not in the map are ignored.
-    ``previous``: (R_cam_map, tvec) of the last frame, a start that keeps the track on its
-    planar branch. EstimationError when no marker gives a pose.
+    ``previous``: (R_cam_map, tvec) of the last frame: the start of the solve while it fits
+    (no per-marker estimate then), and it keeps the track on its planar branch.
+    ``prior``: the attitude's gravity, a term of the solve. EstimationError when no marker
+    gives a pose.
     """
     from .estimator import estimate_pose
 
@@ -277,20 +373,51 @@ def solve_map_pose(
     def estimate(corners, cam, marker):
         return estimate_pose(corners, cam, marker, method=method, iterations=iterations)
 
+    # A corner outside the image (of a marker partly out of the frame) was extrapolated from
+    # the visible parts of its sides: it is left out, the marker's other corners count.
+    w, h = camera.width, camera.height
+    obs = {i: c for i, c in obs.items() if int(_in_image(c, w, h).sum()) >= 2}
+    if not obs:
+        raise EstimationError("no marker of the map in view")
     all_ids = sorted(obs)
+    n_all = len(all_ids)
     obj_all = np.vstack([marker_map.corners_map(i) for i in all_ids])
     img_all = np.vstack([obs[i] for i in all_ids])
+    seen = _in_image(img_all, w, h)
+    if not seen.reshape(-1, 4).all(axis=1).any():
+        # Only markers partly in view: three corners or fewer of each hold no pose.
+        raise EstimationError("no marker of the map wholly in view")
+    marker_of_row = np.repeat(np.arange(n_all), 4)
 
-    def solve_from(R, t):
-        # Inliers under the start (generous: a start from one marker is only roughly right
-        # for the others), then under each solve, until the set stays the same.
-        rms_all = _marker_rms(camera, obj_all, img_all, R, t, len(all_ids))
-        keep = rms_all < max(START_INLIER_PX, float(np.min(rms_all)) * 4.0)
+    def rows_of(keep: np.ndarray) -> np.ndarray:
+        return np.repeat(keep, 4) & seen
+
+    def fit_subset(keep: np.ndarray, R, t, max_iter: int = MAX_ITER) -> _Fit:
+        rows = rows_of(keep)
+        return _fit(camera, obj_all[rows], img_all[rows].reshape(-1), R, t, prior, max_iter, CORNER_SIGMA_PX)
+
+    def rms_under(R, t, keep: np.ndarray) -> np.ndarray:
+        rows = rows_of(keep)
+        return _project_rms(camera, obj_all[rows], img_all[rows], R, t, marker_of_row[rows], n_all)
+
+    def rms_of_all(fit: _Fit, keep: np.ndarray) -> np.ndarray:
+        rms = fit.marker_rms(marker_of_row[rows_of(keep)], n_all)
+        if not keep.all():
+            rms[~keep] = rms_under(fit.R, fit.t, ~keep)[~keep]
+        return rms
+
+    def solve_from(R, t, keep: np.ndarray):
+        # Solve over ``keep``, then re-decide the inliers under the solution, until the set
+        # stays the same: a marker far off the common pose (and several times the others'
+        # residual) is left out.
+        fit = rms_all = None
         for _ in range(4):
-            obj = obj_all[np.repeat(keep, 4)]
-            img = img_all[np.repeat(keep, 4)]
-            R, t, sse, JtJ = refine_pose(camera, obj, img, R, t, prior=prior)
-            rms_all = _marker_rms(camera, obj_all, img_all, R, t, len(all_ids))
+            try:
+                fit = fit_subset(keep, R, t)
+            except EstimationError:
+                return None
+            R, t = fit.R, fit.t
+            rms_all = rms_of_all(fit, keep)
             limit = max(outlier_px, 4.0 * float(np.median(rms_all[keep])))
             new_keep = rms_all <= limit
             if not new_keep.any():
@@ -298,83 +425,92 @@ def solve_map_pose(
             if np.array_equal(new_keep, keep):
                 break
             keep = new_keep
-        return R, t, sse, JtJ, keep, rms_all
+        return fit, keep, rms_all
 
     best = None
     if previous is not None:
-        # Tracking: the last pose is the start; every marker fitting it means no search.
+        # Tracking: the last pose is the start. It stands when the markers it keeps are a
+        # majority that each fit in absolute terms (with one marker the relative outlier test
+        # cannot see a start that was far off: a jump in the track).
         R0, t0 = np.asarray(previous[0], dtype=np.float64), np.asarray(previous[1], dtype=np.float64)
-        if np.all((obj_all @ R0.T + t0)[:, 2] > 1e-6):
-            sol = solve_from(R0, t0)
-            # Every marker kept and each one fitting in absolute terms: with one marker the
-            # relative outlier test cannot see a start that was far off (a jump in the track).
-            if sol[4].all() and float(sol[5].max()) <= outlier_px:
-                best = ((0, sol[2]), sol)
+        sol = solve_from(R0, t0, np.ones(n_all, dtype=bool))
+        if sol is not None:
+            fit, keep, rms_all = sol
+            if 2 * int(keep.sum()) > n_all and float(rms_all[keep].max()) <= outlier_px:
+                best = sol
     if best is None:
         starts = _starts(camera, marker_map, obs, estimate, previous)
         if not starts:
             raise EstimationError("no marker of the map gives a pose")
-        costs = [_robust_cost(camera, obj_all, img_all, R, t) for R, t, _ in starts]
+        costs = [_robust_cost(camera, obj_all[seen], img_all[seen], R, t) for R, t in starts]
         order = np.argsort(costs)
         if not math.isfinite(costs[order[0]]):
             raise EstimationError("no start puts the map in front of the camera")
         # The best start first; while its solve leaves markers out, the next distinct starts
         # too (a start on one marker's wrong planar branch makes the others look like outliers).
         tried: List[np.ndarray] = []
+        best_key = None
         for k in order[:MAX_STARTS]:
             if not math.isfinite(costs[k]):
                 break
-            R0 = starts[k][0]
+            R0, t0 = starts[k]
             if any(float(np.abs(R0 - Rt).max()) < 0.02 for Rt in tried):
                 continue
             tried.append(R0)
-            sol = solve_from(R0, starts[k][1])
-            key = (-int(sol[4].sum()), sol[2])
-            if best is None or key < best[0]:
-                best = (key, sol)
-            if best[1][4].all():
+            # Inliers under the start: generous, a start from one marker is only roughly right
+            # for the others.
+            rms0 = rms_under(R0, t0, np.ones(n_all, dtype=bool))
+            sol = solve_from(R0, t0, rms0 < max(START_INLIER_PX, float(np.min(rms0)) * 4.0))
+            if sol is None:
+                continue
+            key = (-int(sol[1].sum()), sol[0].cost)
+            if best_key is None or key < best_key:
+                best, best_key = sol, key
+            if best[1].all():
                 break
-    R, t, sse, JtJ, keep, rms_all = best[1]
+        if best is None:
+            raise EstimationError("no start puts the map in front of the camera")
+    fit, keep, rms_all = best
     ids = [i for i, k in zip(all_ids, keep) if k]
     outliers = [i for i, k in zip(all_ids, keep) if not k]
-    obj = np.vstack([marker_map.corners_map(i) for i in ids])
-    img = np.vstack([obs[i] for i in ids])
-    rms = rms_all[keep]
-    # The other planar branch, for the ambiguity ratio: the mirror pose of the largest marker
-    # used, carried into the map and solved over every inlier corner.
-    n_img = img.shape[0]
-    err = math.sqrt(sse / n_img)
-    ambiguity = 0.0
-    down = marker_map.down_map()
-    normal = R @ down
+    rows = rows_of(keep)
+    obj, img = obj_all[rows], img_all[rows]
+    n_img = obj.shape[0]
+    # The other planar branch, for the ambiguity ratio (and taken when it fits better): the
+    # mirror of the largest marker's plane, solved over every inlier corner without the prior
+    # (the ratio says how well the image alone tells the two apart). "Fits better" counts the
+    # prior's term too: the attitude picks the branch.
     largest = max(ids, key=lambda i: float(np.ptp(obs[i], axis=0).sum()))
-    far = []
-    try:
-        single = estimate(obs[largest], camera, marker_map.single(largest))
-    except EstimationError:
-        single = None
-    if single is not None:
-        R_mm, p_mm = marker_map.T_map_marker(largest)
-        for cand in (single, single.alternative):
-            if cand is None:
-                continue
-            R_c = cand.R @ R_mm.T
-            if float((R_c @ down) @ normal) < math.cos(math.radians(5.0)):
-                far.append((R_c, cand.tvec - R_c @ p_mm))
-    if far:
-        R_a, t_a, sse_a, _ = refine_pose(camera, obj, img, far[0][0], far[0][1], prior=prior, max_iter=6)
-        if float((R_a @ down) @ normal) < math.cos(math.radians(2.0)):  # not back at the same minimum
-            err_alt = math.sqrt(sse_a / n_img)
+    R_mm, _ = marker_map.T_map_marker(largest)
+    normal_map = R_mm[:, 2]
+    ambiguity = 0.0
+    mirror = _mirror_start(fit.R, fit.t, obj, normal_map)
+    if mirror is not None:
+        try:
+            alt = _fit(camera, obj, img.reshape(-1), mirror[0], mirror[1], None, ALT_ITER, CORNER_SIGMA_PX)
+        except EstimationError:
+            alt = None
+        if alt is not None and float((fit.R @ normal_map) @ (alt.R @ normal_map)) < math.cos(math.radians(2.0)):
+            # A distinct minimum.
+            err, err_alt = math.sqrt(fit.sse_px / n_img), math.sqrt(alt.sse_px / n_img)
             ambiguity = 1.0 if err_alt <= 0.0 else min(1.0, err / err_alt)
-            if err_alt < err:  # the far branch fits better: take it
-                R, t, sse, JtJ = refine_pose(camera, obj, img, R_a, t_a, prior=prior)
-                err = math.sqrt(sse / n_img)
-                ambiguity = min(1.0, err / max(err_alt, 1e-12)) if err_alt > 0 else 1.0
-                rms = _marker_rms(camera, obj, img, R, t, len(ids))
+            if alt.cost + _prior_cost(prior, alt.R) < fit.cost:  # the other branch fits better: take it
+                other = fit
+                fit = _fit(camera, obj, img.reshape(-1), alt.R, alt.t, prior, MAX_ITER, CORNER_SIGMA_PX)
+                err = math.sqrt(fit.sse_px / n_img)
+                ambiguity = min(1.0, err / max(math.sqrt(other.sse_px / n_img), 1e-12))
+    R, t = fit.R, fit.t
+    rms = fit.marker_rms(marker_of_row[rows], n_all)[keep]
+    err = math.sqrt(fit.sse_px / n_img)
+    # Covariance: the corners' information at the measured corner noise (never below the
+    # assumed one) plus the prior's own (its sigma is the attitude's, not scaled).
     dof = max(2 * n_img - 6, 1)
-    s2 = max(sse / dof, CORNER_SIGMA_PX**2) / CORNER_SIGMA_PX**2
+    s2 = max(fit.sse_px / dof, CORNER_SIGMA_PX**2)
+    info = fit.JtJ_px / s2
+    if fit.info_prior is not None:
+        info = info + fit.info_prior
     try:
-        cov = s2 * np.linalg.inv(JtJ)
+        cov = np.linalg.inv(info)
     except np.linalg.LinAlgError:
         cov = np.full((6, 6), np.inf)
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and math.isfinite(err)):
@@ -403,9 +539,13 @@ def map_corners_px(
     camera: Camera, marker_map: MarkerMap, R: np.ndarray, t: np.ndarray, ids: Optional[Sequence[int]] = None
 ) -> Dict[int, np.ndarray]:
     """Where each map marker's corners project with the map pose (R, t) (in front only)."""
-    out: Dict[int, np.ndarray] = {}
-    for marker_id in marker_map.ids if ids is None else ids:
-        pts = marker_map.corners_map(marker_id) @ R.T + t
-        if np.all(pts[:, 2] > 1e-3):
-            out[marker_id] = camera.project(pts)
-    return out
+    chosen = list(marker_map.ids if ids is None else ids)
+    if not chosen:
+        return {}
+    pts = np.vstack([marker_map.corners_map(i) for i in chosen]) @ R.T + t
+    front = (pts[:, 2] > 1e-3).reshape(-1, 4).all(axis=1)
+    if not front.any():
+        return {}
+    rows = np.repeat(front, 4)
+    px = camera.project(pts[rows]).reshape(-1, 4, 2)
+    return {i: c for i, c in zip((i for i, f in zip(chosen, front) if f), px)}

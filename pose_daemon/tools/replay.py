@@ -74,7 +74,15 @@ def replay(
     if cfg.map is not None:  # a map names its own markers: the recording's [marker] is not used
         from ..map_processing import MapFrameProcessor
 
-        processor = MapFrameProcessor.from_models(camera, cfg.map.model(), cfg.estimator, cfg.detector)
+        # The recording's attitude (each frame's own) is the solve's prior term.
+        processor = MapFrameProcessor.from_models(
+            camera,
+            cfg.map.model(),
+            cfg.estimator,
+            cfg.detector,
+            prior=PriorSettings.from_config(cfg),
+            frames=VehicleFrames.from_config(cfg.mount, cfg.placement),
+        )
     else:
         processor = FrameProcessor.from_models(
             camera,
