@@ -8,6 +8,19 @@ towards the inside of the blurred corner; an edge fit uses the whole side.
 The half-way level is only the edge in linear intensity: a camera that encodes grey levels
 with a gamma curve puts it on the dark side (the marker shrinks with blur), so with a
 known response (``lut``, from ``response.decode_lut``) the profiles are linearised first.
+
+Under strong blur two more things bias the half-way level, and both make the marker look
+larger or smaller than it is:
+- a profile shorter than the blur never reaches the dark or the light level: on a motion
+  smear (a linear ramp) its symmetric window gives back whatever centre it started from.
+  The profiles' reach is extended to ``BLUR_REACH_SIGMAS`` blur sigmas (at most
+  ``MAX_INNER_FRACTION`` of a side inside, ``MAX_OUTER_FRACTION`` outside);
+- inside the one-cell border of an ArUco marker, the light of the white code cells next to
+  it is blurred into the border: the inner ends of the profiles there are too light, the
+  half-way level too high and the edge found too far out (the marker grows, by up to a few
+  per cent on small blurred markers). Those profiles are left out of the line fits: along a
+  side, the inner level relative to the outer one is the same for every clean profile, and
+  the profiles next to a white cell stand out above it (``BLEED_FRACTION``).
 """
 
 from __future__ import annotations
@@ -35,6 +48,30 @@ SEARCH_ITERATIONS = 3
 #: A pass is final only once the profiles' symmetric windows reach this many blur sigmas.
 WINDOW_BLUR_SIGMAS = 1.5
 _LEVELS = np.arange(256, dtype=np.float64)
+#: Profiles reach this many blur sigmas past the edge on each side once the blur is known
+#: (a Gaussian edge is within 0.6 % of its levels there; a motion smear of length L, whose
+#: slope gives sigma = L / 2.5, within reach from 2.0 sigmas).
+BLUR_REACH_SIGMAS = 2.5
+#: Profiles are lengthened once they reach less than this many blur sigmas past the edge.
+BLUR_SHORT_SIGMAS = 2.0
+#: ... but inside at most this fraction of the shortest side (an ArUco marker's border is
+#: 1/6 of its side for 4x4 codes, 1/9 for 7x7 ones; what lies beyond is told apart below) ...
+MAX_INNER_FRACTION = 0.1
+#: ... and outside at most this fraction (a marker's quiet zone is wider).
+MAX_OUTER_FRACTION = 0.15
+#: A profile whose inner end is lighter than the side's clean ones by more than this
+#: fraction of its contrast has light from beyond the border blurred into it: left out.
+BLEED_FRACTION = 0.02
+#: ... and than this many times the noise of the inner ends.
+BLEED_NOISE = 2.0
+#: ... looked for once the blur reaches this fraction of the inner reach (a sharper edge's
+#: profiles end far from anything the blur could bring in).
+BLEED_BLUR_FRACTION = 0.5
+#: Each side's blur is told apart (a motion smear blurs some sides only) once the mean
+#: blur reaches this fraction of the profiles' reach.
+_SIDE_BLUR_FRACTION = 0.35
+#: Share of a side's profiles that must stay for its clean ones to be told apart.
+_MIN_CLEAN_FRACTION = 0.25
 
 
 @dataclass
@@ -132,6 +169,50 @@ def _fit_line(points: np.ndarray) -> Tuple[float, float, float]:
     return -vy, vx, -vy * x0 + vx * y0
 
 
+def _side_blur(light: np.ndarray, dark: np.ndarray, rise: np.ndarray, ok: np.ndarray, m: int) -> np.ndarray:
+    """Each side's blur (4,), Gaussian sigma equivalent in pixels, from the slope at the
+    crossings: sigma = contrast / (slope sqrt(2 pi)), summed over the side's clean profiles
+    before dividing (a ratio of sums: cheap, and one flat profile cannot blow it up); 0 where
+    fewer than 3."""
+    good = ok & (rise > 1e-6)
+    # One pass over the three per-profile terms: contrast, slope, count.
+    sums = (np.stack([light - dark, rise, np.ones_like(rise)]) * good).reshape(3, 4, m).sum(axis=2)
+    sigma = sums[0] / np.maximum(sums[1] / PROFILE_STEP_PX * math.sqrt(2.0 * math.pi), 1e-9)
+    return np.where(sums[2] >= 3, sigma, 0.0)
+
+
+def _bled(
+    flat: np.ndarray, rows: np.ndarray, n_off: int, x: np.ndarray, depth: float, ok: np.ndarray, m: int
+) -> np.ndarray:
+    """Profiles (n,) whose inner end, ``depth`` samples inside their edge at ``x``, is lighter
+    than the side's clean ones by more than ``BLEED_FRACTION`` of their contrast: light from
+    beyond the dark border (an ArUco marker's white cells) blurred into it. A side keeps all
+    its profiles when too few would stay."""
+    last = n_off - 1
+    xs = np.minimum(np.maximum(np.concatenate([x - depth, x + depth]), 0.0), last - 1e-6)
+    i = xs.astype(np.intp)
+    f = xs - i
+    k = np.concatenate([rows, rows]) * n_off + i
+    v = flat[k] * (1.0 - f) + flat[k + 1] * f
+    v_in, v_out = v[: len(x)], v[len(x) :]
+    # In linear light a lighting gradient scales both levels alike: their ratio is the same
+    # along a clean side; the lower quartile over the side is a clean profile's.
+    q = np.where(ok, v_in / np.maximum(v_out, 1e-6), np.inf).reshape(4, m)
+    count = ok.reshape(4, m).sum(axis=1)
+    q_ref = np.sort(q, axis=1)[np.arange(4), count // 4]
+    excess = (v_in.reshape(4, m) - q_ref[:, None] * v_out.reshape(4, m)) / np.maximum(
+        (v_out - v_in).reshape(4, m), 1e-6
+    )
+    # ... and above the noise of the inner ends (JPEG's is larger than the sensor's): from
+    # the steps between neighbouring profiles, which one white cell's light leaves small.
+    noise = 1.4826 / math.sqrt(2.0) * np.median(np.abs(np.diff(v_in.reshape(4, m), axis=1)), axis=1)
+    bar = np.maximum(BLEED_FRACTION, BLEED_NOISE * noise[:, None] / np.maximum((v_out - v_in).reshape(4, m), 1e-6))
+    bled = ok.reshape(4, m) & (excess > bar)
+    clean = count - bled.sum(axis=1)
+    bled &= (clean >= max(3, int(_MIN_CLEAN_FRACTION * m)))[:, None]
+    return bled.ravel()
+
+
 def fit_edges(
     gray: np.ndarray,
     corners: np.ndarray,
@@ -151,22 +232,25 @@ def fit_edges(
 
     ``corners`` must be in image-clockwise order (positive ``signed_area``); the result
     keeps the order. ``inner_px``/``outer_px``: how far each profile reaches into the dark
-    region and into the surround, pixels. With a ``camera`` that has lens distortion, lines
+    region and into the surround, pixels (more once the edges are found more blurred than
+    that: see the module's notes). With a ``camera`` that has lens distortion, lines
     are fitted in undistorted pixels (sides of a real marker are straight only there) and
-    the corners mapped back. Stops after ``iterations`` passes or once corners move less
-    than ``converged_px`` in a pass. None when the sides cannot be fitted (too few clean crossings,
+    the corners mapped back. Stops after ``iterations`` passes (up to two more while the
+    profiles are being lengthened for the blur) or once corners move less than
+    ``converged_px`` in a pass. None when the sides cannot be fitted (too few clean crossings,
     too little contrast, or corners that move further than ``max_move_px``).
     ``lut``: the camera's response as a 256-entry table grey level -> linear intensity
     (``response.decode_lut``); edges are then located in linear intensity. Contrasts stay in
     the frame's own grey levels either way. ``check_blur``: a pass is final only once its
     profiles are centred within ``WINDOW_BLUR_SIGMAS`` of the estimated blur and clear of
-    the blurred corners (off: as soon as the corners settle; a tracked marker's predicted
-    corners are already centred, and that path stays as cheap as it was).
+    the blurred corners (off: as soon as the corners settle and the profiles reach past the
+    blur; a tracked marker's predicted corners are already centred).
     """
     h, w = gray.shape
     start = np.asarray(corners, dtype=np.float64).reshape(4, 2)
     current = start
-    offsets = np.arange(-inner_px, outer_px + 1e-9, PROFILE_STEP_PX)
+    inner, outer = float(inner_px), float(outer_px)
+    offsets = np.arange(-inner, outer + 1e-9, PROFILE_STEP_PX)
     n_off = len(offsets)
     if n_off < 4:
         return None
@@ -178,15 +262,17 @@ def fit_edges(
     rows2 = np.concatenate([rows, rows]) * n_off
     last = float(n_off - 1)
     frac_along = (np.arange(m) + 0.5) / m
-    blur_px = 0.0  # the edges' blur (Gaussian sigma equivalent), estimated by each pass
-    for _ in range(iterations):
+    blur_px = 0.0  # the edges' blur (Gaussian sigma equivalent, the most blurred side), per pass
+    passes, extra = 0, 0
+    while passes < iterations + extra:
+        passes += 1
         d = current[_NEXT] - current
         length = np.hypot(d[:, 0], d[:, 1])
         if length.min() < 4.0:
             return None
         u = d / length[:, None]
         # Keep clear of the rounded, blurred corners where the side is not a straight edge.
-        end = np.maximum(np.maximum(1.5 + inner_px, 0.1 * length), _corner_clearance(u, length, blur_px))
+        end = np.maximum(np.maximum(1.5 + inner, 0.1 * length), _corner_clearance(u, length, blur_px))
         span = length - 2.0 * end
         if span.min() < 2.0:
             return None
@@ -199,7 +285,7 @@ def fit_edges(
         # Every profile lies within the outline grown by the reach: when that is well inside
         # the image, none needs checking.
         (xmin, ymin), (xmax, ymax) = current.min(axis=0).tolist(), current.max(axis=0).tolist()
-        grow = max(inner_px, outer_px) + 1.0
+        grow = max(inner, outer) + 1.0
         if xmin >= grow and ymin >= grow and xmax + grow <= w - 1 and ymax + grow <= h - 1:
             inside = True
         else:
@@ -234,6 +320,20 @@ def fit_edges(
             x = x_new
             if settled:
                 break
+        # How blurred the edges are (each side's own: a motion smear blurs some sides only).
+        # First over all sides at once (two dot products: what a sharp tracked marker pays),
+        # side by side only when that is a fair share of the reach.
+        # (A clean crossing rises through its level: its rise is > 0.)
+        weight = ok.astype(np.float64)
+        slope_sum = float(np.dot(rise, weight)) / PROFILE_STEP_PX * math.sqrt(2.0 * math.pi)
+        levels = contrast if lut is None else light - dark
+        blur_px = float(np.dot(levels, weight)) / slope_sum if slope_sum > 0.0 else 0.0
+        if blur_px > _SIDE_BLUR_FRACTION * min(inner, outer):
+            blur_px = float(_side_blur(light, dark, rise, ok, m).max())
+        crossed = ok
+        if blur_px > BLEED_BLUR_FRACTION * inner:
+            depth = max(min(inner, outer) / PROFILE_STEP_PX - 1.0, 1.0)
+            ok = ok & ~_bled(flat, rows, n_off, x, depth, ok, m)
         s_edge = (offsets[0] + x * PROFILE_STEP_PX).reshape(4, m)
         pts = np.stack([bx + s_edge * u[:, 1:2], by - s_edge * u[:, 0:1]], axis=-1)  # (4, m, 2)
         if distorted:
@@ -276,11 +376,14 @@ def fit_edges(
             return None
         if n_used < 12:
             return None
+        # Profiles left out for light bled in from beyond the border still crossed the edge
+        # cleanly (they count as valid when on their side's line).
+        n_valid = n_used if crossed is ok else int((crossed.reshape(4, m) & (np.abs(res) <= 0.5)).sum())
         fit = EdgeFit(
             corners=refined,
             residual_px=math.sqrt(sq_sum / n_used),
             contrast=float(contrast[ok].mean()),
-            valid_fraction=n_used / n,
+            valid_fraction=n_valid / n,
         )
         moved = float(np.abs(refined - current).max())
         current = refined
@@ -289,16 +392,27 @@ def fit_edges(
         # of the edge; profiles that found their edge near one end get another pass.
         half = np.minimum(x, last - x)
         window_px = float(np.partition(half, n // 2)[n // 2]) * PROFILE_STEP_PX
+        # Profiles shorter than the blur: lengthen them (at least doubled, so that a smear
+        # whose slope understated it is reached in two steps) and take another pass.
+        if min(inner, outer) < BLUR_SHORT_SIGMAS * blur_px:
+            lmin = float(length.min())
+            want = BLUR_REACH_SIGMAS * blur_px
+            new_inner = min(max(want, 2.0 * inner), MAX_INNER_FRACTION * lmin) if inner < want else inner
+            new_outer = min(max(want, 2.0 * outer), MAX_OUTER_FRACTION * lmin) if outer < want else outer
+            if new_inner > inner + 0.25 or new_outer > outer + 0.25:
+                inner, outer = max(inner, new_inner), max(outer, new_outer)
+                offsets = np.arange(-inner, outer + 1e-9, PROFILE_STEP_PX)
+                n_off = len(offsets)
+                rows2 = np.concatenate([rows, rows]) * n_off
+                last = float(n_off - 1)
+                if passes >= iterations + extra and extra < 2:
+                    extra += 1
+                continue
         if moved < converged_px and window_px >= 1.25 and not check_blur:
             break
         if moved < converged_px and window_px >= 1.25:
             # Final unless the edges are so blurred that the windows were too narrow for the
-            # half-way level or the profiles too close to the rounded corners. The blur from
-            # the slope at the crossings: sigma = contrast / (slope sqrt(2 pi)).
-            good = ok & (rise > 1e-6)
-            if int(np.count_nonzero(good)) >= 8:
-                sigmas = (light - dark)[good] / (rise[good] / PROFILE_STEP_PX * math.sqrt(2.0 * math.pi))
-                blur_px = float(np.partition(sigmas, len(sigmas) // 2)[len(sigmas) // 2])
+            # half-way level or the profiles too close to the rounded corners.
             if window_px >= WINDOW_BLUR_SIGMAS * blur_px and _clear_of_corners(u, length, end, blur_px):
                 break
     if fit is None:
