@@ -111,11 +111,11 @@ def _interp(prof: np.ndarray, rows: np.ndarray, x: np.ndarray) -> np.ndarray:
 def _crossing(prof: np.ndarray, rows: np.ndarray, level: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """Fractional sample index where each profile first rises through ``level``, and the
     rise per sample there."""
-    j = np.minimum(np.maximum((prof >= level[:, None]).argmax(axis=1), 1), prof.shape[1] - 1)
-    lo, hi = prof[rows, j - 1], prof[rows, j]
+    j0 = np.minimum(np.maximum((prof >= level[:, None]).argmax(axis=1), 1), prof.shape[1] - 1) - 1
+    lo, hi = prof[rows, j0], prof[rows, j0 + 1]
     rise = hi - lo
     frac = np.minimum(np.maximum((level - lo) / np.maximum(rise, 1e-9), 0.0), 1.0)
-    return j - 1 + frac, rise
+    return j0 + frac, rise
 
 
 def _profiles(gray: np.ndarray, gx: np.ndarray, gy: np.ndarray, lut: Optional[np.ndarray]) -> np.ndarray:
@@ -255,7 +255,7 @@ def fit_edges(
     if n_off < 4:
         return None
     distorted = camera is not None and camera.has_distortion
-    fit: Optional[EdgeFit] = None
+    fit_parts: Optional[Tuple[np.ndarray, float, np.ndarray, np.ndarray, float]] = None
     m = int(samples_per_side)
     n = 4 * m
     rows = np.arange(n)
@@ -379,12 +379,8 @@ def fit_edges(
         # Profiles left out for light bled in from beyond the border still crossed the edge
         # cleanly (they count as valid when on their side's line).
         n_valid = n_used if crossed is ok else int((crossed.reshape(4, m) & (np.abs(res) <= 0.5)).sum())
-        fit = EdgeFit(
-            corners=refined,
-            residual_px=math.sqrt(sq_sum / n_used),
-            contrast=float(contrast[ok].mean()),
-            valid_fraction=n_valid / n,
-        )
+        # The last pass's fit is the result: what it reports is put together after the loop.
+        fit_parts = (refined, sq_sum / n_used, contrast, ok, n_valid / n)
         moved = float(np.abs(refined - current).max())
         current = refined
         # Profiles along normals a fraction of a degree off find the same edge points, but
@@ -415,8 +411,14 @@ def fit_edges(
             # half-way level or the profiles too close to the rounded corners.
             if window_px >= WINDOW_BLUR_SIGMAS * blur_px and _clear_of_corners(u, length, end, blur_px):
                 break
-    if fit is None:
+    if fit_parts is None:
         return None
-    if max_move_px is not None and float(np.abs(fit.corners - start).max()) > max_move_px:
+    refined, mean_sq, contrast, ok, valid_fraction = fit_parts
+    if max_move_px is not None and float(np.abs(refined - start).max()) > max_move_px:
         return None
-    return fit
+    return EdgeFit(
+        corners=refined,
+        residual_px=math.sqrt(mean_sq),
+        contrast=float(contrast[ok].mean()),
+        valid_fraction=valid_fraction,
+    )
