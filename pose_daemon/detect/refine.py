@@ -335,7 +335,9 @@ def fit_edges(
             depth = max(min(inner, outer) / PROFILE_STEP_PX - 1.0, 1.0)
             ok = ok & ~_bled(flat, rows, n_off, x, depth, ok, m)
         s_edge = (offsets[0] + x * PROFILE_STEP_PX).reshape(4, m)
-        pts = np.stack([bx + s_edge * u[:, 1:2], by - s_edge * u[:, 0:1]], axis=-1)  # (4, m, 2)
+        pts = np.empty((4, m, 2))
+        pts[..., 0] = bx + s_edge * u[:, 1:2]
+        pts[..., 1] = by - s_edge * u[:, 0:1]
         if distorted:
             pts = _undistort_px(pts.reshape(-1, 2), camera).reshape(4, m, 2)
         ok4 = ok.reshape(4, m)
@@ -347,6 +349,7 @@ def fit_edges(
             lines[side] = _fit_line(p)
         res = pts[..., 0] * lines[:, 0:1] + pts[..., 1] * lines[:, 1:2] - lines[:, 2:3]  # (4, m)
         abs_res = np.where(ok4, np.abs(res), 0.0)
+        refitted = False
         for side in np.nonzero(abs_res.max(axis=1) > 0.3)[0].tolist():
             # One pass of outlier rejection: a few profiles crossing glare, texture or a
             # neighbouring blob must not pull the side.
@@ -356,7 +359,10 @@ def fit_edges(
             if keep.sum() >= 3:
                 lines[side] = _fit_line(pts[side][keep])
                 res[side] = pts[side, :, 0] * lines[side, 0] + pts[side, :, 1] * lines[side, 1] - lines[side, 2]
-        inlier = ok4 & (np.abs(res) <= 0.5)
+                refitted = True
+        if refitted:
+            abs_res = np.abs(res)
+        inlier = ok4 & (abs_res <= 0.5)
         n_used = int(inlier.sum())
         sq_sum = float(np.square(res[inlier]).sum())
         # Corner i is where side i-1 (into it) meets side i (out of it).
