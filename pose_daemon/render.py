@@ -571,6 +571,9 @@ def _apply_effects(img: np.ndarray, effects: Effects, rng: np.random.Generator) 
             shift=4,
         )
         kernel = cv2.resize(kernel, (size, size), interpolation=cv2.INTER_AREA)
+        # OpenCV draws the anti-aliased line half a (4x) pixel off its end points: made
+        # point-symmetric about the centre, a smear moves nothing (the true corners stay true).
+        kernel = kernel + kernel[::-1, ::-1]
         kernel /= kernel.sum()
         img = cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REFLECT)
     if effects.blur_px > 0:

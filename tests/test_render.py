@@ -251,6 +251,23 @@ def test_motion_blur_of_8_px_spreads_the_edge_over_8_px() -> None:
     assert x10 - x90 == pytest.approx(0.8 * 8.0, abs=0.7)
 
 
+@pytest.mark.parametrize("angle_deg", [0.0, 30.0, 90.0, 135.0])
+def test_motion_blur_moves_nothing(angle_deg: float) -> None:
+    """A smear is symmetric about where the marker is: the darkness keeps its centroid
+    (a kernel half a pixel off would shift the whole marker against its true corners)."""
+    rvec, tvec = [math.pi, 0.0, 0.0], [0.01, -0.02, 1.5]
+    fx = dict(background="plain", plain_gray=WHITE)
+
+    def centroid(effects: Effects) -> np.ndarray:
+        dark = WHITE - render_marker(CAM, SQUARE, rvec, tvec, effects=effects).image.astype(np.float64)
+        yy, xx = np.mgrid[: dark.shape[0], : dark.shape[1]]
+        return np.array([(dark * xx).sum(), (dark * yy).sum()]) / dark.sum()
+
+    sharp = centroid(Effects.clean(**fx))
+    smeared = centroid(Effects.clean(motion_blur_px=8.0, motion_blur_angle_deg=angle_deg, **fx))
+    assert np.abs(smeared - sharp).max() < 0.01, smeared - sharp
+
+
 def test_render_empty_has_no_dark_quadrilateral_and_varies() -> None:
     rng = np.random.default_rng(0)
     frames = [render_empty(CAM, rng=rng) for _ in range(3)]

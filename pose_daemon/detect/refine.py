@@ -8,6 +8,19 @@ towards the inside of the blurred corner; an edge fit uses the whole side.
 The half-way level is only the edge in linear intensity: a camera that encodes grey levels
 with a gamma curve puts it on the dark side (the marker shrinks with blur), so with a
 known response (``lut``, from ``response.decode_lut``) the profiles are linearised first.
+
+Under strong blur two more things bias the half-way level, and both make the marker look
+larger or smaller than it is:
+- a profile shorter than the blur never reaches the dark or the light level: on a motion
+  smear (a linear ramp) its symmetric window gives back whatever centre it started from.
+  The profiles' reach is extended to ``BLUR_REACH_SIGMAS`` blur sigmas (at most
+  ``MAX_INNER_FRACTION`` of a side inside, ``MAX_OUTER_FRACTION`` outside);
+- inside the one-cell border of an ArUco marker, the light of the white code cells next to
+  it is blurred into the border: the inner ends of the profiles there are too light, the
+  half-way level too high and the edge found too far out (the marker grows, by up to a few
+  per cent on small blurred markers). Those profiles are left out of the line fits: along a
+  side, the inner level relative to the outer one is the same for every clean profile, and
+  the profiles next to a white cell stand out above it (``BLEED_FRACTION``).
 """
 
 from __future__ import annotations
@@ -35,6 +48,30 @@ SEARCH_ITERATIONS = 3
 #: A pass is final only once the profiles' symmetric windows reach this many blur sigmas.
 WINDOW_BLUR_SIGMAS = 1.5
 _LEVELS = np.arange(256, dtype=np.float64)
+#: Profiles reach this many blur sigmas past the edge on each side once the blur is known
+#: (a Gaussian edge is within 0.6 % of its levels there; a motion smear of length L, whose
+#: slope gives sigma = L / 2.5, within reach from 2.0 sigmas).
+BLUR_REACH_SIGMAS = 2.5
+#: Profiles are lengthened once they reach less than this many blur sigmas past the edge.
+BLUR_SHORT_SIGMAS = 2.0
+#: ... but inside at most this fraction of the shortest side (an ArUco marker's border is
+#: 1/6 of its side for 4x4 codes, 1/9 for 7x7 ones; what lies beyond is told apart below) ...
+MAX_INNER_FRACTION = 0.1
+#: ... and outside at most this fraction (a marker's quiet zone is wider).
+MAX_OUTER_FRACTION = 0.15
+#: A profile whose inner end is lighter than the side's clean ones by more than this
+#: fraction of its contrast has light from beyond the border blurred into it: left out.
+BLEED_FRACTION = 0.02
+#: ... and than this many times the noise of the inner ends.
+BLEED_NOISE = 2.0
+#: ... looked for once the blur reaches this fraction of the inner reach (a sharper edge's
+#: profiles end far from anything the blur could bring in).
+BLEED_BLUR_FRACTION = 0.5
+#: Each side's blur is told apart (a motion smear blurs some sides only) once the mean
+#: blur reaches this fraction of the profiles' reach.
+_SIDE_BLUR_FRACTION = 0.35
+#: Share of a side's profiles that must stay for its clean ones to be told apart.
+_MIN_CLEAN_FRACTION = 0.25
 
 
 @dataclass
@@ -74,11 +111,11 @@ def _interp(prof: np.ndarray, rows: np.ndarray, x: np.ndarray) -> np.ndarray:
 def _crossing(prof: np.ndarray, rows: np.ndarray, level: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """Fractional sample index where each profile first rises through ``level``, and the
     rise per sample there."""
-    j = np.minimum(np.maximum((prof >= level[:, None]).argmax(axis=1), 1), prof.shape[1] - 1)
-    lo, hi = prof[rows, j - 1], prof[rows, j]
+    j0 = np.minimum(np.maximum((prof >= level[:, None]).argmax(axis=1), 1), prof.shape[1] - 1) - 1
+    lo, hi = prof[rows, j0], prof[rows, j0 + 1]
     rise = hi - lo
     frac = np.minimum(np.maximum((level - lo) / np.maximum(rise, 1e-9), 0.0), 1.0)
-    return j - 1 + frac, rise
+    return j0 + frac, rise
 
 
 def _profiles(gray: np.ndarray, gx: np.ndarray, gy: np.ndarray, lut: Optional[np.ndarray]) -> np.ndarray:
@@ -132,6 +169,50 @@ def _fit_line(points: np.ndarray) -> Tuple[float, float, float]:
     return -vy, vx, -vy * x0 + vx * y0
 
 
+def _side_blur(light: np.ndarray, dark: np.ndarray, rise: np.ndarray, ok: np.ndarray, m: int) -> np.ndarray:
+    """Each side's blur (4,), Gaussian sigma equivalent in pixels, from the slope at the
+    crossings: sigma = contrast / (slope sqrt(2 pi)), summed over the side's clean profiles
+    before dividing (a ratio of sums: cheap, and one flat profile cannot blow it up); 0 where
+    fewer than 3."""
+    good = ok & (rise > 1e-6)
+    # One pass over the three per-profile terms: contrast, slope, count.
+    sums = (np.stack([light - dark, rise, np.ones_like(rise)]) * good).reshape(3, 4, m).sum(axis=2)
+    sigma = sums[0] / np.maximum(sums[1] / PROFILE_STEP_PX * math.sqrt(2.0 * math.pi), 1e-9)
+    return np.where(sums[2] >= 3, sigma, 0.0)
+
+
+def _bled(
+    flat: np.ndarray, rows: np.ndarray, n_off: int, x: np.ndarray, depth: float, ok: np.ndarray, m: int
+) -> np.ndarray:
+    """Profiles (n,) whose inner end, ``depth`` samples inside their edge at ``x``, is lighter
+    than the side's clean ones by more than ``BLEED_FRACTION`` of their contrast: light from
+    beyond the dark border (an ArUco marker's white cells) blurred into it. A side keeps all
+    its profiles when too few would stay."""
+    last = n_off - 1
+    xs = np.minimum(np.maximum(np.concatenate([x - depth, x + depth]), 0.0), last - 1e-6)
+    i = xs.astype(np.intp)
+    f = xs - i
+    k = np.concatenate([rows, rows]) * n_off + i
+    v = flat[k] * (1.0 - f) + flat[k + 1] * f
+    v_in, v_out = v[: len(x)], v[len(x) :]
+    # In linear light a lighting gradient scales both levels alike: their ratio is the same
+    # along a clean side; the lower quartile over the side is a clean profile's.
+    q = np.where(ok, v_in / np.maximum(v_out, 1e-6), np.inf).reshape(4, m)
+    count = ok.reshape(4, m).sum(axis=1)
+    q_ref = np.sort(q, axis=1)[np.arange(4), count // 4]
+    excess = (v_in.reshape(4, m) - q_ref[:, None] * v_out.reshape(4, m)) / np.maximum(
+        (v_out - v_in).reshape(4, m), 1e-6
+    )
+    # ... and above the noise of the inner ends (JPEG's is larger than the sensor's): from
+    # the steps between neighbouring profiles, which one white cell's light leaves small.
+    noise = 1.4826 / math.sqrt(2.0) * np.median(np.abs(np.diff(v_in.reshape(4, m), axis=1)), axis=1)
+    bar = np.maximum(BLEED_FRACTION, BLEED_NOISE * noise[:, None] / np.maximum((v_out - v_in).reshape(4, m), 1e-6))
+    bled = ok.reshape(4, m) & (excess > bar)
+    clean = count - bled.sum(axis=1)
+    bled &= (clean >= max(3, int(_MIN_CLEAN_FRACTION * m)))[:, None]
+    return bled.ravel()
+
+
 def fit_edges(
     gray: np.ndarray,
     corners: np.ndarray,
@@ -151,42 +232,47 @@ def fit_edges(
 
     ``corners`` must be in image-clockwise order (positive ``signed_area``); the result
     keeps the order. ``inner_px``/``outer_px``: how far each profile reaches into the dark
-    region and into the surround, pixels. With a ``camera`` that has lens distortion, lines
+    region and into the surround, pixels (more once the edges are found more blurred than
+    that: see the module's notes). With a ``camera`` that has lens distortion, lines
     are fitted in undistorted pixels (sides of a real marker are straight only there) and
-    the corners mapped back. Stops after ``iterations`` passes or once corners move less
-    than ``converged_px`` in a pass. None when the sides cannot be fitted (too few clean crossings,
+    the corners mapped back. Stops after ``iterations`` passes (up to two more while the
+    profiles are being lengthened for the blur) or once corners move less than
+    ``converged_px`` in a pass. None when the sides cannot be fitted (too few clean crossings,
     too little contrast, or corners that move further than ``max_move_px``).
     ``lut``: the camera's response as a 256-entry table grey level -> linear intensity
     (``response.decode_lut``); edges are then located in linear intensity. Contrasts stay in
     the frame's own grey levels either way. ``check_blur``: a pass is final only once its
     profiles are centred within ``WINDOW_BLUR_SIGMAS`` of the estimated blur and clear of
-    the blurred corners (off: as soon as the corners settle; a tracked marker's predicted
-    corners are already centred, and that path stays as cheap as it was).
+    the blurred corners (off: as soon as the corners settle and the profiles reach past the
+    blur; a tracked marker's predicted corners are already centred).
     """
     h, w = gray.shape
     start = np.asarray(corners, dtype=np.float64).reshape(4, 2)
     current = start
-    offsets = np.arange(-inner_px, outer_px + 1e-9, PROFILE_STEP_PX)
+    inner, outer = float(inner_px), float(outer_px)
+    offsets = np.arange(-inner, outer + 1e-9, PROFILE_STEP_PX)
     n_off = len(offsets)
     if n_off < 4:
         return None
     distorted = camera is not None and camera.has_distortion
-    fit: Optional[EdgeFit] = None
+    fit_parts: Optional[Tuple[np.ndarray, float, np.ndarray, np.ndarray, float]] = None
     m = int(samples_per_side)
     n = 4 * m
     rows = np.arange(n)
     rows2 = np.concatenate([rows, rows]) * n_off
     last = float(n_off - 1)
     frac_along = (np.arange(m) + 0.5) / m
-    blur_px = 0.0  # the edges' blur (Gaussian sigma equivalent), estimated by each pass
-    for _ in range(iterations):
+    blur_px = 0.0  # the edges' blur (Gaussian sigma equivalent, the most blurred side), per pass
+    passes, extra = 0, 0
+    while passes < iterations + extra:
+        passes += 1
         d = current[_NEXT] - current
         length = np.hypot(d[:, 0], d[:, 1])
         if length.min() < 4.0:
             return None
         u = d / length[:, None]
         # Keep clear of the rounded, blurred corners where the side is not a straight edge.
-        end = np.maximum(np.maximum(1.5 + inner_px, 0.1 * length), _corner_clearance(u, length, blur_px))
+        end = np.maximum(np.maximum(1.5 + inner, 0.1 * length), _corner_clearance(u, length, blur_px))
         span = length - 2.0 * end
         if span.min() < 2.0:
             return None
@@ -199,7 +285,7 @@ def fit_edges(
         # Every profile lies within the outline grown by the reach: when that is well inside
         # the image, none needs checking.
         (xmin, ymin), (xmax, ymax) = current.min(axis=0).tolist(), current.max(axis=0).tolist()
-        grow = max(inner_px, outer_px) + 1.0
+        grow = max(inner, outer) + 1.0
         if xmin >= grow and ymin >= grow and xmax + grow <= w - 1 and ymax + grow <= h - 1:
             inside = True
         else:
@@ -234,8 +320,24 @@ def fit_edges(
             x = x_new
             if settled:
                 break
+        # How blurred the edges are (each side's own: a motion smear blurs some sides only).
+        # First over all sides at once (two dot products: what a sharp tracked marker pays),
+        # side by side only when that is a fair share of the reach.
+        # (A clean crossing rises through its level: its rise is > 0.)
+        weight = ok.astype(np.float64)
+        slope_sum = float(np.dot(rise, weight)) / PROFILE_STEP_PX * math.sqrt(2.0 * math.pi)
+        levels = contrast if lut is None else light - dark
+        blur_px = float(np.dot(levels, weight)) / slope_sum if slope_sum > 0.0 else 0.0
+        if blur_px > _SIDE_BLUR_FRACTION * min(inner, outer):
+            blur_px = float(_side_blur(light, dark, rise, ok, m).max())
+        crossed = ok
+        if blur_px > BLEED_BLUR_FRACTION * inner:
+            depth = max(min(inner, outer) / PROFILE_STEP_PX - 1.0, 1.0)
+            ok = ok & ~_bled(flat, rows, n_off, x, depth, ok, m)
         s_edge = (offsets[0] + x * PROFILE_STEP_PX).reshape(4, m)
-        pts = np.stack([bx + s_edge * u[:, 1:2], by - s_edge * u[:, 0:1]], axis=-1)  # (4, m, 2)
+        pts = np.empty((4, m, 2))
+        pts[..., 0] = bx + s_edge * u[:, 1:2]
+        pts[..., 1] = by - s_edge * u[:, 0:1]
         if distorted:
             pts = _undistort_px(pts.reshape(-1, 2), camera).reshape(4, m, 2)
         ok4 = ok.reshape(4, m)
@@ -247,6 +349,7 @@ def fit_edges(
             lines[side] = _fit_line(p)
         res = pts[..., 0] * lines[:, 0:1] + pts[..., 1] * lines[:, 1:2] - lines[:, 2:3]  # (4, m)
         abs_res = np.where(ok4, np.abs(res), 0.0)
+        refitted = False
         for side in np.nonzero(abs_res.max(axis=1) > 0.3)[0].tolist():
             # One pass of outlier rejection: a few profiles crossing glare, texture or a
             # neighbouring blob must not pull the side.
@@ -256,7 +359,10 @@ def fit_edges(
             if keep.sum() >= 3:
                 lines[side] = _fit_line(pts[side][keep])
                 res[side] = pts[side, :, 0] * lines[side, 0] + pts[side, :, 1] * lines[side, 1] - lines[side, 2]
-        inlier = ok4 & (np.abs(res) <= 0.5)
+                refitted = True
+        if refitted:
+            abs_res = np.abs(res)
+        inlier = ok4 & (abs_res <= 0.5)
         n_used = int(inlier.sum())
         sq_sum = float(np.square(res[inlier]).sum())
         # Corner i is where side i-1 (into it) meets side i (out of it).
@@ -276,12 +382,11 @@ def fit_edges(
             return None
         if n_used < 12:
             return None
-        fit = EdgeFit(
-            corners=refined,
-            residual_px=math.sqrt(sq_sum / n_used),
-            contrast=float(contrast[ok].mean()),
-            valid_fraction=n_used / n,
-        )
+        # Profiles left out for light bled in from beyond the border still crossed the edge
+        # cleanly (they count as valid when on their side's line).
+        n_valid = n_used if crossed is ok else int((crossed.reshape(4, m) & (np.abs(res) <= 0.5)).sum())
+        # The last pass's fit is the result: what it reports is put together after the loop.
+        fit_parts = (refined, sq_sum / n_used, contrast, ok, n_valid / n)
         moved = float(np.abs(refined - current).max())
         current = refined
         # Profiles along normals a fraction of a degree off find the same edge points, but
@@ -289,20 +394,37 @@ def fit_edges(
         # of the edge; profiles that found their edge near one end get another pass.
         half = np.minimum(x, last - x)
         window_px = float(np.partition(half, n // 2)[n // 2]) * PROFILE_STEP_PX
+        # Profiles shorter than the blur: lengthen them (at least doubled, so that a smear
+        # whose slope understated it is reached in two steps) and take another pass.
+        if min(inner, outer) < BLUR_SHORT_SIGMAS * blur_px:
+            lmin = float(length.min())
+            want = BLUR_REACH_SIGMAS * blur_px
+            new_inner = min(max(want, 2.0 * inner), MAX_INNER_FRACTION * lmin) if inner < want else inner
+            new_outer = min(max(want, 2.0 * outer), MAX_OUTER_FRACTION * lmin) if outer < want else outer
+            if new_inner > inner + 0.25 or new_outer > outer + 0.25:
+                inner, outer = max(inner, new_inner), max(outer, new_outer)
+                offsets = np.arange(-inner, outer + 1e-9, PROFILE_STEP_PX)
+                n_off = len(offsets)
+                rows2 = np.concatenate([rows, rows]) * n_off
+                last = float(n_off - 1)
+                if passes >= iterations + extra and extra < 2:
+                    extra += 1
+                continue
         if moved < converged_px and window_px >= 1.25 and not check_blur:
             break
         if moved < converged_px and window_px >= 1.25:
             # Final unless the edges are so blurred that the windows were too narrow for the
-            # half-way level or the profiles too close to the rounded corners. The blur from
-            # the slope at the crossings: sigma = contrast / (slope sqrt(2 pi)).
-            good = ok & (rise > 1e-6)
-            if int(np.count_nonzero(good)) >= 8:
-                sigmas = (light - dark)[good] / (rise[good] / PROFILE_STEP_PX * math.sqrt(2.0 * math.pi))
-                blur_px = float(np.partition(sigmas, len(sigmas) // 2)[len(sigmas) // 2])
+            # half-way level or the profiles too close to the rounded corners.
             if window_px >= WINDOW_BLUR_SIGMAS * blur_px and _clear_of_corners(u, length, end, blur_px):
                 break
-    if fit is None:
+    if fit_parts is None:
         return None
-    if max_move_px is not None and float(np.abs(fit.corners - start).max()) > max_move_px:
+    refined, mean_sq, contrast, ok, valid_fraction = fit_parts
+    if max_move_px is not None and float(np.abs(refined - start).max()) > max_move_px:
         return None
-    return fit
+    return EdgeFit(
+        corners=refined,
+        residual_px=math.sqrt(mean_sq),
+        contrast=float(contrast[ok].mean()),
+        valid_fraction=valid_fraction,
+    )

@@ -512,6 +512,7 @@ def _clutter_row(scene: str, kind: str, ours: Tally, anchor: Optional[Tally]) ->
 
 #: The blur sweep: (label, Effects overrides, the detector's gamma). Gamma-encoded frames
 #: are what real cameras give; "as linear" reads them without the camera's response.
+#: ``distance_m`` (not an effect) narrows the marker's distance range (default 0.5-3 m).
 BLUR_SWEEP = (
     ("defocus 0.8 px", dict(blur_px=0.8), 1.0),
     ("defocus 1.5 px", dict(blur_px=1.5), 1.0),
@@ -522,6 +523,9 @@ BLUR_SWEEP = (
     ("sRGB, motion 4 px", dict(blur_px=0.8, motion_blur_px=4.0, gamma="srgb"), "srgb"),
     ("sRGB, motion 8 px", dict(blur_px=0.8, motion_blur_px=8.0, gamma="srgb"), "srgb"),
     ("sRGB, sharpened, JPEG 85", dict(blur_px=1.5, gamma="srgb", sharpen=0.6, jpeg_quality=85), "srgb"),
+    # Small markers (cells of 5-8 px): the code cells' light blurs into the one-cell border.
+    ("sRGB, defocus 2.5 px, 2.2-3 m", dict(blur_px=2.5, gamma="srgb", distance_m=(2.2, 3.0)), "srgb"),
+    ("sRGB, motion 8 px, 2.2-3 m", dict(blur_px=0.8, motion_blur_px=8.0, gamma="srgb", distance_m=(2.2, 3.0)), "srgb"),
     ("sRGB 1.5 px read as linear", dict(blur_px=1.5, gamma="srgb"), 1.0),
 )
 
@@ -538,12 +542,14 @@ def run_blur_sweep(n_frames: int, seed: int, camera: Camera) -> List[dict]:
     )
     rows = []
     for label, overrides, detector_gamma in BLUR_SWEEP:
+        overrides = dict(overrides)
+        distance_m = overrides.pop("distance_m", (0.5, 3.0))
         detector = MarkerDetector(marker, gamma=detector_gamma)
         pose_rng = np.random.default_rng([seed, 20])
         tallies = {"ours": Tally(label), "anchor": Tally(label)}
         sizes: Dict[str, List[float]] = {"ours": [], "anchor": []}
         for i in range(n_frames):
-            rvec, tvec = random_pose(pose_rng, camera, marker, distance_m=(0.5, 3.0), max_tilt_deg=60.0)
+            rvec, tvec = random_pose(pose_rng, camera, marker, distance_m=distance_m, max_tilt_deg=60.0)
             scene_rng = np.random.default_rng([seed, 21, i])
             fields = dict(
                 noise_gray=2.0,
