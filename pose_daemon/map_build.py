@@ -31,12 +31,11 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .camera import Camera, Marker
+from .camera import Camera
 from .errors import UserError
-from .geometry import euler_rpy_from_R
+from .geometry import R_from_rvec, euler_rpy_from_R
 from .marker_map import MapMarker, MarkerMap
 from .pose.map_solve import refine_pose
-from .pose.types import EstimationError
 
 __all__ = [
     "MISSING_SCIPY",
@@ -171,20 +170,29 @@ class MapBuild:
 def _single_poses(
     observed: Dict[int, np.ndarray], camera: Camera, sizes: Dict[int, float]
 ) -> Dict[int, List[Tuple[np.ndarray, np.ndarray, float]]]:
-    """Both planar solutions of each marker's own pose: id -> [(R_cam_marker, t, rms px)]."""
-    from .pose.estimator import estimate_pose
+    """Both planar solutions of each marker's own pose: id -> [(R_cam_marker, t, rms px)].
+
+    OpenCV's IPPE for squares (both solutions, through the lens): a start for the solve, where
+    the daemon's own estimator (a few ms a call in Python) would dominate the build time.
+    """
+    import cv2
 
     out: Dict[int, List[Tuple[np.ndarray, np.ndarray, float]]] = {}
     for marker_id, corners in observed.items():
-        size = sizes[marker_id]
+        obj = _local_corners(sizes[marker_id])
         try:
-            pose = estimate_pose(corners, camera, Marker(width=size, height=size))
-        except EstimationError:
+            n, rvecs, tvecs, errs = cv2.solvePnPGeneric(
+                obj, corners.reshape(4, 1, 2), camera._K, camera._dist, flags=cv2.SOLVEPNP_IPPE_SQUARE
+            )
+        except cv2.error:
             continue
         cands = []
-        for cand in (pose, pose.alternative):
-            if cand is not None and np.all(np.isfinite(cand.R)) and np.all(np.isfinite(cand.tvec)):
-                cands.append((np.asarray(cand.R), np.asarray(cand.tvec, dtype=np.float64), cand.reprojection_error_px))
+        for k in range(int(n)):
+            R = R_from_rvec(np.asarray(rvecs[k], dtype=np.float64).reshape(3))
+            t = np.asarray(tvecs[k], dtype=np.float64).reshape(3)
+            err = float(np.asarray(errs).ravel()[k]) if errs is not None else 0.0
+            if np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and t[2] > 0:
+                cands.append((R, t, err))
         if cands:
             out[marker_id] = cands
     return out
@@ -522,7 +530,13 @@ def build_map(
             raise UserError(f"anchor marker {anchor} was {unplaced[anchor]}: choose another --anchor")
     if not candidates:
         raise UserError(f"no marker was seen in {min_views} frames or more: " + _reasons(unplaced))
-    singles = [_single_poses({i: c for i, c in o.items() if i in candidates}, camera, all_sizes) for o in obs]
+    # Frames with one candidate marker join nothing: no single poses for them.
+    singles = [
+        _single_poses({i: c for i, c in o.items() if i in candidates}, camera, all_sizes)
+        if sum(1 for i in o if i in candidates) >= 2
+        else {}
+        for o in obs
+    ]
     relative = _relative_poses(singles, plane)
     stage["pairs"] = time.perf_counter() - t0
 
@@ -651,8 +665,8 @@ def build_map(
             x_scale="jac",
             method="trf",
             max_nfev=50,
-            xtol=1e-10,
-            ftol=1e-9,
+            xtol=1e-8,
+            ftol=1e-6,
         )
         return prob, res.x, Rm_base, res
 

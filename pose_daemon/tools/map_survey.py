@@ -277,9 +277,10 @@ def build(
     every: int = 1,
     max_frames: int = 600,
     plane: bool = True,
-    stream: TextIO = sys.stdout,
+    stream: Optional[TextIO] = None,
 ) -> MapBuild:
     """``pose-daemon map build``: detect, build, write ``out`` (and ``plot``), print the report."""
+    stream = stream if stream is not None else sys.stdout
     require_scipy()
     if not (math.isfinite(size_m) and 0.0 < size_m <= 100.0):
         raise UserError(f"--size: expected a marker size in (0, 100] metres, got {size_m}")
@@ -294,11 +295,10 @@ def build(
     size_table = parse_sizes(sizes)
     if anchor is not None and anchor < 0:
         raise UserError(f"--anchor: expected a marker id >= 0, got {anchor}")
+    n_ids = len(detect_placeholder_map(dictionary, size_table, size_m).ids)
+    if anchor is not None and anchor >= n_ids:
+        raise UserError(f"--anchor: marker id {anchor} is not an id of {dictionary} (0 to {n_ids - 1})")
     walk = detect_walkthrough(sources, dictionary, size_table, size_m, config, every)
-    if anchor is not None:
-        n = len(detect_placeholder_map(dictionary, {}, size_m).ids)
-        if anchor >= n:
-            raise UserError(f"--anchor: marker id {anchor} is not an id of {dictionary} (0 to {n - 1})")
     result = build_map(
         walk.observations,
         walk.camera,
@@ -390,8 +390,9 @@ def check_map(marker_map: MarkerMap, frames: Iterator[Frame], camera: Camera) ->
     return checks, n, ok
 
 
-def check(map_path: str, source_path: str, config: Optional[str] = None, stream: TextIO = sys.stdout) -> int:
+def check(map_path: str, source_path: str, config: Optional[str] = None, stream: Optional[TextIO] = None) -> int:
     """``pose-daemon map check``: 0 when every marker fits, 1 when one has moved."""
+    stream = stream if stream is not None else sys.stdout
     marker_map = load_map_file(map_path)
     source = _open(source_path)
     camera = _camera_of(source, source_path, config_camera(config))
