@@ -33,7 +33,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import UserError
-from .geometry import R_from_rvec, euler_rpy_from_R
+from .geometry import R_from_rvec, euler_rpy_from_R, rot_z
 from .marker_map import MapMarker, MarkerMap
 from .pose.map_solve import refine_pose
 
@@ -58,6 +58,8 @@ AGREE_DEG = 10.0
 AGREE_M, AGREE_FRAC = 0.05, 0.10
 #: Frames per marker pair used for the consensus (evenly spaced when there are more).
 PAIR_FRAMES = 40
+#: Evaluations of the free solve that only checks whether the plane holds.
+FREE_CHECK_NFEV = 15
 #: Huber scale of the joint solve, pixels.
 HUBER_PX = 1.0
 #: An observation (one marker in one frame) whose RMS corner residual after the first solve is
@@ -618,7 +620,7 @@ def build_map(
     obs_frame = np.array(obs_frame_l, dtype=np.int64)
     anchor_index = index[anchor]
 
-    def solve(planar: bool, Rm0, pm0, Rcs, tcs, mask):
+    def solve(planar: bool, Rm0, pm0, Rcs, tcs, mask, max_nfev=50):
         prob = _Problem(
             camera,
             obs_cam[mask],
@@ -660,43 +662,26 @@ def build_map(
             x0,
             jac=jac,
             tr_solver="lsmr",
+            tr_options={"atol": 1e-12, "btol": 1e-12},
             loss="huber",
             f_scale=HUBER_PX,
             x_scale="jac",
             method="trf",
-            max_nfev=50,
+            max_nfev=max_nfev,
             xtol=1e-8,
             ftol=1e-6,
         )
         return prob, res.x, Rm_base, res
 
-    def evaluate(prob, x, Rm_base, Rcs, tcs):
-        Rm, pm = prob.markers_from(x, Rm_base, p0_cur)
+    def run(planar, Rm0, pm0, Rcs, tcs, mask, max_nfev=50):
+        """One solve from (markers, cameras); the state after it."""
+        prob, x, Rm_base, res = solve(planar, Rm0, pm0, Rcs, tcs, mask, max_nfev)
+        Rm, pm = prob.markers_from(x, Rm_base, pm0)
         Rc, tc = prob.cameras_from(x, Rcs, tcs)
-        return Rm, pm, Rc, tc
+        return (prob, x, Rm_base, res, Rm, pm, Rc, tc)
 
-    # Free solve, outliers out, free solve again.
-    p0_cur = p0
-    prob, x, Rm_base, res = solve(False, R0, p0, Rc0, tc0, keep_obs)
-    Rm, pm, Rc, tc = evaluate(prob, x, Rm_base, Rc0, tc0)
-    full = _Problem(camera, obs_cam, obs_marker, obs_img, local, anchor_index, len(marker_ids), len(cams), False)
-    per_obs = np.sqrt(np.mean(np.sum(full.residuals(Rm, pm, Rc, tc) ** 2, axis=2), axis=1))
-    limit = max(OUTLIER_PX, 5.0 * float(np.median(per_obs))) if len(per_obs) else OUTLIER_PX
-    if not len(per_obs):
-        limit = OUTLIER_PX
-    keep_obs = per_obs <= limit
-    dropped = int((~keep_obs).sum())
-    if dropped:
-        for f in sorted(set(obs_frame[~keep_obs].tolist())):
-            left_out.setdefault(
-                f"a marker's corners off by more than {limit:.1f} px (that marker left out)", []
-            ).append(labels[f])
-        p0_cur = pm
-        prob, x, Rm_base, res = solve(False, Rm, pm, Rc, tc, keep_obs)
-        Rm, pm, Rc, tc = evaluate(prob, x, Rm_base, Rc, tc)
-    free_state = (prob, x, Rm_base, res, Rm, pm, Rc, tc)
-
-    def marker_rms(prob_, Rm_, pm_, Rc_, tc_):
+    def marker_rms(state):
+        prob_, _, _, _, Rm_, pm_, Rc_, tc_ = state
         r = prob_.residuals(Rm_, pm_, Rc_, tc_)
         d2 = np.sum(r**2, axis=2).mean(axis=1)
         per = np.array(
@@ -707,28 +692,69 @@ def build_map(
         )
         return per, math.sqrt(float(d2.mean())) if len(d2) else 0.0
 
-    free_per, free_rms = marker_rms(prob, Rm, pm, Rc, tc)
+    def both(start_planar, free_from_planar, mask):
+        """(planar state or None, free state)."""
+        planar_state = None
+        if start_planar is not None:
+            planar_state = run(True, *start_planar, mask)
+            # Only the yardstick of the plane (continued below if the plane is not kept).
+            free_state = run(False, *planar_state[4:], mask, FREE_CHECK_NFEV)
+        else:
+            free_state = run(False, *free_from_planar, mask)
+        return planar_state, free_state
+
+    use_plane = plane and len(marker_ids) > 1
+    planar_start = None
+    if use_plane:
+        # The plane first, from the tree's map laid flat (a chain of markers bends out of the
+        # plane in a free solve that is slow to straighten), with camera starts on that map.
+        yaw = np.arctan2(R0[:, 1, 0], R0[:, 0, 0])
+        Rp0 = np.array([rot_z(float(v)) for v in yaw])
+        pp0 = p0.copy()
+        pp0[:, 2] = 0.0
+        Rp0[anchor_index], pp0[anchor_index] = np.eye(3), 0.0
+        flat = {m: (Rp0[k], pp0[k]) for k, m in enumerate(marker_ids)}
+        Rcp, tcp = Rc0.copy(), tc0.copy()
+        for k, f in enumerate(cams):
+            start = _camera_start(camera, obs[f], singles[f], flat, all_sizes)
+            if start is not None:
+                Rcp[k], tcp[k] = start[0], start[1]
+        planar_start = (Rp0, pp0, Rcp, tcp)
+    planar_state, free_state = both(planar_start, (R0, p0, Rc0, tc0), keep_obs)
+    # Outliers by the free solve (the plane might not hold), then both again without them.
+    prob_f, _, _, _, Rm, pm, Rc, tc = free_state
+    full = _Problem(camera, obs_cam, obs_marker, obs_img, local, anchor_index, len(marker_ids), len(cams), False)
+    per_obs = np.sqrt(np.mean(np.sum(full.residuals(Rm, pm, Rc, tc) ** 2, axis=2), axis=1))
+    limit = max(OUTLIER_PX, 5.0 * float(np.median(per_obs))) if len(per_obs) else OUTLIER_PX
+    keep_obs = per_obs <= limit
+    if (~keep_obs).any():
+        for f in sorted(set(obs_frame[~keep_obs].tolist())):
+            left_out.setdefault(
+                f"a marker's corners off by more than {limit:.1f} px (that marker left out)", []
+            ).append(labels[f])
+        planar_state, free_state = both(
+            planar_state[4:] if planar_state is not None else None, free_state[4:], keep_obs
+        )
+    free_per, free_rms = marker_rms(free_state)
     plane_note = "not asked"
     chosen = free_state
-    if plane and len(marker_ids) > 1:
-        p0_cur = pm
-        prob_p, x_p, Rm_base_p, res_p = solve(True, Rm, pm, Rc, tc, keep_obs)
-        Rm_p, pm_p, Rc_p, tc_p = evaluate(prob_p, x_p, Rm_base_p, Rc, tc)
-        plane_per, plane_rms = marker_rms(prob_p, Rm_p, pm_p, Rc_p, tc_p)
+    if planar_state is not None:
+        plane_per, plane_rms = marker_rms(planar_state)
         worst = int(np.argmax(plane_per - (PLANE_MARKER_FACTOR * free_per + PLANE_MARKER_PX)))
         fits = bool(np.all(plane_per <= PLANE_MARKER_FACTOR * free_per + PLANE_MARKER_PX)) and (
             plane_rms <= PLANE_TOTAL * free_rms + 0.02
         )
         if fits:
             plane_note = "kept"
-            chosen = (prob_p, x_p, Rm_base_p, res_p, Rm_p, pm_p, Rc_p, tc_p)
+            chosen = planar_state
         else:
             plane_note = (
                 f"not kept: in one plane marker {marker_ids[worst]}'s residual grows from "
                 f"{free_per[worst]:.2f} to {plane_per[worst]:.2f} px (RMS {free_rms:.2f} -> {plane_rms:.2f} px)"
             )
+            chosen = run(False, *free_state[4:], keep_obs)
     prob, x, Rm_base, res, Rm, pm, Rc, tc = chosen
-    per_marker, rms = marker_rms(prob, Rm, pm, Rc, tc)
+    per_marker, rms = marker_rms(chosen)
     stage["solve"] = time.perf_counter() - t2
 
     t3 = time.perf_counter()
