@@ -2,18 +2,20 @@
 
 1. Observations: per frame, the corners of every marker found ({id: (4, 2) pixels}; the
    caller detects them, tools/map_survey.py with detect/multi.MapDetector).
-2. Pairwise relative poses: each marker's own pose in each frame (the daemon's estimator, both
-   planar solutions kept), T_a_b for every two markers seen in one frame (up to four
+2. Pairwise relative poses: each marker's own pose in each frame (OpenCV's IPPE for squares,
+   both planar solutions kept), T_a_b for every two markers seen in one frame (up to four
    candidates), and across frames the candidate most frames agree on.
 3. A graph over markers: a maximum spanning tree (edge weight: frames that agree) from the
    anchor puts every connected marker in the map frame; each frame's camera pose follows from
    its markers (pose/map_solve.refine_pose over all their corners).
 4. One joint sparse robust least squares (scipy.optimize.least_squares, Huber loss in pixels,
-   a jac_sparsity) of all marker poses (the anchor held at its pose: the map frame) and all
-   camera poses over every corner observation. Observations that stay far off are left out
-   and the solve is repeated once.
-5. ``plane``: the markers are then constrained to the anchor's plane (position x, y and a turn
-   about z each), kept when the residuals allow it (no marker's residual grows by much).
+   the sparse Jacobian analytic) of all marker poses (the anchor held at its pose: the map
+   frame) and all camera poses over every corner observation. With ``plane`` the markers are
+   solved in the anchor's plane first (position x, y and a turn about z each, from the tree's
+   map laid flat: a chain of markers bends out of the plane in a free solve that is slow to
+   straighten), then freed as the yardstick: the plane is kept when the residuals allow it
+   (no marker's residual grows by much), else the free solve goes on to convergence.
+5. Observations that stay far off under the free solve are left out and both solves repeated.
 6. Uncertainty: the marker block of s^2 (J^T J)^-1 (the camera blocks eliminated by a Schur
    complement), s^2 the residual variance.
 
@@ -752,7 +754,8 @@ def build_map(
                 f"not kept: in one plane marker {marker_ids[worst]}'s residual grows from "
                 f"{free_per[worst]:.2f} to {plane_per[worst]:.2f} px (RMS {free_rms:.2f} -> {plane_rms:.2f} px)"
             )
-            chosen = run(False, *free_state[4:], keep_obs)
+            _, _, _, _, Rm_f, pm_f, Rc_f, tc_f = free_state
+            chosen = run(False, Rm_f, pm_f, Rc_f, tc_f, keep_obs)
     prob, x, Rm_base, res, Rm, pm, Rc, tc = chosen
     per_marker, rms = marker_rms(chosen)
     stage["solve"] = time.perf_counter() - t2
