@@ -32,6 +32,7 @@ COMMANDS = (
     "calibrate",
     "marker",
     "plot",
+    "map",
     "bench",
     "paper",
 )

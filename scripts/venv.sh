@@ -38,8 +38,9 @@ if [ ! -e "$stamp" ]; then
       "pymavlink>=2.4.30" "pyserial==3.5" "tomli>=1.1; python_version < '3.11'"
     "${pip[@]}" install --no-deps -e .
     if [ -n "$extras" ]; then
-      # numpy pinned again: a newer matplotlib would otherwise pull numpy 2.
-      "${pip[@]}" install "numpy==1.24.*" "pytest>=7" "ruff>=0.4" "mypy>=1.10" "matplotlib>=3.5"
+      # numpy pinned again: a newer matplotlib would otherwise pull numpy 2. scipy 1.10 is
+      # Bookworm's (python3-scipy), for `map build`.
+      "${pip[@]}" install "numpy==1.24.*" "pytest>=7" "ruff>=0.4" "mypy>=1.10" "matplotlib>=3.5" "scipy==1.10.*"
     fi
   else
     "${pip[@]}" install --upgrade -e ".$extras"

@@ -1,4 +1,4 @@
-"""``pose-daemon bench {estimator,detector,pipeline,outputs,quality,ambiguity,map}``: benchmarks that print figures.
+"""``pose-daemon bench {estimator,detector,pipeline,outputs,quality,ambiguity,map,mapbuild}``: figures.
 
 Each benchmark is ``run_bench(...)`` (parameters in, report out) and ``print_report(report)``
 in ``pose_daemon/tools/bench_<name>.py``; this file holds their arguments.
@@ -20,6 +20,7 @@ BENCHES = {
     "map": "marker maps: floor-grid flights, the nested-pad descent, cost with 1/4/9 markers",
     "quality": "the quality sent to the autopilot against the pose's true error (rendered hovers)",
     "ambiguity": "mirror-pose flips per way of choosing the planar solution, and the gate on clutter",
+    "mapbuild": "map build on rendered walk-throughs: marker pose error, time to build, the daemon with the built map",
 }
 
 
@@ -71,6 +72,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p["map"].add_argument("--repeat", type=int, default=200, help="timed frames per cost row (default 200)")
     p["map"].add_argument("--seed", type=int, default=0, help="trajectory and noise seed")
     p["map"].add_argument("--json", action="store_true", help="print one JSON object instead of tables")
+    p["mapbuild"].add_argument("--seed", type=int, default=0, help="placement, walk and noise seed")
+    p["mapbuild"].add_argument(
+        "--validation-frames", type=int, default=300, help="frames of the flight that compares the maps (default 300)"
+    )
+    p["mapbuild"].add_argument("--json", action="store_true", help="print one JSON object instead of tables")
     p["quality"].add_argument(
         "--frames", type=int, default=150, metavar="N", help="hover frames per tilt and height (default 150)"
     )
@@ -104,6 +110,10 @@ def run(a: argparse.Namespace) -> int:
             "--frames and --descent-frames must be >= 2 and --repeat >= 1",
         )
         report = bench.run_bench(a.frames, a.descent_frames, a.repeat, a.seed, progress=not a.json)
+    elif a.bench == "mapbuild":
+        _check(a.validation_frames >= 10, f"--validation-frames must be at least 10, got {a.validation_frames}")
+        bench.require_scipy()
+        report = bench.run_bench(seed=a.seed, validation_frames=a.validation_frames, progress=not a.json)
     elif a.bench == "quality":
         _check(a.frames >= 1, f"--frames must be at least 1, got {a.frames}")
         report = bench.run_bench(a.frames, a.seed)

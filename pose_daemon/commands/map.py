@@ -1,0 +1,61 @@
+"""``pose-daemon map {build,check}``: survey a marker map from a walk-through, and check a map
+against a recording (a moved marker)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..geometry import MARKER_PLACEMENTS
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    parser = sub.add_parser("map", help="marker maps: survey one from a walk-through, check one", description=__doc__)
+    maps = parser.add_subparsers(dest="map_command", metavar="ACTION", required=True, parser_class=type(parser))
+    b = maps.add_parser("build", help="survey every marker's pose from walk-through recordings or image folders")
+    b.add_argument("sources", nargs="+", metavar="SOURCE", help="recording folders or folders of images")
+    b.add_argument("--config", metavar="FILE", help="TOML config whose [camera] is used when a source has none")
+    b.add_argument("--dictionary", required=True, help="OpenCV dictionary of the markers, e.g. DICT_4X4_50")
+    b.add_argument("--size", type=float, required=True, metavar="METRES", help="marker size (outer black border)")
+    b.add_argument("--sizes", metavar="ID=S,...", help="markers of other sizes, e.g. 3=0.15,7=0.30")
+    b.add_argument("--anchor", type=int, metavar="ID", help="marker whose frame is the map frame (default: lowest id)")
+    b.add_argument("--placement", choices=MARKER_PLACEMENTS, default="floor", help="the map's [map] placement")
+    b.add_argument("--out", type=Path, required=True, metavar="MAP.toml", help="the map file to write")
+    b.add_argument("--plot", type=Path, metavar="FILE", help="also draw the map from above with the camera path")
+    b.add_argument("--every", type=int, default=1, metavar="N", help="use every N-th frame (default 1: all)")
+    b.add_argument(
+        "--max-frames", type=int, default=600, metavar="N", help="frames in the joint solve at most (default 600)"
+    )
+    b.add_argument("--no-plane", action="store_true", help="leave the markers free of the anchor's plane")
+    b.set_defaults(func=run_build)
+    c = maps.add_parser("check", help="replay a recording against a map: residual per marker, moved markers")
+    c.add_argument("map", metavar="MAP.toml", help="a map file ([map] with [[map.markers]])")
+    c.add_argument("source", metavar="SOURCE", help="recording folder or folder of images")
+    c.add_argument("--config", metavar="FILE", help="TOML config whose [camera] is used when the source has none")
+    c.set_defaults(func=run_check)
+
+
+def run_build(a: argparse.Namespace) -> int:
+    from ..tools.map_survey import build
+
+    build(
+        a.sources,
+        dictionary=a.dictionary,
+        size_m=a.size,
+        sizes=a.sizes,
+        anchor=a.anchor,
+        placement=a.placement,
+        out=a.out,
+        plot=a.plot,
+        config=a.config,
+        every=a.every,
+        max_frames=a.max_frames,
+        plane=not a.no_plane,
+    )
+    return 0
+
+
+def run_check(a: argparse.Namespace) -> int:
+    from ..tools.map_survey import check
+
+    return check(a.map, a.source, a.config)

@@ -1,0 +1,826 @@
+"""Surveying a marker map from a walk-through: every marker's pose in one map frame.
+
+1. Observations: per frame, the corners of every marker found ({id: (4, 2) pixels}; the
+   caller detects them, tools/map_survey.py with detect/multi.MapDetector).
+2. Pairwise relative poses: each marker's own pose in each frame (OpenCV's IPPE for squares,
+   both planar solutions kept), T_a_b for every two markers seen in one frame (up to four
+   candidates), and across frames the candidate most frames agree on.
+3. A graph over markers: a maximum spanning tree (edge weight: frames that agree) from the
+   anchor puts every connected marker in the map frame; each frame's camera pose follows from
+   its markers (pose/map_solve.refine_pose over all their corners).
+4. One joint sparse robust least squares (scipy.optimize.least_squares, Huber loss in pixels,
+   the sparse Jacobian analytic) of all marker poses (the anchor held at its pose: the map
+   frame) and all camera poses over every corner observation. With ``plane`` the markers are
+   solved in the anchor's plane first (position x, y and a turn about z each, from the tree's
+   map laid flat: a chain of markers bends out of the plane in a free solve that is slow to
+   straighten), then freed as the yardstick: the plane is kept when the residuals allow it
+   (no marker's residual grows by much), else the free solve goes on to convergence.
+5. Observations that stay far off under the free solve are left out and both solves repeated.
+6. Uncertainty: the marker block of s^2 (J^T J)^-1 (the camera blocks eliminated by a Schur
+   complement), s^2 the residual variance.
+
+scipy is an off-vehicle extra (``pose-daemon[map]``); it is imported only here, in
+``require_scipy``.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from .camera import Camera
+from .errors import UserError
+from .geometry import R_from_rvec, euler_rpy_from_R, rot_z
+from .marker_map import MapMarker, MarkerMap
+from .pose.map_solve import refine_pose
+
+__all__ = [
+    "MISSING_SCIPY",
+    "require_scipy",
+    "PlacedMarker",
+    "MapBuild",
+    "build_map",
+    "rotations_from_rvecs",
+]
+
+MISSING_SCIPY = "map build needs scipy: pip install 'pose-daemon[map]'"
+
+#: A marker must be seen in at least this many frames to be placed.
+MIN_VIEWS = 5
+#: Two markers are joined in the graph when at least this many frames agree on their relative pose.
+MIN_PAIR_SUPPORT = 1
+#: Relative poses from two frames agree within this rotation (deg) and this position
+#: (metres, plus this fraction of the distance between the markers).
+AGREE_DEG = 10.0
+AGREE_M, AGREE_FRAC = 0.05, 0.10
+#: Frames per marker pair used for the consensus (evenly spaced when there are more).
+PAIR_FRAMES = 40
+#: Evaluations of the free solve that only checks whether the plane holds.
+FREE_CHECK_NFEV = 15
+#: Huber scale of the joint solve, pixels.
+HUBER_PX = 1.0
+#: An observation (one marker in one frame) whose RMS corner residual after the first solve is
+#: over this (pixels) and several times the median is left out.
+OUTLIER_PX = 3.0
+#: The plane is kept when no marker's RMS residual grows by more than this factor + this many
+#: pixels, and the whole solve's by no more than PLANE_TOTAL.
+PLANE_MARKER_FACTOR, PLANE_MARKER_PX, PLANE_TOTAL = 1.3, 0.05, 1.1
+
+
+def require_scipy() -> Any:
+    """scipy.optimize and scipy.sparse, or a UserError naming the missing extra."""
+    try:
+        import scipy.optimize
+        import scipy.sparse
+    except ImportError as exc:
+        raise UserError(MISSING_SCIPY) from exc
+    return scipy
+
+
+def rotations_from_rvecs(rvecs: np.ndarray) -> np.ndarray:
+    """Rotation matrices (n, 3, 3) of rotation vectors (n, 3) (Rodrigues, vectorised)."""
+    w = np.asarray(rvecs, dtype=np.float64).reshape(-1, 3)
+    theta = np.linalg.norm(w, axis=1)
+    small = theta < 1e-8
+    safe = np.where(small, 1.0, theta)
+    k = w / safe[:, None]
+    K = np.zeros((len(w), 3, 3))
+    K[:, 0, 1], K[:, 0, 2] = -k[:, 2], k[:, 1]
+    K[:, 1, 0], K[:, 1, 2] = k[:, 2], -k[:, 0]
+    K[:, 2, 0], K[:, 2, 1] = -k[:, 1], k[:, 0]
+    s = np.where(small, 0.0, np.sin(theta))[:, None, None]
+    c = np.where(small, 0.0, 1.0 - np.cos(theta))[:, None, None]
+    R = np.eye(3)[None] + s * K + c * (K @ K)
+    # First order for tiny angles: I + [w]x.
+    if small.any():
+        Wx = np.zeros((int(small.sum()), 3, 3))
+        ws = w[small]
+        Wx[:, 0, 1], Wx[:, 0, 2] = -ws[:, 2], ws[:, 1]
+        Wx[:, 1, 0], Wx[:, 1, 2] = ws[:, 2], -ws[:, 0]
+        Wx[:, 2, 0], Wx[:, 2, 1] = -ws[:, 1], ws[:, 0]
+        R[small] = np.eye(3)[None] + Wx
+    return R
+
+
+def _orthonormal(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    return R
+
+
+def _local_corners(size_m: float) -> np.ndarray:
+    h = size_m / 2.0
+    return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+
+
+@dataclass(frozen=True)
+class PlacedMarker:
+    """One surveyed marker: its pose in the map frame, the frames that saw it (in the solve),
+    its RMS corner residual and its standard deviations from the solve (position: the root of
+    the trace, metres; rotation: likewise, degrees)."""
+
+    id: int
+    size_m: float
+    position_m: Tuple[float, float, float]
+    R_map_marker: np.ndarray
+    views: int
+    rms_px: float
+    position_std_m: float
+    rotation_std_deg: float
+
+    @property
+    def rotation_deg(self) -> Tuple[float, float, float]:
+        r, p, y = euler_rpy_from_R(self.R_map_marker)
+        return (math.degrees(float(r)), math.degrees(float(p)), math.degrees(float(y)))
+
+    def map_marker(self) -> MapMarker:
+        return MapMarker(self.id, self.size_m, self.position_m, self.rotation_deg)
+
+
+@dataclass
+class MapBuild:
+    """What ``build_map`` found: the map, and the figures its report gives."""
+
+    marker_map: MarkerMap
+    anchor: int
+    placed: List[PlacedMarker]
+    #: id -> why it was not placed
+    unplaced: Dict[int, str]
+    rms_px: float
+    frames_total: int
+    frames_used: int
+    #: reason -> frame labels left out for it
+    frames_left_out: Dict[str, List[str]]
+    #: "kept", or why the markers were left free of the plane
+    plane: str
+    #: camera centre in the map frame (n, 3) of every frame in the solve, in frame order
+    camera_path_m: np.ndarray
+    #: seconds per stage: "pairs", "graph", "solve", "covariance"
+    stage_s: Dict[str, float] = field(default_factory=dict)
+    observations_used: int = 0
+
+
+# ----------------------------------------------------------------------------- pairs and graph
+
+
+def _single_poses(
+    observed: Dict[int, np.ndarray], camera: Camera, sizes: Dict[int, float]
+) -> Dict[int, List[Tuple[np.ndarray, np.ndarray, float]]]:
+    """Both planar solutions of each marker's own pose: id -> [(R_cam_marker, t, rms px)].
+
+    OpenCV's IPPE for squares (both solutions, through the lens): a start for the solve, where
+    the daemon's own estimator (a few ms a call in Python) would dominate the build time.
+    """
+    import cv2
+
+    out: Dict[int, List[Tuple[np.ndarray, np.ndarray, float]]] = {}
+    for marker_id, corners in observed.items():
+        obj = _local_corners(sizes[marker_id])
+        try:
+            n, rvecs, tvecs, errs = cv2.solvePnPGeneric(
+                obj, corners.reshape(4, 1, 2), camera._K, camera._dist, flags=cv2.SOLVEPNP_IPPE_SQUARE
+            )
+        except cv2.error:
+            continue
+        cands = []
+        for k in range(int(n)):
+            R = R_from_rvec(np.asarray(rvecs[k], dtype=np.float64).reshape(3))
+            t = np.asarray(tvecs[k], dtype=np.float64).reshape(3)
+            err = float(np.asarray(errs).ravel()[k]) if errs is not None else 0.0
+            if np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and t[2] > 0:
+                cands.append((R, t, err))
+        if cands:
+            out[marker_id] = cands
+    return out
+
+
+def _pair_consensus(
+    per_frame: List[List[Tuple[np.ndarray, np.ndarray, float]]], prefer_plane: bool
+) -> Optional[Tuple[np.ndarray, np.ndarray, int]]:
+    """The relative pose most frames agree on, averaged over them: (R_a_b, t_a_b, support).
+
+    Two candidates agree within AGREE_DEG and AGREE_M + AGREE_FRAC x distance. With
+    ``prefer_plane``, of the candidates nearly as well supported as the best (a pair seen only
+    from one side keeps both planar solutions consistent), the least tilted one wins.
+    """
+    if len(per_frame) > PAIR_FRAMES:
+        pick = np.linspace(0, len(per_frame) - 1, PAIR_FRAMES).round().astype(int)
+        per_frame = [per_frame[i] for i in pick]
+    frame_of = np.array([f for f, cands in enumerate(per_frame) for _ in cands], dtype=np.int64)
+    if not len(frame_of):
+        return None
+    R = np.array([c[0] for cands in per_frame for c in cands])
+    t = np.array([c[1] for cands in per_frame for c in cands])
+    err = np.array([c[2] for cands in per_frame for c in cands])
+    cos = np.clip((np.einsum("aij,bij->ab", R, R) - 1.0) / 2.0, -1.0, 1.0)
+    dist = np.linalg.norm(t[:, None, :] - t[None, :, :], axis=2)
+    tol = AGREE_M + AGREE_FRAC * np.linalg.norm(t, axis=1)
+    agree = (cos >= math.cos(math.radians(AGREE_DEG))) & (dist <= tol[:, None])
+    n_frames = len(per_frame)
+    by_frame = np.zeros((len(R), n_frames), dtype=bool)
+    for f in range(n_frames):
+        by_frame[:, f] = agree[:, frame_of == f].any(axis=1)
+    support = by_frame.sum(axis=1)
+    tilt = np.degrees(np.arccos(np.clip(R[:, 2, 2], -1.0, 1.0)))
+    if prefer_plane:
+        near = support >= max(int(support.max()) - 1, int(math.ceil(0.8 * support.max())))
+        score = np.where(near, -tilt, -np.inf)
+        best = int(np.lexsort((-err, score))[-1])
+    else:
+        best = int(np.lexsort((-err, support))[-1])
+    members = []
+    for f in range(n_frames):
+        idx = np.flatnonzero(agree[best] & (frame_of == f))
+        if len(idx):
+            members.append(int(idx[np.argmin(dist[best, idx])]))
+    R_mean = _orthonormal(R[members].sum(axis=0))
+    t_mean = t[members].mean(axis=0)
+    return R_mean, t_mean, len(members)
+
+
+def _relative_poses(
+    singles: List[Dict[int, List[Tuple[np.ndarray, np.ndarray, float]]]], prefer_plane: bool = False
+) -> Dict[Tuple[int, int], Tuple[np.ndarray, np.ndarray, int]]:
+    """(a, b) with a < b -> (R_a_b, t_a_b, frames that agree): X_a = R_a_b X_b + t_a_b."""
+    pairs: Dict[Tuple[int, int], List[List[Tuple[np.ndarray, np.ndarray, float]]]] = {}
+    for poses in singles:
+        ids = sorted(poses)
+        for i, a in enumerate(ids):
+            for b in ids[i + 1 :]:
+                cands = []
+                for Ra, ta, ea in poses[a]:
+                    for Rb, tb, eb in poses[b]:
+                        cands.append((Ra.T @ Rb, Ra.T @ (tb - ta), ea + eb))
+                pairs.setdefault((a, b), []).append(cands)
+    out = {}
+    for key, per_frame in pairs.items():
+        found = _pair_consensus(per_frame, prefer_plane)
+        if found is not None:
+            out[key] = found
+    return out
+
+
+def _spanning_tree(
+    anchor: int, relative: Dict[Tuple[int, int], Tuple[np.ndarray, np.ndarray, int]], candidates: Sequence[int]
+) -> Dict[int, Tuple[np.ndarray, np.ndarray]]:
+    """T_map_marker of every marker the maximum spanning tree from ``anchor`` reaches."""
+    edges: Dict[int, List[Tuple[int, np.ndarray, np.ndarray, int]]] = {i: [] for i in candidates}
+    for (a, b), (R, t, n) in relative.items():
+        if n < MIN_PAIR_SUPPORT or a not in edges or b not in edges:
+            continue
+        edges[a].append((b, R, t, n))  # X_a = R X_b + t
+        edges[b].append((a, R.T, -R.T @ t, n))
+    placed = {anchor: (np.eye(3), np.zeros(3))}
+    heap: List[Tuple[int, int, int, int]] = []
+    counter = 0
+    for j, _, _, n in edges[anchor]:
+        heapq.heappush(heap, (-n, counter, anchor, j))
+        counter += 1
+    while heap:
+        _, _, a, b = heapq.heappop(heap)
+        if b in placed:
+            continue
+        R_ab, t_ab = next((R, t) for j, R, t, _ in edges[a] if j == b)
+        Ra, pa = placed[a]
+        placed[b] = (Ra @ R_ab, Ra @ t_ab + pa)
+        for j, _, _, n in edges[b]:
+            if j not in placed:
+                heapq.heappush(heap, (-n, counter, b, j))
+                counter += 1
+    return placed
+
+
+def _camera_start(
+    camera: Camera,
+    observed: Dict[int, np.ndarray],
+    poses: Dict[int, List[Tuple[np.ndarray, np.ndarray, float]]],
+    markers: Dict[int, Tuple[np.ndarray, np.ndarray]],
+    sizes: Dict[int, float],
+) -> Optional[Tuple[np.ndarray, np.ndarray, float]]:
+    """(R_cam_map, t, RMS px) of one frame from its placed markers, or None."""
+    ids = [i for i in sorted(observed) if i in markers]
+    if not ids:
+        return None
+    obj = np.vstack([_local_corners(sizes[i]) @ markers[i][0].T + markers[i][1] for i in ids])
+    img = np.vstack([observed[i] for i in ids])
+    best = None
+    for i in ids:
+        Rm, pm = markers[i]
+        for Rc, tc, _ in poses.get(i, []):
+            R = Rc @ Rm.T
+            t = tc - R @ pm
+            pts = obj @ R.T + t
+            if not np.all(pts[:, 2] > 1e-6):
+                continue
+            d2 = np.sum((camera.project(pts) - img) ** 2, axis=1)
+            cost = float(np.minimum(d2, 36.0).sum())
+            if best is None or cost < best[0]:
+                best = (cost, R, t)
+    if best is None:
+        return None
+    R, t, sse, _ = refine_pose(camera, obj, img, best[1], best[2])
+    return R, t, math.sqrt(sse / len(img))
+
+
+# ----------------------------------------------------------------------------- the joint solve
+
+
+class _Problem:
+    """Corner observations and the parameter layout of the joint solve.
+
+    Markers (anchor excluded): free, 6 parameters (rotation increment w, position p) with
+    R = exp(w) R0; planar, 3 (x, y, yaw) with R = Rz(yaw), z = 0. Cameras: 6 (rotation
+    increment, translation), R_cam_map = exp(w) R0.
+    """
+
+    def __init__(
+        self,
+        camera: Camera,
+        obs_cam: np.ndarray,
+        obs_marker: np.ndarray,
+        obs_img: np.ndarray,
+        local: np.ndarray,
+        anchor_index: int,
+        n_markers: int,
+        n_cams: int,
+        planar: bool,
+    ) -> None:
+        self.camera = camera
+        self.obs_cam, self.obs_marker, self.obs_img, self.local = obs_cam, obs_marker, obs_img, local
+        self.anchor_index = anchor_index
+        self.n_markers, self.n_cams = n_markers, n_cams
+        self.planar = planar
+        self.mp = 3 if planar else 6
+        # Column of each marker's block (-1: the anchor, held fixed).
+        col = np.full(n_markers, -1, dtype=np.int64)
+        k = 0
+        for i in range(n_markers):
+            if i != anchor_index:
+                col[i] = k
+                k += self.mp
+        self.marker_col = col
+        self.n_marker_params = k
+        self.n_params = k + 6 * n_cams
+
+    def _columns(self) -> Tuple[np.ndarray, np.ndarray]:
+        """Column of each observation's camera block and marker block (-1: the anchor)."""
+        return self.n_marker_params + 6 * self.obs_cam, self.marker_col[self.obs_marker]
+
+    def jacobian(self, Rm: np.ndarray, pm: np.ndarray, Rc: np.ndarray, tc: np.ndarray) -> Any:
+        """The residuals' sparse Jacobian (8 rows per observation), through the lens.
+
+        Rotations are increments on the left (R = exp(w) R0), so d(R X)/dw = -[R X]x; the
+        lens' d(pixel)/d(X_cam) is cv2.projectPoints' Jacobian with respect to its tvec.
+        """
+        import cv2
+        import scipy.sparse
+
+        n_obs = len(self.obs_cam)
+        if n_obs == 0:
+            return scipy.sparse.csr_matrix((0, self.n_params))
+        RL = np.einsum("nij,nkj->nki", Rm[self.obs_marker], self.local)  # (n, 4, 3)
+        X_map = RL + pm[self.obs_marker][:, None, :]
+        Rco = Rc[self.obs_cam]
+        X_cam = np.einsum("nij,nkj->nki", Rco, X_map) + tc[self.obs_cam][:, None, :]
+        z = X_cam[..., 2:3]
+        X_cam = np.where(z > 1e-3, X_cam, np.concatenate([X_cam[..., :2], np.full_like(z, 1e-3)], axis=-1))
+        _, J = cv2.projectPoints(
+            np.ascontiguousarray(X_cam.reshape(-1, 3)), np.zeros(3), np.zeros(3), self.camera._K, self.camera._dist
+        )
+        D = J[:, 3:6].reshape(n_obs, 4, 2, 3)
+        rot_part = X_cam - tc[self.obs_cam][:, None, :]  # Rc X_map
+        cam_block = np.concatenate([-D @ _skew(rot_part), D], axis=-1)  # (n, 4, 2, 6)
+        DR = D @ Rco[:, None, :, :]  # (n, 4, 2, 3): d pixel / d X_map
+        if self.planar:
+            ez_cross = np.stack([-RL[..., 1], RL[..., 0], np.zeros_like(RL[..., 0])], axis=-1)
+            mk_block = np.concatenate([DR[..., 0:1], DR[..., 1:2], (DR @ ez_cross[..., None])], axis=-1)
+        else:
+            mk_block = np.concatenate([-DR @ _skew(RL), DR], axis=-1)
+        rows = np.arange(8 * n_obs).reshape(n_obs, 4, 2)
+        cam_col, mk_col = self._columns()
+        r_c = np.broadcast_to(rows[..., None], cam_block.shape)
+        c_c = np.broadcast_to((cam_col[:, None, None, None] + np.arange(6)), cam_block.shape)
+        free = mk_col >= 0
+        r_m = np.broadcast_to(rows[free][..., None], mk_block[free].shape)
+        c_m = np.broadcast_to((mk_col[free][:, None, None, None] + np.arange(self.mp)), mk_block[free].shape)
+        data = np.concatenate([cam_block.ravel(), mk_block[free].ravel()])
+        rr = np.concatenate([r_c.ravel(), r_m.ravel()])
+        cc = np.concatenate([c_c.ravel(), c_m.ravel()])
+        return scipy.sparse.coo_matrix((data, (rr, cc)), shape=(8 * n_obs, self.n_params)).tocsr()
+
+    def markers_from(self, x: np.ndarray, R0: np.ndarray, p0: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """(R_map_marker (n, 3, 3), p (n, 3)) of every marker for parameters ``x``."""
+        R = R0.copy()
+        p = p0.copy()
+        idx = np.array([i for i in range(self.n_markers) if i != self.anchor_index], dtype=np.int64)
+        if len(idx):
+            block = x[: self.n_marker_params].reshape(len(idx), self.mp)
+            if self.planar:
+                c, s = np.cos(block[:, 2]), np.sin(block[:, 2])
+                Rz = np.zeros((len(idx), 3, 3))
+                Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
+                R[idx] = Rz
+                p[idx] = np.column_stack([block[:, 0], block[:, 1], np.zeros(len(idx))])
+            else:
+                R[idx] = rotations_from_rvecs(block[:, :3]) @ R0[idx]
+                p[idx] = p0[idx] + block[:, 3:]
+        return R, p
+
+    def cameras_from(self, x: np.ndarray, Rc0: np.ndarray, tc0: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        block = x[self.n_marker_params :].reshape(self.n_cams, 6)
+        return rotations_from_rvecs(block[:, :3]) @ Rc0, tc0 + block[:, 3:]
+
+    def residuals(self, Rm: np.ndarray, pm: np.ndarray, Rc: np.ndarray, tc: np.ndarray) -> np.ndarray:
+        """(n_obs, 4, 2) pixel residuals."""
+        if len(self.obs_cam) == 0:
+            return np.zeros((0, 4, 2))
+        X_map = np.einsum("nij,nkj->nki", Rm[self.obs_marker], self.local) + pm[self.obs_marker][:, None, :]
+        X_cam = np.einsum("nij,nkj->nki", Rc[self.obs_cam], X_map) + tc[self.obs_cam][:, None, :]
+        # Behind the camera: a large residual, never a projection through the lens' far side.
+        z = X_cam[..., 2:3]
+        X_cam = np.where(z > 1e-3, X_cam, np.concatenate([X_cam[..., :2], np.full_like(z, 1e-3)], axis=-1))
+        proj = self.camera.project(X_cam.reshape(-1, 3)).reshape(-1, 4, 2)
+        return proj - self.obs_img
+
+
+def _skew(a: np.ndarray) -> np.ndarray:
+    """[a]x of vectors (..., 3) as (..., 3, 3)."""
+    K = np.zeros(a.shape + (3,))
+    K[..., 0, 1], K[..., 0, 2] = -a[..., 2], a[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = a[..., 2], -a[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -a[..., 1], a[..., 0]
+    return K
+
+
+def _schur_marker_covariance(J: Any, n_marker_params: int, n_cams: int, s2: float) -> np.ndarray:
+    """Marker block of s2 (J^T J)^-1, the camera blocks (6 x 6 each) eliminated."""
+    J = J.tocsc()
+    Jm = J[:, :n_marker_params]
+    Jc = J[:, n_marker_params:]
+    Hmm = (Jm.T @ Jm).toarray()
+    Hmc = (Jm.T @ Jc).toarray()
+    Hcc = (Jc.T @ Jc).tocoo()
+    keep = (Hcc.row // 6) == (Hcc.col // 6)
+    blocks = np.zeros((n_cams, 6, 6))
+    np.add.at(blocks, (Hcc.row[keep] // 6, Hcc.row[keep] % 6, Hcc.col[keep] % 6), Hcc.data[keep])
+    blocks += 1e-12 * np.eye(6)[None]
+    inv = np.linalg.inv(blocks)
+    HmcB = np.einsum("mki,kij->mkj", Hmc.reshape(n_marker_params, n_cams, 6), inv).reshape(n_marker_params, -1)
+    S = Hmm - HmcB @ Hmc.T
+    try:
+        return s2 * np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        return np.full_like(S, np.inf)
+
+
+def build_map(
+    observations: Sequence[Dict[int, np.ndarray]],
+    camera: Camera,
+    dictionary: str,
+    sizes: Dict[int, float],
+    *,
+    default_size_m: float,
+    anchor: Optional[int] = None,
+    placement: str = "floor",
+    plane: bool = True,
+    labels: Optional[Sequence[str]] = None,
+    max_frames: int = 600,
+    min_views: int = MIN_VIEWS,
+) -> MapBuild:
+    """Every marker's pose in the anchor's frame from per-frame corners (see the module).
+
+    ``observations``: one {id: (4, 2) pixels TL, TR, BR, BL} per frame, in frame order;
+    ``sizes``: the markers whose size is not ``default_size_m``; ``anchor``: the marker whose
+    frame is the map frame (default: the lowest id that can be placed); ``labels``: one name
+    per frame for the report; ``max_frames``: frames in the joint solve at most (evenly
+    spaced over those that see two or more placed markers). UserError when nothing can be
+    placed or the anchor cannot be.
+    """
+    scipy = require_scipy()
+
+    stage: Dict[str, float] = {}
+    t0 = time.perf_counter()
+    n_frames = len(observations)
+    labels = list(labels) if labels is not None else [f"frame {i}" for i in range(n_frames)]
+    obs = [{int(i): np.asarray(c, dtype=np.float64).reshape(4, 2) for i, c in o.items()} for o in observations]
+
+    def size_of(i: int) -> float:
+        return float(sizes.get(i, default_size_m))
+
+    all_sizes = {i: size_of(i) for o in obs for i in o}
+    views: Dict[int, int] = {}
+    for o in obs:
+        for i in o:
+            views[i] = views.get(i, 0) + 1
+    if not views:
+        raise UserError("no marker of the dictionary was found in any frame")
+    unplaced: Dict[int, str] = {}
+    for i, n in sorted(views.items()):
+        if n < min_views:
+            unplaced[i] = f"seen in {n} frame{'s' if n != 1 else ''} (needs {min_views})"
+    candidates = sorted(i for i in views if i not in unplaced)
+    if anchor is not None:
+        if anchor not in views:
+            raise UserError(f"anchor marker {anchor} was not seen in any frame (seen: {_id_list(sorted(views))})")
+        if anchor in unplaced:
+            raise UserError(f"anchor marker {anchor} was {unplaced[anchor]}: choose another --anchor")
+    if not candidates:
+        raise UserError(f"no marker was seen in {min_views} frames or more: " + _reasons(unplaced))
+    # Frames with one candidate marker join nothing: no single poses for them.
+    singles = [
+        _single_poses({i: c for i, c in o.items() if i in candidates}, camera, all_sizes)
+        if sum(1 for i in o if i in candidates) >= 2
+        else {}
+        for o in obs
+    ]
+    relative = _relative_poses(singles, plane)
+    stage["pairs"] = time.perf_counter() - t0
+
+    t1 = time.perf_counter()
+    # The anchor: as asked, else the lowest id whose tree reaches the most markers.
+    if anchor is None:
+        best_tree: Optional[Dict[int, Tuple[np.ndarray, np.ndarray]]] = None
+        for i in candidates:
+            tree = _spanning_tree(i, relative, candidates)
+            if best_tree is None or len(tree) > len(best_tree):
+                best_tree, anchor = tree, i
+            if len(tree) == len(candidates):
+                break
+        assert best_tree is not None and anchor is not None
+        tree = best_tree
+    else:
+        tree = _spanning_tree(anchor, relative, candidates)
+    for i in candidates:
+        if i not in tree:
+            partners = sorted({b if a == i else a for (a, b), v in relative.items() if i in (a, b)})
+            if any(p in tree for p in partners):
+                unplaced[i] = "seen with placed markers, but too few frames agree on where it is"
+            else:
+                unplaced[i] = "never seen in one frame together with a placed marker"
+    if len(tree) < 1:
+        raise UserError("no marker could be placed")
+    marker_ids = sorted(tree)
+    index = {m: k for k, m in enumerate(marker_ids)}
+    R0 = np.array([tree[m][0] for m in marker_ids])
+    p0 = np.array([tree[m][1] for m in marker_ids])
+
+    # Frames: those that see two or more placed markers, evenly thinned to max_frames.
+    left_out: Dict[str, List[str]] = {}
+    eligible = []
+    for f, o in enumerate(obs):
+        n = sum(1 for i in o if i in tree)
+        if n >= 2:
+            eligible.append(f)
+        else:
+            why = "no placed marker in view" if n == 0 else "only one placed marker in view"
+            left_out.setdefault(why, []).append(labels[f])
+    if len(eligible) > max_frames:
+        pick = set(np.linspace(0, len(eligible) - 1, max_frames).round().astype(int).tolist())
+        thinned = [f for k, f in enumerate(eligible) if k not in pick]
+        eligible = [f for k, f in enumerate(eligible) if k in pick]
+        left_out[f"thinned to {max_frames} frames for the solve"] = [labels[f] for f in thinned]
+    if not eligible and len(marker_ids) > 1:
+        raise UserError("no frame sees two placed markers: nothing joins them")
+    cams = []
+    Rc0_list, tc0_list = [], []
+    markers_T = {m: tree[m] for m in marker_ids}
+    for f in eligible:
+        start = _camera_start(camera, obs[f], singles[f], markers_T, all_sizes)
+        if start is None:
+            left_out.setdefault("no camera pose from its markers", []).append(labels[f])
+            continue
+        cams.append(f)
+        Rc0_list.append(start[0])
+        tc0_list.append(start[1])
+    stage["graph"] = time.perf_counter() - t1
+
+    t2 = time.perf_counter()
+    Rc0 = np.array(Rc0_list).reshape(-1, 3, 3)
+    tc0 = np.array(tc0_list).reshape(-1, 3)
+    obs_cam_l, obs_marker_l, obs_img_l, local_l, obs_frame_l = [], [], [], [], []
+    for k, f in enumerate(cams):
+        for i in sorted(obs[f]):
+            if i in index:
+                obs_cam_l.append(k)
+                obs_marker_l.append(index[i])
+                obs_img_l.append(obs[f][i])
+                local_l.append(_local_corners(all_sizes[i]))
+                obs_frame_l.append(f)
+    keep_obs = np.ones(len(obs_cam_l), dtype=bool)
+    obs_cam = np.array(obs_cam_l, dtype=np.int64)
+    obs_marker = np.array(obs_marker_l, dtype=np.int64)
+    obs_img = np.array(obs_img_l).reshape(-1, 4, 2)
+    local = np.array(local_l).reshape(-1, 4, 3)
+    obs_frame = np.array(obs_frame_l, dtype=np.int64)
+    anchor_index = index[anchor]
+
+    def solve(planar: bool, Rm0, pm0, Rcs, tcs, mask, max_nfev=50):
+        prob = _Problem(
+            camera,
+            obs_cam[mask],
+            obs_marker[mask],
+            obs_img[mask],
+            local[mask],
+            anchor_index,
+            len(marker_ids),
+            len(cams),
+            planar,
+        )
+        if planar:
+            x0m = []
+            for i in range(len(marker_ids)):
+                if i != anchor_index:
+                    yaw = math.atan2(Rm0[i][1, 0], Rm0[i][0, 0])
+                    x0m += [pm0[i][0], pm0[i][1], yaw]
+            x0 = np.concatenate([np.array(x0m), np.zeros(6 * len(cams))])
+            Rm_base = np.array(Rm0)
+            Rm_base[anchor_index] = np.eye(3)
+        else:
+            x0 = np.zeros(prob.n_params)
+            Rm_base = Rm0
+
+        def fun(x):
+            Rm, pm = prob.markers_from(x, Rm_base, pm0)
+            Rc, tc = prob.cameras_from(x, Rcs, tcs)
+            return prob.residuals(Rm, pm, Rc, tc).ravel()
+
+        def jac(x):
+            Rm, pm = prob.markers_from(x, Rm_base, pm0)
+            Rc, tc = prob.cameras_from(x, Rcs, tcs)
+            return prob.jacobian(Rm, pm, Rc, tc)
+
+        if prob.n_params == 0 or len(prob.obs_cam) == 0:
+            return prob, x0, Rm_base, None
+        res = scipy.optimize.least_squares(
+            fun,
+            x0,
+            jac=jac,
+            tr_solver="lsmr",
+            tr_options={"atol": 1e-12, "btol": 1e-12},
+            loss="huber",
+            f_scale=HUBER_PX,
+            x_scale="jac",
+            method="trf",
+            max_nfev=max_nfev,
+            xtol=1e-8,
+            ftol=1e-6,
+        )
+        return prob, res.x, Rm_base, res
+
+    def run(planar, Rm0, pm0, Rcs, tcs, mask, max_nfev=50):
+        """One solve from (markers, cameras); the state after it."""
+        prob, x, Rm_base, res = solve(planar, Rm0, pm0, Rcs, tcs, mask, max_nfev)
+        Rm, pm = prob.markers_from(x, Rm_base, pm0)
+        Rc, tc = prob.cameras_from(x, Rcs, tcs)
+        return (prob, x, Rm_base, res, Rm, pm, Rc, tc)
+
+    def marker_rms(state):
+        prob_, _, _, _, Rm_, pm_, Rc_, tc_ = state
+        r = prob_.residuals(Rm_, pm_, Rc_, tc_)
+        d2 = np.sum(r**2, axis=2).mean(axis=1)
+        per = np.array(
+            [
+                math.sqrt(float(d2[prob_.obs_marker == m].mean())) if np.any(prob_.obs_marker == m) else 0.0
+                for m in range(len(marker_ids))
+            ]
+        )
+        return per, math.sqrt(float(d2.mean())) if len(d2) else 0.0
+
+    def both(start_planar, free_from_planar, mask):
+        """(planar state or None, free state)."""
+        planar_state = None
+        if start_planar is not None:
+            planar_state = run(True, *start_planar, mask)
+            # Only the yardstick of the plane (continued below if the plane is not kept).
+            free_state = run(False, *planar_state[4:], mask, FREE_CHECK_NFEV)
+        else:
+            free_state = run(False, *free_from_planar, mask)
+        return planar_state, free_state
+
+    use_plane = plane and len(marker_ids) > 1
+    planar_start = None
+    if use_plane:
+        # The plane first, from the tree's map laid flat (a chain of markers bends out of the
+        # plane in a free solve that is slow to straighten), with camera starts on that map.
+        yaw = np.arctan2(R0[:, 1, 0], R0[:, 0, 0])
+        Rp0 = np.array([rot_z(float(v)) for v in yaw])
+        pp0 = p0.copy()
+        pp0[:, 2] = 0.0
+        Rp0[anchor_index], pp0[anchor_index] = np.eye(3), 0.0
+        flat = {m: (Rp0[k], pp0[k]) for k, m in enumerate(marker_ids)}
+        Rcp, tcp = Rc0.copy(), tc0.copy()
+        for k, f in enumerate(cams):
+            start = _camera_start(camera, obs[f], singles[f], flat, all_sizes)
+            if start is not None:
+                Rcp[k], tcp[k] = start[0], start[1]
+        planar_start = (Rp0, pp0, Rcp, tcp)
+    planar_state, free_state = both(planar_start, (R0, p0, Rc0, tc0), keep_obs)
+    # Outliers by the free solve (the plane might not hold), then both again without them.
+    prob_f, _, _, _, Rm, pm, Rc, tc = free_state
+    full = _Problem(camera, obs_cam, obs_marker, obs_img, local, anchor_index, len(marker_ids), len(cams), False)
+    per_obs = np.sqrt(np.mean(np.sum(full.residuals(Rm, pm, Rc, tc) ** 2, axis=2), axis=1))
+    limit = max(OUTLIER_PX, 5.0 * float(np.median(per_obs))) if len(per_obs) else OUTLIER_PX
+    keep_obs = per_obs <= limit
+    if (~keep_obs).any():
+        for f in sorted(set(obs_frame[~keep_obs].tolist())):
+            left_out.setdefault(
+                f"a marker's corners off by more than {limit:.1f} px (that marker left out)", []
+            ).append(labels[f])
+        planar_state, free_state = both(
+            planar_state[4:] if planar_state is not None else None, free_state[4:], keep_obs
+        )
+    free_per, free_rms = marker_rms(free_state)
+    plane_note = "not asked"
+    chosen = free_state
+    if planar_state is not None:
+        plane_per, plane_rms = marker_rms(planar_state)
+        worst = int(np.argmax(plane_per - (PLANE_MARKER_FACTOR * free_per + PLANE_MARKER_PX)))
+        fits = bool(np.all(plane_per <= PLANE_MARKER_FACTOR * free_per + PLANE_MARKER_PX)) and (
+            plane_rms <= PLANE_TOTAL * free_rms + 0.02
+        )
+        if fits:
+            plane_note = "kept"
+            chosen = planar_state
+        else:
+            plane_note = (
+                f"not kept: in one plane marker {marker_ids[worst]}'s residual grows from "
+                f"{free_per[worst]:.2f} to {plane_per[worst]:.2f} px (RMS {free_rms:.2f} -> {plane_rms:.2f} px)"
+            )
+            _, _, _, _, Rm_f, pm_f, Rc_f, tc_f = free_state
+            chosen = run(False, Rm_f, pm_f, Rc_f, tc_f, keep_obs)
+    prob, x, Rm_base, res, Rm, pm, Rc, tc = chosen
+    per_marker, rms = marker_rms(chosen)
+    stage["solve"] = time.perf_counter() - t2
+
+    t3 = time.perf_counter()
+    n_res = 8 * len(prob.obs_cam)
+    stds = np.zeros((len(marker_ids), 2))
+    if res is not None and prob.n_marker_params:
+        dof = max(n_res - prob.n_params, 1)
+        s2 = max(2.0 * float(res.cost) / dof, 1e-12)
+        cov = _schur_marker_covariance(res.jac, prob.n_marker_params, len(cams), s2)
+        for m in range(len(marker_ids)):
+            c = prob.marker_col[m]
+            if c < 0:
+                continue
+            block = cov[c : c + prob.mp, c : c + prob.mp]
+            if prob.planar:
+                stds[m] = (
+                    math.sqrt(max(block[0, 0] + block[1, 1], 0.0)),
+                    math.degrees(math.sqrt(max(block[2, 2], 0.0))),
+                )
+            else:
+                stds[m] = (
+                    math.sqrt(max(float(np.trace(block[3:, 3:])), 0.0)),
+                    math.degrees(math.sqrt(max(float(np.trace(block[:3, :3])), 0.0))),
+                )
+    stage["covariance"] = time.perf_counter() - t3
+
+    views_used = np.bincount(prob.obs_marker, minlength=len(marker_ids))
+    placed = [
+        PlacedMarker(
+            id=m,
+            size_m=all_sizes[m],
+            position_m=(float(pm[k][0]), float(pm[k][1]), float(pm[k][2])),
+            R_map_marker=Rm[k],
+            views=int(views_used[k]),
+            rms_px=float(per_marker[k]),
+            position_std_m=float(stds[k][0]),
+            rotation_std_deg=float(stds[k][1]),
+        )
+        for k, m in enumerate(marker_ids)
+    ]
+    if not all(np.all(np.isfinite(p.R_map_marker)) and np.all(np.isfinite(p.position_m)) for p in placed):
+        raise UserError("the map solve did not converge to finite marker poses")
+    marker_map = MarkerMap(dictionary, tuple(p.map_marker() for p in placed), placement)
+    path = np.array([-Rc[k].T @ tc[k] for k in range(len(cams))]).reshape(-1, 3)
+    return MapBuild(
+        marker_map=marker_map,
+        anchor=int(anchor),
+        placed=placed,
+        unplaced=dict(sorted(unplaced.items())),
+        rms_px=float(rms),
+        frames_total=n_frames,
+        frames_used=len(cams),
+        frames_left_out=left_out,
+        plane=plane_note,
+        camera_path_m=path,
+        stage_s=stage,
+        observations_used=int(len(prob.obs_cam)),
+    )
+
+
+def _id_list(ids: Sequence[int]) -> str:
+    return ", ".join(str(i) for i in ids[:20]) + (" ..." if len(ids) > 20 else "")
+
+
+def _reasons(unplaced: Dict[int, str]) -> str:
+    return "; ".join(f"{i}: {why}" for i, why in list(unplaced.items())[:10])
