@@ -78,7 +78,8 @@ def test_attitude_picks_the_right_solution_where_the_estimator_flips(placement, 
     heading = HeadingReference()
     raw_wrong = chosen_wrong = withheld = hopeless = 0
     errors = []
-    for frames, R_lb, R_cm, corners in _views(placement, 200, seed=7):
+    unresolved = []
+    for i, (frames, R_lb, R_cm, corners) in enumerate(_views(placement, 200, seed=7)):
         pose = estimate_pose(corners, CAMERA, MARKER)
         raw_wrong += rotation_angle_deg_3x3(pose.R, R_cm) > 10
         r, p, y = (float(v) for v in euler_rpy_from_R(R_lb))
@@ -96,6 +97,10 @@ def test_attitude_picks_the_right_solution_where_the_estimator_flips(placement, 
             camera=CAMERA,
             marker=MARKER,
         )
+        if choice.withheld == "unresolved":
+            # A wall marker before its heading reference is known (the first few frames only).
+            unresolved.append(i)
+            continue
         if choice.pose is None:
             withheld += 1
             continue
@@ -108,6 +113,10 @@ def test_attitude_picks_the_right_solution_where_the_estimator_flips(placement, 
             chosen_wrong += error > 10
     assert raw_wrong >= 80, raw_wrong  # 20-30 px markers: the estimator alone flips half the time
     assert heading.offset_rad == pytest.approx(-1.0, abs=math.radians(2))
+    if placement == "floor":
+        assert unresolved == []  # a floor marker's heading is its image's turn about the optical axis
+    else:
+        assert 1 <= len(unresolved) <= 6 and unresolved == list(range(len(unresolved))), unresolved
     if polish:
         # Pulled towards the attitude's down and heading, even hopeless frames come out right.
         assert sum(e > 10 for e in errors) <= 4 and withheld == 0, (raw_wrong, errors, withheld)
@@ -243,3 +252,42 @@ def test_a_long_rectangle_that_fits_an_oblique_square_is_gated_by_the_view_angle
         by_continuity=_keep,
     )
     assert anyway.pose is not None
+
+
+def test_a_wall_markers_first_frames_wait_for_the_heading_reference_instead_of_flipping():
+    """Issue 11's wall flips with attitude: roll and pitch cannot see a wall marker's turn about
+    the vertical, and at 0.3 px on 20-30 px markers the image alone puts the heading 5-7 deg
+    (1 sigma) off, so until the heading reference is known every frame was a coin toss (the
+    bench's flips at the wall were all in a flight's first 50 frames). Now a frame is
+    ``unresolved`` (not sent) until the reference has a few samples, and the reference is used,
+    with its own sigma, from then on: over several flights' first 30 frames hardly any flip."""
+    settings = PriorSettings(polish=True)
+    sent = flips = unresolved = 0
+    for seed in range(8):
+        heading = HeadingReference()
+        for frames, R_lb, R_cm, corners in _views("wall", 30, seed=100 + seed):
+            pose = estimate_pose(corners, CAMERA, MARKER)
+            r, p, y = (float(v) for v in euler_rpy_from_R(R_lb))
+            att = Attitude((r, p, y + 0.7), math.radians(0.5))
+            choice = choose_solution(
+                pose,
+                frames,
+                attitude=att,
+                settings=settings,
+                side_px=_side(corners),
+                by_continuity=_keep,
+                heading=heading,
+                corners_px=corners,
+                camera=CAMERA,
+                marker=MARKER,
+            )
+            if choice.withheld == "unresolved":
+                unresolved += 1
+                assert heading.reference() is None or len(heading._samples) <= heading.min_samples
+                continue
+            if choice.pose is None:
+                continue
+            sent += 1
+            flips += rotation_angle_deg_3x3(choice.pose.R, R_cm) > 10
+    assert sent >= 0.8 * 8 * 30, (sent, unresolved)
+    assert flips <= 0.01 * sent, (flips, sent, unresolved)

@@ -41,6 +41,7 @@ __all__ = [
     "RESOLVED_BY",
     "choose_solution",
     "gate_bound_px",
+    "heading_unseen_by_down",
     "polish_toward",
     "polish_toward_down",
 ]
@@ -51,6 +52,9 @@ __all__ = [
 #   "continuity": both were possible; the track's previous poses chose (at a track's first
 #                 frame, the better fit)
 #   "clear":      only one solution fits the corners (or both are the same pose)
+# Choice.withheld: "gated" (the corners fit no marker), "inconsistent" (no solution agrees with
+# the attitude or the tilt bound), "unresolved" (a wall marker with attitude before its heading
+# reference is known: roll and pitch cannot tell its solutions apart, see HeadingReference).
 RESOLVED_BY = ("attitude", "tilt", "continuity", "clear")
 # Two solutions closer than this are one pose: nothing to choose (a face-on view).
 SAME_POSE_DEG = 5.0
@@ -62,6 +66,9 @@ POLISH_BOTH_BELOW = 25.0
 MIN_PRIOR_SIGMA_DEG = 0.25
 # The vision side's own share of the error in the down direction (small markers), degrees.
 VISION_DOWN_SIGMA_DEG = 1.0
+# A marker whose normal is further than this from the vertical (a wall marker): a turn about the
+# vertical, which roll and pitch cannot see, is one of the directions its image shows worst.
+HEADING_UNSEEN_FROM_VERTICAL_DEG = 45.0
 
 
 @dataclass(frozen=True)
@@ -96,7 +103,7 @@ class PriorSettings:
 @dataclass(frozen=True)
 class Choice:
     """The outcome for one frame: ``pose`` to send with ``resolved_by``, or ``withheld``
-    ("inconsistent" or "gated") with ``reason``. ``down_error_deg``: the chosen pose's
+    ("inconsistent", "gated" or "unresolved") with ``reason``. ``down_error_deg``: the chosen pose's
     angle to the attitude's down (with attitude) or its tilt (tilt prior), else None."""
 
     pose: Optional[Pose]
@@ -249,9 +256,16 @@ class HeadingReference:
     the heading, or two the down direction told apart with a wide margin), it lets the yaw
     decide too: a wall marker's left/right ambiguity turns about the vertical, which roll and
     pitch cannot see. ``offset_rad`` is None until ``min_samples`` give it to ``max_sigma_deg``.
+
+    It is used from its fourth sample on, with its own sigma (the samples' spread over the root
+    of their number) as the heading term's weight: on 20-40 px markers with 0.3 px of corner
+    noise a wall marker's heading from the image alone is 5-7 deg (1 sigma) off, so every frame
+    that waited for a reference known to 2 deg (8+ samples) was a coin toss; a reference from 4
+    samples already halves that error, and each later frame sharpens it (with 3 the spread of
+    so few samples was sometimes too small, and the pull too strong, in the bench's flights).
     """
 
-    def __init__(self, *, window: int = 60, min_samples: int = 8, max_sigma_deg: float = 2.0) -> None:
+    def __init__(self, *, window: int = 60, min_samples: int = 4, max_sigma_deg: float = 10.0) -> None:
         self._samples: Deque[float] = collections.deque(maxlen=window)
         self.min_samples, self.max_sigma_deg = int(min_samples), float(max_sigma_deg)
         self._cached: Optional[Tuple[float, float]] = None
@@ -313,6 +327,14 @@ class HeadingReference:
         """The offset's own uncertainty: the samples' spread over the root of their number."""
         ready = self._ready()
         return ready[1] if ready is not None else None
+
+
+def heading_unseen_by_down(frames: VehicleFrames) -> bool:
+    """Whether the marker's normal is more than HEADING_UNSEEN_FROM_VERTICAL_DEG from the
+    vertical (a wall marker): then a turn about the vertical tilts its normal, the direction a
+    small marker's image shows worst, and roll and pitch cannot see it."""
+    cos_normal_vertical = abs(float(frames.R_local_marker[2][2]))
+    return cos_normal_vertical < math.cos(math.radians(HEADING_UNSEEN_FROM_VERTICAL_DEG))
 
 
 def decisive_polish(cost: List[float], best: int, other: int) -> bool:
@@ -504,6 +526,16 @@ def _choose_by_attitude(
     ):
         # The heading of this frame is known without the heading prior: learn from it.
         heading.observe(_body_yaw(frames, candidates[best]), yaw)
+
+    if heading is not None and reference is None and heading_unseen_by_down(frames):
+        # A wall marker's mirror solution (and its noise) turns about the vertical: until the
+        # heading reference is known, roll and pitch cannot say which is right. The frame still
+        # taught the reference (above); it is not sent.
+        return Choice(
+            None,
+            withheld="unresolved",
+            reason="the heading reference is not known yet: roll and pitch cannot choose for a wall marker",
+        )
 
     # Where the vision already agrees with the attitude to within the attitude's own noise,
     # the prior could move it by a fraction of that noise: not worth a re-fit per frame.
