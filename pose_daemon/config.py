@@ -430,7 +430,10 @@ class AttitudeConfig:
         "without attitude: the vehicle tilts at most this much (0 = no tilt prior)",
     )
     polish: bool = _key(
-        True, Rule("bool"), "re-fit the chosen pose with the attitude's roll and pitch as a weighted prior"
+        True,
+        Rule("bool"),
+        "re-fit the pose with the attitude's roll and pitch (without attitude: level, max_tilt_deg "
+        "as 3 sigma) as a weighted prior",
     )
 
     def check(self) -> None:
