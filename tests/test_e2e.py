@@ -5,6 +5,7 @@ conversions, and the stream must pass the flight-controller acceptance check."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import re
@@ -496,8 +497,11 @@ messages = ["ODOMETRY"]
         service.pipeline.frame_observer = lambda frame, result: results.append(result)
         assert service.run() == 0
         status = service.pipeline.processor.status()
+        line = service.pipeline.status_line(reset=False)
     finally:
         fake.close()
+    # The status line carries the attitude's freshness (after the source) on this path too.
+    assert re.search(r"; attitude \d+ Hz age \d+ ms sync timesync", line), line
 
     # The output asked for ATTITUDE (id 30) at 50 Hz and answered nothing else for it.
     asks = [m for m in of_type(fake.tally.received, "COMMAND_LONG") if m.command == 511 and int(m.param1) == 30]
@@ -588,9 +592,21 @@ path = "{out}"
 """,
         )
         assert cfg.output.mavlink is None
+        # The link is under test here, not latency: a loaded machine's late frames stay in.
+        cfg = dataclasses.replace(cfg, pipeline=dataclasses.replace(cfg.pipeline, latency_budget_s=10.0))
         camera, marker = cfg.camera.model(), cfg.marker.model()
         frames = g.VehicleFrames.from_config(cfg.mount, cfg.marker.placement)
-        source = LiveRenderingSource(camera, marker, frames, motion, n_frames, fps)
+        rendered = []
+
+        def source_motion(t: float) -> g.VehiclePose:
+            if not rendered:
+                # From frame 15's capture time on the autopilot lies: fixed before either
+                # clock gets there, so a loaded machine cannot move it.
+                lie["from"] = t + 15.0 / fps
+            rendered.append(t)
+            return motion(t)
+
+        source = LiveRenderingSource(camera, marker, frames, source_motion, n_frames, fps)
         service = Service(cfg, source=source)
         att, link = service.attitude, service.attitude_link
         assert isinstance(link, MavlinkAttitudeListener) and service.pipeline.processor.attitude_source is link
@@ -601,10 +617,8 @@ path = "{out}"
 
         def observe(frame, result):
             results.append(result)
-            if len(results) == 15:
+            if len(results) == 10:
                 during.append(service.pipeline.processor.status())
-            if len(results) == 20:
-                lie["from"] = time.monotonic()
 
         service.pipeline.frame_observer = observe
         assert service.run() == 0
@@ -622,18 +636,14 @@ path = "{out}"
 
     with_attitude = [r for r in results if r.attitude is not None]
     # (A loaded machine may starve the fake's 50 Hz stream past the history's gap bound: those
-    # frames rightly have no attitude.)
-    assert len(with_attitude) >= 0.6 * len(results) and len(results) >= 0.6 * n_frames, (
-        len(results),
-        n_frames,
-        [(r.seq, r.t_dispatch_s - r.t_capture_s) for r in results if r.attitude is None],
-        line,
-    )
+    # frames rightly have no attitude. The late frames are processed: the budget is 10 s.)
+    assert len(results) >= 0.8 * n_frames, (len(results), n_frames, line)
+    with_attitude = [r for r in results if r.attitude is not None]
     honest = [r for r in with_attitude if lie["from"] is None or r.t_capture_s < lie["from"] - 0.05]
     for r in honest:
         t, vehicle = source.truth[r.seq]
         assert float(g.rotation_angle_deg(r.attitude.R_local_body, vehicle.R_local_body)) < 0.5, r.seq
-    assert sum(r.pose is not None for r in honest) >= 0.8 * len(honest)
+    assert len(honest) >= 5 and sum(r.pose is not None for r in honest) >= 0.8 * len(honest), (len(honest), line)
     lied = [r for r in with_attitude if lie["from"] is not None and r.t_capture_s > lie["from"] + 0.05]
     assert len(lied) >= 3 and all(r.choice is not None and r.choice.withheld == "inconsistent" for r in lied)
     assert re.search(r"inconsistent (\d+)", line) and int(re.search(r"inconsistent (\d+)", line)[1]) >= len(lied)
