@@ -486,6 +486,8 @@ messages = ["ODOMETRY"]
 """,
         )
         assert cfg.attitude.source == "mavlink"
+        # The attitude path is under test here, not latency: a loaded machine's late frames stay in.
+        cfg = dataclasses.replace(cfg, pipeline=dataclasses.replace(cfg.pipeline, latency_budget_s=10.0))
         camera, marker = cfg.camera.model(), cfg.marker.model()
         frames = g.VehicleFrames.from_config(cfg.mount, cfg.marker.placement)
         source = LiveRenderingSource(camera, marker, frames, motion, n_frames, fps)
