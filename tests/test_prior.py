@@ -32,7 +32,7 @@ def _keep(p):
     return p
 
 
-def _views(placement: str, n: int, seed: int):
+def _views(placement: str, n: int, seed: int, noise_px: float = 0.3):
     """Vehicle poses 2-3 m from a 0.1 m marker (20-30 px), tilted up to 10 deg, the marker seen
     off-centre: the classic ambiguous case. Yields (frames, R_local_body, R_cam_marker, corners)."""
     preset, place = SETUPS[placement]
@@ -54,7 +54,7 @@ def _views(placement: str, n: int, seed: int):
         c = img.reshape(4, 2)
         if t[2] <= 0 or np.any(c < 5) or np.any(c > [634, 474]):
             continue
-        out.append((frames, R_lb, R_cm, c + rng.normal(0, 0.3, (4, 2))))
+        out.append((frames, R_lb, R_cm, c + rng.normal(0, noise_px, (4, 2))))
     return out
 
 
@@ -336,3 +336,37 @@ def test_the_tilt_prior_polishes_towards_level_where_choosing_alone_cannot_help(
     assert flips1 <= 0.45 * flips0 * sent1 / sent0, (flips1, sent1, flips0, sent0)
     both = [(errors0[i], errors1[i]) for i in errors0.keys() & errors1.keys() if max(errors0[i], errors1[i]) <= 10]
     assert len(both) >= 100 and np.median([b for a, b in both]) <= np.median([a for a, b in both])
+
+
+def test_sharp_corners_give_a_wall_markers_heading_without_waiting_for_the_reference():
+    """Only frames whose own corners leave the heading uncertain wait (``heading_sigma_deg``
+    > 2 deg): at 0.3 px on 20-30 px markers they do, with sharp corners (0.02 px, as the
+    renderer's) the same views are sent from the first frame."""
+    from pose_daemon.pose.prior import heading_sigma_deg
+
+    for noise_px, want_unresolved in ((0.3, True), (0.02, False)):
+        outcomes = []
+        for frames, R_lb, _R_cm, corners in _views("wall", 20, seed=21, noise_px=noise_px):
+            r, p, y = (float(v) for v in euler_rpy_from_R(R_lb))
+            pose = estimate_pose(corners, CAMERA, MARKER)
+            down = frames.down_cam_from_attitude(r, p)
+            sigma = heading_sigma_deg(pose, corners, CAMERA, MARKER, frames, down, 0.5, noise_px)
+            choice = choose_solution(
+                pose,
+                frames,
+                attitude=Attitude((r, p, y), math.radians(0.5)),
+                settings=PriorSettings(),
+                side_px=_side(corners),
+                by_continuity=_keep,
+                heading=HeadingReference(),  # never known: every frame is a first frame
+                corners_px=corners,
+                camera=CAMERA,
+                marker=MARKER,
+                corner_sigma_px=noise_px,
+            )
+            assert (choice.withheld == "unresolved") == (sigma > 2.0), (sigma, choice.reason)
+            outcomes.append(choice.withheld == "unresolved")
+        if want_unresolved:
+            assert sum(outcomes) >= 18, outcomes
+        else:
+            assert not any(outcomes), outcomes
