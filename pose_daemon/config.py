@@ -413,9 +413,10 @@ class AttitudeConfig:
     source: str = _key(
         "mavlink",
         Rule("str", nonempty=True),
-        '"mavlink": from the [output.mavlink] link (none without one) or "none" '
-        "(a separate connection string is not supported yet)",
+        '"mavlink": from the [output.mavlink] link (none without one), "none", or a pymavlink '
+        "connection string of its own to listen on (udpin:0.0.0.0:14551, /dev/ttyACM0, tcp:HOST:PORT)",
     )
+    baud: int = _key(921600, Rule("int", lo=300, hi=20_000_000), "a serial source of its own only")
     max_age_s: float = _key(
         0.5, Rule("float", lo=0, hi=10, lo_open=True), "no attitude message for this long = no attitude"
     )
@@ -434,7 +435,10 @@ class AttitudeConfig:
         "without attitude: the vehicle tilts at most this much (0 = no tilt prior)",
     )
     polish: bool = _key(
-        True, Rule("bool"), "re-fit the chosen pose with the attitude's roll and pitch as a weighted prior"
+        True,
+        Rule("bool"),
+        "re-fit the pose with the attitude's roll and pitch (without attitude: level, max_tilt_deg "
+        "as 3 sigma) as a weighted prior",
     )
 
     def check(self) -> None:
@@ -827,7 +831,8 @@ def check_whole(cfg: Config, *, files: bool = True) -> None:
     - the synthetic source's [synthetic] trajectory is the [marker] placement;
     - an ArUco [marker] dictionary is one of OpenCV's, and its id one of the dictionary's;
     - the [output.mavlink] connection is a link ``outputs.mavlink.parse_connection`` accepts;
-    - the [attitude] source is "mavlink" or "none": a connection of its own is not supported yet;
+    - an [attitude] source of its own is a link ``parse_connection`` accepts, and not the
+      [output.mavlink] connection (that one is ``source = "mavlink"``);
     - with ``files``: a ``video:``/``replay:`` source exists. A missing file will not appear
       later, so it is refused at start rather than reopened for ever like an unplugged camera.
 
@@ -855,11 +860,20 @@ def check_whole(cfg: Config, *, files: bool = True) -> None:
             ) from None
     source = cfg.attitude.source.strip()
     if source not in ("mavlink", "none"):
-        raise ConfigError(
-            f'{cfg.name}: [attitude] source: expected "mavlink" (the [output.mavlink] link) or '
-            f'"none", got {_show(cfg.attitude.source)} (a separate attitude connection is not '
-            f"supported yet)"
-        )
+        try:
+            parse_connection(source, cfg.attitude.baud)
+        except ValueError as exc:
+            raise ConfigError(
+                f'{cfg.name}: [attitude] source: expected "mavlink", "none" or {exc}, got {_show(cfg.attitude.source)}'
+            ) from None
+        if (
+            m is not None
+            and parse_connection(m.connection, m.baud)[:2] == parse_connection(source, cfg.attitude.baud)[:2]
+        ):
+            raise ConfigError(
+                f'{cfg.name}: [attitude] source: expected "mavlink" for the [output.mavlink] link '
+                f"itself, got its connection {_show(cfg.attitude.source)} again (it cannot be opened twice)"
+            )
     kind, arg = parse_source(cfg.camera.source)
     if files and kind in ("video", "replay") and not Path(arg).exists():
         what = "a video file" if kind == "video" else "a recording, image folder or video"

@@ -116,14 +116,31 @@ def build_processor(cfg: Config, attitude_source=None):
 
 
 def live_attitude(cfg: Config):
-    """The autopilot's attitude fed by the ``[output.mavlink]`` link (attitude.AutopilotAttitude)
-    when ``[attitude] source = "mavlink"`` and that output exists; else None. (A separate
-    connection for the attitude is refused by ``config.check_whole``.)"""
-    if cfg.attitude.source.strip() != "mavlink" or cfg.output.mavlink is None:
-        return None
-    from .attitude import autopilot_attitude_from_config
+    """The autopilot's live attitude (attitude.AutopilotAttitude) when the config has one: fed
+    by the ``[output.mavlink]`` link for ``[attitude] source = "mavlink"`` (None without that
+    output), or by a link of its own (``attitude_link``) for a connection string; None for
+    ``source = "none"``."""
+    from .attitude import attitude_connection, autopilot_attitude_from_config
 
+    if attitude_connection(cfg) is None:
+        return None
     return autopilot_attitude_from_config(cfg)
+
+
+def has_own_attitude_link(cfg: Config) -> bool:
+    """Whether ``[attitude] source`` names a connection of its own (not "mavlink" or "none")."""
+    return cfg.attitude.source.strip() not in ("mavlink", "none")
+
+
+def attitude_link(cfg: Config, attitude, *, clock: Callable[[], float] = time.monotonic):
+    """The ``[attitude] source`` link of its own feeding ``attitude``
+    (outputs.attitude_link.MavlinkAttitudeListener, not started), or None when the attitude
+    comes over the ``[output.mavlink]`` link or there is none."""
+    if attitude is None or not has_own_attitude_link(cfg):
+        return None
+    from .outputs.attitude_link import MavlinkAttitudeListener
+
+    return MavlinkAttitudeListener.of_config(cfg, attitude, clock=clock, start=False)
 
 
 class Service:
@@ -133,7 +150,10 @@ class Service:
     default ``open_outputs`` for ``cfg``); the service closes them when it stops.
     With ``[attitude] source = "mavlink"`` and an ``[output.mavlink]``, one live attitude
     (``live_attitude``, ``self.attitude``) is fed by the default MAVLink output and asked by the
-    default processor; a ``processor`` or ``outputs`` given by the caller is used as it is.
+    default processor; a ``processor`` or ``outputs`` given by the caller is used as it is. With
+    a connection string as the source, the attitude is fed by a link of its own
+    (``self.attitude_link``, opened by ``run`` and closed when it ends) and the processor asks
+    that link, whose status adds the link's state to the attitude's freshness.
     """
 
     def __init__(
@@ -153,13 +173,16 @@ class Service:
             from .capture import open_source
 
             source = open_source(cfg.camera, cfg)
-        self.attitude = live_attitude(cfg) if processor is None and outputs is None else None
+        own_link = has_own_attitude_link(cfg)
+        self.attitude = live_attitude(cfg) if processor is None and (outputs is None or own_link) else None
+        self.attitude_link = attitude_link(cfg, self.attitude, clock=clock)
         if processor is None:
-            processor = build_processor(cfg, attitude_source=self.attitude)
+            ask = self.attitude_link if self.attitude_link is not None else self.attitude
+            processor = build_processor(cfg, attitude_source=ask)
         if outputs is None:
             from .outputs import open_outputs
 
-            outputs = functools.partial(open_outputs, cfg, attitude=self.attitude)
+            outputs = functools.partial(open_outputs, cfg, attitude=None if own_link else self.attitude)
         self.idle_collector = IdleCollector()
         tap = None
         if cfg.preview is not None:
@@ -226,6 +249,8 @@ class Service:
         interval_s = self.cfg.pipeline.status_interval_s
         wd_s = self.watchdog_s
         ping_every_s = wd_s / 2.0 if wd_s else None
+        if self.attitude_link is not None:
+            self.attitude_link.start()  # opened in its own thread: a link down now is retried
         self.pipeline.start()
         if self.preview is not None:
             self.preview.start()
@@ -276,6 +301,8 @@ class Service:
                 log.warning("a thread did not end within %.1f s (a camera read stuck?)", STOP_TIMEOUT_S)
             self._close_outputs(deadline_s=self.clock() + 0.3)
             self._log_status(reset=True)
+            if self.attitude_link is not None:
+                self.attitude_link.close(timeout_s=0.5)
             self.notifier.close()
         crashed = (self.pipeline.end_reason or "").split(":")[0].endswith("crashed")
         return 1 if crashed else 0

@@ -152,8 +152,20 @@ def test_attitude_source_from_config():
         )
         is None
     )
-    with pytest.raises(ConfigError, match=r"\[attitude\] source: expected \"mavlink\" .* not supported yet"):
-        parse_config('[attitude]\nsource = "/dev/ttyACM0"\n')
+    # A connection of its own, listened on for the attitude (outputs/attitude_link.py).
+    own = parse_config('[attitude]\nsource = "/dev/ttyACM0"\nbaud = 57600\n')
+    assert attitude_connection(own) == "/dev/ttyACM0" and own.attitude.baud == 57600
+    assert attitude_connection(parse_config('[attitude]\nsource = "udpin:0.0.0.0:14551"\n')) == "udpin:0.0.0.0:14551"
+    with pytest.raises(
+        ConfigError, match=r"^x.toml: \[attitude\] source: expected .*udpin:HOST:PORT .*, got \"udpin:0.0.0.0\"$"
+    ):
+        parse_config('[attitude]\nsource = "udpin:0.0.0.0"\n', "x.toml")
+    with pytest.raises(ConfigError, match=r"\[attitude\] source: expected \"mavlink\" for the \[output.mavlink\] link"):
+        parse_config(
+            '[attitude]\nsource = "udpin:0.0.0.0:14550"\n[output.mavlink]\nconnection = "udpin:0.0.0.0:14550"\n'
+        )
+    with pytest.raises(ConfigError, match=r"\[attitude\] baud: expected"):
+        parse_config('[attitude]\nsource = "/dev/ttyACM0"\nbaud = 12\n')
     with pytest.raises(ConfigError, match=r"\[attitude\] source: expected \"mavlink\", \"none\" or a pymavlink"):
         parse_config('[attitude]\nsource = "autopilot"\n')
     att = autopilot_attitude_from_config(parse_config("[attitude]\nmax_age_s = 0.2\nsigma_deg = 2.0\n"))

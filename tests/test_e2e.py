@@ -5,8 +5,10 @@ conversions, and the stream must pass the flight-controller acceptance check."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
+import re
 import threading
 import time
 from typing import List
@@ -484,6 +486,8 @@ messages = ["ODOMETRY"]
 """,
         )
         assert cfg.attitude.source == "mavlink"
+        # The attitude path is under test here, not latency: a loaded machine's late frames stay in.
+        cfg = dataclasses.replace(cfg, pipeline=dataclasses.replace(cfg.pipeline, latency_budget_s=10.0))
         camera, marker = cfg.camera.model(), cfg.marker.model()
         frames = g.VehicleFrames.from_config(cfg.mount, cfg.marker.placement)
         source = LiveRenderingSource(camera, marker, frames, motion, n_frames, fps)
@@ -495,8 +499,11 @@ messages = ["ODOMETRY"]
         service.pipeline.frame_observer = lambda frame, result: results.append(result)
         assert service.run() == 0
         status = service.pipeline.processor.status()
+        line = service.pipeline.status_line(reset=False)
     finally:
         fake.close()
+    # The status line carries the attitude's freshness (after the source) on this path too.
+    assert re.search(r"; attitude \d+ Hz age \d+ ms sync timesync", line), line
 
     # The output asked for ATTITUDE (id 30) at 50 Hz and answered nothing else for it.
     asks = [m for m in of_type(fake.tally.received, "COMMAND_LONG") if m.command == 511 and int(m.param1) == 30]
@@ -539,3 +546,110 @@ messages = ["ODOMETRY"]
     assert all(r.choice.resolved_by == "attitude" for r in ambiguous), [r.choice.resolved_by for r in ambiguous]
     # And the poses reached the autopilot.
     assert fake.tally.fused.get("ODOMETRY", 0) >= 1
+
+
+def test_service_listens_for_the_attitude_on_a_link_of_its_own_without_a_mavlink_output(tmp_path):
+    """`[attitude] source = "udpout:..."` with no `[output.mavlink]` (poses to JSON lines only):
+    the service opens that link itself, finds the (fake, older) ArduPilot by its HEARTBEAT,
+    asks for ATTITUDE (SET_MESSAGE_INTERVAL refused: REQUEST_DATA_STREAM), maps its boot clock
+    by TIMESYNC over real UDP, and every frame takes the autopilot's attitude at its capture
+    time. While the autopilot claims a 60 deg roll no solution agrees: those frames are
+    `inconsistent`, counted on the status line with the attitude's freshness; no pose goes to the
+    autopilot on this link."""
+    from fake_autopilot import FakeAutopilot
+
+    from pose_daemon.outputs.attitude_link import MavlinkAttitudeListener
+    from pose_daemon.service import Service
+
+    n_frames, fps = 30, 10.0
+    t0 = time.monotonic()
+    lie = {"from": None}
+
+    def rpy(t: float):
+        s = t - t0
+        return (np.radians(8.0 + 3.0 * np.sin(2 * np.pi * s / 3.0)), np.radians(-5.0), np.radians(20.0))
+
+    def motion(t: float) -> g.VehiclePose:
+        s = t - t0
+        return g.VehiclePose(np.array([0.1 * np.sin(2 * np.pi * s / 5.0), 0.8, -2.4]), g.R_from_euler_rpy(*rpy(t)))
+
+    def claimed(t: float):
+        r, p, y = rpy(t)
+        if lie["from"] is not None and t >= lie["from"]:
+            r += np.radians(60.0)  # the autopilot's attitude no longer fits the image
+        return motion(t).p_local_body_m, (r, p, y)
+
+    fake = FakeAutopilot("ardupilot", vehicle_state=claimed, timesync_s=0.0, message_interval=False)
+    try:
+        out = tmp_path / "poses.jsonl"
+        cfg = config(
+            "floor",
+            "down",
+            (0.0, 0.0, 0.0),
+            f"""
+[attitude]
+source = "{fake.connection}"
+[output.jsonl]
+path = "{out}"
+""",
+        )
+        assert cfg.output.mavlink is None
+        # The link is under test here, not latency: a loaded machine's late frames stay in.
+        cfg = dataclasses.replace(cfg, pipeline=dataclasses.replace(cfg.pipeline, latency_budget_s=10.0))
+        camera, marker = cfg.camera.model(), cfg.marker.model()
+        frames = g.VehicleFrames.from_config(cfg.mount, cfg.marker.placement)
+        rendered = []
+
+        def source_motion(t: float) -> g.VehiclePose:
+            if not rendered:
+                # From frame 15's capture time on the autopilot lies: fixed before either
+                # clock gets there, so a loaded machine cannot move it.
+                lie["from"] = t + 15.0 / fps
+            rendered.append(t)
+            return motion(t)
+
+        source = LiveRenderingSource(camera, marker, frames, source_motion, n_frames, fps)
+        service = Service(cfg, source=source)
+        att, link = service.attitude, service.attitude_link
+        assert isinstance(link, MavlinkAttitudeListener) and service.pipeline.processor.attitude_source is link
+        assert [o.name for o in service.outputs] == ["jsonl"]
+        source.ready = lambda: att.clock.synced and att.samples >= 20
+        results: list = []
+        during: list = []
+
+        def observe(frame, result):
+            results.append(result)
+            if len(results) == 10:
+                during.append(service.pipeline.processor.status())
+
+        service.pipeline.frame_observer = observe
+        assert service.run() == 0
+        line = service.pipeline.status_line(reset=False)
+    finally:
+        fake.close()
+
+    # The older ArduPilot refused SET_MESSAGE_INTERVAL; the stream came by REQUEST_DATA_STREAM.
+    asks = [m for m in of_type(fake.tally.received, "COMMAND_LONG") if m.command == 511 and int(m.param1) == 30]
+    assert asks and any(sid == 10 and rate >= 50 and on for sid, rate, on in fake.data_stream_requests)
+    assert fake.attitudes_sent >= 20 and att.freshness(0.0)["sync"] == "timesync"
+    assert not of_type(fake.tally.received, "ODOMETRY") and not of_type(fake.tally.received, "VISION_POSITION_ESTIMATE")
+    assert of_type(fake.tally.received, "HEARTBEAT")
+    assert not link.link_up  # closed when the run ended
+
+    with_attitude = [r for r in results if r.attitude is not None]
+    # (A loaded machine may starve the fake's 50 Hz stream past the history's gap bound: those
+    # frames rightly have no attitude. The late frames are processed: the budget is 10 s.)
+    assert len(results) >= 0.8 * n_frames, (len(results), n_frames, line)
+    with_attitude = [r for r in results if r.attitude is not None]
+    honest = [r for r in with_attitude if lie["from"] is None or r.t_capture_s < lie["from"] - 0.05]
+    for r in honest:
+        t, vehicle = source.truth[r.seq]
+        assert float(g.rotation_angle_deg(r.attitude.R_local_body, vehicle.R_local_body)) < 0.5, r.seq
+    assert len(honest) >= 5 and sum(r.pose is not None for r in honest) >= 0.8 * len(honest), (len(honest), line)
+    lied = [r for r in with_attitude if lie["from"] is not None and r.t_capture_s > lie["from"] + 0.05]
+    assert len(lied) >= 3 and all(r.choice is not None and r.choice.withheld == "inconsistent" for r in lied)
+    assert re.search(r"inconsistent (\d+)", line) and int(re.search(r"inconsistent (\d+)", line)[1]) >= len(lied)
+    assert re.search(r"attitude \d+ Hz age \d+ ms sync timesync", line), line
+    # While the link was up the status says only the freshness; closed, it says so too.
+    assert during and re.fullmatch(r"attitude \d+ Hz age \d+ ms sync timesync.*", during[0]), during
+    assert "attitude link" not in during[0] and "attitude link" in line, line

@@ -41,6 +41,7 @@ __all__ = [
     "RESOLVED_BY",
     "choose_solution",
     "gate_bound_px",
+    "heading_unseen_by_down",
     "polish_toward",
     "polish_toward_down",
 ]
@@ -51,6 +52,8 @@ __all__ = [
 #   "continuity": both were possible; the track's previous poses chose (at a track's first
 #                 frame, the better fit)
 #   "clear":      only one solution fits the corners (or both are the same pose)
+# Choice.withheld: "gated" (the corners fit no marker), "inconsistent" (no solution agrees with
+# the attitude or the tilt bound).
 RESOLVED_BY = ("attitude", "tilt", "continuity", "clear")
 # Two solutions closer than this are one pose: nothing to choose (a face-on view).
 SAME_POSE_DEG = 5.0
@@ -62,6 +65,12 @@ POLISH_BOTH_BELOW = 25.0
 MIN_PRIOR_SIGMA_DEG = 0.25
 # The vision side's own share of the error in the down direction (small markers), degrees.
 VISION_DOWN_SIGMA_DEG = 1.0
+# A marker whose normal is further than this from the vertical (a wall marker): its mirror turns
+# about the vertical, which roll and pitch (and a tilt prior) cannot see.
+HEADING_UNSEEN_FROM_VERTICAL_DEG = 45.0
+# The tilt prior's polish takes max_tilt_deg as this many sigma of the vehicle's tilt (a bound
+# is 3 sigma, as the attitude's bound is at least 3 of its sigma).
+TILT_BOUND_SIGMAS = 3.0
 
 
 @dataclass(frozen=True)
@@ -315,6 +324,14 @@ class HeadingReference:
         return ready[1] if ready is not None else None
 
 
+def heading_unseen_by_down(frames: VehicleFrames) -> bool:
+    """Whether the marker's normal is more than HEADING_UNSEEN_FROM_VERTICAL_DEG from the
+    vertical (a wall marker): then a turn about the vertical tilts its normal, the direction a
+    small marker's image shows worst, and roll and pitch cannot see it."""
+    cos_normal_vertical = abs(float(frames.R_local_marker[2][2]))
+    return cos_normal_vertical < math.cos(math.radians(HEADING_UNSEEN_FROM_VERTICAL_DEG))
+
+
 def decisive_polish(cost: List[float], best: int, other: int) -> bool:
     """Whether the unpolished costs (in sigmas squared) already rule ``other`` out."""
     return cost[other] - cost[best] > POLISH_BOTH_BELOW
@@ -445,6 +462,26 @@ def _choose(
                 withheld="inconsistent",
                 reason=f"the vehicle would be tilted {min(tilt):.1f} deg (max_tilt_deg {settings.max_tilt_deg:g})",
             )
+        if (
+            settings.polish
+            and corners_px is not None
+            and camera is not None
+            and marker is not None
+            and not heading_unseen_by_down(frames)
+        ):
+            # (A wall marker's mirror turns about the vertical, which a tilt prior cannot see:
+            # there the pull only moved the costs the choice went by, measured no better.)
+            return _polish_level(
+                candidates,
+                agree,
+                frames,
+                settings,
+                bound_px,
+                corners_px,
+                camera,
+                marker,
+                settings.corner_sigma_px if corner_sigma_px is None else corner_sigma_px,
+            )
         if len(candidates) == 1:
             return Choice(pose, "clear", down_error_deg=tilt[0])
         if len(agree) == 1:
@@ -456,6 +493,43 @@ def _choose(
         return Choice(pose, "clear")
     chosen = by_continuity(pose)
     return Choice(chosen, "continuity", flipped=chosen is not pose)
+
+
+def _polish_level(
+    candidates: List[Pose],
+    agree: List[int],
+    frames: VehicleFrames,
+    settings: PriorSettings,
+    bound_px: float,
+    corners_px: np.ndarray,
+    camera: Camera,
+    marker: Marker,
+    corner_sigma_px: float,
+) -> Choice:
+    """The tilt prior's polish: each candidate within ``max_tilt_deg`` re-fitted with its down
+    pulled towards a level vehicle's (``max_tilt_deg`` taken as TILT_BOUND_SIGMAS sigma of the
+    vehicle's tilt), the lower cost chosen; withheld as the attitude's polish is when the
+    polished pose leaves the tilt bound or the gate."""
+    level = frames.down_cam_level
+    sigma_deg = max(settings.max_tilt_deg / TILT_BOUND_SIGMAS, MIN_PRIOR_SIGMA_DEG)
+    terms = [(frames.R_local_marker[2], level, corner_sigma_px / math.radians(sigma_deg))]
+    results = {i: polish_toward(candidates[i], corners_px, camera, marker, terms) for i in agree}
+    best = min(results, key=lambda i: results[i][1])
+    polished = results[best][0]
+    tilt = angle_between_deg(frames.down_cam_from_marker(polished.R), level)
+    if tilt > settings.max_tilt_deg or (settings.gate and polished.reprojection_error_px > bound_px):
+        return Choice(
+            None,
+            withheld="inconsistent",
+            reason=(
+                f"the vehicle would be tilted {tilt:.1f} deg (max_tilt_deg {settings.max_tilt_deg:g}), "
+                f"reprojection RMS {polished.reprojection_error_px:.2f} px (bound {bound_px:.2f})"
+            ),
+        )
+    if len(candidates) == 1:
+        return Choice(polished, "clear", down_error_deg=tilt)
+    other = dataclasses.replace(results[1 - best][0] if 1 - best in results else candidates[1 - best], alternative=None)
+    return Choice(dataclasses.replace(polished, alternative=other), "tilt", down_error_deg=tilt, flipped=best == 1)
 
 
 def _choose_by_attitude(
