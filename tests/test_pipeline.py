@@ -297,10 +297,19 @@ class _GarbageProcessor(FakeProcessor):
 
 def _garbage_run(collect_when_idle: bool):
     # The gate: the source makes frame k + 1 only once frame k was processed, so that a slow
-    # first collection on a loaded machine cannot get a frame replaced (newest wins).
+    # first collection on a loaded machine cannot get a frame replaced (newest wins). With the
+    # idle collector, only once the pipeline went idle after frame k and ran it: on a loaded
+    # machine the processing thread, held up after a frame, could otherwise find the next one
+    # already waiting, go without an idle gap for frames on end and let the automatic
+    # collector (which stays on for a pipeline with no idle time) run inside one.
     gate = threading.Semaphore(0)
-    proc = _GarbageProcessor(gate)
+    proc = _GarbageProcessor(threading.Semaphore(0) if collect_when_idle else gate)
     collector = IdleCollector() if collect_when_idle else None
+
+    def idle() -> None:
+        assert collector is not None
+        collector.run()
+        gate.release()
 
     def note(phase, info):
         if phase == "start" and proc.inside:
@@ -317,7 +326,7 @@ def _garbage_run(collect_when_idle: bool):
             proc,
             outputs_of(FakeOutput),
             latency_budget_s=5.0,
-            on_idle=collector.run if collector is not None else None,
+            on_idle=idle if collector is not None else None,
         )
         (out,) = p.outputs
         _run(p)
