@@ -259,12 +259,14 @@ def test_outputs_that_write_in_their_own_thread_report_bytes_written_latency():
     p = Pipeline(
         FakeSource(frames=5, gate=gate),
         FakeProcessor(gate=gate),
-        outputs_of(functools.partial(FakeOutput, "queued", write_s=0.02)),
+        outputs_of(functools.partial(FakeOutput, "queued", write_s=0.02, queue_size=5)),
         latency_budget_s=60.0,
         on_written=lambda name, r, t: written.append((name, r.seq, t)),
     )
     (out,) = p.outputs
-    # The output is built with the budget, one no loaded machine reaches: none is dropped late.
+    # The output is built with the budget, one no loaded machine reaches: none is dropped late;
+    # and with room for all 5 results: with the default 4, a loaded machine's output thread
+    # that had not yet taken frame 0 when frame 4 came lost it (queue_full, oldest first).
     assert out.max_age_s == 60.0
     _run(p)
     assert [w[1] for w in written] == [0, 1, 2, 3, 4] and {w[0] for w in written} == {"queued"}
