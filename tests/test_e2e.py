@@ -441,6 +441,7 @@ class LiveRenderingSource:
         self.camera, self.marker, self.frames, self.motion = camera, marker, frames, motion
         self.n_frames, self.period_s = n_frames, 1.0 / fps
         self.ready = lambda: True
+        self.settled: Optional[Callable[[], int]] = None  # as RecordingSource's
         self.truth: dict = {}  # seq -> (t_capture_s, VehiclePose)
 
     def open(self) -> None:
@@ -453,6 +454,12 @@ class LiveRenderingSource:
     def read(self) -> Frame:
         if self._i >= self.n_frames:
             raise EndOfStream("end of recording")
+        if self.settled is not None and self._i > 0:
+            from mavlink_helpers import wait_for
+
+            settled = self.settled
+            assert wait_for(lambda: settled() >= self._i, 60.0), f"frame {self._i - 1} never processed or dropped"
+            self._next = max(self._next, time.monotonic())
         t = self._next
         self._next += self.period_s
         vehicle = self.motion(t)
@@ -518,6 +525,14 @@ messages = ["ODOMETRY"]
         att = service.attitude
         assert att is not None and service.pipeline.processor.attitude_source is att
         source.ready = lambda: att.clock.synced and att.samples >= 20
+        # Each frame once the one before is settled: a loaded machine cannot get frames
+        # replaced (newest wins), and the share of frames below holds whatever the load.
+
+        def settled() -> int:
+            snap = service.pipeline.stats.snapshot()
+            return snap["processed"] + snap["drops"].get("late", 0) + snap["drops"].get("replaced", 0)
+
+        source.settled = settled
         results = []
         service.pipeline.frame_observer = lambda frame, result: results.append(result)
         assert service.run() == 0
