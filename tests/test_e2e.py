@@ -255,7 +255,7 @@ wait_heartbeat = false
     reader = threading.Thread(target=read_port)
     reader.start()
     try:
-        source, _ = run_pipeline(cfg, images)
+        source, (out,) = run_pipeline(cfg, images)
     finally:
         time.sleep(0.1)
         reading.set()
@@ -264,7 +264,12 @@ wait_heartbeat = false
     msgs = parser().parse_buffer(b"".join(chunks)) or []
     frame_of = {t: i for i, t in enumerate(source.stamps_us)}
     odo, lt = of_type(msgs, "ODOMETRY"), of_type(msgs, "LANDING_TARGET")
-    assert of_type(msgs, "HEARTBEAT") and len(odo) >= 0.8 * N_FRAMES and len(lt) == len(odo)
+    # A pose's two messages go out together, except where the output discarded what the pty
+    # still held once it was older than the budget (TCOFLUSH, "flushed": this test's reader
+    # thread held up on a loaded machine) or refused the second as late: 44 vs 43 once so.
+    dropped = out.stats()["dropped"]
+    assert abs(len(lt) - len(odo)) <= dropped.get("flushed", 0) + dropped.get("late", 0), dropped
+    assert of_type(msgs, "HEARTBEAT") and len(odo) >= 0.8 * N_FRAMES and len(lt) >= 0.8 * N_FRAMES
     for m in odo:
         i = frame_of[m.time_usec]
         assert_close_to_truth((m.x, m.y, m.z), _R_from_q(m.q), motion[i], 1.2)
