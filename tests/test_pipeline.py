@@ -54,7 +54,9 @@ def test_latency_window_percentiles_and_bounded_size():
 def test_newest_frame_wins_and_every_replaced_frame_is_counted():
     source = FakeSource(frames=150, period_s=0.0005)
     proc = FakeProcessor(delay=lambda s: 0.006)
-    p = Pipeline(source, proc, outputs_of(FakeOutput), latency_budget_s=5.0)
+    # Room in the output's queue for every frame: with the default 4, an output thread held
+    # up 24 ms on a loaded machine lost the oldest (queue_full: frames 0, 5, 10 once so).
+    p = Pipeline(source, proc, outputs_of(functools.partial(FakeOutput, queue_size=150)), latency_budget_s=5.0)
     (out,) = p.outputs
     _run(p)
     snap = p.stats.snapshot()
