@@ -341,7 +341,8 @@ path = "{tmp_path / "poses.jsonl"}"
     assert check(msgs).ok
     assert all(o.stats()["link"] == "closed" for o in service.outputs)
     status = [r.getMessage() for r in caplog.records if r.getMessage().startswith("status:")]
-    assert status and f"mavlink {len(odo_us)} sent (link closed)" in status[-1], status
+    # "(link closed)" or "(link closed, dropped late=N)": the drops are accounted for above.
+    assert status and f"mavlink {len(odo_us)} sent (link closed" in status[-1], status
     assert f"jsonl {len(records)} sent" in status[-1], status
 
 
