@@ -434,7 +434,14 @@ path = "{tmp_path / "poses.jsonl"}"
     poses = [map_pose_looking_down(0.1 + 0.02 * h, -0.05, h, 0.3, 0.02, 0.0) for h in heights]
     rng = np.random.default_rng(0)
     images = [render_map(cfg.camera.model(), pad, rv, tv, rng=rng).image for rv, tv in poses]
-    source = RecordingSource(images, fps=5.0)  # slow enough for a loaded 2-core machine
+    # Each frame once the one before is settled (see RecordingSource): however loaded the
+    # machine, none is replaced by a newer one, and the shares below hold.
+
+    def settled() -> int:
+        snap = pipeline.stats.snapshot()
+        return snap["processed"] + snap["drops"].get("late", 0) + snap["drops"].get("replaced", 0)
+
+    source = RecordingSource(images, fps=5.0, settled=settled)
     pipeline = Pipeline.from_config(cfg, source, FrameProcessor.from_config(cfg), functools.partial(open_outputs, cfg))
     outputs = pipeline.outputs
     pipeline.start()

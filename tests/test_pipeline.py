@@ -54,7 +54,9 @@ def test_latency_window_percentiles_and_bounded_size():
 def test_newest_frame_wins_and_every_replaced_frame_is_counted():
     source = FakeSource(frames=150, period_s=0.0005)
     proc = FakeProcessor(delay=lambda s: 0.006)
-    p = Pipeline(source, proc, outputs_of(FakeOutput), latency_budget_s=5.0)
+    # Room in the output's queue for every frame: with the default 4, an output thread held
+    # up 24 ms on a loaded machine lost the oldest (queue_full: frames 0, 5, 10 once so).
+    p = Pipeline(source, proc, outputs_of(functools.partial(FakeOutput, queue_size=150)), latency_budget_s=5.0)
     (out,) = p.outputs
     _run(p)
     snap = p.stats.snapshot()
@@ -259,12 +261,14 @@ def test_outputs_that_write_in_their_own_thread_report_bytes_written_latency():
     p = Pipeline(
         FakeSource(frames=5, gate=gate),
         FakeProcessor(gate=gate),
-        outputs_of(functools.partial(FakeOutput, "queued", write_s=0.02)),
+        outputs_of(functools.partial(FakeOutput, "queued", write_s=0.02, queue_size=5)),
         latency_budget_s=60.0,
         on_written=lambda name, r, t: written.append((name, r.seq, t)),
     )
     (out,) = p.outputs
-    # The output is built with the budget, one no loaded machine reaches: none is dropped late.
+    # The output is built with the budget, one no loaded machine reaches: none is dropped late;
+    # and with room for all 5 results: with the default 4, a loaded machine's output thread
+    # that had not yet taken frame 0 when frame 4 came lost it (queue_full, oldest first).
     assert out.max_age_s == 60.0
     _run(p)
     assert [w[1] for w in written] == [0, 1, 2, 3, 4] and {w[0] for w in written} == {"queued"}
@@ -297,10 +301,19 @@ class _GarbageProcessor(FakeProcessor):
 
 def _garbage_run(collect_when_idle: bool):
     # The gate: the source makes frame k + 1 only once frame k was processed, so that a slow
-    # first collection on a loaded machine cannot get a frame replaced (newest wins).
+    # first collection on a loaded machine cannot get a frame replaced (newest wins). With the
+    # idle collector, only once the pipeline went idle after frame k and ran it: on a loaded
+    # machine the processing thread, held up after a frame, could otherwise find the next one
+    # already waiting, go without an idle gap for frames on end and let the automatic
+    # collector (which stays on for a pipeline with no idle time) run inside one.
     gate = threading.Semaphore(0)
-    proc = _GarbageProcessor(gate)
+    proc = _GarbageProcessor(threading.Semaphore(0) if collect_when_idle else gate)
     collector = IdleCollector() if collect_when_idle else None
+
+    def idle() -> None:
+        assert collector is not None
+        collector.run()
+        gate.release()
 
     def note(phase, info):
         if phase == "start" and proc.inside:
@@ -317,7 +330,7 @@ def _garbage_run(collect_when_idle: bool):
             proc,
             outputs_of(FakeOutput),
             latency_budget_s=5.0,
-            on_idle=collector.run if collector is not None else None,
+            on_idle=idle if collector is not None else None,
         )
         (out,) = p.outputs
         _run(p)

@@ -73,8 +73,15 @@ def test_ardupilot_problems_are_fixed_by_apply(tmp_path, capsys):
         code, lines = _run(capsys, "--config", cfg)
     finally:
         fc.close()
-    assert code == 0, [ln for ln in lines if not ln.startswith("OK ")]
-    assert not [ln for ln in lines if not ln.startswith("OK ")], lines
+    # ... except on a machine so loaded that the delay the fake autopilot measures (its own
+    # receive included) passes even that (median 266 ms once under other helpers' load): then
+    # that, and only that, is said, with the median it measured.
+    not_ok = [ln for ln in lines if not ln.startswith("OK ")]
+    delay = [re.match(r"PROBLEM VISO_DELAY_MS = 250 is shorter than .*\(median (\d+) ms", ln) for ln in not_ok]
+    if delay and delay[0] is not None:
+        assert int(delay[0][1]) > 250 and not_ok == [not_ok[0], "FIX: VISO_DELAY_MS = 250"] and code == 1, lines
+    else:
+        assert code == 0 and not not_ok, lines
     assert [ln for ln in lines if ln.startswith("OK EKF3 uses the feed")] in (
         ["OK EKF3 uses the feed (flags 0x39)"],
         ["OK EKF3 uses the feed"],

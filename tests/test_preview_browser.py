@@ -90,7 +90,10 @@ def _until(fn, timeout_s=90.0):
         time.sleep(0.2)
 
 
-READOUT = """!document.getElementById('frame') ? JSON.stringify({frame: '', img: 0}) :
+# Empty until every element read is there: a loaded machine's browser runs this while it is
+# still parsing the page ('frame' there, 'pos-x' not yet: a TypeError once so).
+READOUT = """['frame', 'pos-x', 'pos-y', 'pos-z', 'alpha', 'beta', 'gamma', 'reproj', 'live']
+  .some(id => !document.getElementById(id)) ? JSON.stringify({frame: '', img: 0}) :
   JSON.stringify({frame: document.getElementById('frame').dataset.frame,
   x: document.getElementById('pos-x').textContent, y: document.getElementById('pos-y').textContent,
   z: document.getElementById('pos-z').textContent, alpha: document.getElementById('alpha').textContent,
