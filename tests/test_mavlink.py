@@ -649,3 +649,41 @@ def test_target_relative_is_packed_by_pymavlink_as_the_c_library_lays_it_out():
                 assert list(m.q_sensor) == [0.0, 0.0, 0.0, 0.0]
             else:
                 assert list(m.q_sensor) == pytest.approx(list(g.quaternion_from_R_3x3(R_ned_body)), abs=1e-6)
+
+
+def test_a_pose_refused_late_after_a_loss_does_not_raise_the_reset_counter_twice():
+    """The first pose after a loss passes the output's first age check but is refused by the last
+    one, right before its bytes go out (it became late while it was being encoded): the next
+    pose that goes out carries reset_counter + 1, not + 2 (what an EKF's reset handling needs)."""
+    peer = UdpPeer()
+    readings = []  # what the output's clock reads next, in turn; then `now`
+    now = [1000.0]
+
+    def clock() -> float:
+        return readings.pop(0) if readings else now[0]
+
+    out = output(f"udpout:127.0.0.1:{peer.port}", messages=("ODOMETRY",), clock=clock, max_age_s=0.1)
+    t = 1000.0
+    for k in range(5):  # tracked, fresh
+        now[0] = t + k / 30 + 0.01
+        out.submit(vehicle_result(WALL, k, t + k / 30, (-2.0, 0.0, -0.1)))
+    t += 4 / 30
+    for k in range(1, 16):  # 0.5 s without the marker
+        now[0] = t + k / 30 + 0.01
+        out.submit(lost_result(4 + k, t + k / 30))
+    t += 15 / 30
+    t_late = t + 1 / 30
+    readings[:] = [t_late + 0.01]  # the first check: fresh
+    now[0] = t_late + 0.5  # every later reading: half a second after capture
+    out.submit(vehicle_result(WALL, 20, t_late, (-1.9, 0.0, -0.1)))
+    assert out.stats()["dropped"]["late"] == 1, out.stats()["dropped"]
+    for k in range(2, 5):  # fresh again
+        now[0] = t + k / 30 + 0.01
+        out.submit(vehicle_result(WALL, 19 + k, t + k / 30, (-1.9, 0.0, -0.1)))
+    msgs = peer.collect(3.0, until=lambda ms: len(of_type(ms, "ODOMETRY")) >= 8)
+    out.close()
+    peer.close()
+    odo = of_type(msgs, "ODOMETRY")
+    assert [m.reset_counter for m in odo] == [0] * 5 + [1] * 3
+    report = check(msgs)
+    assert report.ok, str(report)

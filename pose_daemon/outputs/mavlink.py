@@ -1057,15 +1057,15 @@ class MavlinkOutput(QueuedOutput):
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(R))):
             self._drop("not_finite")
             return 0
+        # The reset is worked out against the last pose that went out, and kept only once this
+        # one has: a pose refused at the last moment (late) must not leave the counter raised,
+        # or the next one would raise it again (+2 on the wire where the autopilot expects +1).
         found_again = self._lost
+        reset_counter = self.reset_counter
         if self._last_sent_t is not None and (
             found_again or self._new_track or t - self._last_sent_t > HEALTH_GAP_S or self._jumped(p, R)
         ):
-            self.reset_counter = (self.reset_counter + 1) % 256
-        self._new_track = False
-        if found_again and self.cfg.statustext:
-            self._send_text(MAV_SEVERITY_INFO, "pose-daemon: marker found")
-        self._lost = False
+            reset_counter = (reset_counter + 1) % 256
         self._tracked = True
         target_ned = R_ned_body_at = None
         if self.autopilot_kind == "px4" and ("LANDING_TARGET" in self.messages or "TARGET_RELATIVE" in self.messages):
@@ -1081,14 +1081,19 @@ class MavlinkOutput(QueuedOutput):
             fx_px=self.fx_px,
             marker_width_m=self.marker_width_m,
             marker_height_m=self.marker_height_m,
-            reset_counter=self.reset_counter,
+            reset_counter=reset_counter,
             target_local_ned_m=target_ned,
             R_ned_body=R_ned_body_at,
             u=result_uncertainty(result, self.frames, self.fx_px, self.marker_width_m),
         )
         n = self._send_pose(inputs)
+        self.reset_counter = reset_counter
+        self._new_track = False
+        self._lost = False
         self._last_sent_t = t
         self._last_sent_pose = (p, R)
+        if found_again and self.cfg.statustext:
+            self._send_text(MAV_SEVERITY_INFO, "pose-daemon: marker found")
         return n
 
     def _jumped(self, p: np.ndarray, R: np.ndarray) -> bool:
