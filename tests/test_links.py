@@ -450,10 +450,16 @@ def test_a_tcp_peer_that_stops_reading_never_gets_a_late_pose_from_our_buffers()
                 wait_for(lambda: False, 0.002)  # let the output's thread reopen the link
         stalled_status = out.status()
         held = ap.note_held()
-        for k in range(30 + 20 * FPS, 30 + 22 * FPS):  # reading again
+        # Reading again, until 30 poses came on time (the stream is back) or 20 s of frames: the
+        # reopening waits on the output's clock (one frame per pose) and then on its thread,
+        # which a loaded machine may run late, so the test waits for the link, not a share.
+        for k in range(30 + 20 * FPS, 30 + 40 * FPS):
             frame(k)
+            wait_for(lambda: out.link_up, 0.5)
             wait_for(lambda: False, 0.005)
             read_and_judge()
+            if len(on_time) >= reading + 30:
+                break
     finally:
         out.close()
         ap.close()
