@@ -37,6 +37,8 @@ EKF_STATUS_REPORT_ID = 193
 POS_HORIZ_FLAGS = 0x08 | 0x10
 # The README's minimum quality (VISO_QUAL_MIN / EKF2_EV_QMIN) for ODOMETRY.
 QUALITY_MIN = 30
+# AP_VisualOdom's VISO_DELAY_MS: @Range 0 250.
+VISO_DELAY_MAX_MS = 250
 HEARTBEAT_TIMEOUT_S = 10.0
 PARAM_TIMEOUT_S = 2.0
 # ArduPilot's SERIALn_BAUD codes for the usual rates (the rest are rate / 1000).
@@ -213,14 +215,26 @@ def check_ardupilot(cfg, obs: Observation, link_kind: str = "udpout") -> List[Fi
     vd = p.get("VISO_DELAY_MS")
     if delay is not None and vd is not None:
         p50, p90 = delay
-        if vd < math.floor(p50):
+        if p50 > VISO_DELAY_MAX_MS:
+            # No parameter reaches that far: setting the largest one (again) would change nothing.
+            out.append(
+                Finding(
+                    "PROBLEM",
+                    f"the measured capture-to-send delay (median {p50:.0f} ms, p90 {p90:.0f} ms) is "
+                    f"past ArduPilot's largest VISO_DELAY_MS ({VISO_DELAY_MAX_MS} ms): lower the "
+                    "camera's resolution or frame rate, or free the CPU",
+                )
+            )
+            if vd < VISO_DELAY_MAX_MS:
+                out.append(Finding("FIX", param="VISO_DELAY_MS", value=VISO_DELAY_MAX_MS))
+        elif vd < math.floor(p50):
             out += [
                 Finding(
                     "PROBLEM",
                     f"VISO_DELAY_MS = {_fmt(vd)} is shorter than the measured capture-to-send "
                     f"delay (median {p50:.0f} ms, p90 {p90:.0f} ms)",
                 ),
-                Finding("FIX", param="VISO_DELAY_MS", value=min(250, math.ceil(p50))),
+                Finding("FIX", param="VISO_DELAY_MS", value=math.ceil(p50)),
             ]
         else:
             out.append(
