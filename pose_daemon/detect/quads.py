@@ -107,7 +107,7 @@ def _outer_perimeters(contours, hierarchy: np.ndarray, min_area: float) -> np.nd
     points and an enclosed area of at least half ``min_area``. All contours at once: in
     clutter there are hundreds, and one OpenCV call each cost more than the rest of the
     search (the quadrilateral's own area is checked again after the polygon fit)."""
-    counts = np.array(list(map(len, contours)), dtype=np.int64)
+    counts = np.array(list(map(len, contours)), dtype=np.intp)  # indices: int32 on a 32-bit Pi
     ends = np.cumsum(counts)
     starts = ends - counts
     pts = np.concatenate(contours).reshape(-1, 2).astype(np.float64)
