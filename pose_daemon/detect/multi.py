@@ -423,17 +423,17 @@ class MapDetector:
             return None
         if fit.contrast < o.min_contrast or side_lengths(fit.corners).min() < o.min_side_px:
             return None
-        if track is not None and track.contrast is None:
-            track.contrast = fit.contrast  # the first follow after its bits were decoded
-        read = (
-            track is None
-            or track.since_read + 1 >= self.id_check_every
-            or fit.residual_px > ID_CHECK_RESIDUAL_SHARE * o.max_edge_residual_px
-            or fit.contrast < ID_CHECK_CONTRAST_SHARE * float(track.contrast)  # type: ignore[arg-type]
-        )
-        if not read:
-            track.since_read += 1  # type: ignore[union-attr]
-            return fit.corners
+        if track is not None:
+            if track.contrast is None:
+                track.contrast = fit.contrast  # the first follow after its bits were decoded
+            due = (
+                track.since_read + 1 >= self.id_check_every
+                or fit.residual_px > ID_CHECK_RESIDUAL_SHARE * o.max_edge_residual_px
+                or fit.contrast < ID_CHECK_CONTRAST_SHARE * track.contrast
+            )
+            if not due:
+                track.since_read += 1
+                return fit.corners
         self.id_reads += 1
         if not finder.verify(gray, fit):
             if track is not None:
