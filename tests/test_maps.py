@@ -616,3 +616,25 @@ def test_id_check_every_one_reads_the_bits_of_every_follow_and_bad_values_are_re
     for bad in (0, -1, 1.5, True):
         with pytest.raises(ValueError, match="id_check_every"):
             MapDetector(m, id_check_every=bad)
+
+
+def test_a_marker_covered_under_its_track_is_dropped_on_the_first_covered_frame():
+    """Between bit reads the edge fit is checked on every frame: a hand or a sheet over part of
+    a followed marker loses it at once, not at its next read."""
+    from pose_daemon.detect.multi import MapDetector
+
+    m = _two_markers(0, 1)
+    detector = MapDetector(m, camera=CAM)
+    rng = np.random.default_rng(2)
+    for i in range(8):
+        rvec, tvec = map_pose_looking_down(0.25 + 0.002 * i, 0.0, 1.4, 0.1, 0.0, 0.0)
+        frame = render_map(CAM, m, rvec, tvec, rng=rng)
+        image = frame.image.copy()
+        if i >= 5:  # the right half of marker 0 under a light sheet
+            c = frame.corners_px[0]
+            x0, x1 = int(c[:, 0].mean()), int(c[:, 0].max()) + 12
+            y0, y1 = int(c[:, 1].min()) - 12, int(c[:, 1].max()) + 12
+            image[y0:y1, x0:x1] = 200
+        found = detector.detect(image)
+        assert 1 in found
+        assert (0 in found) == (i < 5), f"frame {i}: {sorted(found)}"
