@@ -1,6 +1,7 @@
 """Marker maps: config errors, poses against the renderer's truth for floor, wall and mixed maps,
-an outlier marker left out, the attitude prior term, the nested pad's descent without a jump,
-and the end-to-end path to a flight controller over real UDP."""
+an outlier marker left out, ids kept by the tracks (a swap noticed within the bound), the
+attitude prior term, the nested pad's descent without a jump, and the end-to-end path to a
+flight controller over real UDP."""
 
 from __future__ import annotations
 
@@ -528,3 +529,112 @@ def test_record_and_replay_a_synthetic_flight_over_a_map(tmp_path, capsys):
         p = camera_position_map(r["rvec"], r["tvec"])
         assert np.linalg.norm(p - camera_position_map(e["true_rvec"], e["true_tvec"])) < 0.02
     assert "accuracy against the recorded truth" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- ids kept by the track
+
+
+def test_a_flight_over_a_map_keeps_every_id_right_while_its_bits_are_read_once_in_a_few_frames():
+    """Ids against the renderer's truth on every frame of a flight; a followed marker keeps the
+    id its track was decoded with, its bits read about once in ID_CHECK_EVERY follows."""
+    from pose_daemon.detect.multi import ID_CHECK_EVERY, MapDetector
+
+    m = floor_grid("DICT_4X4_50", rows=3, cols=3, spacing_m=0.45, sizes_m=(0.20,))
+    path = MapTrajectory("floor", m, seed=5, height_m=(1.0, 1.8), max_tilt_deg=8.0, speed=1.5)
+    detector = MapDetector(m, camera=CAM)
+    rng = np.random.default_rng(5)
+    follows = found_total = 0
+    for i in range(90):
+        truth = path.at(i / 30.0)
+        frame = render_map(CAM, m, truth.rvec, truth.tvec, rng=rng)
+        found = detector.detect(frame.image)
+        found_total += len(found)
+        for marker_id, corners in found.items():
+            assert marker_id in frame.corners_px, f"frame {i}: id {marker_id} reported but not in view"
+            err = float(np.abs(corners - frame.corners_px[marker_id]).max())
+            # Neighbours are 0.45 m apart (>= 100 px here): any wrong id is far off.
+            assert err < 2.0, f"frame {i}: id {marker_id} is {err:.1f} px from its true corners"
+        follows += sum(stage == "follow" for stage in detector.last_stages.values())
+    assert found_total > 90 * 3 and follows > 0.6 * found_total
+    assert detector.id_mismatches == 0
+    # Read on about one follow in ID_CHECK_EVERY (more when a fit turns poor), never on each.
+    assert detector.id_reads < 2.0 * follows / ID_CHECK_EVERY
+
+
+def _two_markers(first: int, second: int) -> MarkerMap:
+    return MarkerMap(
+        "DICT_4X4_50", (MapMarker(first, 0.20, (0.0, 0.0, 0.0)), MapMarker(second, 0.20, (0.5, 0.0, 0.0))), "floor"
+    )
+
+
+@pytest.mark.parametrize("tracked_frames", [3, 4, 5, 6])
+@pytest.mark.parametrize("replacement", ["swapped", "outside the map"])
+def test_a_marker_replaced_under_its_track_is_reported_under_its_old_id_for_at_most_the_bound(
+    tracked_frames, replacement
+):
+    """Markers replaced in place by others of the same dictionary (same outline, so the edge fit
+    alone cannot tell) keep their old id for at most ID_CHECK_EVERY - 1 frames, whatever the
+    phase of the reads; then the new ids (if in the map) are reported where they are."""
+    from pose_daemon.detect.multi import ID_CHECK_EVERY, MapDetector
+
+    m = _two_markers(0, 1)
+    shown = _two_markers(1, 0) if replacement == "swapped" else _two_markers(9, 1)
+    detector = MapDetector(m, camera=CAM)
+    rng = np.random.default_rng(tracked_frames)
+    wrong = 0
+    for i in range(tracked_frames + ID_CHECK_EVERY + 3):
+        # A slow drift, so the tracks follow (not the same frame over and over).
+        rvec, tvec = map_pose_looking_down(0.25 + 0.002 * i, 0.0, 1.4, 0.1, 0.0, 0.0)
+        scene = m if i < tracked_frames else shown
+        frame = render_map(CAM, scene, rvec, tvec, rng=rng)
+        found = detector.detect(frame.image)
+        truth = {j: c for j, c in frame.corners_px.items() if j in m.ids}
+        bad = [j for j, c in found.items() if j not in truth or float(np.abs(c - truth[j]).max()) > 2.0]
+        if i < tracked_frames:
+            assert not bad and set(found) == set(truth), f"frame {i}: {sorted(found)}"
+            if i >= 1:
+                assert set(detector.last_stages.values()) == {"follow"}
+        elif bad:
+            wrong += 1
+            assert i - tracked_frames < ID_CHECK_EVERY - 1, f"frame {i}: still {bad} after the bound"
+        else:
+            assert set(found) == set(truth), f"frame {i}: {sorted(found)} instead of {sorted(truth)}"
+    assert wrong <= ID_CHECK_EVERY - 1
+    assert detector.id_mismatches >= 1
+
+
+def test_id_check_every_one_reads_the_bits_of_every_follow_and_bad_values_are_refused():
+    from pose_daemon.detect.multi import MapDetector
+
+    m = _two_markers(0, 1)
+    detector = MapDetector(m, camera=CAM, id_check_every=1)
+    rng = np.random.default_rng(1)
+    for i in range(6):
+        rvec, tvec = map_pose_looking_down(0.25 + 0.002 * i, 0.0, 1.4, 0.1, 0.0, 0.0)
+        detector.detect(render_map(CAM, m, rvec, tvec, rng=rng).image)
+    assert detector.id_reads == 2 * 5
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="id_check_every"):
+            MapDetector(m, id_check_every=bad)
+
+
+def test_a_marker_covered_under_its_track_is_dropped_on_the_first_covered_frame():
+    """Between bit reads the edge fit is checked on every frame: a hand or a sheet over part of
+    a followed marker loses it at once, not at its next read."""
+    from pose_daemon.detect.multi import MapDetector
+
+    m = _two_markers(0, 1)
+    detector = MapDetector(m, camera=CAM)
+    rng = np.random.default_rng(2)
+    for i in range(8):
+        rvec, tvec = map_pose_looking_down(0.25 + 0.002 * i, 0.0, 1.4, 0.1, 0.0, 0.0)
+        frame = render_map(CAM, m, rvec, tvec, rng=rng)
+        image = frame.image.copy()
+        if i >= 5:  # the right half of marker 0 under a light sheet
+            c = frame.corners_px[0]
+            x0, x1 = int(c[:, 0].mean()), int(c[:, 0].max()) + 12
+            y0, y1 = int(c[:, 1].min()) - 12, int(c[:, 1].max()) + 12
+            image[y0:y1, x0:x1] = 200
+        found = detector.detect(image)
+        assert 1 in found
+        assert (0 in found) == (i < 5), f"frame {i}: {sorted(found)}"

@@ -1,7 +1,9 @@
 """MapDetector: every marker of a marker map in a grey frame, each tracked like the single marker.
 
 Per frame and per tracked marker, cheapest first: follow its last corners (edge fits where it
-is predicted to be, its known bits checked), then search a region around them. A marker partly
+is predicted to be), then search a region around them. A followed marker keeps the id its
+track was decoded with: its bits are read again only every ``id_check_every`` frames, or at
+once when the fit looks unlike the marker it has been (see ``ID_CHECK_EVERY``). A marker partly
 out of the frame is followed by the edge fit of its visible sides (its corners outside the
 frame are extrapolated; the solve leaves them out). Markers not
 tracked but predicted in view (the caller projects the map with the last pose) are followed
@@ -32,6 +34,21 @@ MIN_PARTIAL_CORNERS = 2
 #: ... and while this share of its edge profiles (most of them on the visible sides) fit.
 #: Profiles across each side of a marker partly out of the frame (those inside are used).
 PARTIAL_SAMPLES = 24
+
+#: A followed marker's bits are read again once in this many frames (and at once when its edge
+#: fit turns poor, below). Between reads the fit alone checks it: straight sides, dark border
+#: against a light quiet zone, its size. That catches a marker covered, bent or gone (the fit
+#: fails) but not one replaced by another marker of the same dictionary in the same place (the
+#: outline is the same); such a swap is noticed at the next read, so it keeps the wrong id for
+#: at most this many frames (0.13 s at 30 fps), during which the solve's outlier test has it;
+#: the frame it is noticed, the whole-frame search decodes what is there now. The read is
+#: about an eighth of a follow's cost (the edge fit is the rest).
+ID_CHECK_EVERY = 4
+#: ... read at once when the fit's RMS residual passes this share of ``max_edge_residual_px``,
+ID_CHECK_RESIDUAL_SHARE = 0.5
+#: ... or its edge contrast falls below this share of the contrast at the last read (a shadow,
+#: a print over it, another marker's lighter cells touching the border).
+ID_CHECK_CONTRAST_SHARE = 0.7
 
 _UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
 
@@ -139,12 +156,16 @@ def _distort(camera: Camera, pt_undistorted_px: np.ndarray) -> np.ndarray:
 
 
 class _Track:
-    __slots__ = ("last", "previous", "misses")
+    __slots__ = ("last", "previous", "misses", "since_read", "contrast")
 
     def __init__(self, corners: np.ndarray) -> None:
         self.last = corners
         self.previous: Optional[np.ndarray] = None
         self.misses = 0
+        #: Followed frames since its bits were last read (0: read on the frame it started).
+        self.since_read = 0
+        #: Edge contrast of the fit when its bits were last read (None: not followed yet).
+        self.contrast: Optional[float] = None
 
     def predict(self) -> np.ndarray:
         if self.previous is None or self.misses:
@@ -224,7 +245,9 @@ class MapDetector:
     """Corners {id: (4, 2) TL, TR, BR, BL pixels} of every marker of ``marker_map`` in view.
 
     Options as MarkerDetector's (``max_misses``, ``min_side_px``, ``camera`` and the finder's
-    thresholds), plus ``full_every``: frames between whole-frame searches while tracking.
+    thresholds), plus ``full_every``: frames between whole-frame searches while tracking, and
+    ``id_check_every``: a followed marker's bits are read once in this many frames (1: every
+    frame), at once when its fit turns poor.
     """
 
     def __init__(
@@ -235,6 +258,7 @@ class MapDetector:
         max_misses: int = 5,
         min_side_px: float = 10.0,
         full_every: int = 10,
+        id_check_every: int = ID_CHECK_EVERY,
         block_px: int = 25,
         threshold_offset: float = 10.0,
         min_contrast: float = 20.0,
@@ -248,7 +272,10 @@ class MapDetector:
             raise ValueError(f"max_misses must be a non-negative integer, got {max_misses!r}")
         if isinstance(full_every, bool) or not isinstance(full_every, int) or full_every < 1:
             raise ValueError(f"full_every must be a positive integer, got {full_every!r}")
+        if isinstance(id_check_every, bool) or not isinstance(id_check_every, int) or id_check_every < 1:
+            raise ValueError(f"id_check_every must be a positive integer, got {id_check_every!r}")
         self.map = marker_map
+        self.id_check_every = id_check_every
         self.camera = camera
         self.max_misses = max_misses
         self.full_every = full_every
@@ -276,6 +303,9 @@ class MapDetector:
         self.last_stages: Dict[int, str] = {}
         #: Whole-frame searches run so far (the costly step).
         self.full_searches = 0
+        #: Bit reads of followed markers so far, and those that found another marker (a swap).
+        self.id_reads = 0
+        self.id_mismatches = 0
         self.reset()
 
     def reset(self) -> None:
@@ -309,7 +339,7 @@ class MapDetector:
                     pts = np.asarray(predicted[marker_id], dtype=np.float64).reshape(4, 2)  # type: ignore[index]
                     if np.all(np.isfinite(pts)):
                         start = pts + (start - track.last).mean(axis=0)
-                corners, stage = self._find_tracked(gray, marker_id, start, track.last)
+                corners, stage = self._find_tracked(gray, marker_id, start, track.last, track)
                 if corners is not None:
                     found[marker_id], stages[marker_id] = corners, stage
                 elif track.misses == 0:
@@ -338,18 +368,25 @@ class MapDetector:
         return {i: c.copy() for i, c in found.items()}
 
     def _find_tracked(
-        self, gray: np.ndarray, marker_id: int, predicted: np.ndarray, last: np.ndarray
+        self,
+        gray: np.ndarray,
+        marker_id: int,
+        predicted: np.ndarray,
+        last: np.ndarray,
+        track: Optional[_Track] = None,
     ) -> Tuple[Optional[np.ndarray], Optional[str]]:
         h, w = gray.shape
         finder = self.finders[marker_id]
         inside = ((predicted >= 1.0) & (predicted <= [w - 2.0, h - 2.0])).all(axis=1)
         if inside.all():
-            cand = finder.follow(gray, predicted)
-            if cand is not None:
-                return cand.corners, "follow"
+            corners = self._follow(gray, finder, predicted, track)
+            if corners is not None:
+                return corners, "follow"
         elif int(inside.sum()) >= MIN_PARTIAL_CORNERS:
             corners = self._follow_partial(gray, finder, predicted)
             if corners is not None:
+                if track is not None:  # its bits cannot be read here: due a read once wholly in view
+                    track.since_read += 1
                 return corners, "partial"
             return None, None
         side = float(side_lengths(last).max())
@@ -358,8 +395,54 @@ class MapDetector:
             cands = finder.search(gray, roi, side)
             if cands:
                 best = min(cands, key=lambda c: float(np.sum((c.corners - predicted) ** 2)))
+                if track is not None:  # the region search read its bits
+                    track.since_read, track.contrast = 0, best.fit.contrast if best.fit is not None else None
                 return best.corners, "roi"
         return None, None
+
+    def _follow(
+        self, gray: np.ndarray, finder: ArucoFinder, predicted: np.ndarray, track: Optional[_Track]
+    ) -> Optional[np.ndarray]:
+        """The marker near ``predicted`` (all corners in the frame): the edge fit of
+        ``finder.follow``, its bits read only when ``track`` is due a read (``ID_CHECK_EVERY``),
+        its fit turned poor, or there is no track (a marker predicted from the map pose)."""
+        o = self.options
+        inner, outer = finder.reach_px(predicted)
+        fit = finder.refine(
+            gray,
+            predicted,
+            iterations=2,
+            max_move_px=0.8 * min(inner, outer) + 0.5,
+            reach=(inner, outer),
+            check_blur=False,
+        )
+        if fit is None:
+            return None
+        # The fit's own checks (those the bit read starts with): they cost nothing more.
+        if fit.residual_px > o.max_edge_residual_px or fit.valid_fraction < 0.6:
+            return None
+        if fit.contrast < o.min_contrast or side_lengths(fit.corners).min() < o.min_side_px:
+            return None
+        if track is not None:
+            if track.contrast is None:
+                track.contrast = fit.contrast  # the first follow after its bits were decoded
+            due = (
+                track.since_read + 1 >= self.id_check_every
+                or fit.residual_px > ID_CHECK_RESIDUAL_SHARE * o.max_edge_residual_px
+                or fit.contrast < ID_CHECK_CONTRAST_SHARE * track.contrast
+            )
+            if not due:
+                track.since_read += 1
+                return fit.corners
+        self.id_reads += 1
+        if not finder.verify(gray, fit):
+            if track is not None:
+                self.id_mismatches += 1
+                track.since_read = self.id_check_every  # read again until it is found by its bits
+            return None
+        if track is not None:
+            track.since_read, track.contrast = 0, fit.contrast
+        return fit.corners
 
     def _follow_partial(self, gray: np.ndarray, finder: ArucoFinder, predicted: np.ndarray) -> Optional[np.ndarray]:
         """A marker of the map partly out of the frame, where the track or the map pose puts it.
