@@ -623,13 +623,18 @@ def _choose_by_attitude(
     best = min(range(len(candidates)), key=lambda i: cost[i])
     decisive = len(candidates) == 1 or cost[1 - best] - cost[best] > 4.0  # 2 sigma
 
-    if heading is not None and (
-        len(candidates) == 1
-        or err[1 - best] - err[best] > 4.0 * sigma_down_deg
-        or abs(math.remainder(_body_yaw(frames, candidates[0]) - _body_yaw(frames, candidates[1]), math.tau))
-        < math.radians(2.0)
+    if (
+        heading is not None
+        and err[best] <= bound_deg
+        and (
+            len(candidates) == 1
+            or err[1 - best] - err[best] > 4.0 * sigma_down_deg
+            or abs(math.remainder(_body_yaw(frames, candidates[0]) - _body_yaw(frames, candidates[1]), math.tau))
+            < math.radians(2.0)
+        )
     ):
-        # The heading of this frame is known without the heading prior: learn from it.
+        # The heading of this frame is known without the heading prior: learn from it (not
+        # from a frame whose down is off: it is withheld, and its corners may be mislabelled).
         heading.observe(_body_yaw(frames, candidates[best]), yaw)
 
     if (
