@@ -151,7 +151,7 @@ class PipelineStats:
                 self.detected += 1
                 self._detected_w += 1
             elif result.choice is not None and result.choice.withheld:
-                self.drops[result.choice.withheld] += 1  # "inconsistent" / "gated": not sent
+                self.drops[result.choice.withheld] += 1  # "inconsistent" / "gated" / "unresolved": not sent
             for stage, value in stages.items():
                 self.window.add(stage, value)
 

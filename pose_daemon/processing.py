@@ -157,7 +157,12 @@ class FrameProcessor:
         self.frames_with_attitude += result.attitude is not None
         try:
             with timed(result, "detect"):
-                corners: Optional[np.ndarray] = self.detector.detect(frame.image)
+                corners: Optional[np.ndarray] = (
+                    # The capture time scales the track's prediction; other detectors take the image only.
+                    self.detector.detect(frame.image, t_capture_s=frame.t_capture_s)
+                    if isinstance(self.detector, MarkerDetector)
+                    else self.detector.detect(frame.image)
+                )
         except (ValueError, cv2.error) as exc:
             # A camera glitch (wrong size, empty or corrupt buffer) costs this frame only.
             result.error = f"bad frame: {exc}"
@@ -209,6 +214,12 @@ class FrameProcessor:
         result.choice = choice
         if choice.pose is None:
             result.error = f"{choice.withheld}: {choice.reason}"
+            if choice.withheld == "inconsistent":
+                # No solution agrees with the attitude or the tilt bound: the track's corner
+                # labels may be what is wrong (a plain square's are kept by continuity, and a
+                # gap of a second or more can turn them a quarter turn): the next frame is
+                # searched and labelled afresh.
+                self.detector.reset()
             return None
         if result.attitude is not None and self.prior.polish:
             # The choice re-fitted the pose towards the attitude's down (or found it agreeing):

@@ -29,7 +29,7 @@ class FrameResult:
     # latency_ms.
     latency_s: Optional[float] = None
     # The vehicle's attitude at capture time when known, and how the solution was chosen
-    # (or why the pose was withheld: choice.withheld "inconsistent" / "gated").
+    # (or why the pose was withheld: choice.withheld "inconsistent" / "gated" / "unresolved").
     attitude: Optional[Attitude] = None
     choice: Optional[Choice] = None
     # Monotonic time the pipeline handed the result to the outputs (None outside a pipeline).

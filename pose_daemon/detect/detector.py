@@ -242,6 +242,10 @@ class MarkerDetector:
     def _forget_track(self) -> None:
         self._last: Optional[np.ndarray] = None
         self._previous: Optional[np.ndarray] = None
+        # Capture times of _last and _previous (None when the caller gives no times).
+        self._t_last: Optional[float] = None
+        self._t_previous: Optional[float] = None
+        self._t_now: Optional[float] = None
         self.misses = 0
 
     @property
@@ -251,12 +255,15 @@ class MarkerDetector:
 
     # ------------------------------------------------------------------ detection
 
-    def detect(self, image: np.ndarray) -> Optional[np.ndarray]:
+    def detect(self, image: np.ndarray, t_capture_s: Optional[float] = None) -> Optional[np.ndarray]:
         """The marker's corners (4, 2) float64 pixels TL, TR, BR, BL, or None if not seen.
 
         ``image``: grey uint8 (H, W) (BGR/BGRA and uint16 are converted). ValueError for
-        something that is not an image.
+        something that is not an image. ``t_capture_s``: the frame's capture time; with it the
+        track's velocity is scaled to the time since the last sighting (frames a pipeline
+        dropped, an uneven rate), without it each frame is taken as one step.
         """
+        self._t_now = None if t_capture_s is None else float(t_capture_s)
         if self.search_budget_s is not None:
             self._deadline = self._clock() + self.search_budget_s
         self.last_search_deferred = False
@@ -277,7 +284,8 @@ class MarkerDetector:
                 self._forget_track()
             return None
         self._previous = self._last if self.misses == 0 else None
-        self._last = found
+        self._t_previous = self._t_last if self.misses == 0 else None
+        self._last, self._t_last = found, self._t_now
         self.misses = 0
         return found.copy()
 
@@ -323,11 +331,21 @@ class MarkerDetector:
         return cands
 
     def _predict(self) -> np.ndarray:
-        """Where the corners should be now: constant velocity over the last two frames."""
+        """Where the corners should be now: constant velocity over the last two frames.
+
+        With capture times, the last step is scaled to the time since the last frame, never
+        beyond one step: after a gap between the last two frames (frames dropped, 2 s at 2
+        fps) a whole step extrapolated the gap's motion, turn included, into one frame
+        period, and a plain square's labels, kept nearest the prediction, came out a quarter
+        turn off for good (every frame then 'inconsistent' with the attitude)."""
         assert self._last is not None
         if self._previous is None:
             return self._last.copy()
-        return self._last + (self._last - self._previous)
+        scale = 1.0
+        if self._t_now is not None and self._t_last is not None and self._t_previous is not None:
+            step_s = self._t_last - self._t_previous
+            scale = min(max((self._t_now - self._t_last) / step_s, 0.0), 1.0) if step_s > 0 else 0.0
+        return self._last + scale * (self._last - self._previous)
 
     def _roi(self, predicted: np.ndarray, side: float, w: int, h: int) -> Optional[Roi]:
         pts = np.vstack([predicted, self._last])

@@ -41,6 +41,7 @@ __all__ = [
     "RESOLVED_BY",
     "choose_solution",
     "gate_bound_px",
+    "heading_sigma_deg",
     "heading_unseen_by_down",
     "polish_toward",
     "polish_toward_down",
@@ -53,7 +54,8 @@ __all__ = [
 #                 frame, the better fit)
 #   "clear":      only one solution fits the corners (or both are the same pose)
 # Choice.withheld: "gated" (the corners fit no marker), "inconsistent" (no solution agrees with
-# the attitude or the tilt bound).
+# the attitude or the tilt bound), "unresolved" (a wall marker with attitude before its heading
+# reference is known: roll and pitch cannot tell its solutions apart, see HeadingReference).
 RESOLVED_BY = ("attitude", "tilt", "continuity", "clear")
 # Two solutions closer than this are one pose: nothing to choose (a face-on view).
 SAME_POSE_DEG = 5.0
@@ -65,9 +67,12 @@ POLISH_BOTH_BELOW = 25.0
 MIN_PRIOR_SIGMA_DEG = 0.25
 # The vision side's own share of the error in the down direction (small markers), degrees.
 VISION_DOWN_SIGMA_DEG = 1.0
-# A marker whose normal is further than this from the vertical (a wall marker): its mirror turns
-# about the vertical, which roll and pitch (and a tilt prior) cannot see.
+# A marker whose normal is further than this from the vertical (a wall marker): a turn about the
+# vertical, which roll and pitch cannot see, is one of the directions its image shows worst.
 HEADING_UNSEEN_FROM_VERTICAL_DEG = 45.0
+# ... unless its own corners give the heading to this (1 sigma, degrees): the bound the heading
+# reference was once held to before it was used at all.
+HEADING_KNOWN_SIGMA_DEG = 2.0
 # The tilt prior's polish takes max_tilt_deg as this many sigma of the vehicle's tilt (a bound
 # is 3 sigma, as the attitude's bound is at least 3 of its sigma).
 TILT_BOUND_SIGMAS = 3.0
@@ -105,7 +110,7 @@ class PriorSettings:
 @dataclass(frozen=True)
 class Choice:
     """The outcome for one frame: ``pose`` to send with ``resolved_by``, or ``withheld``
-    ("inconsistent" or "gated") with ``reason``. ``down_error_deg``: the chosen pose's
+    ("inconsistent", "gated" or "unresolved") with ``reason``. ``down_error_deg``: the chosen pose's
     angle to the attitude's down (with attitude) or its tilt (tilt prior), else None."""
 
     pose: Optional[Pose]
@@ -258,9 +263,16 @@ class HeadingReference:
     the heading, or two the down direction told apart with a wide margin), it lets the yaw
     decide too: a wall marker's left/right ambiguity turns about the vertical, which roll and
     pitch cannot see. ``offset_rad`` is None until ``min_samples`` give it to ``max_sigma_deg``.
+
+    It is used from its fourth sample on, with its own sigma (the samples' spread over the root
+    of their number) as the heading term's weight: on 20-40 px markers with 0.3 px of corner
+    noise a wall marker's heading from the image alone is 5-7 deg (1 sigma) off, so every frame
+    that waited for a reference known to 2 deg (8+ samples) was a coin toss; a reference from 4
+    samples already halves that error, and each later frame sharpens it (with 3 the spread of
+    so few samples was sometimes too small, and the pull too strong, in the bench's flights).
     """
 
-    def __init__(self, *, window: int = 60, min_samples: int = 8, max_sigma_deg: float = 2.0) -> None:
+    def __init__(self, *, window: int = 60, min_samples: int = 4, max_sigma_deg: float = 10.0) -> None:
         self._samples: Deque[float] = collections.deque(maxlen=window)
         self.min_samples, self.max_sigma_deg = int(min_samples), float(max_sigma_deg)
         self._cached: Optional[Tuple[float, float]] = None
@@ -330,6 +342,45 @@ def heading_unseen_by_down(frames: VehicleFrames) -> bool:
     small marker's image shows worst, and roll and pitch cannot see it."""
     cos_normal_vertical = abs(float(frames.R_local_marker[2][2]))
     return cos_normal_vertical < math.cos(math.radians(HEADING_UNSEEN_FROM_VERTICAL_DEG))
+
+
+def heading_sigma_deg(
+    pose: Pose,
+    corners_px: np.ndarray,
+    camera: Camera,
+    marker: Marker,
+    frames: VehicleFrames,
+    down_cam: np.ndarray,
+    sigma_down_deg: float,
+    corner_sigma_px: float,
+) -> float:
+    """How well ``pose``'s corners (noise ``corner_sigma_px``) and a down direction known to
+    ``sigma_down_deg`` give its turn about the vertical (``down_cam``): 1 sigma, degrees, from
+    the linearised least squares (the turn is a rotation in the camera frame left of R)."""
+    obj = marker.object_points.astype(np.float64)
+    R0 = np.asarray(pose.R, dtype=np.float64)
+    t0 = np.asarray(pose.tvec, dtype=np.float64).reshape(3)
+    d_m = frames.R_local_marker[2]
+    w = max(corner_sigma_px, 1e-6) / math.radians(sigma_down_deg)
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        R = cv2.Rodrigues(x[:3])[0] @ R0
+        img, _ = cv2.projectPoints(obj, cv2.Rodrigues(R)[0], t0 + x[3:], camera.K, camera.dist_coeffs)
+        return np.concatenate([img.reshape(-1), w * (R @ d_m)])
+
+    r0 = residual(np.zeros(6))
+    J = np.empty((r0.size, 6))
+    h = 1e-6
+    for k in range(6):
+        x = np.zeros(6)
+        x[k] = h
+        J[:, k] = (residual(x) - r0) / h
+    info = J.T @ J
+    ok, cov = cv2.invert(info, flags=cv2.DECOMP_SVD)
+    d = np.asarray(down_cam, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    var = float(d @ cov[:3, :3] @ d) * corner_sigma_px**2
+    return math.degrees(math.sqrt(var)) if var > 0 and math.isfinite(var) else 180.0
 
 
 def decisive_polish(cost: List[float], best: int, other: int) -> bool:
@@ -450,6 +501,7 @@ def _choose(
             marker,
             heading,
             settings.corner_sigma_px if corner_sigma_px is None else corner_sigma_px,
+            corner_sigma_px is not None,
         )
 
     if settings.max_tilt_deg > 0:
@@ -546,6 +598,7 @@ def _choose_by_attitude(
     marker: Optional[Marker],
     heading: Optional[HeadingReference],
     corner_sigma_px: float,
+    noise_measured: bool = True,
 ) -> Choice:
     roll, pitch, yaw = attitude.rpy_rad
     down_att = frames.down_cam_from_attitude(roll, pitch)
@@ -570,14 +623,52 @@ def _choose_by_attitude(
     best = min(range(len(candidates)), key=lambda i: cost[i])
     decisive = len(candidates) == 1 or cost[1 - best] - cost[best] > 4.0  # 2 sigma
 
-    if heading is not None and (
-        len(candidates) == 1
-        or err[1 - best] - err[best] > 4.0 * sigma_down_deg
-        or abs(math.remainder(_body_yaw(frames, candidates[0]) - _body_yaw(frames, candidates[1]), math.tau))
-        < math.radians(2.0)
+    if (
+        heading is not None
+        and err[best] <= bound_deg
+        and (
+            len(candidates) == 1
+            or err[1 - best] - err[best] > 4.0 * sigma_down_deg
+            or abs(math.remainder(_body_yaw(frames, candidates[0]) - _body_yaw(frames, candidates[1]), math.tau))
+            < math.radians(2.0)
+        )
     ):
-        # The heading of this frame is known without the heading prior: learn from it.
+        # The heading of this frame is known without the heading prior: learn from it (not
+        # from a frame whose down is off: it is withheld, and its corners may be mislabelled).
         heading.observe(_body_yaw(frames, candidates[best]), yaw)
+
+    if (
+        heading is not None
+        and reference is None
+        and heading_unseen_by_down(frames)
+        and corners_px is not None
+        and camera is not None
+        and marker is not None
+    ):
+        # A wall marker's mirror solution (and its noise) turns about the vertical: until the
+        # heading reference is known, roll and pitch cannot say which is right, and only sharp
+        # corners give the heading well enough alone. The frame still taught the reference
+        # (above); otherwise it is not sent. Noise not yet measured: this frame's own residual.
+        noise_px = corner_sigma_px if noise_measured else candidates[best].reprojection_error_px / 0.589
+        sigma_heading = heading_sigma_deg(
+            candidates[best],
+            corners_px,
+            camera,
+            marker,
+            frames,
+            down_att,
+            max(sigma_att_deg, MIN_PRIOR_SIGMA_DEG),
+            noise_px,
+        )
+        if sigma_heading > HEADING_KNOWN_SIGMA_DEG:
+            return Choice(
+                None,
+                withheld="unresolved",
+                reason=(
+                    f"the heading reference is not known yet and the image gives the heading to "
+                    f"{sigma_heading:.1f} deg (1 sigma): roll and pitch cannot choose for a wall marker"
+                ),
+            )
 
     # Where the vision already agrees with the attitude to within the attitude's own noise,
     # the prior could move it by a fraction of that noise: not worth a re-fit per frame.
