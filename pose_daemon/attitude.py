@@ -416,6 +416,18 @@ class AutopilotAttitude:
         return text + f", used {f['used']} missing {f['missing']}"
 
 
+def attitude_status(source: object, now_s: float, frames_with_attitude: int, frames_seen: int) -> Optional[str]:
+    """The attitude's freshness for the status line, one wording for every processor: the live
+    source's own figures, else how many frames came with an attitude of their own (None when
+    none ever did)."""
+    status = getattr(source, "status", None)
+    if callable(status):
+        return status(now_s)
+    if frames_with_attitude:
+        return f"attitude in {frames_with_attitude}/{frames_seen} frames"
+    return None
+
+
 def attitude_connection(cfg) -> Optional[str]:
     """Where the daemon's attitude comes from, by the config's ``[attitude] source``: the
     ``[output.mavlink]`` connection for "mavlink" (None when there is no MAVLink output),

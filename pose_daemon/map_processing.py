@@ -21,6 +21,7 @@ from typing import Any, Callable, Dict, Optional, Tuple
 import cv2
 import numpy as np
 
+from .attitude import attitude_status
 from .camera import Camera
 from .capture.base import Frame
 from .detect.square import side_lengths
@@ -115,12 +116,7 @@ class MapFrameProcessor:
 
     def status(self) -> Optional[str]:
         """The attitude's freshness for the status line (as FrameProcessor.status)."""
-        status = getattr(self.attitude_source, "status", None)
-        if callable(status):
-            return status(self._clock())
-        if self.frames_with_attitude:
-            return f"attitude in {self.frames_with_attitude}/{self.frames_seen} frames"
-        return None
+        return attitude_status(self.attitude_source, self._clock(), self.frames_with_attitude, self.frames_seen)
 
     def reset(self) -> None:
         self.detector.reset()

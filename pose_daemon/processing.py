@@ -17,6 +17,7 @@ from typing import Any, Callable, Iterator, Optional
 import cv2
 import numpy as np
 
+from .attitude import attitude_status
 from .camera import Camera, Marker
 from .capture.base import Frame
 from .config import Config, DetectorConfig, EstimatorConfig
@@ -137,12 +138,7 @@ class FrameProcessor:
     def status(self) -> Optional[str]:
         """The attitude's freshness for the status line: the live source's figures, or how
         many frames came with an attitude of their own (None when none ever did)."""
-        status = getattr(self.attitude_source, "status", None)
-        if callable(status):
-            return status(self._clock())
-        if self.frames_with_attitude:
-            return f"attitude in {self.frames_with_attitude}/{self.frames_seen} frames"
-        return None
+        return attitude_status(self.attitude_source, self._clock(), self.frames_with_attitude, self.frames_seen)
 
     def reset(self) -> None:
         """Forget tracking state (after a source restart or a long gap)."""
