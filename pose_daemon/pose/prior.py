@@ -41,6 +41,7 @@ __all__ = [
     "RESOLVED_BY",
     "choose_solution",
     "gate_bound_px",
+    "heading_sample",
     "heading_sigma_deg",
     "heading_unseen_by_down",
     "polish_toward",
@@ -383,6 +384,32 @@ def heading_sigma_deg(
     return math.degrees(math.sqrt(var)) if var > 0 and math.isfinite(var) else 180.0
 
 
+def heading_sample(
+    pose: Pose,
+    corners_px: Optional[np.ndarray],
+    camera: Optional[Camera],
+    marker: Optional[Marker],
+    frames: VehicleFrames,
+    down_cam: np.ndarray,
+    weight_px: float,
+) -> Pose:
+    """The pose whose heading teaches the heading reference: ``pose`` re-fitted towards the
+    attitude's down (``polish_toward_down``, weight ``weight_px``) where the down does not see
+    the heading (a wall marker, ``heading_unseen_by_down``), else ``pose`` itself.
+
+    A wall marker's image gives its tilt about the horizontal and its turn about the vertical
+    (the heading) with correlated errors, and the frames that teach are chosen by the first
+    (their down told the two solutions apart): a raw solution's heading then carries the
+    part of that tilt's error the choice selected. On 20-40 px markers with 0.3 px of corner
+    noise that bias was 3-10 deg for seconds at a time, of one sign (the bench's wall flight,
+    seed 0), and the reference learnt it at a stated sigma of 1-3 deg; the heading term then
+    pulled poses more than 10 deg off. Given the down, the heading is freed of that part:
+    the same frames teach a reference within 1-3 deg of the truth."""
+    if corners_px is None or camera is None or marker is None or not heading_unseen_by_down(frames):
+        return pose
+    return polish_toward_down(pose, corners_px, camera, marker, frames.R_local_marker[2], down_cam, weight_px)[0]
+
+
 def decisive_polish(cost: List[float], best: int, other: int) -> bool:
     """Whether the unpolished costs (in sigmas squared) already rule ``other`` out."""
     return cost[other] - cost[best] > POLISH_BOTH_BELOW
@@ -623,6 +650,8 @@ def _choose_by_attitude(
     best = min(range(len(candidates)), key=lambda i: cost[i])
     decisive = len(candidates) == 1 or cost[1 - best] - cost[best] > 4.0  # 2 sigma
 
+    # The down term's weight in a polish: corner noise against the attitude's accuracy (radians).
+    w_down = corner_sigma_px / math.radians(max(sigma_att_deg, MIN_PRIOR_SIGMA_DEG))
     if (
         heading is not None
         and err[best] <= bound_deg
@@ -635,7 +664,10 @@ def _choose_by_attitude(
     ):
         # The heading of this frame is known without the heading prior: learn from it (not
         # from a frame whose down is off: it is withheld, and its corners may be mislabelled).
-        heading.observe(_body_yaw(frames, candidates[best]), yaw)
+        heading.observe(
+            _body_yaw(frames, heading_sample(candidates[best], corners_px, camera, marker, frames, down_att, w_down)),
+            yaw,
+        )
 
     if (
         heading is not None
@@ -685,7 +717,7 @@ def _choose_by_attitude(
         # The image term carries the vision's own uncertainty: the prior's weight is the
         # attitude's alone (and the heading reference's).
         sigma_prior_deg = max(sigma_att_deg, MIN_PRIOR_SIGMA_DEG)
-        terms = [(frames.R_local_marker[2], down_att, corner_sigma_px / math.radians(sigma_prior_deg))]
+        terms = [(frames.R_local_marker[2], down_att, w_down)]
         if north_att is not None and reference is not None:
             sigma_north_deg = math.hypot(sigma_prior_deg, reference[1])
             terms.append((frames.R_local_marker[0], north_att, corner_sigma_px / math.radians(sigma_north_deg)))
