@@ -370,3 +370,37 @@ def test_sharp_corners_give_a_wall_markers_heading_without_waiting_for_the_refer
             assert sum(outcomes) >= 18, outcomes
         else:
             assert not any(outcomes), outcomes
+
+
+def test_the_heading_reference_learns_a_wall_markers_heading_given_the_attitudes_down():
+    """A wall marker's image gives its tilt about the horizontal and its turn about the vertical
+    (the heading) with correlated errors; the heading reference learns from frames whose down
+    told the two solutions apart, so it takes each one's heading given the attitude's down
+    (``heading_sample``: the pose re-fitted towards that down), not the raw solution's. On
+    20-30 px markers with 0.3 px of corner noise that removes an eighth of the heading error
+    (RMS 6.1 -> 5.4 deg over these views, measured); a floor marker's heading is its image's
+    turn, which the down does not touch: its sample is the pose itself."""
+    from pose_daemon.pose.prior import heading_sample
+
+    def heading_deg(frames, pose):
+        R = frames.vehicle_pose(pose.R, pose.tvec).R_local_body
+        return math.degrees(math.atan2(R[1, 0], R[0, 0]))
+
+    raw_err, sample_err = [], []
+    for frames, R_lb, R_cm, corners in _views("wall", 300, seed=0):
+        pose = estimate_pose(corners, CAMERA, MARKER)
+        candidates = [pose] + ([pose.alternative] if pose.alternative is not None else [])
+        right = min(candidates, key=lambda c: rotation_angle_deg_3x3(c.R, R_cm))
+        down = frames.down_cam_from_marker(R_cm)
+        sample = heading_sample(right, corners, CAMERA, MARKER, frames, down, 0.3 / math.radians(0.5))
+        assert sample.reprojection_error_px <= gate_bound_px(PriorSettings(), _side(corners))
+        truth = math.degrees(math.atan2(R_lb[1, 0], R_lb[0, 0]))
+        raw_err.append(math.remainder(heading_deg(frames, right) - truth, 360.0))
+        sample_err.append(math.remainder(heading_deg(frames, sample) - truth, 360.0))
+    rms_raw, rms_sample = (float(np.sqrt(np.mean(np.square(e)))) for e in (raw_err, sample_err))
+    assert rms_sample < 0.95 * rms_raw, (rms_sample, rms_raw)
+
+    frames, _, R_cm, corners = _views("floor", 1, seed=0)[0]
+    pose = estimate_pose(corners, CAMERA, MARKER)
+    down = frames.down_cam_from_marker(R_cm)
+    assert heading_sample(pose, corners, CAMERA, MARKER, frames, down, 10.0) is pose
