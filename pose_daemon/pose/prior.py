@@ -261,9 +261,10 @@ class HeadingReference:
     The autopilot's yaw is on its own reference (compass, EKF origin), the marker's local
     frame on the marker's; the difference stays put while the marker does. Learnt from the
     frames whose heading the marker gives without doubt (one solution, or two that agree on
-    the heading, or two the down direction told apart with a wide margin), it lets the yaw
-    decide too: a wall marker's left/right ambiguity turns about the vertical, which roll and
-    pitch cannot see. ``offset_rad`` is None until ``min_samples`` give it to ``max_sigma_deg``.
+    the heading, or two the down direction told apart with a wide margin; a wall marker's
+    heading taken given the attitude's down, ``heading_sample``), it lets the yaw decide too: a
+    wall marker's left/right ambiguity turns about the vertical, which roll and pitch cannot
+    see. ``offset_rad`` is None until ``min_samples`` give it to ``max_sigma_deg``.
 
     It is used from its fourth sample on, with its own sigma (the samples' spread over the root
     of their number) as the heading term's weight: on 20-40 px markers with 0.3 px of corner
