@@ -22,8 +22,12 @@ trusted, and each is one factor (0..1) of the quality:
   ruled the other solution out (``flip_resolved``: the choice was the vehicle's attitude or
   the tilt prior, ``resolved_by_prior``).
 
-Until the processor has measured the corner noise (its first frames) a fit cannot be judged,
-and the quality is at most ``PENDING_QUALITY``.
+Until the processor has measured the corner noise (its first frames) the quality is the lowest
+any camera could earn with these corners: the fit judged against the least noise a corner is
+ever taken to have (``MIN_CORNER_SIGMA_PX``; the fit factor only falls as the noise falls), the
+precision and the flip risk against ``DEFAULT_CORNER_SIGMA_PX`` (as the covariance sent). A real
+camera's first corners (0.1-0.4 px off) are then far beyond that floor and not fused; corners
+that fit to a few hundredths of a pixel are good whatever the camera's noise turns out to be.
 
 The covariance sent is the solve's about the pose sent, plus p (the other solution's
 probability left after the prior) times the outer product of the step to the other solution:
@@ -63,9 +67,6 @@ RESOLVING_PRIORS = ("attitude", "tilt")
 # No attitude's down is trusted to better than this in the covariance, radians (prior.py's
 # MIN_PRIOR_SIGMA_DEG).
 MIN_DOWN_SIGMA_RAD = math.radians(0.25)
-# The highest quality of a pose whose fit cannot be judged yet: the processor's first frames,
-# before it measured the corner noise (below any minimum the README advises).
-PENDING_QUALITY = 20
 LOST_QUALITY = -1
 # MAVLink's upper-right triangle of a 6x6 covariance, row-major (built once: 20 us a call).
 _TRIU6 = np.triu_indices(6)
@@ -208,8 +209,8 @@ class Uncertainty:
     and from the solve alone; ``flip_risk`` 0..1 (see ``flip_risk``); ``p_other`` the other
     planar solution's probability left after the prior, and ``step_centre_m`` /
     ``step_rotation_rad`` the step to it (marker frame) for the covariance sent;
-    ``corner_sigma_px`` the corner noise the fit was judged against; ``pending``: that noise is
-    not measured yet (the quality is at most PENDING_QUALITY)."""
+    ``corner_sigma_px`` the corner noise the covariance was worked out with; ``pending``: that
+    noise is not measured yet (the fit is then judged against MIN_CORNER_SIGMA_PX)."""
 
     cov_centre_m2: np.ndarray
     cov_rotation_rad2: np.ndarray
@@ -392,6 +393,9 @@ def pose_quality(
     if u is None and fx_px is not None and marker_width_m is not None:
         u = uncertainty(pose, fx_px, marker_width_m, corner_sigma_px=corner_sigma_px, flip_resolved=flip_resolved)
     sigma = u.corner_sigma_px if u is not None else noise_sigma_px(corner_sigma_px)
+    if u is not None and u.pending:
+        # Unmeasured noise: the fit the least noisy camera would have (a lower bound).
+        sigma = MIN_CORNER_SIGMA_PX
     f_fit = 1.0 / (1.0 + (max(e, 0.0) / (FIT_HALF_Z * sigma)) ** 4)
     f_precision = 1.0
     if u is not None:
@@ -399,8 +403,7 @@ def pose_quality(
         risk = u.flip_risk
     else:
         risk = 0.0 if flip_resolved else flip_risk(pose, corner_sigma_px=corner_sigma_px)
-    q = int(min(100, max(1, round(100.0 * f_fit * f_precision * (1.0 - risk)))))
-    return min(q, PENDING_QUALITY) if u is not None and u.pending else q
+    return int(min(100, max(1, round(100.0 * f_fit * f_precision * (1.0 - risk)))))
 
 
 def position_covariance_cam(

@@ -58,7 +58,7 @@ WRONG_DEG, FLIP_DEG = 10.0, 5.0
 IMPRECISE_M = 0.10
 MARGIN_PX = 4.0
 # Frames each hover runs before the judged ones: the daemon's steady state, its corner noise
-# measured (its first frames are sent with at most quality.PENDING_QUALITY).
+# measured (before that, its fit is judged against the least noise any camera has).
 WARMUP_FRAMES = 30
 
 
@@ -170,6 +170,8 @@ def run_case(height_m: float, tilt_deg: float, n_frames: int, seed: int) -> Dict
                     corner_sigma_px=sigma_px,
                     flip_resolved=resolved_by_prior(choice.resolved_by),
                 )
+                # As the outputs judge the frame: with the noise not measured yet, pending.
+                u = dataclasses.replace(u, pending=result.corner_noise_pending)
                 rows.append(
                     {
                         # Withheld: nothing is sent, below any minimum quality.
@@ -195,7 +197,13 @@ def run_case(height_m: float, tilt_deg: float, n_frames: int, seed: int) -> Dict
             )
             rows.append(
                 {
-                    "q": pose_quality(flip, CAMERA.fx, MARKER.width, corner_sigma_px=sigma_px),
+                    "q": pose_quality(
+                        flip,
+                        u=dataclasses.replace(
+                            uncertainty(flip, CAMERA.fx, MARKER.width, corner_sigma_px=sigma_px),
+                            pending=result.corner_noise_pending,
+                        ),
+                    ),
                     "q_old": _old_quality(flip.reprojection_error_px, 1.0),
                     "correct": False,
                     "wrong": True,
