@@ -223,5 +223,7 @@ class FrameProcessor:
             sigma = result.attitude.sigma_rad
             sigma_deg = math.degrees(sigma) if sigma is not None else self.prior.attitude_sigma_deg
             result.prior_down_sigma_rad = math.radians(max(sigma_deg, MIN_PRIOR_SIGMA_DEG))
-        self.track.follow(choice.pose, flipped=choice.flipped)
+        t_s = float(result.t_capture_s)
+        result.track_innovation = self.track.innovation(choice.pose.R, t_s)
+        self.track.follow(choice.pose, flipped=choice.flipped, t_capture_s=t_s)
         return choice.pose

@@ -11,6 +11,7 @@ from .pose.types import Pose
 
 if TYPE_CHECKING:
     from .attitude import Attitude
+    from .pose.continuity import Innovation
     from .pose.prior import Choice
 
 
@@ -43,6 +44,9 @@ class FrameResult:
     corner_sigma_px: Optional[float] = None
     corner_noise_pending: bool = False
     prior_down_sigma_rad: Optional[float] = None
+    # How far the pose's rotation lies from the track's constant-rate prediction
+    # (pose/continuity.py: Track.innovation; None at a track's first poses).
+    track_innovation: Optional[Innovation] = None
 
     @property
     def ok(self) -> bool:

@@ -30,6 +30,10 @@ PX4 (mavlink_receiver.cpp, mavlink_timesync, EKF2):
   it is, and published as a fiducial marker report (``tally.fiducial_reports``: relative
   position NED, variances pos_std^2, the time it is stamped by); other frames, types other than
   VISION_FIDUCIAL, and non-finite or non-positive deviations are refused (``tally.target_refused``).
+  Only a build with the vision target estimator (``vte=True``: its VTE_* parameters, PX4's
+  defaults) takes it, and only while the estimator runs: VTE_EN and VTE_POS_EN as they were at
+  boot (both reboot_required), bit 2 of VTE_AID_MASK (vision relative position) as it is now.
+  A stock build has neither the parameters nor the message (``tally.target_refused["no VTE"]``).
 - LOCAL_POSITION_NED and ATTITUDE at the rate MAV_CMD_SET_MESSAGE_INTERVAL asks for, from
   ``vehicle_state(t_s) -> (p_ned_m, (roll, pitch, yaw))``, stamped ``time_boot_ms`` on a boot
   clock that started ``boot_age_s`` before the fake.
@@ -77,6 +81,16 @@ ARDUPILOT_PARAMS: Dict[str, Tuple[float, int]] = {
     "SR2_POSITION": (10, MAV_PARAM_TYPE_INT16),
     "PLND_ENABLED": (0, MAV_PARAM_TYPE_INT8),
     "PLND_TYPE": (0, MAV_PARAM_TYPE_INT8),
+}
+# src/modules/vision_target_estimator/vision_target_estimator_params.yaml (PX4 1.18): its defaults.
+VTE_PARAMS: Dict[str, Tuple[float, int]] = {
+    "VTE_EN": (1, MAV_PARAM_TYPE_INT32),
+    "VTE_YAW_EN": (0, MAV_PARAM_TYPE_INT32),
+    "VTE_POS_EN": (1, MAV_PARAM_TYPE_INT32),
+    "VTE_AID_MASK": (14, MAV_PARAM_TYPE_INT32),
+    "VTE_TASK_MASK": (1, MAV_PARAM_TYPE_INT32),
+    "VTE_EVP_NOISE": (0.1, MAV_PARAM_TYPE_REAL32),
+    "VTE_POS_NIS_THRE": (3.84, MAV_PARAM_TYPE_REAL32),
 }
 PX4_PARAMS: Dict[str, Tuple[float, int]] = {
     "EKF2_EV_CTRL": (11, MAV_PARAM_TYPE_INT32),
@@ -130,6 +144,7 @@ class FakeAutopilot:
         vehicle_state: Optional[Callable[[float], Tuple[Any, Any]]] = None,
         message_interval: bool = True,
         boot_age_s: float = 5.0,
+        vte: bool = False,
     ) -> None:
         # ArduPilot's dialect (common.xml and EKF_STATUS_REPORT); PX4 uses only common messages.
         from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -145,9 +160,15 @@ class FakeAutopilot:
         self.parser.robust_parsing = True
         self.peer: Optional[Tuple[str, int]] = None
         table = ARDUPILOT_PARAMS if kind == "ardupilot" else PX4_PARAMS
+        if vte:
+            assert kind == "px4"
+            table = {**table, **VTE_PARAMS}
         self.params: Dict[str, List[Any]] = {k: [v, t] for k, (v, t) in table.items()}
         for k, v in (params or {}).items():
             self.params.setdefault(k, [v, MAV_PARAM_TYPE_REAL32])[0] = v
+        # The vision target estimator runs if built in and enabled at boot (reboot_required).
+        self.vte = vte
+        self.vte_running = vte and self.param("VTE_EN") == 1 and self.param("VTE_POS_EN") == 1
         self.ekf_start_s = ekf_start_s
         self.ekf_bootstrap_s = ekf_bootstrap_s
         self.timesync_s = timesync_s
@@ -384,6 +405,12 @@ class FakeAutopilot:
     def _target_relative(self, frame_bytes: bytes, now: float) -> None:
         from pymavlink.generator.mavcrc import x25crc
 
+        if not self.vte:
+            return self._refuse_target("no VTE")  # a stock build: neither the module nor message 511
+        if not self.vte_running:
+            return self._refuse_target("VTE not running")
+        if not int(self.param("VTE_AID_MASK")) & 4:
+            return self._refuse_target("VTE vision aiding off")
         if frame_bytes[0] != 0xFD or len(frame_bytes) < 12:
             return self._refuse_target("not MAVLink 2")
         n = frame_bytes[1]

@@ -182,10 +182,10 @@ def test_px4_takes_target_relative_in_the_body_frame_with_its_attitude_at_captur
     """Issue 10 item 5 (PX4 1.18's vision target estimator): TARGET_RELATIVE in BODY_FRD, the
     marker centre with its standard deviations, q_sensor the vehicle's attitude at capture time
     (PX4's own ATTITUDE, mapped by TIMESYNC); PX4 rotates it into NED: the marker relative to
-    the vehicle, whatever PX4's own origin."""
+    the vehicle, whatever PX4's own origin (a build with the estimator, its default parameters)."""
     yaw = math.radians(20.0)
     fc = FakeAutopilot(
-        "px4", heartbeat_s=0.2, timesync_s=0.3, vehicle_state=lambda t: ((5.0, 2.0, -1.5), (0.0, 0.0, yaw))
+        "px4", heartbeat_s=0.2, timesync_s=0.3, vehicle_state=lambda t: ((5.0, 2.0, -1.5), (0.0, 0.0, yaw)), vte=True
     )
     out = mavlink_output(fc.connection, DOWN, messages=("ODOMETRY", "TARGET_RELATIVE"), queue_size=0)
     try:

@@ -95,3 +95,67 @@ def test_unambiguous_pose_is_never_overridden():
     assert pose.ambiguity_ratio < 0.1
     opposite = pose.alternative.R[:, 2]  # a track that points at the alternative
     assert choose_by_continuity(pose, opposite) is pose
+
+
+def _turning(n: int, t0_s: float, rate_deg_s: float, accel_deg_s2: float = 0.0, fps: float = 30.0):
+    """Marker rotations of a camera turning about a tilted axis, (t, R) per frame."""
+    axis = np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2])
+    R0 = R_from_rvec(np.array([np.pi, 0.0, 0.0]))
+    out = []
+    for k in range(n):
+        t = t0_s + k / fps
+        angle = np.radians(rate_deg_s * (t - t0_s) + 0.5 * accel_deg_s2 * (t - t0_s) ** 2)
+        out.append((t, R_from_rvec(axis * angle) @ R0))
+    return out
+
+
+def _pose(R):
+    from pose_daemon.pose.types import Pose
+
+    return Pose(
+        rvec=rvec_from_R(R),
+        tvec=np.array([0.0, 0.0, 1.0]),
+        R=R,
+        alpha_deg=0.0,
+        beta_deg=0.0,
+        gamma_deg=0.0,
+        reprojection_error_px=0.01,
+    )
+
+
+def test_the_track_predicts_a_steady_turn_and_leaves_a_jump_out_of_its_motion():
+    """Track.innovation: a turn at a constant rate is predicted exactly; a turn speeding up as fast
+    as a vehicle can (just below ANGULAR_ACCEL_MAX_DEG_S2) stays within the allowance; a pose 8 deg off
+    (a corner knocked along the direction four corners leave unchecked) is far beyond it and
+    is not followed, so the next right pose is judged against the right motion; three jumps in a
+    row are a new motion and the track restarts from them."""
+    from pose_daemon.pose.continuity import ANGULAR_ACCEL_MAX_DEG_S2, Track, turn_allowance_deg
+
+    track = Track()
+    seq = _turning(8, 10.0, 90.0)
+    assert track.innovation(seq[0][1], seq[0][0]) is None
+    for t, R in seq[:5]:
+        inn = track.innovation(R, t)
+        assert inn is None or inn.angle_deg < 1e-6
+        track.follow(_pose(R), t_capture_s=t)
+    hard = _turning(8, 20.0, 90.0, accel_deg_s2=0.95 * ANGULAR_ACCEL_MAX_DEG_S2)
+    fast = Track()
+    for t, R in hard:
+        inn = fast.innovation(R, t)
+        assert inn is None or inn.angle_deg <= turn_allowance_deg(inn), inn
+        fast.follow(_pose(R), t_capture_s=t)
+    t5, R5 = seq[5]
+    jump = R_from_rvec(np.radians([8.0, 0.0, 0.0])) @ R5
+    inn = track.innovation(jump, t5)
+    assert inn is not None and inn.angle_deg > 3 * turn_allowance_deg(inn), inn
+    track.follow(_pose(jump), t_capture_s=t5)
+    t6, R6 = seq[6]
+    assert track.innovation(R6, t6).angle_deg < 1e-6  # judged against the turn before the jump
+    # Jumps in a row (the motion really changed): after three the track restarts from them and
+    # predicts the new motion.
+    moved = [(t, R_from_rvec(np.radians([30.0, 0.0, 0.0])) @ R) for t, R in _turning(6, t6, 90.0)]
+    for t, R in moved[:5]:
+        track.follow(_pose(R), t_capture_s=t)
+    assert track.innovation(moved[5][1], moved[5][0]).angle_deg < 1e-6
+    track.reset()
+    assert track.innovation(R6, t6) is None

@@ -139,3 +139,57 @@ def test_the_delay_advice_never_goes_past_ardupilots_largest_viso_delay(set_ms, 
     lines = [f.line() for f in check_ardupilot(cfg, obs)]
     said = [ln for ln in lines if "VISO_DELAY_MS" in ln or "capture-to-send" in ln]
     assert len(said) == len(expected) and all(ln.startswith(e) for ln, e in zip(said, expected)), said
+
+
+def test_px4_target_relative_needs_the_vision_target_estimator(tmp_path, capsys):
+    """With TARGET_RELATIVE listed, preflight checks PX4's vision target estimator (PX4 1.18,
+    vision_target_estimator_params.yaml): a stock build without it is a PROBLEM with no FIX; on
+    a build with it, the estimator off at boot (VTE_EN, VTE_POS_EN: reboot_required), vision
+    aiding off (VTE_AID_MASK bit 2) and no task (VTE_TASK_MASK) are fixed by --apply, and the
+    fake then fuses TARGET_RELATIVE once vision aiding is on (the rest after a reboot)."""
+    extra = 'messages = ["ODOMETRY", "TARGET_RELATIVE"]'
+    stock = FakeAutopilot("px4", heartbeat_s=0.2, timesync_s=0.5)
+    try:
+        code, lines = _run(capsys, "--config", _config(tmp_path, stock.connection, extra))
+    finally:
+        stock.close()
+    assert code == 1
+    assert any(ln.startswith("PROBLEM VTE_EN not reported: this PX4 build has no vision target") for ln in lines)
+    assert not [ln for ln in lines if ln.startswith("FIX: VTE_")], lines
+
+    fc = FakeAutopilot(
+        "px4",
+        heartbeat_s=0.2,
+        timesync_s=0.5,
+        vte=True,
+        params={"VTE_EN": 0, "VTE_AID_MASK": 10, "VTE_TASK_MASK": 0},
+    )
+    try:
+        code, lines = _run(capsys, "--config", _config(tmp_path, fc.connection, extra), "--apply")
+        assert fc.tally.target_refused.get("VTE not running", 0) > 0
+    finally:
+        fc.close()
+    assert code == 1
+    for fix in ("FIX: VTE_EN = 1", "FIX: VTE_AID_MASK = 14", "FIX: VTE_TASK_MASK = 1"):
+        assert fix in lines, lines
+    assert any(ln.startswith("PROBLEM VTE_EN = 0: the vision target estimator is not started") for ln in lines)
+    assert "OK VTE_POS_EN = 1" in lines and "FIX: VTE_POS_EN = 1" not in lines
+    assert "OK VTE_EN = 1 set" in lines and "OK VTE_AID_MASK = 14 set" in lines
+    assert fc.param("VTE_AID_MASK") == 14 and fc.params["VTE_AID_MASK"][1] == MAV_PARAM_TYPE_INT32
+
+    ok = FakeAutopilot(
+        "px4",
+        heartbeat_s=0.2,
+        timesync_s=0.5,
+        vte=True,
+        params={"VTE_EV_NOISE_MD": 1},
+        vehicle_state=lambda t: ((0.0, 0.0, -1.0), (0.0, 0.0, 0.0)),
+    )
+    try:
+        code, lines = _run(capsys, "--config", _config(tmp_path, ok.connection, extra))
+        fused, refused = len(ok.tally.fiducial_reports), dict(ok.tally.target_refused)
+    finally:
+        ok.close()
+    assert "FIX: VTE_EV_NOISE_MD = 0" in lines and "OK VTE_AID_MASK = 14 (vision relative position on)" in lines
+    assert not [ln for ln in lines if ln.startswith("FIX: VTE_") and "NOISE_MD" not in ln], lines
+    assert fused > 0, refused

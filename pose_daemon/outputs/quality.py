@@ -1,7 +1,8 @@
 """How good a pose is, for the autopilot: a 1-100 quality and a covariance from the solve.
 
-A pose from four corners is as good as the corners. Three things decide how far it can be
-trusted, and each is one factor (0..1) of the quality:
+A pose from four corners is as good as the corners, and as believable as its agreement with the
+frames before it. Four things decide how far it can be trusted, and each is one factor (0..1) of
+the quality:
 
 - fit: the reprojection residual e against the corner noise sigma measured on this camera
   (``FrameResult.corner_sigma_px``, the processor's CornerNoise; ``DEFAULT_CORNER_SIGMA_PX``
@@ -22,8 +23,19 @@ trusted, and each is one factor (0..1) of the quality:
   ruled the other solution out (``flip_resolved``: the choice was the vehicle's attitude or
   the tilt prior, ``resolved_by_prior``).
 
-Until the processor has measured the corner noise (its first frames) a fit cannot be judged,
-and the quality is at most ``PENDING_QUALITY``.
+- track: a pose whose rotation jumps off the track's constant-rate prediction
+  (``FrameResult.track_innovation``) by more than the turn a vehicle can make in that time plus
+  the poses' own noise (``pose.continuity.turn_allowance_deg``) is not the vehicle's motion: a
+  corner knocked off along the direction four corners leave unchecked moves the pose (near
+  face-on: the tilt) without leaving a residual. 1 / (1 + (angle / (``TRACK_HALF`` x
+  allowance))^4); 1 at a track's first poses.
+
+Until the processor has measured the corner noise (its first frames) the quality is the lowest
+any camera could earn with these corners: the fit judged against the least noise a corner is
+ever taken to have (``MIN_CORNER_SIGMA_PX``; the fit factor only falls as the noise falls), the
+precision and the flip risk against ``DEFAULT_CORNER_SIGMA_PX`` (as the covariance sent). A real
+camera's first corners (0.1-0.4 px off) are then far beyond that floor and not fused; corners
+that fit to a few hundredths of a pixel are good whatever the camera's noise turns out to be.
 
 The covariance sent is the solve's about the pose sent, plus p (the other solution's
 probability left after the prior) times the outer product of the step to the other solution:
@@ -40,6 +52,7 @@ from typing import TYPE_CHECKING, List, Optional, Tuple
 import numpy as np
 
 from ..geometry import VehicleFrames, rotate_covariance, rotation_angle_deg_3x3, rvec_from_R
+from ..pose.continuity import Innovation, turn_allowance_deg
 from ..pose.types import Pose
 
 if TYPE_CHECKING:
@@ -63,10 +76,10 @@ RESOLVING_PRIORS = ("attitude", "tilt")
 # No attitude's down is trusted to better than this in the covariance, radians (prior.py's
 # MIN_PRIOR_SIGMA_DEG).
 MIN_DOWN_SIGMA_RAD = math.radians(0.25)
-# The highest quality of a pose whose fit cannot be judged yet: the processor's first frames,
-# before it measured the corner noise (below any minimum the README advises).
-PENDING_QUALITY = 20
 LOST_QUALITY = -1
+# A rotation this many turn allowances off the track's prediction halves the quality (4th power
+# beyond): the bound the track itself follows poses within (continuity.TRACK_OUTLIER_ALLOWANCES).
+TRACK_HALF = 2.0
 # MAVLink's upper-right triangle of a 6x6 covariance, row-major (built once: 20 us a call).
 _TRIU6 = np.triu_indices(6)
 
@@ -208,8 +221,9 @@ class Uncertainty:
     and from the solve alone; ``flip_risk`` 0..1 (see ``flip_risk``); ``p_other`` the other
     planar solution's probability left after the prior, and ``step_centre_m`` /
     ``step_rotation_rad`` the step to it (marker frame) for the covariance sent;
-    ``corner_sigma_px`` the corner noise the fit was judged against; ``pending``: that noise is
-    not measured yet (the quality is at most PENDING_QUALITY)."""
+    ``corner_sigma_px`` the corner noise the covariance was worked out with; ``pending``: that
+    noise is not measured yet (the fit is then judged against MIN_CORNER_SIGMA_PX); ``innovation``:
+    the pose's rotation against the track's prediction (None: no track to judge it by)."""
 
     cov_centre_m2: np.ndarray
     cov_rotation_rad2: np.ndarray
@@ -221,6 +235,7 @@ class Uncertainty:
     pending: bool = False
     cov_tvec_cam_m2: Optional[np.ndarray] = None
     step_tvec_m: Optional[np.ndarray] = None
+    innovation: Optional[Innovation] = None
 
     @property
     def position_std_m(self) -> float:
@@ -320,8 +335,9 @@ def result_uncertainty(
     result: FrameResult, frames: Optional[VehicleFrames], fx_px: float, marker_width_m: float
 ) -> Uncertainty:
     """``uncertainty`` of a processed frame's pose with what processing learnt about it: the
-    measured corner noise, whether a prior ruled the other solution out (its choice), and the
-    attitude's down when the frame had one (``frames``: the mount and placement that give it)."""
+    measured corner noise, whether a prior ruled the other solution out (its choice), the
+    attitude's down when the frame had one (``frames``: the mount and placement that give it),
+    and the pose's agreement with its track (``track_innovation``)."""
     assert result.pose is not None
     choice = result.choice
     down_m = down_sigma = None
@@ -336,7 +352,7 @@ def result_uncertainty(
         down_m=down_m,
         down_sigma_rad=down_sigma,
     )
-    return dataclasses.replace(u, pending=True) if result.corner_noise_pending else u
+    return dataclasses.replace(u, pending=result.corner_noise_pending, innovation=result.track_innovation)
 
 
 def flip_risk(
@@ -392,6 +408,9 @@ def pose_quality(
     if u is None and fx_px is not None and marker_width_m is not None:
         u = uncertainty(pose, fx_px, marker_width_m, corner_sigma_px=corner_sigma_px, flip_resolved=flip_resolved)
     sigma = u.corner_sigma_px if u is not None else noise_sigma_px(corner_sigma_px)
+    if u is not None and u.pending:
+        # Unmeasured noise: the fit the least noisy camera would have (a lower bound).
+        sigma = MIN_CORNER_SIGMA_PX
     f_fit = 1.0 / (1.0 + (max(e, 0.0) / (FIT_HALF_Z * sigma)) ** 4)
     f_precision = 1.0
     if u is not None:
@@ -399,8 +418,21 @@ def pose_quality(
         risk = u.flip_risk
     else:
         risk = 0.0 if flip_resolved else flip_risk(pose, corner_sigma_px=corner_sigma_px)
-    q = int(min(100, max(1, round(100.0 * f_fit * f_precision * (1.0 - risk)))))
-    return min(q, PENDING_QUALITY) if u is not None and u.pending else q
+    f_track = 1.0
+    if u is not None and u.innovation is not None:
+        f_track = track_factor(u.innovation, math.degrees(u.attitude_std_rad))
+    return int(min(100, max(1, round(100.0 * f_fit * f_precision * (1.0 - risk) * f_track))))
+
+
+def track_factor(innovation: Innovation, attitude_std_deg: float = 0.0) -> float:
+    """The track factor of the quality (module docstring): 1 within the turn allowance, 1/2 at
+    TRACK_HALF allowances off the prediction."""
+    if not math.isfinite(innovation.angle_deg):
+        return 0.0
+    allowance = turn_allowance_deg(innovation, attitude_std_deg)
+    if allowance <= 0.0:
+        return 1.0 if innovation.angle_deg <= 0.0 else 0.0
+    return 1.0 / (1.0 + (innovation.angle_deg / (TRACK_HALF * allowance)) ** 4)
 
 
 def position_covariance_cam(

@@ -19,6 +19,7 @@ withheld pose is never let through).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from typing import Dict, List, Optional, Sequence
@@ -58,7 +59,7 @@ WRONG_DEG, FLIP_DEG = 10.0, 5.0
 IMPRECISE_M = 0.10
 MARGIN_PX = 4.0
 # Frames each hover runs before the judged ones: the daemon's steady state, its corner noise
-# measured (its first frames are sent with at most quality.PENDING_QUALITY).
+# measured (before that, its fit is judged against the least noise any camera has).
 WARMUP_FRAMES = 30
 
 
@@ -104,6 +105,8 @@ def run_case(height_m: float, tilt_deg: float, n_frames: int, seed: int) -> Dict
             continue
         rendered += k >= WARMUP_FRAMES
         image, _ = render_frame(CAMERA, MARKER, rvec_from_R(R_cm), t, effects=effects, rng=rng)
+        # The track as it stood before this frame: its bad-corner twin is judged against it.
+        track_before = copy.deepcopy(proc.track)
         result = proc.process(Frame(seq=k, t_capture_s=k / 30.0, image=image))
         pose = result.pose
         if pose is None or k < WARMUP_FRAMES:
@@ -170,6 +173,13 @@ def run_case(height_m: float, tilt_deg: float, n_frames: int, seed: int) -> Dict
                     corner_sigma_px=sigma_px,
                     flip_resolved=resolved_by_prior(choice.resolved_by),
                 )
+                # As the outputs judge the frame: with the noise not measured yet, pending; its
+                # rotation against the track's prediction.
+                u = dataclasses.replace(
+                    u,
+                    pending=result.corner_noise_pending,
+                    innovation=track_before.innovation(bp.R, result.t_capture_s) if sent else None,
+                )
                 rows.append(
                     {
                         # Withheld: nothing is sent, below any minimum quality.
@@ -195,7 +205,13 @@ def run_case(height_m: float, tilt_deg: float, n_frames: int, seed: int) -> Dict
             )
             rows.append(
                 {
-                    "q": pose_quality(flip, CAMERA.fx, MARKER.width, corner_sigma_px=sigma_px),
+                    "q": pose_quality(
+                        flip,
+                        u=dataclasses.replace(
+                            uncertainty(flip, CAMERA.fx, MARKER.width, corner_sigma_px=sigma_px),
+                            pending=result.corner_noise_pending,
+                        ),
+                    ),
                     "q_old": _old_quality(flip.reprojection_error_px, 1.0),
                     "correct": False,
                     "wrong": True,
