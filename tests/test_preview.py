@@ -273,6 +273,31 @@ def test_the_stream_sends_the_newest_annotated_frame_and_counts_what_it_skips(se
     assert _wait(lambda: server.counts["viewers"] == 0)
 
 
+def test_stop_waits_for_the_frame_a_viewer_is_being_sent_so_the_counts_after_it_agree(served):
+    """What `bench pipeline` reads after stop(): every frame encoded was also counted sent."""
+    server, feeder = served(fps=30.0)
+    in_write, release = threading.Event(), threading.Event()
+
+    def slow_write(data: bytes) -> None:  # a viewer whose socket takes its time
+        in_write.set()
+        assert release.wait(60)
+
+    viewer = threading.Thread(target=server.stream, args=(slow_write,), daemon=True)
+    viewer.start()
+    feeder.feed()
+    assert in_write.wait(60)
+    stopper = threading.Thread(target=server.stop, kwargs={"timeout_s": 60.0}, daemon=True)
+    stopper.start()
+    assert _wait(lambda: server.stopping)
+    stopper.join(0.3)
+    assert stopper.is_alive()  # the write is still under way: stop() waits for it
+    release.set()
+    stopper.join(60)
+    assert not stopper.is_alive()
+    assert server.counts["encoded"] == server.counts["frames_sent"] == 1
+    viewer.join(5)
+
+
 def test_a_viewer_that_stops_reading_is_dropped_and_holds_up_nothing(served):
     server, feeder = served(fps=30.0)
     feeder.start(pause_s=0.01)

@@ -82,6 +82,10 @@ class PreviewServer:
         self._period_s = 1.0 / self.pcfg.max_fps
         self._stopping = threading.Event()
         self._lock = threading.Lock()
+        # Viewers' stream loops still running: stop() waits for them, so counts read after it
+        # are final (a frame encoded is also counted sent, or its write failed).
+        self._streams_done = threading.Condition(self._lock)
+        self._streams = 0
         self._encode_lock = threading.Lock()
         self._encoded: Optional[Tuple[Tapped, bytes]] = None
         self._warnings_cache: Tuple[float, List[Any]] = (-1e18, [])
@@ -131,13 +135,16 @@ class PreviewServer:
         log.info("preview on %s (max %g fps, %d px wide)", self.url, self.pcfg.max_fps, self.pcfg.max_width)
 
     def stop(self, timeout_s: float = 0.5) -> None:
-        """Stop serving (viewers' threads end within a frame period); a recording is finished."""
+        """Stop serving; a recording is finished. Waits up to ``timeout_s`` for the viewers'
+        stream loops to end (within a frame period, or the write under way)."""
         self._stopping.set()
         self.tap.wake()
         if self._thread.is_alive():
             self._httpd.shutdown()
         self._httpd.server_close()
         self._thread.join(timeout_s)
+        with self._streams_done:
+            self._streams_done.wait_for(lambda: self._streams == 0, timeout_s)
         rec = self.recorder
         if rec is not None:
             rec.stop()
@@ -363,6 +370,16 @@ class PreviewServer:
 
     def stream(self, write: Callable[[bytes], Any], gone: Callable[[], bool] = lambda: False) -> None:
         """Feed one viewer until it goes away (``gone()``, or a write fails) or the server stops."""
+        with self._lock:
+            self._streams += 1
+        try:
+            self._feed(write, gone)
+        finally:
+            with self._streams_done:
+                self._streams -= 1
+                self._streams_done.notify_all()
+
+    def _feed(self, write: Callable[[bytes], Any], gone: Callable[[], bool]) -> None:
         last: Optional[Tapped] = None
         next_s = self.clock()
         while not self.stopping and not gone():

@@ -271,8 +271,9 @@ def _run(
     pipeline.stop()
     preview_line = None
     if server is not None:
+        # Counts once the viewer's stream loop has ended: its last frame is both encoded and sent.
+        server.stop(timeout_s=10.0)
         c = dict(server.counts)
-        server.stop()
         seen = ""
         if viewer is not None:
             viewer.terminate()
