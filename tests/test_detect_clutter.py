@@ -8,6 +8,7 @@ import pytest
 from detect_helpers import ARUCO, CAM, render
 
 from pose_daemon import MarkerDetector
+from pose_daemon.detect import aruco_compat
 from pose_daemon.detect.aruco import OPENCV_EVERY
 from pose_daemon.render import Effects, random_pose, render_empty
 from pose_daemon.tools.bench_detector import CLUTTER_SCENES, clutter_background
@@ -45,10 +46,30 @@ class StepClock:
         return self.t_s
 
 
+def _decoys(background: np.ndarray, cell_px: int = 7) -> np.ndarray:
+    """``background`` with four copies of the marker in its corners, each with two wrong
+    bits: read from the rough outline they may be the marker (one more bit error is allowed
+    there), after the edge fit they are not. Larger than a far marker, so searched first."""
+    dictionary = aruco_compat.get_dictionary(ARUCO.dictionary)
+    code = aruco_compat.marker_image(dictionary, ARUCO.id, 6).astype(np.float32)
+    code[1, 1], code[3, 4] = 255.0 - code[1, 1], 255.0 - code[3, 4]
+    big = 30.0 + np.kron(code, np.ones((cell_px, cell_px), np.float32)) * (205.0 / 255.0)
+    side = big.shape[0]
+    out = background.copy()
+    for x, y in ((10, 10), (CAM.width - side - 2 * cell_px - 10, 10), (10, CAM.height - side - 2 * cell_px - 10)):
+        out[y : y + side + 2 * cell_px, x : x + side + 2 * cell_px] = 235.0  # quiet zone
+        out[y + cell_px : y + cell_px + side, x + cell_px : x + cell_px + side] = big
+    return out
+
+
 def test_time_cap_leaves_the_rest_of_the_search_to_the_next_frame() -> None:
     """Every clock reading costs 1 ms, the cap is 0.5 ms: a frame examines one candidate
-    and stops; the search goes on next frame and reaches the (small, far) marker."""
-    image, truth = _scene("board", 1, distance_m=(2.5, 3.2))
+    and stops; the search goes on next frame and reaches the (small, far) marker, after
+    decoys that each take a frame of their own (a rough outline's code read, then the fit)."""
+    rng = np.random.default_rng([7, 1, CLUTTER_SCENES.index("board")])
+    background = _decoys(clutter_background("board", rng, CAM.width, CAM.height))
+    rvec, tvec = random_pose(rng, CAM, ARUCO, distance_m=(2.5, 3.2), max_tilt_deg=50)
+    image, truth = render(ARUCO, rvec, tvec, seed=1, background=background)
     uncapped = MarkerDetector(ARUCO)
     assert uncapped.detect(image) is not None
     capped = MarkerDetector(ARUCO, search_budget_ms=0.5, clock=StepClock(1e-3))
