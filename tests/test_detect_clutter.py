@@ -10,6 +10,7 @@ from detect_helpers import ARUCO, CAM, render
 from pose_daemon import MarkerDetector
 from pose_daemon.detect import aruco_compat
 from pose_daemon.detect.aruco import OPENCV_EVERY
+from pose_daemon.detect.quads import find_quads
 from pose_daemon.render import Effects, random_pose, render_empty
 from pose_daemon.tools.bench_detector import CLUTTER_SCENES, clutter_background
 
@@ -195,3 +196,21 @@ def test_config_search_budget_reaches_the_detector_and_zero_means_no_cap() -> No
     assert capped.search_budget_s == pytest.approx(0.040)
     with pytest.raises(Exception, match=r"search_budget_ms: expected a number in \[0, 10000\]"):
         parse_config("[detector]\nsearch_budget_ms = -1\n", "c.toml")
+
+
+def test_code_read_of_many_outlines_at_once_gives_each_ones_verdict() -> None:
+    """The whole-frame search reads the rough outlines' codes in one pass (could_be_many):
+    the same verdict as one at a time (could_be), on boards and print, marker or not."""
+    finder = MarkerDetector(ARUCO)._finder
+    verdicts = []
+    for kind in ("board", "text"):
+        for with_marker in (True, False):
+            image, _ = _scene(kind, 0, with_marker=with_marker)
+            for downscale in (2, 1):
+                quads = find_quads(image, min_side_px=10, block_px=25, offset_gray=10.0, downscale=downscale)
+                assert len(quads) >= 3
+                many = finder.could_be_many(image, np.array(quads)).tolist()
+                assert many == [finder.could_be(image, q) for q in quads]
+                assert finder.could_be_many(image, np.array(quads[:2])).tolist() == many[:2]
+                verdicts += many
+    assert any(verdicts) and not all(verdicts)

@@ -143,41 +143,37 @@ def sample_canonical(gray: np.ndarray, corners: np.ndarray, uv: np.ndarray) -> n
     return out
 
 
-def homographies(corners: np.ndarray) -> np.ndarray:
-    """Homographies (N, 3, 3) mapping the canonical square [0, 1]^2 (TL, TR, BR, BL) onto each
-    outline of ``corners`` (N, 4, 2): ``cv2.getPerspectiveTransform`` (float32 corners, the
-    same 8x8 system solved in float64) for many outlines in one numpy call."""
-    c = np.asarray(corners, dtype=np.float32).astype(np.float64).reshape(-1, 4, 2)
-    n = len(c)
-    u, v = _UNIT[:, 0].astype(np.float64), _UNIT[:, 1].astype(np.float64)
-    x, y = c[:, :, 0], c[:, :, 1]
-    a = np.zeros((n, 8, 8))
-    a[:, :4, 0], a[:, :4, 1], a[:, :4, 2] = u, v, 1.0
-    a[:, :4, 6], a[:, :4, 7] = -u * x, -v * x
-    a[:, 4:, 3], a[:, 4:, 4], a[:, 4:, 5] = u, v, 1.0
-    a[:, 4:, 6], a[:, 4:, 7] = -u * y, -v * y
-    b = np.concatenate([x, y], axis=1)[:, :, None]
-    h = np.linalg.solve(a, b)[:, :, 0]
-    return np.concatenate([h, np.ones((n, 1))], axis=1).reshape(n, 3, 3)
-
-
 def sample_canonical_many(gray: np.ndarray, corners: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """``sample_canonical`` for many outlines at once: (N, len(uv)) grey levels of the outlines
     ``corners`` (N, 4, 2), NaN outside the image; one remap for all of them (a board or a page
-    of print gives a hundred outlines, where one OpenCV call each cost more than the rest)."""
+    of print gives a hundred outlines, where one OpenCV call each cost more than the rest).
+
+    The unit square's projective map onto each outline in closed form (Heckbert 1989), the
+    homography ``cv2.getPerspectiveTransform`` solves for, from the same float32 corners."""
     n = len(corners)
     if n == 0:
         return np.zeros((0, len(uv)))
-    H = homographies(corners)
+    c = np.asarray(corners, dtype=np.float32).astype(np.float64).reshape(n, 4, 2)
+    (x0, y0), (x1, y1), (x2, y2), (x3, y3) = (c[:, k, :].T[:, :, None] for k in range(4))
+    dx1, dx2, dx3 = x1 - x2, x3 - x2, x0 - x1 + x2 - x3
+    dy1, dy2, dy3 = y1 - y2, y3 - y2, y0 - y1 + y2 - y3
+    det = dx1 * dy2 - dx2 * dy1
+    det = np.where(np.abs(det) > 1e-12, det, 1e-12)
+    g = (dx3 * dy2 - dx2 * dy3) / det
+    h = (dx1 * dy3 - dx3 * dy1) / det
     u, v = uv[:, 0], uv[:, 1]
-    w = H[:, 2, 0:1] * u + H[:, 2, 1:2] * v + H[:, 2, 2:3]
-    px = (H[:, 0, 0:1] * u + H[:, 0, 1:2] * v + H[:, 0, 2:3]) / w
-    py = (H[:, 1, 0:1] * u + H[:, 1, 1:2] * v + H[:, 1, 2:3]) / w
+    w = g * u + h * v + 1.0
+    px = ((x1 - x0 + g * x1) * u + (x3 - x0 + h * x3) * v + x0) / w
+    py = ((y1 - y0 + g * y1) * u + (y3 - y0 + h * y3) * v + y0) / w
     h_img, w_img = gray.shape
     inside = (px >= 0) & (px <= w_img - 1) & (py >= 0) & (py <= h_img - 1)
-    mx = px.astype(np.float32).reshape(1, -1)
-    my = py.astype(np.float32).reshape(1, -1)
-    values = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    values = cv2.remap(
+        gray,
+        px.astype(np.float32).reshape(1, -1),
+        py.astype(np.float32).reshape(1, -1),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
     out = values.reshape(n, -1).astype(np.float64)
     out[~inside] = np.nan
     return out
