@@ -8,7 +8,9 @@ import pytest
 from detect_helpers import ARUCO, CAM, render
 
 from pose_daemon import MarkerDetector
+from pose_daemon.detect import aruco_compat
 from pose_daemon.detect.aruco import OPENCV_EVERY
+from pose_daemon.detect.quads import find_quads
 from pose_daemon.render import Effects, random_pose, render_empty
 from pose_daemon.tools.bench_detector import CLUTTER_SCENES, clutter_background
 
@@ -45,10 +47,30 @@ class StepClock:
         return self.t_s
 
 
+def _decoys(background: np.ndarray, cell_px: int = 7) -> np.ndarray:
+    """``background`` with four copies of the marker in its corners, each with two wrong
+    bits: read from the rough outline they may be the marker (one more bit error is allowed
+    there), after the edge fit they are not. Larger than a far marker, so searched first."""
+    dictionary = aruco_compat.get_dictionary(ARUCO.dictionary)
+    code = aruco_compat.marker_image(dictionary, ARUCO.id, 6).astype(np.float32)
+    code[1, 1], code[3, 4] = 255.0 - code[1, 1], 255.0 - code[3, 4]
+    big = 30.0 + np.kron(code, np.ones((cell_px, cell_px), np.float32)) * (205.0 / 255.0)
+    side = big.shape[0]
+    out = background.copy()
+    for x, y in ((10, 10), (CAM.width - side - 2 * cell_px - 10, 10), (10, CAM.height - side - 2 * cell_px - 10)):
+        out[y : y + side + 2 * cell_px, x : x + side + 2 * cell_px] = 235.0  # quiet zone
+        out[y + cell_px : y + cell_px + side, x + cell_px : x + cell_px + side] = big
+    return out
+
+
 def test_time_cap_leaves_the_rest_of_the_search_to_the_next_frame() -> None:
     """Every clock reading costs 1 ms, the cap is 0.5 ms: a frame examines one candidate
-    and stops; the search goes on next frame and reaches the (small, far) marker."""
-    image, truth = _scene("board", 1, distance_m=(2.5, 3.2))
+    and stops; the search goes on next frame and reaches the (small, far) marker, after
+    decoys that each take a frame of their own (a rough outline's code read, then the fit)."""
+    rng = np.random.default_rng([7, 1, CLUTTER_SCENES.index("board")])
+    background = _decoys(clutter_background("board", rng, CAM.width, CAM.height))
+    rvec, tvec = random_pose(rng, CAM, ARUCO, distance_m=(2.5, 3.2), max_tilt_deg=50)
+    image, truth = render(ARUCO, rvec, tvec, seed=1, background=background)
     uncapped = MarkerDetector(ARUCO)
     assert uncapped.detect(image) is not None
     capped = MarkerDetector(ARUCO, search_budget_ms=0.5, clock=StepClock(1e-3))
@@ -174,3 +196,21 @@ def test_config_search_budget_reaches_the_detector_and_zero_means_no_cap() -> No
     assert capped.search_budget_s == pytest.approx(0.040)
     with pytest.raises(Exception, match=r"search_budget_ms: expected a number in \[0, 10000\]"):
         parse_config("[detector]\nsearch_budget_ms = -1\n", "c.toml")
+
+
+def test_code_read_of_many_outlines_at_once_gives_each_ones_verdict() -> None:
+    """The whole-frame search reads the rough outlines' codes in one pass (could_be_many):
+    the same verdict as one at a time (could_be), on boards and print, marker or not."""
+    finder = MarkerDetector(ARUCO)._finder
+    verdicts, batched = [], 0
+    for kind in ("board", "text"):
+        for with_marker in (True, False):
+            image, _ = _scene(kind, 0, with_marker=with_marker)
+            for downscale in (2, 1):
+                quads = find_quads(image, min_side_px=10, block_px=25, offset_gray=10.0, downscale=downscale)
+                batched += len(quads) >= 3
+                many = finder.could_be_many(image, np.array(quads)).tolist()
+                assert many == [finder.could_be(image, q) for q in quads]
+                assert finder.could_be_many(image, np.array(quads[:2])).tolist() == many[:2]
+                verdicts += many
+    assert batched >= 4 and any(verdicts) and not all(verdicts)

@@ -108,9 +108,15 @@ def _outer_perimeters(contours, hierarchy: np.ndarray, min_area: float) -> np.nd
     clutter there are hundreds, and one OpenCV call each cost more than the rest of the
     search (the quadrilateral's own area is checked again after the polygon fit)."""
     counts = np.array(list(map(len, contours)), dtype=np.intp)  # indices: int32 on a 32-bit Pi
+    out = np.zeros(len(contours))
+    # Outer boundaries of 4 points or more only: the holes' outlines are half the points.
+    chosen = np.flatnonzero((hierarchy[:, 3] == -1) & (counts >= 4))
+    if len(chosen) == 0:
+        return out
+    counts = counts[chosen]
     ends = np.cumsum(counts)
     starts = ends - counts
-    pts = np.concatenate(contours).reshape(-1, 2).astype(np.float64)
+    pts = np.concatenate([contours[i] for i in chosen.tolist()]).reshape(-1, 2).astype(np.float64)
     # Each point to its successor, the last point of a contour back to its first.
     d = np.empty_like(pts)
     d[:-1] = pts[1:] - pts[:-1]
@@ -121,8 +127,9 @@ def _outer_perimeters(contours, hierarchy: np.ndarray, min_area: float) -> np.nd
     # Compactness 4 pi area / perimeter^2: 0.79 for a square, 0.59 for a 3:1 rectangle, a
     # 60-degree tilt halving one side 0.70; strokes of print and thin texture far below.
     compact = 4.0 * np.pi * area >= MIN_COMPACTNESS * np.maximum(perimeter, 1e-9) ** 2
-    keep = (hierarchy[:, 3] == -1) & (counts >= 4) & (area >= 0.5 * min_area) & compact
-    return np.where(keep, perimeter, 0.0)
+    keep = (area >= 0.5 * min_area) & compact
+    out[chosen[keep]] = perimeter[keep]
+    return out
 
 
 def inside_any(point: np.ndarray, outlines: List[np.ndarray]) -> bool:
