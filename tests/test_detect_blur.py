@@ -71,12 +71,28 @@ def test_blur_sweep_point_keeps_size_and_corners(condition: str) -> None:
 def test_code_light_blurred_into_the_border_does_not_grow_the_marker(monkeypatch, gamma) -> None:
     """Small markers (5 px cells) at 2.5 px defocus: next to a white code cell the border's
     inner level is too light, so those profiles find the edge outside the true one. Kept
-    (the cause), the marker grows on every frame by 0.5-1.3 %; left out, by about a third of
-    that (what stays: light spread along the side into the neighbouring profiles)."""
+    at their half-way level (the cause: neither the border model nor the bleed test), the
+    marker grows on every frame by 0.5-1.3 %; modelled, by a small fraction of that."""
     effects = dict(blur_px=2.5, gamma=gamma)
     sizes, _, misses = _sweep(ARUCO, effects, (1.3, 1.6), 6, 41)
+    monkeypatch.setattr(refine, "MODEL_CELL_SIGMAS", float("-inf"))
     monkeypatch.setattr(refine, "BLEED_FRACTION", float("inf"))
     grown, _, _ = _sweep(ARUCO, effects, (1.3, 1.6), 6, 41)
     assert float(grown.min()) > 0.004, grown
     assert misses <= 1 and abs(float(sizes.mean())) <= 0.004, sizes
     assert abs(float(sizes.mean())) < 0.45 * float(grown.mean())
+
+
+@pytest.mark.parametrize("gamma", [1.0, "srgb"])
+def test_border_model_removes_the_code_light_from_defocused_edges(monkeypatch, gamma) -> None:
+    """Markers of 8-12 px cells at 2.5 px defocus: partly bled profiles pass the bleed test
+    and keep the marker grown at the half-way level; the border model (the code cells'
+    light as a second, inner edge) takes it out. Against the renderer's truth, same frames."""
+    effects = dict(blur_px=2.5, gamma=gamma)
+    sizes, corner_rms, misses = _sweep(ARUCO, effects, (0.7, 1.0), 8, 57)
+    monkeypatch.setattr(refine, "MODEL_CELL_SIGMAS", float("-inf"))
+    half_way, half_way_rms, _ = _sweep(ARUCO, effects, (0.7, 1.0), 8, 57)
+    assert misses == 0
+    assert float(half_way.mean()) > 0.0008, half_way
+    assert abs(float(sizes.mean())) < 0.5 * float(half_way.mean()), (sizes, half_way)
+    assert corner_rms < half_way_rms

@@ -52,6 +52,7 @@ class ArucoFinder(OutlineFinder):
         self.marker_id = int(marker.id)
         self.bits = aruco_compat.marker_bits(self.dictionary, self.marker_id)
         self.n_bits = int(self.bits.shape[0])
+        self.border_fraction = 1.0 / (self.n_bits + 2)
         self.max_bit_errors = int(getattr(self.dictionary, "maxCorrectionBits", 0))
         # Our own edge fits replace OpenCV's refinement, so it is switched off.
         self._finder = aruco_compat.ArucoMarkerFinder(

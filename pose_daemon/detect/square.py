@@ -209,6 +209,9 @@ class OutlineFinder:
     """
 
     oriented = False
+    #: The dark border's width as a fraction of a side when light cells lie behind it (an
+    #: ArUco marker's code), None for a solid dark shape: the edge fits then model them.
+    border_fraction: Optional[float] = None
 
     def __init__(self, marker: Marker, options: SquareOptions, camera=None) -> None:
         self.marker = marker
@@ -245,6 +248,7 @@ class OutlineFinder:
             converged_px=converged_px,
             lut=self.lut,
             check_blur=check_blur,
+            border_fraction=self.border_fraction,
         )
 
     # ------------------------------------------------------------------ search
