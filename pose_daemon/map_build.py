@@ -6,21 +6,25 @@
    both planar solutions kept), T_a_b for every two markers seen in one frame (up to four
    candidates), and across frames the candidate most frames agree on.
 3. A graph over markers: a maximum spanning tree (edge weight: frames that agree) from the
-   anchor puts every connected marker in the map frame; each frame's camera pose follows from
-   its markers (pose/map_solve.refine_pose over all their corners).
-4. One joint sparse robust least squares (scipy.optimize.least_squares, Huber loss in pixels,
-   the sparse Jacobian analytic) of all marker poses (the anchor held at its pose: the map
-   frame) and all camera poses over every corner observation. With ``plane`` the markers are
-   solved in the anchor's plane first (position x, y and a turn about z each, from the tree's
-   map laid flat: a chain of markers bends out of the plane in a free solve that is slow to
-   straighten), then freed as the yardstick: the plane is kept when the residuals allow it
-   (no marker's residual grows by much), else the free solve goes on to convergence.
+   anchor puts every connected marker in the map frame; each frame's camera pose starts from
+   the marker pose that fits all its markers best, then all cameras are refined at once with
+   the markers held (a damped Gauss-Newton per camera, vectorised over the cameras).
+4. One joint robust least squares of all marker poses (the anchor held at its pose: the map
+   frame) and all camera poses over every corner observation: Levenberg-Marquardt, Huber loss
+   in pixels (iteratively reweighted), the Jacobian analytic, each step's normal equations
+   solved exactly with every camera's 6 x 6 block eliminated (a Schur complement: a dense
+   system in the marker parameters only, filled by the markers seen together). With ``plane``
+   the markers are solved in the anchor's plane first (position x, y and a turn about z each,
+   from the tree's map laid flat: a chain of markers bends out of the plane in a free solve
+   that is slow to straighten), then freed as the yardstick: the plane is kept when the
+   residuals allow it (no marker's residual grows by much), else the free solve goes on to
+   convergence.
 5. Observations that stay far off under the free solve are left out and both solves repeated.
-6. Uncertainty: the marker block of s^2 (J^T J)^-1 (the camera blocks eliminated by a Schur
-   complement), s^2 the residual variance.
+6. Uncertainty: the marker block of s^2 (J^T W J)^-1 (the camera blocks eliminated likewise),
+   s^2 the residual variance.
 
-scipy is an off-vehicle extra (``pose-daemon[map]``); it is imported only here, in
-``require_scipy``.
+scipy (its sparse matrices sum the blocks) is an off-vehicle extra (``pose-daemon[map]``); it
+is imported only here, checked by ``require_scipy``.
 """
 
 from __future__ import annotations
@@ -76,9 +80,8 @@ PLANE_MARKER_FACTOR, PLANE_MARKER_PX, PLANE_TOTAL = 1.3, 0.05, 1.1
 
 
 def require_scipy() -> Any:
-    """scipy.linalg and scipy.sparse, or a UserError naming the missing extra."""
+    """scipy (with scipy.sparse), or a UserError naming the missing extra."""
     try:
-        import scipy.linalg
         import scipy.sparse
     except ImportError as exc:
         raise UserError(MISSING_SCIPY) from exc
@@ -848,7 +851,7 @@ def build_map(
         )
         return per, math.sqrt(float(d2.mean())) if len(d2) else 0.0
 
-    def poses(state: _Solved):
+    def poses(state: _Solved) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         return state.Rm, state.pm, state.Rc, state.tc
 
     def both(start_planar, free_from_planar, mask):
@@ -911,7 +914,8 @@ def build_map(
                 f"not kept: in one plane marker {marker_ids[worst]}'s residual grows from "
                 f"{free_per[worst]:.2f} to {plane_per[worst]:.2f} px (RMS {free_rms:.2f} -> {plane_rms:.2f} px)"
             )
-            chosen = run(False, *poses(free_state), keep_obs)
+            Rm_f, pm_f, Rc_f, tc_f = poses(free_state)
+            chosen = run(False, Rm_f, pm_f, Rc_f, tc_f, keep_obs)
     prob = chosen.prob
     Rm, pm, Rc, tc = poses(chosen)
     per_marker, rms = marker_rms(chosen)
