@@ -1,7 +1,8 @@
 """Surveying a marker map from a walk-through: every marker's pose in one map frame.
 
 1. Observations: per frame, the corners of every marker found ({id: (4, 2) pixels}; the
-   caller detects them, tools/map_survey.py with detect/multi.MapDetector).
+   caller detects them, tools/map_survey.py with detect/multi.MapDetector); a marker with a
+   corner outside the frame (extrapolated by the detector, not measured) is left out.
 2. Pairwise relative poses: each marker's own pose in each frame (OpenCV's IPPE for squares,
    both planar solutions kept), T_a_b for every two markers seen in one frame (up to four
    candidates), and across frames the candidate most frames agree on.
@@ -707,6 +708,10 @@ def build_map(
     n_frames = len(observations)
     labels = list(labels) if labels is not None else [f"frame {i}" for i in range(n_frames)]
     obs = [{int(i): np.asarray(c, dtype=np.float64).reshape(4, 2) for i, c in o.items()} for o in observations]
+    # A marker partly out of the frame: the detector extrapolates the corners it cannot see
+    # (detect/multi), which are no measurement; such an observation is left out whole.
+    frame_max = np.array([camera.width - 1.0, camera.height - 1.0])
+    obs = [{i: c for i, c in o.items() if bool(np.all((c >= 0.0) & (c <= frame_max)))} for o in obs]
 
     def size_of(i: int) -> float:
         return float(sizes.get(i, default_size_m))
