@@ -1,26 +1,31 @@
 """Surveying a marker map from a walk-through: every marker's pose in one map frame.
 
 1. Observations: per frame, the corners of every marker found ({id: (4, 2) pixels}; the
-   caller detects them, tools/map_survey.py with detect/multi.MapDetector).
+   caller detects them, tools/map_survey.py with detect/multi.MapDetector); a marker with a
+   corner outside the frame (extrapolated by the detector, not measured) is left out.
 2. Pairwise relative poses: each marker's own pose in each frame (OpenCV's IPPE for squares,
    both planar solutions kept), T_a_b for every two markers seen in one frame (up to four
    candidates), and across frames the candidate most frames agree on.
 3. A graph over markers: a maximum spanning tree (edge weight: frames that agree) from the
-   anchor puts every connected marker in the map frame; each frame's camera pose follows from
-   its markers (pose/map_solve.refine_pose over all their corners).
-4. One joint sparse robust least squares (scipy.optimize.least_squares, Huber loss in pixels,
-   the sparse Jacobian analytic) of all marker poses (the anchor held at its pose: the map
-   frame) and all camera poses over every corner observation. With ``plane`` the markers are
-   solved in the anchor's plane first (position x, y and a turn about z each, from the tree's
-   map laid flat: a chain of markers bends out of the plane in a free solve that is slow to
-   straighten), then freed as the yardstick: the plane is kept when the residuals allow it
-   (no marker's residual grows by much), else the free solve goes on to convergence.
+   anchor puts every connected marker in the map frame; each frame's camera pose starts from
+   the marker pose that fits all its markers best, then all cameras are refined at once with
+   the markers held (a damped Gauss-Newton per camera, vectorised over the cameras).
+4. One joint robust least squares of all marker poses (the anchor held at its pose: the map
+   frame) and all camera poses over every corner observation: Levenberg-Marquardt, Huber loss
+   in pixels (iteratively reweighted), the Jacobian analytic, each step's normal equations
+   solved exactly with every camera's 6 x 6 block eliminated (a Schur complement: a dense
+   system in the marker parameters only, filled by the markers seen together). With ``plane``
+   the markers are solved in the anchor's plane first (position x, y and a turn about z each,
+   from the tree's map laid flat: a chain of markers bends out of the plane in a free solve
+   that is slow to straighten), then freed as the yardstick: the plane is kept when the
+   residuals allow it (no marker's residual grows by much), else the free solve goes on to
+   convergence.
 5. Observations that stay far off under the free solve are left out and both solves repeated.
-6. Uncertainty: the marker block of s^2 (J^T J)^-1 (the camera blocks eliminated by a Schur
-   complement), s^2 the residual variance.
+6. Uncertainty: the marker block of s^2 (J^T W J)^-1 (the camera blocks eliminated likewise),
+   s^2 the residual variance.
 
-scipy is an off-vehicle extra (``pose-daemon[map]``); it is imported only here, in
-``require_scipy``.
+scipy (its sparse matrices sum the blocks) is an off-vehicle extra (``pose-daemon[map]``); it
+is imported only here, checked by ``require_scipy``.
 """
 
 from __future__ import annotations
@@ -37,7 +42,6 @@ from .camera import Camera
 from .errors import UserError
 from .geometry import R_from_rvec, euler_rpy_from_R, rot_z
 from .marker_map import MapMarker, MarkerMap
-from .pose.map_solve import refine_pose
 
 __all__ = [
     "MISSING_SCIPY",
@@ -61,7 +65,11 @@ AGREE_M, AGREE_FRAC = 0.05, 0.10
 #: Frames per marker pair used for the consensus (evenly spaced when there are more).
 PAIR_FRAMES = 40
 #: Evaluations of the free solve that only checks whether the plane holds.
-FREE_CHECK_NFEV = 15
+FREE_CHECK_ITERATIONS = 15
+#: Steps of every other solve at most, and the relative decrease of the cost that ends one.
+SOLVE_ITERATIONS, LM_FTOL = 100, 1e-9
+#: Steps of the camera-only refinement of the start at most.
+CAMERA_ITERATIONS = 20
 #: Huber scale of the joint solve, pixels.
 HUBER_PX = 1.0
 #: An observation (one marker in one frame) whose RMS corner residual after the first solve is
@@ -73,9 +81,8 @@ PLANE_MARKER_FACTOR, PLANE_MARKER_PX, PLANE_TOTAL = 1.3, 0.05, 1.1
 
 
 def require_scipy() -> Any:
-    """scipy.optimize and scipy.sparse, or a UserError naming the missing extra."""
+    """scipy (with scipy.sparse), or a UserError naming the missing extra."""
     try:
-        import scipy.optimize
         import scipy.sparse
     except ImportError as exc:
         raise UserError(MISSING_SCIPY) from exc
@@ -166,6 +173,8 @@ class MapBuild:
     #: seconds per stage: "pairs", "graph", "solve", "covariance"
     stage_s: Dict[str, float] = field(default_factory=dict)
     observations_used: int = 0
+    #: per solve in order: (in one plane, steps, residual evaluations)
+    solves: List[Tuple[bool, int, int]] = field(default_factory=list)
 
 
 # ----------------------------------------------------------------------------- pairs and graph
@@ -304,8 +313,10 @@ def _camera_start(
     poses: Dict[int, List[Tuple[np.ndarray, np.ndarray, float]]],
     markers: Dict[int, Tuple[np.ndarray, np.ndarray]],
     sizes: Dict[int, float],
-) -> Optional[Tuple[np.ndarray, np.ndarray, float]]:
-    """(R_cam_map, t, RMS px) of one frame from its placed markers, or None."""
+) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+    """(R_cam_map, t) of one frame from its placed markers (the marker's own pose that fits
+    all of them best, under a capped cost), or None; refined with the others by
+    ``_Problem.refine_cameras``."""
     ids = [i for i in sorted(observed) if i in markers]
     if not ids:
         return None
@@ -326,8 +337,7 @@ def _camera_start(
                 best = (cost, R, t)
     if best is None:
         return None
-    R, t, sse, _ = refine_pose(camera, obj, img, best[1], best[2])
-    return R, t, math.sqrt(sse / len(img))
+    return best[1], best[2]
 
 
 # ----------------------------------------------------------------------------- the joint solve
@@ -336,9 +346,10 @@ def _camera_start(
 class _Problem:
     """Corner observations and the parameter layout of the joint solve.
 
-    Markers (anchor excluded): free, 6 parameters (rotation increment w, position p) with
-    R = exp(w) R0; planar, 3 (x, y, yaw) with R = Rz(yaw), z = 0. Cameras: 6 (rotation
-    increment, translation), R_cam_map = exp(w) R0.
+    Markers (anchor excluded): free, 6 parameters (rotation increment w, position increment)
+    with R <- exp(w) R; planar, 3 (x, y, yaw increments) with R = Rz(yaw), z = 0. Cameras: 6
+    (rotation increment, translation increment), R_cam_map <- exp(w) R_cam_map. Increments
+    are taken at the current poses (the Jacobian is exact at every step).
     """
 
     def __init__(
@@ -353,48 +364,73 @@ class _Problem:
         n_cams: int,
         planar: bool,
     ) -> None:
+        import scipy.sparse
+
         self.camera = camera
         self.obs_cam, self.obs_marker, self.obs_img, self.local = obs_cam, obs_marker, obs_img, local
         self.anchor_index = anchor_index
         self.n_markers, self.n_cams = n_markers, n_cams
         self.planar = planar
         self.mp = 3 if planar else 6
-        # Column of each marker's block (-1: the anchor, held fixed).
+        # Column block of each marker (-1: the anchor, held fixed).
         col = np.full(n_markers, -1, dtype=np.int64)
         k = 0
         for i in range(n_markers):
             if i != anchor_index:
                 col[i] = k
-                k += self.mp
-        self.marker_col = col
-        self.n_marker_params = k
-        self.n_params = k + 6 * n_cams
+                k += 1
+        self.n_free = k
+        self.marker_col = col * self.mp  # first parameter of each marker (-1 * mp: the anchor)
+        self.marker_col[col < 0] = -1
+        self.n_marker_params = k * self.mp
+        self.n_params = self.n_marker_params + 6 * n_cams
+        n = len(obs_cam)
+        # Sums over observations per camera and per free marker, as sparse matrices.
+        self.free = col[obs_marker] >= 0 if n else np.zeros(0, dtype=bool)
+        self.free_block = col[obs_marker][self.free]
+        self.free_cam = obs_cam[self.free]
+        nf = int(self.free.sum())
+        self.cam_sum = scipy.sparse.csr_matrix((np.ones(n), (obs_cam, np.arange(n))), shape=(n_cams, n))
+        self.mk_sum = scipy.sparse.csr_matrix((np.ones(nf), (self.free_block, np.arange(nf))), shape=(k, nf))
+        self.cam_of_free = scipy.sparse.csr_matrix((np.ones(nf), (self.free_cam, np.arange(nf))), shape=(n_cams, nf))
+        # Every two free observations of one camera (a marker with itself included): the
+        # marker-marker blocks of the reduced system they fill.
+        pa, pb = [], []
+        order = np.argsort(self.free_cam, kind="stable")
+        bounds = np.searchsorted(self.free_cam[order], np.arange(n_cams + 1))
+        for c in range(n_cams):
+            idx = order[bounds[c] : bounds[c + 1]]
+            if len(idx):
+                pa.append(np.repeat(idx, len(idx)))
+                pb.append(np.tile(idx, len(idx)))
+        self.pair_a = np.concatenate(pa) if pa else np.zeros(0, dtype=np.int64)
+        self.pair_b = np.concatenate(pb) if pb else np.zeros(0, dtype=np.int64)
+        key = self.free_block[self.pair_a] * k + self.free_block[self.pair_b]
+        self.pair_sum = scipy.sparse.csr_matrix(
+            (np.ones(len(key)), (key, np.arange(len(key)))), shape=(k * k, len(key))
+        )
 
-    def _columns(self) -> Tuple[np.ndarray, np.ndarray]:
-        """Column of each observation's camera block and marker block (-1: the anchor)."""
-        return self.n_marker_params + 6 * self.obs_cam, self.marker_col[self.obs_marker]
+    def linearize(
+        self, Rm: np.ndarray, pm: np.ndarray, Rc: np.ndarray, tc: np.ndarray
+    ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(residuals (n, 8), camera blocks (n, 8, 6), marker blocks (n, 8, mp)) through the lens.
 
-    def jacobian(self, Rm: np.ndarray, pm: np.ndarray, Rc: np.ndarray, tc: np.ndarray) -> Any:
-        """The residuals' sparse Jacobian (8 rows per observation), through the lens.
-
-        Rotations are increments on the left (R = exp(w) R0), so d(R X)/dw = -[R X]x; the
-        lens' d(pixel)/d(X_cam) is cv2.projectPoints' Jacobian with respect to its tvec.
+        Rotations are increments on the left, so d(R X)/dw = -[R X]x; the lens' d(pixel)/d(X_cam)
+        is cv2.projectPoints' Jacobian with respect to its tvec.
         """
         import cv2
-        import scipy.sparse
 
         n_obs = len(self.obs_cam)
-        if n_obs == 0:
-            return scipy.sparse.csr_matrix((0, self.n_params))
         RL = np.einsum("nij,nkj->nki", Rm[self.obs_marker], self.local)  # (n, 4, 3)
         X_map = RL + pm[self.obs_marker][:, None, :]
         Rco = Rc[self.obs_cam]
         X_cam = np.einsum("nij,nkj->nki", Rco, X_map) + tc[self.obs_cam][:, None, :]
         z = X_cam[..., 2:3]
         X_cam = np.where(z > 1e-3, X_cam, np.concatenate([X_cam[..., :2], np.full_like(z, 1e-3)], axis=-1))
-        _, J = cv2.projectPoints(
+        proj, J = cv2.projectPoints(
             np.ascontiguousarray(X_cam.reshape(-1, 3)), np.zeros(3), np.zeros(3), self.camera._K, self.camera._dist
         )
+        r = proj.reshape(n_obs, 4, 2) - self.obs_img
         D = J[:, 3:6].reshape(n_obs, 4, 2, 3)
         rot_part = X_cam - tc[self.obs_cam][:, None, :]  # Rc X_map
         cam_block = np.concatenate([-D @ _skew(rot_part), D], axis=-1)  # (n, 4, 2, 6)
@@ -404,39 +440,94 @@ class _Problem:
             mk_block = np.concatenate([DR[..., 0:1], DR[..., 1:2], (DR @ ez_cross[..., None])], axis=-1)
         else:
             mk_block = np.concatenate([-DR @ _skew(RL), DR], axis=-1)
-        rows = np.arange(8 * n_obs).reshape(n_obs, 4, 2)
-        cam_col, mk_col = self._columns()
-        r_c = np.broadcast_to(rows[..., None], cam_block.shape)
-        c_c = np.broadcast_to((cam_col[:, None, None, None] + np.arange(6)), cam_block.shape)
-        free = mk_col >= 0
-        r_m = np.broadcast_to(rows[free][..., None], mk_block[free].shape)
-        c_m = np.broadcast_to((mk_col[free][:, None, None, None] + np.arange(self.mp)), mk_block[free].shape)
-        data = np.concatenate([cam_block.ravel(), mk_block[free].ravel()])
-        rr = np.concatenate([r_c.ravel(), r_m.ravel()])
-        cc = np.concatenate([c_c.ravel(), c_m.ravel()])
-        return scipy.sparse.coo_matrix((data, (rr, cc)), shape=(8 * n_obs, self.n_params)).tocsr()
+        return r.reshape(n_obs, 8), cam_block.reshape(n_obs, 8, 6), mk_block.reshape(n_obs, 8, self.mp)
 
-    def markers_from(self, x: np.ndarray, R0: np.ndarray, p0: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        """(R_map_marker (n, 3, 3), p (n, 3)) of every marker for parameters ``x``."""
-        R = R0.copy()
-        p = p0.copy()
-        idx = np.array([i for i in range(self.n_markers) if i != self.anchor_index], dtype=np.int64)
+    def normal(self, r: np.ndarray, Jc: np.ndarray, Jm: np.ndarray, w: np.ndarray) -> _Normal:
+        """The weighted normal equations J^T W J, J^T W r in blocks."""
+        n, nf, k, mp = len(r), int(self.free.sum()), self.n_free, self.mp
+        WJc = Jc * w[..., None]
+        Hcc = np.asarray(self.cam_sum @ np.einsum("nki,nkj->nij", WJc, Jc).reshape(n, 36)).reshape(-1, 6, 6)
+        gc = np.asarray(self.cam_sum @ np.einsum("nki,nk->ni", WJc, r))
+        Jmf, wf = Jm[self.free], w[self.free]
+        WJm = Jmf * wf[..., None]
+        Hmm = np.asarray(self.mk_sum @ np.einsum("nki,nkj->nij", WJm, Jmf).reshape(nf, mp * mp)).reshape(k, mp, mp)
+        gm = np.asarray(self.mk_sum @ np.einsum("nki,nk->ni", WJm, r[self.free]))
+        Hmc = np.einsum("nki,nkj->nij", WJm, Jc[self.free])  # (nf, mp, 6): per free observation
+        return _Normal(Hcc, gc, Hmm, gm, Hmc)
+
+    def solve_step(self, N: _Normal, lam: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(marker step (k, mp), camera step (n_cams, 6), reduced matrix) of the damped system
+        (H + lam diag(H)) dx = -g, the camera blocks eliminated (a Schur complement)."""
+        k, mp = self.n_free, self.mp
+        eye6, eyem = np.eye(6)[None], np.eye(mp)[None]
+        Hcc = N.Hcc + (lam * np.diagonal(N.Hcc, axis1=1, axis2=2)[:, :, None] + 1e-9) * eye6
+        Hmm = N.Hmm + (lam * np.diagonal(N.Hmm, axis1=1, axis2=2)[:, :, None] + 1e-9) * eyem
+        Cinv = np.linalg.inv(Hcc)
+        Y = np.einsum("nij,njk->nik", N.Hmc, Cinv[self.free_cam])  # Hmc Hcc^-1 per free observation
+        contrib = np.einsum("nij,nkj->nik", Y[self.pair_a], N.Hmc[self.pair_b])
+        S4 = -np.asarray(self.pair_sum @ contrib.reshape(len(contrib), mp * mp)).reshape(k, k, mp, mp)
+        S4[np.arange(k), np.arange(k)] += Hmm
+        S = S4.transpose(0, 2, 1, 3).reshape(k * mp, k * mp)
+        rhs = -N.gm + np.asarray(self.mk_sum @ np.einsum("nij,nj->ni", Y, N.gc[self.free_cam]))
+        dm = _solve_spd(S, rhs.ravel()).reshape(k, mp)
+        back = np.asarray(self.cam_of_free @ np.einsum("nji,nj->ni", N.Hmc, dm[self.free_block]))
+        dc = np.einsum("nij,nj->ni", Cinv, -N.gc - back)
+        return dm, dc, S
+
+    def refine_cameras(
+        self, Rm: np.ndarray, pm: np.ndarray, Rc: np.ndarray, tc: np.ndarray, iterations: int = CAMERA_ITERATIONS
+    ) -> Tuple[np.ndarray, np.ndarray]:
+        """Every camera pose refined with the markers held where they are: damped Gauss-Newton
+        (Huber) per camera, all cameras at once (a step is taken where it lowers that camera's
+        cost, its damping raised where not)."""
+        n = len(self.obs_cam)
+        Rc, tc = Rc.copy(), tc.copy()
+        if n == 0:
+            return Rc, tc
+        lam = np.full(self.n_cams, 1e-3)
+        r, Jc, _ = self.linearize(Rm, pm, Rc, tc)
+        rho, w = _huber_terms(r)
+        cost = np.asarray(self.cam_sum @ rho.sum(axis=1))
+        for _ in range(iterations):
+            WJc = Jc * w[..., None]
+            Hcc = np.asarray(self.cam_sum @ np.einsum("nki,nkj->nij", WJc, Jc).reshape(n, 36)).reshape(-1, 6, 6)
+            gc = np.asarray(self.cam_sum @ np.einsum("nki,nk->ni", WJc, r))
+            damp = lam[:, None] * np.diagonal(Hcc, axis1=1, axis2=2) + 1e-9
+            dc = -np.linalg.solve(Hcc + damp[:, :, None] * np.eye(6)[None], gc[..., None])[..., 0]
+            Rn, tn = rotations_from_rvecs(dc[:, :3]) @ Rc, tc + dc[:, 3:]
+            r_n, Jc_n, _ = self.linearize(Rm, pm, Rn, tn)
+            rho_n, w_n = _huber_terms(r_n)
+            cost_n = np.asarray(self.cam_sum @ rho_n.sum(axis=1))
+            better = cost_n < cost
+            gain = np.where(better, cost - cost_n, 0.0)
+            Rc[better], tc[better] = Rn[better], tn[better]
+            lam = np.where(better, lam / 3.0, lam * 4.0)
+            take = better[self.obs_cam]
+            r = np.where(take[:, None], r_n, r)
+            w = np.where(take[:, None], w_n, w)
+            Jc = np.where(take[:, None, None], Jc_n, Jc)
+            cost = np.where(better, cost_n, cost)
+            if not np.any(gain > 1e-9 * cost + 1e-12):
+                break
+        return Rc, tc
+
+    def update(
+        self, Rm: np.ndarray, pm: np.ndarray, Rc: np.ndarray, tc: np.ndarray, dm: np.ndarray, dc: np.ndarray
+    ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The poses after one step."""
+        Rm, pm = Rm.copy(), pm.copy()
+        idx = np.flatnonzero(np.arange(self.n_markers) != self.anchor_index)
         if len(idx):
-            block = x[: self.n_marker_params].reshape(len(idx), self.mp)
             if self.planar:
-                c, s = np.cos(block[:, 2]), np.sin(block[:, 2])
+                c, s = np.cos(dm[:, 2]), np.sin(dm[:, 2])
                 Rz = np.zeros((len(idx), 3, 3))
                 Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
-                R[idx] = Rz
-                p[idx] = np.column_stack([block[:, 0], block[:, 1], np.zeros(len(idx))])
+                Rm[idx] = Rz @ Rm[idx]
+                pm[idx, :2] += dm[:, :2]
             else:
-                R[idx] = rotations_from_rvecs(block[:, :3]) @ R0[idx]
-                p[idx] = p0[idx] + block[:, 3:]
-        return R, p
-
-    def cameras_from(self, x: np.ndarray, Rc0: np.ndarray, tc0: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        block = x[self.n_marker_params :].reshape(self.n_cams, 6)
-        return rotations_from_rvecs(block[:, :3]) @ Rc0, tc0 + block[:, 3:]
+                Rm[idx] = rotations_from_rvecs(dm[:, :3]) @ Rm[idx]
+                pm[idx] += dm[:, 3:]
+        return Rm, pm, rotations_from_rvecs(dc[:, :3]) @ Rc, tc + dc[:, 3:]
 
     def residuals(self, Rm: np.ndarray, pm: np.ndarray, Rc: np.ndarray, tc: np.ndarray) -> np.ndarray:
         """(n_obs, 4, 2) pixel residuals."""
@@ -451,6 +542,103 @@ class _Problem:
         return proj - self.obs_img
 
 
+@dataclass
+class _Normal:
+    """Blocks of the normal equations: per camera (n_cams, 6, 6) and (n_cams, 6); per free
+    marker (k, mp, mp) and (k, mp); marker-camera per free observation (nf, mp, 6)."""
+
+    Hcc: np.ndarray
+    gc: np.ndarray
+    Hmm: np.ndarray
+    gm: np.ndarray
+    Hmc: np.ndarray
+
+
+def _huber_terms(r: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """(rho, IRLS weights) of the Huber loss with scale HUBER_PX, per residual."""
+    a = np.abs(r)
+    inside = a <= HUBER_PX
+    rho = np.where(inside, r * r, 2.0 * HUBER_PX * a - HUBER_PX**2)
+    w = np.where(inside, 1.0, HUBER_PX / np.maximum(a, 1e-300))
+    return rho, w
+
+
+def _huber(r: np.ndarray) -> Tuple[float, np.ndarray]:
+    """(cost 0.5 sum rho, IRLS weights) of the Huber loss with scale HUBER_PX per residual."""
+    rho, w = _huber_terms(r)
+    return 0.5 * float(rho.sum()), w
+
+
+@dataclass
+class _Solved:
+    """A solve's poses and figures: markers (R_map_marker, p), cameras (R_cam_map, t)."""
+
+    prob: _Problem
+    Rm: np.ndarray
+    pm: np.ndarray
+    Rc: np.ndarray
+    tc: np.ndarray
+    cost: float
+    iterations: int
+    evaluations: int
+
+
+def _levenberg_marquardt(
+    prob: _Problem,
+    Rm: np.ndarray,
+    pm: np.ndarray,
+    Rc: np.ndarray,
+    tc: np.ndarray,
+    max_iterations: int,
+    ftol: float = LM_FTOL,
+) -> _Solved:
+    """Robust (Huber, iteratively reweighted) Levenberg-Marquardt over every marker and camera
+    pose; each step's normal equations are solved exactly with the 6 x 6 camera blocks
+    eliminated, a dense system in the marker parameters only (Cholesky).
+
+    Stops after ``max_iterations`` steps, or when a step lowers the cost by less than ``ftol``
+    of it, or when no damping finds a lower cost."""
+    if prob.n_params == 0 or len(prob.obs_cam) == 0:
+        return _Solved(prob, Rm, pm, Rc, tc, 0.0, 0, 0)
+    r, Jc, Jm = prob.linearize(Rm, pm, Rc, tc)
+    cost, w = _huber(r)
+    lam, nu = 1e-4, 2.0
+    iterations, evaluations = 0, 1
+    while iterations < max_iterations:
+        iterations += 1
+        N = prob.normal(r, Jc, Jm, w)
+        D_m = np.diagonal(N.Hmm, axis1=1, axis2=2)
+        D_c = np.diagonal(N.Hcc, axis1=1, axis2=2)
+        accepted = False
+        while lam < 1e12:
+            dm, dc, _ = prob.solve_step(N, lam)
+            new = prob.update(Rm, pm, Rc, tc, dm, dc)
+            r_new, Jc_new, Jm_new = prob.linearize(*new)
+            evaluations += 1
+            cost_new, w_new = _huber(r_new)
+            predicted = 0.5 * (
+                lam * (float(np.sum(D_m * dm * dm)) + float(np.sum(D_c * dc * dc)))
+                - float(np.sum(N.gm * dm))
+                - float(np.sum(N.gc * dc))
+            )
+            if np.isfinite(cost_new) and cost_new < cost:
+                rho = (cost - cost_new) / max(predicted, 1e-300)
+                lam *= max(1.0 / 3.0, 1.0 - (2.0 * min(rho, 1.0) - 1.0) ** 3)
+                nu = 2.0
+                accepted = True
+                break
+            lam *= nu
+            nu *= 2.0
+        if not accepted:
+            break
+        decrease = cost - cost_new
+        Rm, pm, Rc, tc = new
+        r, Jc, Jm, cost, w = r_new, Jc_new, Jm_new, cost_new, w_new
+        if decrease <= ftol * cost:
+            break
+    return _Solved(prob, Rm, pm, Rc, tc, cost, iterations, evaluations)
+
+
 def _skew(a: np.ndarray) -> np.ndarray:
     """[a]x of vectors (..., 3) as (..., 3, 3)."""
     K = np.zeros(a.shape + (3,))
@@ -460,25 +648,34 @@ def _skew(a: np.ndarray) -> np.ndarray:
     return K
 
 
-def _schur_marker_covariance(J: Any, n_marker_params: int, n_cams: int, s2: float) -> np.ndarray:
-    """Marker block of s2 (J^T J)^-1, the camera blocks (6 x 6 each) eliminated."""
-    J = J.tocsc()
-    Jm = J[:, :n_marker_params]
-    Jc = J[:, n_marker_params:]
-    Hmm = (Jm.T @ Jm).toarray()
-    Hmc = (Jm.T @ Jc).toarray()
-    Hcc = (Jc.T @ Jc).tocoo()
-    keep = (Hcc.row // 6) == (Hcc.col // 6)
-    blocks = np.zeros((n_cams, 6, 6))
-    np.add.at(blocks, (Hcc.row[keep] // 6, Hcc.row[keep] % 6, Hcc.col[keep] % 6), Hcc.data[keep])
-    blocks += 1e-12 * np.eye(6)[None]
-    inv = np.linalg.inv(blocks)
-    HmcB = np.einsum("mki,kij->mkj", Hmc.reshape(n_marker_params, n_cams, 6), inv).reshape(n_marker_params, -1)
-    S = Hmm - HmcB @ Hmc.T
-    try:
-        return s2 * np.linalg.inv(S)
-    except np.linalg.LinAlgError:
+def _marker_covariance(solved: _Solved, s2: float) -> np.ndarray:
+    """Marker block of s2 (J^T W J)^-1 at the solution, the camera blocks eliminated."""
+    prob = solved.prob
+    r, Jc, Jm = prob.linearize(solved.Rm, solved.pm, solved.Rc, solved.tc)
+    _, w = _huber(r)
+    _, _, S = prob.solve_step(prob.normal(r, Jc, Jm, w), 0.0)
+    import cv2
+
+    ok, inv = cv2.invert(S, flags=cv2.DECOMP_CHOLESKY)
+    if not ok:
         return np.full_like(S, np.inf)
+    return s2 * inv
+
+
+def _solve_spd(S: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """x of S x = b for a symmetric positive definite S (Cholesky; least squares if it is not).
+
+    OpenCV's own Cholesky, not LAPACK's: a threaded BLAS on a small system costs more in its
+    threads' start and spin (hundreds of ms each step on a busy machine) than the solve.
+    """
+    import cv2
+
+    if not len(b):
+        return np.zeros(0)
+    ok, x = cv2.solve(S, b.reshape(-1, 1), flags=cv2.DECOMP_CHOLESKY)
+    if not ok or not np.all(np.isfinite(x)):
+        ok, x = cv2.solve(S, b.reshape(-1, 1), flags=cv2.DECOMP_SVD)
+    return np.asarray(x, dtype=np.float64).reshape(-1)
 
 
 def build_map(
@@ -504,13 +701,17 @@ def build_map(
     spaced over those that see two or more placed markers). UserError when nothing can be
     placed or the anchor cannot be.
     """
-    scipy = require_scipy()
+    require_scipy()
 
     stage: Dict[str, float] = {}
     t0 = time.perf_counter()
     n_frames = len(observations)
     labels = list(labels) if labels is not None else [f"frame {i}" for i in range(n_frames)]
     obs = [{int(i): np.asarray(c, dtype=np.float64).reshape(4, 2) for i, c in o.items()} for o in observations]
+    # A marker partly out of the frame: the detector extrapolates the corners it cannot see
+    # (detect/multi), which are no measurement; such an observation is left out whole.
+    frame_max = np.array([camera.width - 1.0, camera.height - 1.0])
+    obs = [{i: c for i, c in o.items() if bool(np.all((c >= 0.0) & (c <= frame_max)))} for o in obs]
 
     def size_of(i: int) -> float:
         return float(sizes.get(i, default_size_m))
@@ -621,8 +822,13 @@ def build_map(
     local = np.array(local_l).reshape(-1, 4, 3)
     obs_frame = np.array(obs_frame_l, dtype=np.int64)
     anchor_index = index[anchor]
+    solve_log: List[Tuple[bool, int, int]] = []
+    # All observations, every marker free: the cameras' refinement on a start, the outliers.
+    full = _Problem(camera, obs_cam, obs_marker, obs_img, local, anchor_index, len(marker_ids), len(cams), False)
+    Rc0, tc0 = full.refine_cameras(R0, p0, Rc0, tc0)
 
-    def solve(planar: bool, Rm0, pm0, Rcs, tcs, mask, max_nfev=50):
+    def run(planar: bool, Rm0, pm0, Rcs, tcs, mask, max_iterations=SOLVE_ITERATIONS) -> _Solved:
+        """One solve from (markers, cameras) over the observations in ``mask``."""
         prob = _Problem(
             camera,
             obs_cam[mask],
@@ -634,57 +840,13 @@ def build_map(
             len(cams),
             planar,
         )
-        if planar:
-            x0m = []
-            for i in range(len(marker_ids)):
-                if i != anchor_index:
-                    yaw = math.atan2(Rm0[i][1, 0], Rm0[i][0, 0])
-                    x0m += [pm0[i][0], pm0[i][1], yaw]
-            x0 = np.concatenate([np.array(x0m), np.zeros(6 * len(cams))])
-            Rm_base = np.array(Rm0)
-            Rm_base[anchor_index] = np.eye(3)
-        else:
-            x0 = np.zeros(prob.n_params)
-            Rm_base = Rm0
+        solved = _levenberg_marquardt(prob, Rm0, pm0, Rcs, tcs, max_iterations)
+        solve_log.append((planar, solved.iterations, solved.evaluations))
+        return solved
 
-        def fun(x):
-            Rm, pm = prob.markers_from(x, Rm_base, pm0)
-            Rc, tc = prob.cameras_from(x, Rcs, tcs)
-            return prob.residuals(Rm, pm, Rc, tc).ravel()
-
-        def jac(x):
-            Rm, pm = prob.markers_from(x, Rm_base, pm0)
-            Rc, tc = prob.cameras_from(x, Rcs, tcs)
-            return prob.jacobian(Rm, pm, Rc, tc)
-
-        if prob.n_params == 0 or len(prob.obs_cam) == 0:
-            return prob, x0, Rm_base, None
-        res = scipy.optimize.least_squares(
-            fun,
-            x0,
-            jac=jac,
-            tr_solver="lsmr",
-            tr_options={"atol": 1e-12, "btol": 1e-12},
-            loss="huber",
-            f_scale=HUBER_PX,
-            x_scale="jac",
-            method="trf",
-            max_nfev=max_nfev,
-            xtol=1e-8,
-            ftol=1e-6,
-        )
-        return prob, res.x, Rm_base, res
-
-    def run(planar, Rm0, pm0, Rcs, tcs, mask, max_nfev=50):
-        """One solve from (markers, cameras); the state after it."""
-        prob, x, Rm_base, res = solve(planar, Rm0, pm0, Rcs, tcs, mask, max_nfev)
-        Rm, pm = prob.markers_from(x, Rm_base, pm0)
-        Rc, tc = prob.cameras_from(x, Rcs, tcs)
-        return (prob, x, Rm_base, res, Rm, pm, Rc, tc)
-
-    def marker_rms(state):
-        prob_, _, _, _, Rm_, pm_, Rc_, tc_ = state
-        r = prob_.residuals(Rm_, pm_, Rc_, tc_)
+    def marker_rms(state: _Solved):
+        prob_ = state.prob
+        r = prob_.residuals(state.Rm, state.pm, state.Rc, state.tc)
         d2 = np.sum(r**2, axis=2).mean(axis=1)
         per = np.array(
             [
@@ -694,13 +856,16 @@ def build_map(
         )
         return per, math.sqrt(float(d2.mean())) if len(d2) else 0.0
 
+    def poses(state: _Solved) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        return state.Rm, state.pm, state.Rc, state.tc
+
     def both(start_planar, free_from_planar, mask):
         """(planar state or None, free state)."""
         planar_state = None
         if start_planar is not None:
             planar_state = run(True, *start_planar, mask)
             # Only the yardstick of the plane (continued below if the plane is not kept).
-            free_state = run(False, *planar_state[4:], mask, FREE_CHECK_NFEV)
+            free_state = run(False, *poses(planar_state), mask, FREE_CHECK_ITERATIONS)
         else:
             free_state = run(False, *free_from_planar, mask)
         return planar_state, free_state
@@ -721,11 +886,11 @@ def build_map(
             start = _camera_start(camera, obs[f], singles[f], flat, all_sizes)
             if start is not None:
                 Rcp[k], tcp[k] = start[0], start[1]
+        Rcp, tcp = full.refine_cameras(Rp0, pp0, Rcp, tcp)
         planar_start = (Rp0, pp0, Rcp, tcp)
     planar_state, free_state = both(planar_start, (R0, p0, Rc0, tc0), keep_obs)
     # Outliers by the free solve (the plane might not hold), then both again without them.
-    prob_f, _, _, _, Rm, pm, Rc, tc = free_state
-    full = _Problem(camera, obs_cam, obs_marker, obs_img, local, anchor_index, len(marker_ids), len(cams), False)
+    Rm, pm, Rc, tc = poses(free_state)
     per_obs = np.sqrt(np.mean(np.sum(full.residuals(Rm, pm, Rc, tc) ** 2, axis=2), axis=1))
     limit = max(OUTLIER_PX, 5.0 * float(np.median(per_obs))) if len(per_obs) else OUTLIER_PX
     keep_obs = per_obs <= limit
@@ -735,7 +900,7 @@ def build_map(
                 f"a marker's corners off by more than {limit:.1f} px (that marker left out)", []
             ).append(labels[f])
         planar_state, free_state = both(
-            planar_state[4:] if planar_state is not None else None, free_state[4:], keep_obs
+            poses(planar_state) if planar_state is not None else None, poses(free_state), keep_obs
         )
     free_per, free_rms = marker_rms(free_state)
     plane_note = "not asked"
@@ -754,19 +919,20 @@ def build_map(
                 f"not kept: in one plane marker {marker_ids[worst]}'s residual grows from "
                 f"{free_per[worst]:.2f} to {plane_per[worst]:.2f} px (RMS {free_rms:.2f} -> {plane_rms:.2f} px)"
             )
-            _, _, _, _, Rm_f, pm_f, Rc_f, tc_f = free_state
+            Rm_f, pm_f, Rc_f, tc_f = poses(free_state)
             chosen = run(False, Rm_f, pm_f, Rc_f, tc_f, keep_obs)
-    prob, x, Rm_base, res, Rm, pm, Rc, tc = chosen
+    prob = chosen.prob
+    Rm, pm, Rc, tc = poses(chosen)
     per_marker, rms = marker_rms(chosen)
     stage["solve"] = time.perf_counter() - t2
 
     t3 = time.perf_counter()
     n_res = 8 * len(prob.obs_cam)
     stds = np.zeros((len(marker_ids), 2))
-    if res is not None and prob.n_marker_params:
+    if prob.n_marker_params and n_res:
         dof = max(n_res - prob.n_params, 1)
-        s2 = max(2.0 * float(res.cost) / dof, 1e-12)
-        cov = _schur_marker_covariance(res.jac, prob.n_marker_params, len(cams), s2)
+        s2 = max(2.0 * float(chosen.cost) / dof, 1e-12)
+        cov = _marker_covariance(chosen, s2)
         for m in range(len(marker_ids)):
             c = prob.marker_col[m]
             if c < 0:
@@ -815,6 +981,7 @@ def build_map(
         camera_path_m=path,
         stage_s=stage,
         observations_used=int(len(prob.obs_cam)),
+        solves=solve_log,
     )
 
 

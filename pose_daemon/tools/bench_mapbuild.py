@@ -178,15 +178,14 @@ def run_case(
     n_markers: int, duration_s: float, seed: int, camera: Camera, validation_frames: int = 300
 ) -> Dict[str, Any]:
     from ..map_build import build_map
-    from .map_survey import detect_placeholder_map
+    from .map_survey import detect_placeholder_map, survey_detector
 
     n_side = int(round(math.sqrt(n_markers)))
     truth, sizes = random_floor_map(n_side, seed)
     frames, _ = render_walkthrough(camera, truth, duration_s, seed)
-    from ..detect.multi import MapDetector
 
     t0 = time.perf_counter()
-    detector = MapDetector(detect_placeholder_map(DICTIONARY, sizes, 0.20), camera=camera)
+    detector = survey_detector(detect_placeholder_map(DICTIONARY, sizes, 0.20), camera)
     observations = [detector.detect(f.image) for f in frames]
     t1 = time.perf_counter()
     build = build_map(observations, camera, DICTIONARY, sizes, default_size_m=0.20, anchor=0, placement="floor")
