@@ -26,6 +26,7 @@ late for it). Acquisition (nothing followed) searches in the frame itself in eve
 from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
 from typing import Any, Dict, List, Optional, Tuple
 
 import cv2
@@ -351,6 +352,18 @@ class MapDetector:
         if self._worker is not None:
             self._worker.shutdown(wait=True)
             self._worker = None
+
+    def wait_for_search(self, timeout_s: Optional[float] = None) -> bool:
+        """Wait until the worker's search (if any) has ended; False when ``timeout_s`` passed
+        first. Its result is taken by the next ``detect``."""
+        pending = self._pending
+        if pending is None:
+            return True
+        try:
+            pending.exception(timeout=timeout_s)
+        except FutureTimeout:  # (not the builtin TimeoutError before Python 3.11)
+            return False
+        return True
 
     @property
     def search_pending(self) -> bool:
