@@ -27,7 +27,7 @@ from .capture.base import Frame
 from .detect.square import side_lengths
 from .geometry import VehicleFrames, angle_between_deg
 from .marker_map import MarkerMap
-from .pose.map_solve import GravityPrior, map_corners_px, solve_map_pose
+from .pose.map_solve import GravityPrior, largest_marker, map_corners_px, solve_map_pose
 from .pose.prior import MIN_PRIOR_SIGMA_DEG, Choice, PriorSettings, gate_bound_px
 from .pose.types import EstimationError
 from .result import FrameResult
@@ -224,6 +224,6 @@ class MapFrameProcessor:
         result.choice = Choice(pose, resolved, down_error_deg=down_err)
         result.pose = pose
         # The largest marker used stands for the frame in the 4-corner "corners" key.
-        used = max(pose.marker_ids, key=lambda i: float(np.ptp(found[i], axis=0).sum()))
+        used = largest_marker(found, pose.marker_ids)
         result.corners = found[used]
         self._last = (pose.R, pose.tvec)

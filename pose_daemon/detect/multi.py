@@ -155,7 +155,8 @@ def _intersect(l1: np.ndarray, l2: np.ndarray) -> Optional[np.ndarray]:
 
 def _inside(px: np.ndarray, width: int, height: int) -> np.ndarray:
     """Which corners lie in the frame, a pixel in from its border."""
-    return ((px >= 1.0) & (px <= [width - 2.0, height - 2.0])).all(axis=1)
+    x, y = px[:, 0], px[:, 1]
+    return (x >= 1.0) & (x <= width - 2.0) & (y >= 1.0) & (y <= height - 2.0)
 
 
 def _undistort(camera: Optional[Camera], px: np.ndarray) -> np.ndarray:

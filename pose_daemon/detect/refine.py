@@ -642,7 +642,7 @@ def fit_edges_many(
         refined = np.empty((ks, 4, 2))
         refined[..., 0] = (a[..., 2] * b_[..., 1] - a[..., 1] * b_[..., 2]) / safe
         refined[..., 1] = (a[..., 0] * b_[..., 2] - a[..., 2] * b_[..., 0]) / safe
-        parallel = (np.abs(det) < 1e-6).any(axis=1)
+        parallel = np.asarray((np.abs(det) < 1e-6).any(axis=1))
         if distorted:
             refined = _distort_px(refined.reshape(-1, 2), camera).reshape(ks, 4, 2)
         half = np.minimum(x, last - x).reshape(k, n)[s]
@@ -679,7 +679,8 @@ def fit_edges_many(
         parts.pop(i, None)
         results[i] = single(i)
     for i, (refined_i, mean_sq, contrast_i, ok_i, valid_fraction) in parts.items():
-        if moves[i] is not None and float(np.abs(refined_i - starts[i]).max()) > moves[i]:
+        limit = moves[i]
+        if limit is not None and float(np.abs(refined_i - starts[i]).max()) > limit:
             results[i] = None
             continue
         results[i] = EdgeFit(

@@ -38,6 +38,7 @@ __all__ = [
     "solve_map_pose",
     "refine_pose",
     "map_corners_px",
+    "largest_marker",
     "OUTLIER_PX",
     "CORNER_SIGMA_PX",
 ]
@@ -288,6 +289,13 @@ def _project_rms(
     return rms
 
 
+def largest_marker(corners: Dict[int, np.ndarray], ids: Sequence[int]) -> int:
+    """The id among ``ids`` whose corners ({id: (4, 2) pixels}) span the widest image extent
+    (width plus height), the first of equals."""
+    stacked = np.array([corners[i] for i in ids], dtype=np.float64)
+    return ids[int(np.argmax((stacked.max(axis=1) - stacked.min(axis=1)).sum(axis=1)))]
+
+
 def _in_image(px: np.ndarray, width: int, height: int) -> np.ndarray:
     """Which of the (N, 2) pixels lie inside the image (pixel centres at integers)."""
     return ((px >= -0.5) & (px <= [width - 0.5, height - 0.5])).all(axis=1)
@@ -485,7 +493,7 @@ def solve_map_pose(
     # mirror of the largest marker's plane, solved over every inlier corner without the prior
     # (the ratio says how well the image alone tells the two apart). "Fits better" counts the
     # prior's term too: the attitude picks the branch.
-    largest = max(ids, key=lambda i: float(np.ptp(obs[i], axis=0).sum()))
+    largest = largest_marker(obs, ids)
     R_mm, _ = marker_map.T_map_marker(largest)
     normal_map = R_mm[:, 2]
     ambiguity = 0.0
