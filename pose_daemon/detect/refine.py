@@ -490,6 +490,8 @@ def fit_edges_many(
             check_blur=check_blur,
         )
 
+    if count == 1:  # nothing to share: fit_edges's own pass is cheaper
+        return [single(0)]
     h, w = gray.shape
     m = int(samples_per_side)
     n = 4 * m
