@@ -565,9 +565,9 @@ def fit_edges_many(
         for _ in range(_RECENTER_PASSES):
             r = np.maximum(np.minimum(x, last - x), 1.0)
             xs = np.minimum(np.maximum(np.concatenate([x - r, x + r]), 0.0), np.concatenate([last, last]) - 1e-6)
-            i = xs.astype(np.intp)
-            f = xs - i
-            kk = rows2 + i
+            ix = xs.astype(np.intp)
+            f = xs - ix
+            kk = rows2 + ix
             v = flat[kk] * (1.0 - f) + flat[kk + 1] * f
             x_new, rise_new = _crossing_rows(prof, rows, 0.5 * (v[: k * n] + v[k * n :]), last_i)
             settled = np.abs(x_new - x).reshape(k, n).max(axis=1) < 0.1
