@@ -27,7 +27,7 @@ from .capture.base import Frame
 from .detect.square import side_lengths
 from .geometry import VehicleFrames, angle_between_deg
 from .marker_map import MarkerMap
-from .pose.map_solve import GravityPrior, map_corners_px, solve_map_pose
+from .pose.map_solve import GravityPrior, largest_marker, map_corners_px, solve_map_pose
 from .pose.prior import MIN_PRIOR_SIGMA_DEG, Choice, PriorSettings, gate_bound_px
 from .pose.types import EstimationError
 from .result import FrameResult
@@ -39,7 +39,8 @@ class MapFrameProcessor:
     ``frames``: the camera mount and the map's placement (default: a forward camera);
     ``prior``: the attitude's bounds and default accuracy (PriorSettings);
     ``attitude_source``: an ``attitude_at(t_capture_s, t_now_s)`` (attitude.AutopilotAttitude) asked when a frame
-    carries no attitude of its own.
+    carries no attitude of its own; ``search``: the default detector's mode of whole-frame
+    searches while tracking (MapDetector: "inline", "next_frame", "when_done").
     """
 
     def __init__(
@@ -54,6 +55,7 @@ class MapFrameProcessor:
         prior: Optional[PriorSettings] = None,
         attitude_source: Any = None,
         clock: Callable[[], float] = time.monotonic,
+        search: str = "next_frame",
     ) -> None:
         from .detect.multi import MapDetector
 
@@ -61,7 +63,7 @@ class MapFrameProcessor:
         self.map = marker_map
         self.method = method
         self.iterations = iterations
-        self.detector = detector if detector is not None else MapDetector(marker_map, camera=camera)
+        self.detector = detector if detector is not None else MapDetector(marker_map, camera=camera, search=search)
         self.frames = frames if frames is not None else VehicleFrames.from_settings(placement=marker_map.placement)
         self.prior = prior if prior is not None else PriorSettings()
         self.attitude_source = attitude_source
@@ -82,9 +84,12 @@ class MapFrameProcessor:
         frames: Optional[VehicleFrames] = None,
         prior: Optional[PriorSettings] = None,
         attitude_source: Any = None,
+        search: str = "next_frame",
     ) -> MapFrameProcessor:
         """The processor for a camera and a map with a Config's [estimator] and [detector] keys;
-        ``frames``, ``prior`` and ``attitude_source`` as for the constructor."""
+        ``frames``, ``prior`` and ``attitude_source`` as for the constructor; ``search``: where
+        the detector's whole-frame searches run while tracking (MapDetector: "next_frame" gives
+        the same output every run, "when_done" never holds up a tracked frame: the live daemon)."""
         from .detect.multi import MapDetector
 
         return cls(
@@ -93,7 +98,11 @@ class MapFrameProcessor:
             method=estimator.method,
             iterations=estimator.iterations,
             detector=MapDetector(
-                marker_map, camera=camera, max_misses=detector.max_misses, min_side_px=detector.min_side_px
+                marker_map,
+                camera=camera,
+                max_misses=detector.max_misses,
+                min_side_px=detector.min_side_px,
+                search=search,
             ),
             frames=frames,
             prior=prior,
@@ -101,9 +110,10 @@ class MapFrameProcessor:
         )
 
     @classmethod
-    def from_config(cls, cfg, *, attitude_source: Any = None) -> MapFrameProcessor:
+    def from_config(cls, cfg, *, attitude_source: Any = None, search: str = "next_frame") -> MapFrameProcessor:
         """The processor of a Config with a [map]: its camera, map, estimator, detector, mount
-        and [attitude] keys; ``attitude_source`` as for the constructor."""
+        and [attitude] keys; ``attitude_source`` as for the constructor, ``search`` as for
+        ``from_models``."""
         return cls.from_models(
             cfg.camera.model(),
             cfg.map.model(),
@@ -112,6 +122,7 @@ class MapFrameProcessor:
             frames=VehicleFrames.from_config(cfg.mount, cfg.placement),
             prior=PriorSettings.from_config(cfg),
             attitude_source=attitude_source,
+            search=search,
         )
 
     def status(self) -> Optional[str]:
@@ -121,6 +132,12 @@ class MapFrameProcessor:
     def reset(self) -> None:
         self.detector.reset()
         self._last = None
+
+    def close(self) -> None:
+        """Stop the detector's worker thread, if it has one."""
+        close = getattr(self.detector, "close", None)
+        if close is not None:
+            close()
 
     def gravity_prior(self, attitude) -> Optional[GravityPrior]:
         """The solve's prior term for an attitude.Attitude (None for None): gravity in the
@@ -207,6 +224,6 @@ class MapFrameProcessor:
         result.choice = Choice(pose, resolved, down_error_deg=down_err)
         result.pose = pose
         # The largest marker used stands for the frame in the 4-corner "corners" key.
-        used = max(pose.marker_ids, key=lambda i: float(np.ptp(found[i], axis=0).sum()))
+        used = largest_marker(found, pose.marker_ids)
         result.corners = found[used]
         self._last = (pose.R, pose.tvec)

@@ -109,9 +109,15 @@ class IdleCollector:
 
 def build_processor(cfg: Config, attitude_source=None):
     """The FrameProcessor the config asks for (camera, marker, estimator, detector), asking
-    ``attitude_source`` (``live_attitude``) for the attitude of frames that carry none."""
+    ``attitude_source`` (``live_attitude``) for the attitude of frames that carry none. With a
+    [map], the whole-frame searches while tracking run beside the frames, never holding one up
+    (MapDetector's "when_done")."""
     from .processing import FrameProcessor
 
+    if cfg.map is not None:
+        from .map_processing import MapFrameProcessor
+
+        return MapFrameProcessor.from_config(cfg, attitude_source=attitude_source, search="when_done")
     return FrameProcessor.from_config(cfg, attitude_source=attitude_source)
 
 

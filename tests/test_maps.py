@@ -638,3 +638,102 @@ def test_a_marker_covered_under_its_track_is_dropped_on_the_first_covered_frame(
         found = detector.detect(image)
         assert 1 in found
         assert (0 in found) == (i < 5), f"frame {i}: {sorted(found)}"
+
+
+def test_fit_edges_many_gives_what_fit_edges_gives_each_outline():
+    """The batched follow fit against one fit_edges call per outline, element for element:
+    sharp and blurred edges (those handed back to fit_edges), a motion smear, a gamma camera,
+    lens distortion, starts off by up to a few pixels, markers partly out of the frame."""
+    from pose_daemon.detect.refine import fit_edges, fit_edges_many
+    from pose_daemon.detect.response import decode_lut
+
+    m = floor_grid("DICT_4X4_50", rows=3, cols=3, spacing_m=0.4, sizes_m=(0.15, 0.20))
+    rng = np.random.default_rng(3)
+    compared = 0
+    for trial in range(8):
+        cam = (CAM, CAM_DIST)[trial % 2]
+        gamma = (1.0, 2.2)[(trial // 2) % 2]
+        effects = Effects(blur_px=(0.8, 3.0)[(trial // 4) % 2], motion_blur_px=4.0 if trial == 5 else 0.0, gamma=gamma)
+        rvec, tvec = map_pose_looking_down(
+            rng.uniform(0.0, 0.8), rng.uniform(0.0, 0.8), rng.uniform(0.9, 2.0), rng.uniform(0, 6), 0.1, -0.1
+        )
+        frame = render_map(cam, m, rvec, tvec, effects=effects, rng=rng)
+        lut = decode_lut(gamma) if gamma != 1.0 else None
+        starts = [c + rng.normal(0.0, (0.3, 1.5)[trial % 2], c.shape) for c in frame.corners_px.values()]
+        reach = [(min(max(0.1 * np.ptp(c[:, 0]), 1.0), 3.0), 3.0) for c in starts]
+        moves = [0.8 * min(r) + 0.5 for r in reach]
+        for kw in (dict(iterations=2, check_blur=False), dict(iterations=3, converged_px=1.5)):
+            many = fit_edges_many(frame.image, starts, reach, max_move_px=moves, camera=cam, lut=lut, **kw)
+            for c, r, mm, got in zip(starts, reach, moves, many):
+                want = fit_edges(
+                    frame.image, c, inner_px=r[0], outer_px=r[1], max_move_px=mm, camera=cam, lut=lut, **kw
+                )
+                assert (got is None) == (want is None)
+                if want is not None:
+                    compared += 1
+                    assert np.array_equal(got.corners, want.corners)
+                    assert (got.residual_px, got.contrast, got.valid_fraction) == (
+                        want.residual_px,
+                        want.contrast,
+                        want.valid_fraction,
+                    )
+    assert compared > 40
+    with pytest.raises(ValueError, match="as many"):
+        fit_edges_many(frame.image, starts, reach[:-1])
+
+
+def _hidden_then_shown(detector_search: str, gate=None):
+    """Marker 1 is out of the first frame (only marker 0 drawn), then in view but where no
+    prediction is given: only a whole-frame search finds it (full_every=2)."""
+    from pose_daemon.detect.multi import MapDetector
+
+    m = _two_markers(0, 1)
+    only_0 = MarkerMap("DICT_4X4_50", (m.markers[0],), "floor")
+    detector = MapDetector(m, camera=CAM, full_every=2, search=detector_search)
+    if gate is not None:
+        real = detector._search_full
+        detector._search_full = lambda gray, known: (gate.wait(30.0), real(gray, known))[1]
+    rng = np.random.default_rng(4)
+    frames = []
+    for i in range(6):
+        rvec, tvec = map_pose_looking_down(0.25 + 0.002 * i, 0.0, 1.4, 0.1, 0.0, 0.0)
+        frames.append(render_map(CAM, only_0 if i == 0 else m, rvec, tvec, rng=rng).image)
+    return detector, frames
+
+
+@pytest.mark.parametrize("search, first_frame_with_1", [("inline", 2), ("next_frame", 3)])
+def test_a_search_on_the_worker_hands_what_it_found_to_the_next_frame_the_same_every_run(search, first_frame_with_1):
+    runs = []
+    for _ in range(2):
+        detector, frames = _hidden_then_shown(search)
+        out = [detector.detect(f) for f in frames]
+        runs.append(out)
+        assert [sorted(o) for o in out] == [[0]] * first_frame_with_1 + [[0, 1]] * (6 - first_frame_with_1)
+        assert detector.background_searches == (0 if search == "inline" else detector.full_searches - 1)
+        detector.close()
+    for a, b in zip(*runs):  # the same output every run
+        assert a.keys() == b.keys() and all(np.array_equal(a[i], b[i]) for i in a)
+
+
+def test_a_search_on_the_worker_never_holds_up_a_frame_when_done():
+    """The live daemon's mode: frames go on while the search runs (held here until released),
+    no second search starts meanwhile, and the first frame after it ended takes what it found."""
+    import threading
+
+    gate = threading.Event()
+    gate.set()  # the acquisition (nothing tracked) searches in its own frame
+    detector, frames = _hidden_then_shown("when_done", gate)
+    assert sorted(detector.detect(frames[0])) == [0]
+    gate.clear()
+    assert sorted(detector.detect(frames[1])) == [0] and not detector.search_pending
+    assert sorted(detector.detect(frames[2])) == [0] and detector.search_pending  # started, held
+    assert not detector.wait_for_search(timeout_s=0.05)
+    assert sorted(detector.detect(frames[3])) == [0] and detector.search_pending
+    assert detector.background_searches == 1
+    gate.set()
+    assert detector.wait_for_search(timeout_s=30.0)
+    assert sorted(detector.detect(frames[4])) == [0, 1] and detector.background_found == 1
+    assert detector.last_stages[1] == "follow"
+    detector.close()
+    with pytest.raises(ValueError, match="search must be one of"):
+        type(detector)(detector.map, search="later")

@@ -11,11 +11,23 @@ from the prediction. A whole-frame search, which decodes each dark quadrilateral
 against every id of the map, runs when nothing is tracked, when a track was lost this frame,
 and every ``full_every`` frames to pick up what the prediction missed (a moved marker).
 OpenCV's ArUco detector is the fallback when our own quadrilaterals give nothing.
+
+The whole-frame search is the costly step (several times a tracked frame with many markers in
+view). While some markers are followed it need not hold up the frame: with ``search`` =
+"next_frame" or "when_done" it runs on a worker thread (OpenCV's threshold, contours and ArUco
+detector release the GIL, so it runs on another core) and the frame goes on with what it
+followed. What the search found (markers not followed) becomes tracks that later frames follow
+from there. "next_frame" hands them to the next frame, which waits for the search if needed:
+the same frames give the same output every run (replay, tests). "when_done" hands them to the
+first frame after the search ends, never waiting (the live daemon: a tracked frame is never
+late for it). Acquisition (nothing followed) searches in the frame itself in every mode.
 """
 
 from __future__ import annotations
 
-from typing import Dict, List, Optional, Tuple
+from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
+from typing import Any, Dict, List, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -26,7 +38,7 @@ from ..marker_map import MarkerMap
 from . import aruco_compat
 from .aruco import ArucoFinder
 from .quads import Roi, find_quads, inside_any
-from .refine import SEARCH_CONVERGED_PX, signed_area
+from .refine import SEARCH_CONVERGED_PX, EdgeFit, fit_edges_many, signed_area
 from .square import SquareOptions, darker_inside, median_of, sample_canonical, side_lengths
 
 #: A marker partly out of the frame is followed while this many of its corners are inside.
@@ -49,6 +61,14 @@ ID_CHECK_RESIDUAL_SHARE = 0.5
 #: ... or its edge contrast falls below this share of the contrast at the last read (a shadow,
 #: a print over it, another marker's lighter cells touching the border).
 ID_CHECK_CONTRAST_SHARE = 0.7
+
+#: Where a whole-frame search runs while markers are followed (see the module's notes).
+SEARCH_MODES = ("inline", "next_frame", "when_done")
+
+#: Edge-fit passes of a follow (it starts from a prediction that is nearly right).
+FOLLOW_ITERATIONS = 2
+#: ``_find_tracked``'s ``fit`` when no batch fitted the marker (it is fitted on its own).
+_NOT_FITTED = object()
 
 _UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
 
@@ -135,7 +155,8 @@ def _intersect(l1: np.ndarray, l2: np.ndarray) -> Optional[np.ndarray]:
 
 def _inside(px: np.ndarray, width: int, height: int) -> np.ndarray:
     """Which corners lie in the frame, a pixel in from its border."""
-    return ((px >= 1.0) & (px <= [width - 2.0, height - 2.0])).all(axis=1)
+    x, y = px[:, 0], px[:, 1]
+    return (x >= 1.0) & (x <= width - 2.0) & (y >= 1.0) & (y <= height - 2.0)
 
 
 def _undistort(camera: Optional[Camera], px: np.ndarray) -> np.ndarray:
@@ -245,9 +266,11 @@ class MapDetector:
     """Corners {id: (4, 2) TL, TR, BR, BL pixels} of every marker of ``marker_map`` in view.
 
     Options as MarkerDetector's (``max_misses``, ``min_side_px``, ``camera`` and the finder's
-    thresholds), plus ``full_every``: frames between whole-frame searches while tracking, and
+    thresholds), plus ``full_every``: frames between whole-frame searches while tracking,
     ``id_check_every``: a followed marker's bits are read once in this many frames (1: every
-    frame), at once when its fit turns poor.
+    frame), at once when its fit turns poor, and ``search``: where a whole-frame search runs
+    while markers are followed, one of ``SEARCH_MODES`` ("inline": in the frame itself;
+    "next_frame", "when_done": on a worker thread, see the module's notes).
     """
 
     def __init__(
@@ -265,6 +288,7 @@ class MapDetector:
         max_edge_residual_px: float = 0.4,
         max_aspect_ratio_error: float = 3.0,
         roi_margin: float = 0.5,
+        search: str = "inline",
     ) -> None:
         if not isinstance(marker_map, MarkerMap):
             raise ValueError(f"marker_map must be a MarkerMap, got {type(marker_map).__name__}")
@@ -274,6 +298,11 @@ class MapDetector:
             raise ValueError(f"full_every must be a positive integer, got {full_every!r}")
         if isinstance(id_check_every, bool) or not isinstance(id_check_every, int) or id_check_every < 1:
             raise ValueError(f"id_check_every must be a positive integer, got {id_check_every!r}")
+        if search not in SEARCH_MODES:
+            raise ValueError(f"search must be one of {', '.join(SEARCH_MODES)}, got {search!r}")
+        self.search = search
+        self._worker: Optional[ThreadPoolExecutor] = None
+        self._pending: Optional[Future] = None
         self.map = marker_map
         self.id_check_every = id_check_every
         self.camera = camera
@@ -301,8 +330,11 @@ class MapDetector:
         #: How each marker was found in the last call: id -> "follow", "partial" (partly out of the
         #: frame), "roi", "predicted" or "full".
         self.last_stages: Dict[int, str] = {}
-        #: Whole-frame searches run so far (the costly step).
+        #: Whole-frame searches run so far (the costly step), and those run on the worker.
         self.full_searches = 0
+        self.background_searches = 0
+        #: Markers the worker's searches found that were not followed (new tracks).
+        self.background_found = 0
         #: Bit reads of followed markers so far, and those that found another marker (a swap).
         self.id_reads = 0
         self.id_mismatches = 0
@@ -310,8 +342,60 @@ class MapDetector:
 
     def reset(self) -> None:
         """Forget every track: the next frame is searched whole."""
+        self._drop_pending()
         self._tracks: Dict[int, _Track] = {}
         self._since_full = 0
+
+    def close(self) -> None:
+        """Stop the worker thread (a search under way is waited for); the detector still works
+        afterwards (a new worker starts when one is needed)."""
+        self._drop_pending()
+        if self._worker is not None:
+            self._worker.shutdown(wait=True)
+            self._worker = None
+
+    def wait_for_search(self, timeout_s: Optional[float] = None) -> bool:
+        """Wait until the worker's search (if any) has ended; False when ``timeout_s`` passed
+        first. Its result is taken by the next ``detect``."""
+        pending = self._pending
+        if pending is None:
+            return True
+        try:
+            pending.exception(timeout=timeout_s)
+        except FutureTimeout:  # (not the builtin TimeoutError before Python 3.11)
+            return False
+        return True
+
+    @property
+    def search_pending(self) -> bool:
+        """Is a whole-frame search under way on the worker (or done and not yet taken)?"""
+        return self._pending is not None
+
+    def _drop_pending(self) -> None:
+        pending, self._pending = getattr(self, "_pending", None), None
+        if pending is not None:
+            pending.exception()  # finished before anything else uses the detector; its result is not needed
+
+    def _take_search(self, wait: bool) -> None:
+        """The worker's search into the tracks: each marker it found that is not tracked now
+        starts a track from where the search saw it (its bits were read there)."""
+        if self._pending is None or not (wait or self._pending.done()):
+            return
+        pending, self._pending = self._pending, None
+        try:
+            result = pending.result()
+        except (ValueError, cv2.error):
+            return  # a frame the search could not take: the next search looks again
+        for marker_id, corners in result.items():
+            if marker_id not in self._tracks:
+                self._tracks[marker_id] = _Track(corners)
+                self.background_found += 1
+
+    def _start_search(self, gray: np.ndarray, known: Dict[int, np.ndarray]) -> None:
+        if self._worker is None:
+            self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="map-search")
+        self.background_searches += 1
+        self._pending = self._worker.submit(self._search_full, gray.copy(), {i: c.copy() for i, c in known.items()})
 
     @property
     def tracking(self) -> bool:
@@ -330,7 +414,9 @@ class MapDetector:
         found: Dict[int, np.ndarray] = {}
         stages: Dict[int, str] = {}
         lost = False
+        self._take_search(wait=self.search == "next_frame")
         if h >= 8 and w >= 8:
+            starts: Dict[int, np.ndarray] = {}
             for marker_id, track in self._tracks.items():
                 start = track.predict()
                 if marker_id in (predicted or {}) and not _inside(start, w, h).all():
@@ -339,13 +425,10 @@ class MapDetector:
                     pts = np.asarray(predicted[marker_id], dtype=np.float64).reshape(4, 2)  # type: ignore[index]
                     if np.all(np.isfinite(pts)):
                         start = pts + (start - track.last).mean(axis=0)
-                corners, stage = self._find_tracked(gray, marker_id, start, track.last, track)
-                if corners is not None:
-                    found[marker_id], stages[marker_id] = corners, stage
-                elif track.misses == 0:
-                    lost = True  # lost this frame: look for it (and what replaced it) everywhere once
+                starts[marker_id] = start
+            untracked: Dict[int, np.ndarray] = {}
             for marker_id, corners in (predicted or {}).items():
-                if marker_id in found or marker_id in self._tracks or marker_id not in self.finders:
+                if marker_id in self._tracks or marker_id not in self.finders:
                     continue
                 pts = np.asarray(corners, dtype=np.float64).reshape(4, 2)
                 if not np.all(np.isfinite(pts)):
@@ -354,11 +437,30 @@ class MapDetector:
                     continue
                 if signed_area(pts) <= 0 or side_lengths(pts).min() < self.options.min_side_px:
                     continue
-                corners, _ = self._find_tracked(gray, marker_id, pts, pts)
+                untracked[marker_id] = pts
+            # The edge fits of every marker followed this frame, all in one batch.
+            fits = self._follow_fits(gray, {**starts, **untracked})
+            for marker_id, track in self._tracks.items():
+                corners, stage = self._find_tracked(
+                    gray, marker_id, starts[marker_id], track.last, track, fits.get(marker_id, _NOT_FITTED)
+                )
+                if corners is not None:
+                    found[marker_id], stages[marker_id] = corners, stage
+                elif track.misses == 0:
+                    lost = True  # lost this frame: look for it (and what replaced it) everywhere once
+            for marker_id, pts in untracked.items():
+                corners, _ = self._find_tracked(gray, marker_id, pts, pts, None, fits.get(marker_id, _NOT_FITTED))
                 if corners is not None:
                     found[marker_id], stages[marker_id] = corners, "predicted"
             self._since_full += 1
-            if not found or lost or self._since_full >= self.full_every:
+            if found and self.search != "inline":
+                # Tracking: the search goes to the worker (one at a time), the frame on.
+                if (lost or self._since_full >= self.full_every) and self._pending is None:
+                    self._since_full = 0
+                    self.full_searches += 1
+                    self._start_search(gray, found)
+            elif not found or lost or self._since_full >= self.full_every:
+                self._drop_pending()  # nothing followed: this frame's own search finds it all
                 self._since_full = 0
                 self.full_searches += 1
                 for marker_id, corners in self._search_full(gray, found).items():
@@ -374,12 +476,14 @@ class MapDetector:
         predicted: np.ndarray,
         last: np.ndarray,
         track: Optional[_Track] = None,
+        fit: Any = _NOT_FITTED,
     ) -> Tuple[Optional[np.ndarray], Optional[str]]:
+        """``fit``: the edge fit of ``predicted`` from ``_follow_fits`` (``_NOT_FITTED``: none)."""
         h, w = gray.shape
         finder = self.finders[marker_id]
-        inside = ((predicted >= 1.0) & (predicted <= [w - 2.0, h - 2.0])).all(axis=1)
+        inside = _inside(predicted, w, h)
         if inside.all():
-            corners = self._follow(gray, finder, predicted, track)
+            corners = self._follow(gray, finder, predicted, track, fit)
             if corners is not None:
                 return corners, "follow"
         elif int(inside.sum()) >= MIN_PARTIAL_CORNERS:
@@ -400,22 +504,51 @@ class MapDetector:
                 return best.corners, "roi"
         return None, None
 
-    def _follow(
-        self, gray: np.ndarray, finder: ArucoFinder, predicted: np.ndarray, track: Optional[_Track]
-    ) -> Optional[np.ndarray]:
-        """The marker near ``predicted`` (all corners in the frame): the edge fit of
-        ``finder.follow``, its bits read only when ``track`` is due a read (``ID_CHECK_EVERY``),
-        its fit turned poor, or there is no track (a marker predicted from the map pose)."""
-        o = self.options
-        inner, outer = finder.reach_px(predicted)
-        fit = finder.refine(
+    def _follow_fits(self, gray: np.ndarray, starts: Dict[int, np.ndarray]) -> Dict[int, Optional[EdgeFit]]:
+        """The follow's edge fit (``_follow``) of every marker whose start lies wholly in the
+        frame, all in one ``fit_edges_many`` batch: what one ``finder.refine`` each gives."""
+        h, w = gray.shape
+        ids = [i for i, c in starts.items() if _inside(c, w, h).all()]
+        if not ids:
+            return {}
+        reach = [self.finders[i].reach_px(starts[i]) for i in ids]
+        finder = self.finders[ids[0]]
+        fits = fit_edges_many(
             gray,
-            predicted,
-            iterations=2,
-            max_move_px=0.8 * min(inner, outer) + 0.5,
-            reach=(inner, outer),
+            [starts[i] for i in ids],
+            reach,
+            max_move_px=[0.8 * min(inner, outer) + 0.5 for inner, outer in reach],
+            iterations=FOLLOW_ITERATIONS,
+            camera=finder.camera,
+            min_contrast=0.5 * self.options.min_contrast,
+            lut=finder.lut,
             check_blur=False,
         )
+        return dict(zip(ids, fits))
+
+    def _follow(
+        self,
+        gray: np.ndarray,
+        finder: ArucoFinder,
+        predicted: np.ndarray,
+        track: Optional[_Track],
+        fit: Any = _NOT_FITTED,
+    ) -> Optional[np.ndarray]:
+        """The marker near ``predicted`` (all corners in the frame): the edge fit of
+        ``finder.follow`` (``fit``, when ``_follow_fits`` made it), its bits read only when
+        ``track`` is due a read (``ID_CHECK_EVERY``), its fit turned poor, or there is no
+        track (a marker predicted from the map pose)."""
+        o = self.options
+        if fit is _NOT_FITTED:
+            inner, outer = finder.reach_px(predicted)
+            fit = finder.refine(
+                gray,
+                predicted,
+                iterations=FOLLOW_ITERATIONS,
+                max_move_px=0.8 * min(inner, outer) + 0.5,
+                reach=(inner, outer),
+                check_blur=False,
+            )
         if fit is None:
             return None
         # The fit's own checks (those the bit read starts with): they cost nothing more.

@@ -38,6 +38,7 @@ __all__ = [
     "solve_map_pose",
     "refine_pose",
     "map_corners_px",
+    "largest_marker",
     "OUTLIER_PX",
     "CORNER_SIGMA_PX",
 ]
@@ -288,6 +289,13 @@ def _project_rms(
     return rms
 
 
+def largest_marker(corners: Dict[int, np.ndarray], ids: Sequence[int]) -> int:
+    """The id among ``ids`` whose corners ({id: (4, 2) pixels}) span the widest image extent
+    (width plus height), the first of equals."""
+    stacked = np.array([corners[i] for i in ids], dtype=np.float64)
+    return ids[int(np.argmax((stacked.max(axis=1) - stacked.min(axis=1)).sum(axis=1)))]
+
+
 def _in_image(px: np.ndarray, width: int, height: int) -> np.ndarray:
     """Which of the (N, 2) pixels lie inside the image (pixel centres at integers)."""
     return ((px >= -0.5) & (px <= [width - 0.5, height - 0.5])).all(axis=1)
@@ -335,7 +343,8 @@ def _mirror_start(R: np.ndarray, t: np.ndarray, obj: np.ndarray, normal_map: np.
     v = c / np.linalg.norm(c)
     n = R @ normal_map
     n2 = 2.0 * float(n @ v) * v - n
-    axis = np.cross(n, n2)
+    (a0, a1, a2), (b0, b1, b2) = n.tolist(), n2.tolist()
+    axis = np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])  # n x n2 (np.cross's terms)
     s = float(np.linalg.norm(axis))
     angle = math.atan2(s, float(n @ n2))
     if angle < math.radians(2.0) or s < 1e-12:
@@ -365,9 +374,12 @@ def solve_map_pose(
     """
     from .estimator import estimate_pose
 
-    obs = {int(i): np.asarray(c, dtype=np.float64).reshape(4, 2) for i, c in observed.items() if int(i) in marker_map}
-    obs = {i: c for i, c in obs.items() if np.all(np.isfinite(c))}
-    if not obs:
+    given = [(int(i), c) for i, c in observed.items() if int(i) in marker_map]
+    if not given:
+        raise EstimationError("no marker of the map in view")
+    stacked = np.array([np.asarray(c, dtype=np.float64).reshape(4, 2) for _, c in given])  # (n, 4, 2)
+    finite = np.isfinite(stacked).reshape(len(given), -1).all(axis=1)
+    if not finite.any():
         raise EstimationError("no marker of the map in view")
 
     def estimate(corners, cam, marker):
@@ -376,7 +388,8 @@ def solve_map_pose(
     # A corner outside the image (of a marker partly out of the frame) was extrapolated from
     # the visible parts of its sides: it is left out, the marker's other corners count.
     w, h = camera.width, camera.height
-    obs = {i: c for i, c in obs.items() if int(_in_image(c, w, h).sum()) >= 2}
+    in_view = _in_image(np.where(finite[:, None, None], stacked, -1.0).reshape(-1, 2), w, h).reshape(-1, 4).sum(axis=1)
+    obs = {i: stacked[k] for k, (i, _) in enumerate(given) if finite[k] and in_view[k] >= 2}
     if not obs:
         raise EstimationError("no marker of the map in view")
     all_ids = sorted(obs)
@@ -480,7 +493,7 @@ def solve_map_pose(
     # mirror of the largest marker's plane, solved over every inlier corner without the prior
     # (the ratio says how well the image alone tells the two apart). "Fits better" counts the
     # prior's term too: the attitude picks the branch.
-    largest = max(ids, key=lambda i: float(np.ptp(obs[i], axis=0).sum()))
+    largest = largest_marker(obs, ids)
     R_mm, _ = marker_map.T_map_marker(largest)
     normal_map = R_mm[:, 2]
     ambiguity = 0.0

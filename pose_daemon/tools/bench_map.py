@@ -194,6 +194,8 @@ def cost(repeat: int, seed: int, camera: Camera = CAMERA) -> List[Dict[str, Any]
             t = time.perf_counter()
             proc.detector.detect(image)
             t_full.append(time.perf_counter() - t)
+        proc.close()
+        t_inline, t_beside = _periodic(camera, m, image, repeat)
         rows.append(
             {
                 "markers_in_view": n_side * n_side,
@@ -203,9 +205,35 @@ def cost(repeat: int, seed: int, camera: Camera = CAMERA) -> List[Dict[str, Any]
                 "solve_median_ms": 1e3 * float(np.median(t_solve)),
                 "full_search_ms": 1e3 * float(np.median(t_full)),
                 "single_marker_processor_ms": 1e3 * float(np.median(t_single)) if t_single else None,
+                "periodic_inline_ms": 1e3 * float(np.median(t_inline)) if t_inline else None,
+                "periodic_beside_ms": 1e3 * float(np.median(t_beside)) if t_beside else None,
+                "frames_beside": len(t_beside),
             }
         )
     return rows
+
+
+def _periodic(camera: Camera, m: MarkerMap, image: np.ndarray, repeat: int) -> Tuple[List[float], List[float]]:
+    """Tracked frames that meet the periodic whole-frame search (every ``full_every`` frames):
+    with the search in the frame itself ("inline", each such frame's detect + solve), and with
+    it on the worker thread ("when_done", the live daemon's: every frame that ran while a search
+    was under way). Frames back to back, as fast as they are processed."""
+    inline = MapFrameProcessor(camera, m, search="inline")
+    beside = MapFrameProcessor(camera, m, search="when_done")
+    t_inline: List[float] = []
+    t_beside: List[float] = []
+    for k in range(repeat + 5):
+        frame = Frame(image=image, t_capture_s=k / FPS, seq=k)
+        before = inline.detector.full_searches
+        r = inline.process(frame)
+        if k >= 5 and inline.detector.full_searches > before:
+            t_inline.append(sum(r.stage_s.values()))
+        busy = beside.detector.search_pending
+        r = beside.process(frame)
+        if k >= 5 and (busy or beside.detector.search_pending):
+            t_beside.append(sum(r.stage_s.values()))
+    beside.close()
+    return t_inline, t_beside
 
 
 def run_bench(
@@ -234,6 +262,10 @@ def run_bench(
         print(f"  descent: {time.perf_counter() - t0:.0f} s", flush=True)
     report["cost"] = cost(repeat, seed)
     return report
+
+
+def _ms(v: Optional[float]) -> str:
+    return "-" if v is None else f"{v:.2f} ms"
 
 
 def _mm(v: Optional[float]) -> str:
@@ -283,6 +315,7 @@ def print_report(report: Dict[str, Any]) -> None:
     header = (
         f"{'markers in view':<17}{'used':>6}{'detect+solve':>14}{'detect':>10}{'solve':>10}{'Pi 2 (x20)':>12}"
         f"{'1-marker processor':>20}{'whole-frame search':>20}{'Pi 2 (x20)':>12}"
+        f"{'search inline':>15}{'search beside':>15}"
     )
     print(header)
     print("-" * len(header))
@@ -292,4 +325,11 @@ def print_report(report: Dict[str, Any]) -> None:
             f"{r['markers_in_view']:<17}{r['markers_used']:>6}{r['median_ms']:>11.2f} ms"
             f"{r['detect_median_ms']:>7.2f} ms{r['solve_median_ms']:>7.2f} ms{PI2_FACTOR * r['median_ms']:>9.0f} ms"
             f"{single:>20}{r['full_search_ms']:>17.2f} ms{PI2_FACTOR * r['full_search_ms']:>9.0f} ms"
+            f"{_ms(r['periodic_inline_ms']):>15}{_ms(r['periodic_beside_ms']):>15}"
         )
+    print()
+    print(
+        "search inline / beside: a tracked frame that meets the periodic whole-frame search "
+        "(every 10th frame), with the search in the frame itself / on the worker thread (the "
+        "live daemon's: each frame while a search was under way), median detect + solve"
+    )
