@@ -36,7 +36,10 @@ PX4 (mavlink_receiver.cpp, mavlink_timesync, EKF2):
   A stock build has neither the parameters nor the message (``tally.target_refused["no VTE"]``).
 - LOCAL_POSITION_NED and ATTITUDE at the rate MAV_CMD_SET_MESSAGE_INTERVAL asks for, from
   ``vehicle_state(t_s) -> (p_ned_m, (roll, pitch, yaw))``, stamped ``time_boot_ms`` on a boot
-  clock that started ``boot_age_s`` before the fake.
+  clock that started ``boot_age_s`` before the fake. ATTITUDE samples lie on the interval's
+  grid as an autopilot's scheduler takes them, whatever the load on this machine: when the
+  fake's thread was held up, the samples it missed (of the last 0.5 s) go out late, each with
+  its own time and state, as a real autopilot's would reach a companion whose link was slow.
 Both:
 - TIMESYNC requests (tc1 = 0) answered with tc1 = the boot clock in ns, ts1 echoed.
 - ``message_interval=False`` is an older ArduPilot: MAV_CMD_SET_MESSAGE_INTERVAL is
@@ -188,6 +191,7 @@ class FakeAutopilot:
         self._t_first_heartbeat: Optional[float] = None
         self._wipe_at: Optional[float] = None
         self._last_sent: Dict[str, float] = {}
+        self._att_grid: Optional[Tuple[float, float]] = None  # (period, next sample's time)
         self._ext_nav_t: Optional[float] = None
         self._said_ext_nav = False
         self._lock = threading.Lock()
@@ -274,13 +278,27 @@ class FakeAutopilot:
             else:
                 self.mav.estimator_status_send(int(now * 1e6), flags, 0, 0, 0, 0, 0, 0, 0, 0)
         if self.vehicle_state is not None:
-            p, (roll, pitch, yaw) = self.vehicle_state(now)
+            p, _ = self.vehicle_state(now)
             boot_ms = int((now - self._t_boot) * 1e3)
             if 32 in self.intervals_us and self._every("lpn", self.intervals_us[32] / 1e6, now):
                 self.mav.local_position_ned_send(boot_ms, float(p[0]), float(p[1]), float(p[2]), 0.0, 0.0, 0.0)
-            if 30 in self.intervals_us and self._every("att", self.intervals_us[30] / 1e6, now):
-                self.mav.attitude_send(boot_ms, float(roll), float(pitch), float(yaw), 0.0, 0.0, 0.0)
-                self.attitudes_sent += 1
+            if 30 in self.intervals_us:
+                self._send_attitudes(self.intervals_us[30] / 1e6, now)
+            else:
+                self._att_grid = None
+
+    def _send_attitudes(self, period_s: float, now: float) -> None:
+        grid = self._att_grid
+        if grid is None or grid[0] != period_s:
+            grid = (period_s, now)
+        t = max(grid[1], now - 0.5)
+        while t <= now:
+            _, (roll, pitch, yaw) = self.vehicle_state(t)
+            boot_ms = int((t - self._t_boot) * 1e3)
+            self.mav.attitude_send(boot_ms, float(roll), float(pitch), float(yaw), 0.0, 0.0, 0.0)
+            self.attitudes_sent += 1
+            t += period_s
+        self._att_grid = (period_s, t)
 
     def _fusing(self, now: float) -> bool:
         return self._ext_nav_t is not None and now - self._ext_nav_t < 0.3

@@ -450,6 +450,10 @@ class LiveRenderingSource:
         self.n_frames, self.period_s = n_frames, 1.0 / fps
         self.ready = lambda: True
         self.settled: Optional[Callable[[], int]] = None  # as RecordingSource's
+        # covered(t): the daemon holds the attitude on both sides of capture time t. A frame is
+        # handed over only then, as a camera's frame reaches a daemon whose attitude link keeps
+        # up: a loaded machine's held-up threads then cannot leave a frame without attitude.
+        self.covered: Optional[Callable[[float], bool]] = None
         self.truth: dict = {}  # seq -> (t_capture_s, VehiclePose)
 
     def open(self) -> None:
@@ -476,6 +480,11 @@ class LiveRenderingSource:
             self.camera, self.marker, g.rvec_from_R(R_cm), tvec, rng=np.random.default_rng(self._i)
         ).image
         time.sleep(max(0.0, t - time.monotonic()))
+        if self.covered is not None:
+            from mavlink_helpers import wait_for
+
+            covered = self.covered
+            assert wait_for(lambda: covered(t), 60.0), f"no attitude after frame {self._i}'s capture time"
         self.truth[self._i] = (t, vehicle)
         frame = Frame(image=image, t_capture_s=t, seq=self._i)
         self._i += 1
@@ -535,6 +544,8 @@ messages = ["ODOMETRY"]
         att = service.attitude
         assert att is not None and service.pipeline.processor.attitude_source is att
         source.ready = lambda: att.clock.synced and att.samples >= 20
+        # A sample later than the capture time (past the extrapolation the history allows).
+        source.covered = lambda t: att.attitude_at(t + 0.06, time.monotonic()) is not None
         # Each frame once the one before is settled: a loaded machine cannot get frames
         # replaced (newest wins), and the share of frames below holds whatever the load.
 
