@@ -236,6 +236,9 @@ class _TexturePyramid:
         return best[0], best[1], best[2]
 
 
+MAX_TEXTURE_SIDE = 4096  # texels along a marker texture's longer side, at the finest level
+
+
 def _grid_pyramid(
     values: np.ndarray,
     x_edges: np.ndarray,
@@ -247,6 +250,10 @@ def _grid_pyramid(
 ) -> _TexturePyramid:
     grey = black + (white - black) * values
     width_m, height_m = x_edges[-1] - x_edges[0], y_edges[-1] - y_edges[0]
+    # A large marker seen from close up (a landing pad's outer marker at touchdown) would want a
+    # finest level of 7000+ texels a side: about 1 GB while it is made, more than a 32-bit
+    # process (a Pi) can map. Closer than this level's texel, the texture is magnified.
+    finest_ppm = min(finest_ppm, MAX_TEXTURE_SIDE / max(width_m, height_m))
 
     def size(ppm: float) -> Tuple[int, int]:
         return max(2, int(math.ceil(width_m * ppm))), max(2, int(math.ceil(height_m * ppm)))
