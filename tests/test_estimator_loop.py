@@ -185,8 +185,12 @@ def test_stacked_loop_equals_the_per_frame_loop(method):
     pos = np.stack([rng.uniform(-0.5, 0.5, 50), rng.uniform(-0.4, 0.4, 50), rng.uniform(1.0, 4.0, 50)], -1)
     img = loop.project_unrot(R_cam_unrot, pos, 0.2, 0.2, 1.0) + rng.normal(scale=1e-3, size=(50, 4, 2))
     res = loop.correction_loop(img, 1.0, 0.04, method=method, iterations=5)
+    # The same arithmetic, but the paper's table gives angles whose cos and sin come from numpy
+    # on stacks and from the C library per frame: numpy's SIMD versions (AVX-512 here) may
+    # differ by an ulp or two, which five rounds and the table's slopes grow to ~1e-13.
+    tol = 1e-14 if method == "iterative" else 1e-12
     for i in range(50):
         R, p, used = loop.loop_one(img[i, :, 0].tolist(), img[i, :, 1].tolist(), 0.04, method, 5)
         assert used == 5
-        assert np.abs(np.array(R) - res.R_cam_unrot[i]).max() < 1e-14
-        assert np.abs(np.array(p) - res.position_unrot[i]).max() < 1e-13 * np.abs(p).max()
+        assert np.abs(np.array(R) - res.R_cam_unrot[i]).max() < tol
+        assert np.abs(np.array(p) - res.position_unrot[i]).max() < 10 * tol * np.abs(p).max()
