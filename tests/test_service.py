@@ -54,8 +54,8 @@ def listener(tmp_path):
     lst.close()
 
 
-def _cfg(interval_s: float = 0.3):
-    return parse_config(f"[pipeline]\nlatency_budget_s = 1.0\nstatus_interval_s = {interval_s}\n", "t.toml")
+def _cfg(interval_s: float = 0.3, budget_s: float = 1.0):
+    return parse_config(f"[pipeline]\nlatency_budget_s = {budget_s}\nstatus_interval_s = {interval_s}\n", "t.toml")
 
 
 @pytest.mark.pi
@@ -155,7 +155,7 @@ def test_ready_watchdog_only_while_frames_flow_status_and_stopping(listener):
     gate = threading.Semaphore(0)
     source = ScriptedSource(clock, gate)
     svc = Service(
-        _cfg(),
+        _cfg(budget_s=10.0),  # the longest: no frame of a starved machine is dropped as late
         source=source,
         outputs=outputs_of(StampedOutput),
         processor=FakeProcessor(gate=gate),
@@ -182,6 +182,9 @@ def test_ready_watchdog_only_while_frames_flow_status_and_stopping(listener):
     assert source.pings_in_stall <= 2, source.pings_in_stall
     status = [line for line in texts if line.startswith("STATUS=") and "fps" in line]
     assert status and all("detected" in s and "source" in s for s in status)
+    # The service gives its outputs 0.3 s to write what they hold and then returns (a wedged
+    # link must not hold up the exit); on a starved machine the last write may come after that.
+    _wait_for(lambda: len(out.got) == 60 or out.stats()["link"] == "closed")
     assert [g[0] for g in out.got] == list(range(60))
 
 
@@ -196,9 +199,9 @@ def test_no_watchdog_without_watchdog_usec(listener):
         env={},
     )
     assert svc.run() == 0
-    time.sleep(0.05)
+    _wait_for(lambda: "STOPPING=1" in [line for _, line in lst.lines()])
     texts = [line for _, line in lst.lines()]
-    assert "READY=1" in texts and "WATCHDOG=1" not in texts and "STOPPING=1" in texts
+    assert "READY=1" in texts and "WATCHDOG=1" not in texts
 
 
 def test_sigterm_stops_cleanly_and_sigusr1_logs_status(listener, caplog):
@@ -228,7 +231,9 @@ def test_sigterm_stops_cleanly_and_sigusr1_logs_status(listener, caplog):
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-    assert 0.5 <= elapsed < 2.0
+    # Not before the signal; the upper bound only catches a run the signal did not end (a
+    # starved machine may take seconds to stop the threads and close the outputs).
+    assert 0.5 <= elapsed < 20.0
     assert svc.stop_reason == "SIGTERM"
     status = [r.getMessage() for r in caplog.records if r.getMessage().startswith("status: ")]
     assert len(status) == 2  # SIGUSR1, then the final line at stop
