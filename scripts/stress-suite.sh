@@ -1,12 +1,14 @@
 #!/usr/bin/env bash
 # Runs scripts/test.sh N times in a row, the two stacks alternately (newest, bookworm, ...),
 # under an added stress-like load, and stops at the first failure, keeping its log.
-#   scripts/stress-suite.sh [--hogs K] [--mem-mb M] [--io] [--logs DIR] [--first newest|bookworm] N [pytest arguments...]
+#   scripts/stress-suite.sh [--hogs K] [--mem-mb M] [--io] [--logs DIR] [--first S | --stack S] N [pytest arguments...]
 # --hogs K     busy loops (one Python process each spinning `while 1: pass`); default one per core
 # --mem-mb M   one more process that holds M MB and keeps touching every page of it (default 0: none)
 # --io         one more process that keeps writing, syncing and deleting a 64 MB file in the log folder
 # --logs DIR   where each run's log goes (default: a new folder under ${TMPDIR:-/tmp})
 # --first S    the stack of the first run (default newest)
+# --stack S    every run on stack S (newest or bookworm), not alternately: two of these, one per
+#              stack, run side by side load each other as well
 # A flaky test shows up as a failure here: each one is a test that measures time through a clock
 # it does not control, or a bound a loaded machine can break -- or a real bug. Prints one line per
 # run (stack, result, seconds) and a summary; exits 1 at the first failed run, 0 when all passed.
@@ -17,6 +19,7 @@ mem_mb=0
 io=0
 logs=""
 stack=newest
+only=0
 while [ $# -gt 0 ]; do
   case "$1" in
     --hogs) hogs="$2"; shift 2 ;;
@@ -24,16 +27,17 @@ while [ $# -gt 0 ]; do
     --io) io=1; shift ;;
     --logs) logs="$2"; shift 2 ;;
     --first) stack="$2"; shift 2 ;;
+    --stack) stack="$2"; only=1; shift 2 ;;
     *) break ;;
   esac
 done
 if [ $# -lt 1 ] || ! [[ "$1" =~ ^[1-9][0-9]*$ ]]; then
-  echo "stress-suite.sh: usage: scripts/stress-suite.sh [--hogs K] [--mem-mb M] [--io] [--logs DIR] [--first S] N [pytest arguments...]" >&2
+  echo "stress-suite.sh: usage: scripts/stress-suite.sh [--hogs K] [--mem-mb M] [--io] [--logs DIR] [--first S | --stack S] N [pytest arguments...]" >&2
   exit 2
 fi
 case "$stack" in
   newest | bookworm) ;;
-  *) echo "stress-suite.sh: --first must be newest or bookworm" >&2; exit 2 ;;
+  *) echo "stress-suite.sh: --first and --stack take newest or bookworm" >&2; exit 2 ;;
 esac
 runs="$1"
 shift
@@ -83,7 +87,8 @@ while 1:
 ' "$logs" >/dev/null 2>&1 &
   pids+=($!)
 fi
-echo "stress-suite: $runs runs, first on $stack; load: $hogs busy loops, ${mem_mb} MB memory hog, io hog $io; logs in $logs"
+if [ "$only" = 1 ]; then order="all on $stack"; else order="first on $stack"; fi
+echo "stress-suite: $runs runs, $order; load: $hogs busy loops, ${mem_mb} MB memory hog, io hog $io; logs in $logs"
 
 summary=()
 passed=0
@@ -109,7 +114,9 @@ for i in $(seq 1 "$runs"); do
     status=1
     break
   fi
-  if [ "$stack" = newest ]; then stack=bookworm; else stack=newest; fi
+  if [ "$only" = 0 ]; then
+    if [ "$stack" = newest ]; then stack=bookworm; else stack=newest; fi
+  fi
 done
 stop_load
 echo "stress-suite: summary: $passed of ${#summary[@]} runs passed (of $runs asked); passes in a row: newest ${streak[newest]}, bookworm ${streak[bookworm]}"
