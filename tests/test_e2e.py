@@ -266,11 +266,11 @@ wait_heartbeat = false
     msgs = parser().parse_buffer(b"".join(chunks)) or []
     frame_of = {t: i for i, t in enumerate(source.stamps_us)}
     odo, lt = of_type(msgs, "ODOMETRY"), of_type(msgs, "LANDING_TARGET")
-    # A pose's two messages go out together, except where the output discarded what the pty
-    # still held once it was older than the budget (TCOFLUSH, "flushed": this test's reader
-    # thread held up on a loaded machine) or refused the second as late: 44 vs 43 once so.
+    # A pose's two messages go out together, except where the output refused the second as late
+    # (44 vs 43 once so). What the pty may still hold is discarded (TCOFLUSH) only before a
+    # pose's first message, never between the two (test_links: once it was, 45 vs 44).
     dropped = out.stats()["dropped"]
-    assert abs(len(lt) - len(odo)) <= dropped.get("flushed", 0) + dropped.get("late", 0), dropped
+    assert abs(len(lt) - len(odo)) <= dropped.get("late", 0), dropped
     assert of_type(msgs, "HEARTBEAT") and len(odo) >= 0.8 * N_FRAMES and len(lt) >= 0.8 * N_FRAMES
     for m in odo:
         i = frame_of[m.time_usec]

@@ -531,6 +531,47 @@ def test_a_pty_nobody_reads_never_gives_a_late_line_when_read_again(tmp_path):
     assert len(on_time) >= reading + 2 * FPS - 2
 
 
+def test_a_poses_messages_on_a_pty_are_never_split_by_a_discard(tmp_path):
+    """ODOMETRY + LANDING_TARGET per pose over a pseudo-terminal (which cannot tell what it
+    holds, so what it may hold is discarded once half the budget old), each pose already 60 %
+    of the budget old when written (a loaded machine), the peer reading each pose at once:
+    every pose arrives whole. The discard comes only before a pose's first message: it once
+    came between the two and threw away the first, uncounted (45 LANDING_TARGET, 44 ODOMETRY
+    in the end-to-end test under load). Time on the output's clock."""
+    from mavlink_helpers import VanishingPty, mavlink_output, of_type, parser
+
+    port = VanishingPty(str(tmp_path / "ttyFC"))
+    clock = [3000.0]
+    out = mavlink_output(
+        port.path,
+        WALL,
+        messages=["ODOMETRY", "LANDING_TARGET"],
+        wait_heartbeat=False,
+        queue_size=0,
+        max_age_s=BUDGET_S,
+        clock=lambda: clock[0],
+    )
+    odo, lt = [], []
+    try:
+        for k in range(20):
+            clock[0] += 1 / FPS
+            out.submit(vehicle_result(WALL, k, clock[0] - 0.6 * BUDGET_S, (-2.0, 0.0, 0.0)))
+            t_us = round((clock[0] - 0.6 * BUDGET_S) * 1e6)
+
+            def both(b, t_us=t_us):
+                msgs = parser().parse_buffer(b) or []
+                return any(m.time_usec == t_us for m in of_type(msgs, "LANDING_TARGET"))
+
+            msgs = parser().parse_buffer(port.read(2.0, until=both)) or []
+            odo += of_type(msgs, "ODOMETRY")
+            lt += of_type(msgs, "LANDING_TARGET")
+    finally:
+        out.close()
+        port.close()
+    assert len(lt) == 20 and [m.time_usec for m in odo] == [m.time_usec for m in lt], (len(odo), out.stats())
+    assert out.stats()["dropped"] == {}
+
+
 def test_socket_links_keep_a_small_kernel_send_buffer():
     """What our kernel may hold for a peer is small (and measured before each write)."""
     import socket

@@ -31,7 +31,11 @@ counted as ``flushed``; a link that cannot discard (UDP) refuses the new result 
 With a known byte rate (``_link_rate_Bps``, serial: baud / 10) a result whose bytes would only
 be through after the budget is refused (``late``). A link that cannot tell what it holds
 (``_queued_bytes`` None: a pseudo-terminal) is treated as holding everything written since its
-last discard, which is discarded once the oldest of it is half the budget old.
+last discard, which is discarded once the oldest of it is half the budget old. What a link
+holds is judged and discarded only before a result's first bytes, never between the messages
+of one result: the result at hand is judged with the next one (a result whose own first
+message was already older than half the budget on a loaded machine discarded that message
+before its second went out, and half a result reached the wire uncounted).
 
 The output's thread opens the link, reopens it after a failure with a doubling pause, and
 does the periodic work (MAVLink heartbeats, reading the autopilot) every ``tick_s``, after
@@ -206,6 +210,7 @@ class QueuedOutput:
         self._thread: Optional[threading.Thread] = None
         # The result whose bytes are being written (for _before_send) and when its write began.
         self._current: Optional[FrameResult] = None
+        self._current_sends = 0  # its messages or lines handed to the link so far
         self._t_write_began = 0.0
         self._t_send_check = 0.0
         self._send_s: Deque[float] = collections.deque(maxlen=GUARD_SENDS)
@@ -352,7 +357,7 @@ class QueuedOutput:
         t_capture = float(item.t_capture_s)
         if now < self._t_write_began or t_capture - now > CLOCK_SLACK_S:
             raise _Refused("clock")
-        self._check_queue(now, budget, nbytes, t_capture)
+        self._check_queue(now, budget, nbytes, t_capture, judge_held=self._current_sends == 0)
         recent = sorted(self._send_s)
         guard = min(recent[len(recent) // 2], budget / 2) if recent else 0.0
         if now - t_capture + guard > budget:
@@ -365,6 +370,7 @@ class QueuedOutput:
         item, budget = self._current, self._max_age_s
         if item is None or budget is None:
             return
+        self._current_sends += 1
         now = self._clock()
         t_capture = float(item.t_capture_s)
         self._send_s.append(max(0.0, now - self._t_send_check))
@@ -381,7 +387,9 @@ class QueuedOutput:
             with self._cond:
                 self._dropped["flushed"] += held
 
-    def _check_queue(self, now: float, budget: float, nbytes: int, t_capture: float) -> None:
+    def _check_queue(self, now: float, budget: float, nbytes: int, t_capture: float, judge_held: bool = True) -> None:
+        """What the link holds against the budget (see the module's docstring); ``judge_held``
+        False (a result's later messages): only whether these bytes would be through in time."""
         queued = self._queued_bytes()
         written = self._written
         if queued is not None:
@@ -391,7 +399,7 @@ class QueuedOutput:
             limit = budget
         else:
             limit = budget / 2  # cannot tell: assume all since the last discard waits
-        if written and now - written[0][0] > limit:
+        if judge_held and written and now - written[0][0] > limit:
             held = len(written) if queued is not None else 0
             discarded = False
             try:
@@ -495,7 +503,7 @@ class QueuedOutput:
         if max_age is not None and now - float(item.t_capture_s) > max_age:
             self._drop("late")
             return
-        self._current, self._t_write_began = item, now
+        self._current, self._t_write_began, self._current_sends = item, now, 0
         try:
             n = self._write(item)
         except _Refused as exc:
