@@ -58,9 +58,13 @@ def test_clutter_is_never_a_square_and_the_small_bench_runs_end_to_end(capsys):
     assert len(result["flights"]) == 8 and result["clutter"]["frames"] == 4
     for flight in result["flights"]:
         names = [r["strategy"] for r in flight["rows"]]
-        assert names[:3] == ["estimator alone", "continuity (before)", "tilt prior 15 deg"] and len(names) == 11
+        assert names[:4] == ["estimator alone", "truth picks (best choice)", "continuity (before)", "tilt prior 15 deg"]
+        assert len(names) == 12
         for r in flight["rows"]:
             assert r["sent"] + r["withheld"] <= r["detected"] <= 30
+        # No way of choosing between the two solutions beats the truth's choice.
+        alone, truth = flight["rows"][0], flight["rows"][1]
+        assert truth["sent"] == alone["sent"] and truth["flips"] <= alone["flips"]
     assert "| marker-free clutter frames |" in bench.format_tables(result)
 
 
