@@ -121,6 +121,9 @@ def test_px4_takes_the_landing_target_in_local_ned_and_syncs_time():
     try:
         assert wait_for(lambda: out.autopilot_system == 1, 5.0)
         assert wait_for(lambda: fc.intervals_us.get(32) == 20_000 and fc.intervals_us.get(30) == 20_000, 5.0)
+        # PX4 maps time_usec once a TIMESYNC exchange is done (before it, the arrival time): the
+        # poses wait for it, which a loaded machine may take longer than 45 poses to finish.
+        assert wait_for(lambda: fc.timesync_offset_ns is not None, 10.0)
         _stream(out, 45, p_local=(0.3, -0.2, -1.5), yaw_deg=20.0)
         assert wait_for(lambda: len(fc.tally.landing_targets) >= 45, 10.0), (
             fc.tally.landing_refused,
@@ -191,6 +194,9 @@ def test_px4_takes_target_relative_in_the_body_frame_with_its_attitude_at_captur
     try:
         assert wait_for(lambda: out.autopilot_system == 1, 5.0)
         assert wait_for(lambda: fc.intervals_us.get(32) == 20_000 and fc.intervals_us.get(30) == 20_000, 5.0)
+        # PX4 maps time_usec once a TIMESYNC exchange is done (before it, the arrival time): the
+        # poses wait for it, which a loaded machine may take longer than 45 poses to finish.
+        assert wait_for(lambda: fc.timesync_offset_ns is not None, 10.0)
         _stream(out, 45, p_local=(0.3, -0.2, -1.5), yaw_deg=20.0)
         assert wait_for(lambda: len(fc.tally.fiducial_reports) >= 45, 10.0), fc.tally.target_refused
     finally:
