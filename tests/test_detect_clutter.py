@@ -181,6 +181,28 @@ def test_opencv_step_on_a_second_core_gives_the_same_results(kind: str) -> None:
     assert found is not None and float(np.abs(found - truth).max()) < 0.5
 
 
+def test_opencv_step_on_a_whole_frame_keeps_every_marker_the_size_check_would() -> None:
+    """On a whole frame OpenCV's step skips candidates too short to pass the minimum side
+    (perimeter floor 4 * (min_side_px - 2)), so a marker just above that side is still
+    found as with the region search's floor, and the textured frame's many tiny outlines
+    are not read."""
+    finder = MarkerDetector(ARUCO)._finder
+    rate = finder._frame_finder(np.zeros((480, 640), np.uint8), False).parameters.minMarkerPerimeterRate
+    assert rate == pytest.approx(4.0 * (10.0 - 2.0) / 640.0)
+    checked = 0
+    for i in range(12):
+        rng = np.random.default_rng([8, i])
+        rvec, tvec = random_pose(rng, CAM, ARUCO, distance_m=(3.4, 4.4), max_tilt_deg=30)
+        image, truth = render(ARUCO, rvec, tvec, seed=i)
+        whole = finder._search_opencv(image, None)
+        region = finder._search_opencv(image, (0, 0, CAM.width, CAM.height))
+        assert len(whole) == len(region)
+        for w, r in zip(whole, region):
+            assert np.array_equal(w.corners, r.corners)
+        checked += len(whole)
+    assert checked >= 6
+
+
 def test_config_search_budget_reaches_the_detector_and_zero_means_no_cap() -> None:
     from pose_daemon.config import parse_config
     from pose_daemon.processing import FrameProcessor

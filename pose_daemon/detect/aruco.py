@@ -54,11 +54,16 @@ class ArucoFinder(OutlineFinder):
         self.n_bits = int(self.bits.shape[0])
         self.border_fraction = 1.0 / (self.n_bits + 2)
         self.max_bit_errors = int(getattr(self.dictionary, "maxCorrectionBits", 0))
-        # Our own edge fits replace OpenCV's refinement, so it is switched off.
+        # Our own edge fits replace OpenCV's refinement, so it is switched off. This one
+        # searches a lost track's region: OpenCV's perimeter floor is a share of the image's
+        # larger side, and a region is small.
         self._finder = aruco_compat.ArucoMarkerFinder(
             self.dictionary,
             aruco_compat.make_parameters(corner_refine="none", minMarkerPerimeterRate=0.01, minCornerDistanceRate=0.02),
         )
+        # Whole frames, by (larger side, thread): floors at the perimeter a marker needs to
+        # pass our own size check (see _frame_finder).
+        self._frame_finders: dict = {}
         cells = self.n_bits + 2
         centres = (np.arange(cells) + 0.5) / cells
         uu, vv = np.meshgrid(centres, centres)
@@ -113,7 +118,7 @@ class ArucoFinder(OutlineFinder):
             return
         if self._pending is not None and not self._pending[0].done():
             return  # one early run at a time (a time-capped search may have left one)
-        self._pending = (self._pool.submit(self._search_opencv, gray, roi, self._early_finder), gray, roi)
+        self._pending = (self._pool.submit(self._search_opencv, gray, roi, True), gray, roi)
 
     def reach_px(self, corners: np.ndarray):
         side = min(side_lengths(corners).tolist())
@@ -249,13 +254,37 @@ class ArucoFinder(OutlineFinder):
         cand = self._fit_quad(gray, item, stage[1])
         return [] if cand is None else [cand]
 
-    def _search_opencv(self, gray: np.ndarray, roi: Optional[Roi], finder=None) -> List[Candidate]:
+    def _frame_finder(self, gray: np.ndarray, early: bool):
+        """OpenCV's detector for a whole frame of ``gray``'s size (``early``: the one of the
+        worker thread; OpenCV's detector objects are never shared between threads).
+
+        Its perimeter floor is 4 * (min_side_px - 2) pixels: a candidate below it cannot pass
+        the minimum side after its corners move out by half a pixel, so nothing we would keep
+        is left out, and on textured clutter the floor of a region search (1 % of the larger
+        side) made OpenCV's step 1.4x its own default's time (hundreds of tiny candidates)."""
+        key = (max(gray.shape[:2]), early)
+        finder = self._frame_finders.get(key)
+        if finder is None:
+            rate = max(4.0 * (self.options.min_side_px - 2.0), 4.0) / float(key[0])
+            finder = aruco_compat.ArucoMarkerFinder(
+                self.dictionary,
+                aruco_compat.make_parameters(
+                    corner_refine="none", minMarkerPerimeterRate=min(rate, 4.0), minCornerDistanceRate=0.02
+                ),
+            )
+            self._frame_finders[key] = finder
+        return finder
+
+    def _search_opencv(self, gray: np.ndarray, roi: Optional[Roi], early: bool = False) -> List[Candidate]:
         x0, y0 = 0, 0
         img = gray
         if roi is not None:
             x0, y0, x1, y1 = roi
             img = gray[y0:y1, x0:x1]
-        corners_list, ids = (finder or self._finder).detect(img)
+            finder = self._early_finder if early else self._finder
+        else:
+            finder = self._frame_finder(gray, early)
+        corners_list, ids = finder.detect(img)
         out: List[Candidate] = []
         for corners, marker_id in zip(corners_list, ids):
             if int(marker_id) != self.marker_id:
