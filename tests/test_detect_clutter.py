@@ -3,9 +3,11 @@
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
-from detect_helpers import ARUCO, CAM, render
+from detect_helpers import ARUCO, CAM, SQUARE, render
 
 from pose_daemon import MarkerDetector
 from pose_daemon.detect import aruco_compat
@@ -179,6 +181,49 @@ def test_opencv_step_on_a_second_core_gives_the_same_results(kind: str) -> None:
         if found is not None:
             break
     assert found is not None and float(np.abs(found - truth).max()) < 0.5
+
+
+@pytest.mark.parametrize("marker", [ARUCO, SQUARE], ids=["aruco", "square"])
+def test_full_size_pass_traced_on_the_worker_after_a_fruitless_search(marker) -> None:
+    """With 2 search threads the full-size pass's threshold and tracing run on the worker
+    while the half-size pass runs, but only once a whole-frame search found nothing (the
+    first search after a lost track usually ends in its half-size pass); the outlines, and
+    so the results, are the ones the search would trace itself."""
+    one, two = MarkerDetector(marker, search_threads=1), MarkerDetector(marker, search_threads=2)
+    finder = two._finder
+    traced_on = []
+    real = finder._trace
+
+    def spy(gray, stage, roi, block):
+        traced_on.append((threading.current_thread().name.startswith("pose-daemon-search"), stage))
+        return real(gray, stage, roi, block)
+
+    finder._trace = spy
+    found_by = []
+    for i, with_marker in enumerate((False, False, True, False)):
+        rng = np.random.default_rng([9, i])
+        background = clutter_background("text", rng, CAM.width, CAM.height)
+        if with_marker:
+            rvec, tvec = random_pose(rng, CAM, marker, distance_m=(0.5, 1.5), max_tilt_deg=50)
+            image, _ = render(marker, rvec, tvec, seed=i, background=background)
+        else:
+            image = render_empty(CAM, effects=Effects(), rng=rng, background=background)
+        traced_on.clear()
+        a, b = one.detect(image), two.detect(image)
+        early = finder._early_outlines  # a search that ended early may leave it running
+        if early is not None:
+            early[0].result()
+        one.reset()
+        two.reset()
+        assert (a is None) == (b is None) == (not with_marker)
+        assert a is None or np.array_equal(a, b)
+        found_by.append(sorted(traced_on))
+    # 1st: no fruitless search before it, both passes traced here; 2nd: after one, the full
+    # pass on the worker; 3rd (the marker, found in the half-size pass): started there all
+    # the same; 4th: after a search that found the marker, the half-size pass only, here.
+    here = [(False, ("quads", 1)), (False, ("quads", 2))]
+    worker = [(False, ("quads", 2)), (True, ("quads", 1))]
+    assert found_by == [here, worker, worker, here]
 
 
 def test_opencv_step_on_a_whole_frame_keeps_every_marker_the_size_check_would() -> None:

@@ -95,25 +95,23 @@ class ArucoFinder(OutlineFinder):
             ]
         )
         self._cell_and_ring_uv = np.concatenate([self._cell_uv, self._ring])
-        self._pool: Optional[Any] = None  # a ThreadPoolExecutor once use_threads(2+)
+        self._early_finder: Optional[Any] = None  # the worker's OpenCV detector (use_threads)
         self._pending = None  # (future, frame, roi) of OpenCV's detector started early
-        #: Whole-frame searches in a row that found nothing (sets when OpenCV's step runs).
-        self.fruitless_searches = 0
 
     def use_threads(self, threads: int) -> None:
-        """``threads`` >= 2: when a whole-frame search reaches its full-size pass (the
-        half-size one found nothing), OpenCV's detector, its last step, starts at once on
-        another core (the marker is then likely absent, and that step would come anyway).
-        The result is the same; the tracked path never uses it."""
-        if threads >= 2 and self._pool is None:
-            # Imported here: the daemon's start-up does not pay for it on a single core.
-            from concurrent.futures import ThreadPoolExecutor
-
-            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pose-daemon-aruco")
+        """``threads`` >= 2: besides the full-size pass's outlines (``OutlineFinder``), when a
+        whole-frame search reaches its full-size pass (the half-size one found nothing),
+        OpenCV's detector, its last step, starts on the worker too (the marker is then
+        likely absent, and that step would come anyway). The result is the same."""
+        super().use_threads(threads)
+        if self._pool is not None and self._early_finder is None:
             # Its own OpenCV detector object: never shared between two threads.
             self._early_finder = aruco_compat.ArucoMarkerFinder(self.dictionary, self._finder.parameters)
 
-    def prepare_stage(self, gray: np.ndarray, plan: List[Tuple[str, int]], stage_i: int, roi: Optional[Roi]) -> None:
+    def prepare_stage(
+        self, gray: np.ndarray, plan: List[Tuple[str, int]], stage_i: int, roi: Optional[Roi], block: int
+    ) -> None:
+        super().prepare_stage(gray, plan, stage_i, roi, block)
         if self._pool is None or stage_i == 0 or stage_i + 1 >= len(plan) or plan[stage_i + 1][0] != "opencv":
             return
         if self._pending is not None and not self._pending[0].done():
@@ -225,10 +223,6 @@ class ArucoFinder(OutlineFinder):
         if roi is not None or self.fruitless_searches % OPENCV_EVERY == OPENCV_EVERY - 1:
             return own + [("opencv", 1)]
         return own
-
-    def search_ended(self, roi: Optional[Roi], found: bool) -> None:
-        if roi is None:
-            self.fruitless_searches = 0 if found else self.fruitless_searches + 1
 
     def stage_items(self, gray: np.ndarray, stage: Tuple[str, int], roi: Optional[Roi], block: int) -> list:
         """A threshold pass's rough outlines that may be the marker (``could_be``, all at once)."""

@@ -141,9 +141,10 @@ class MarkerDetector:
       the cap it stops and the next frame's search goes on from there (``search_deferrals``
       counts such frames). Each frame does at least one step, so the search always advances.
     - ``clock`` (time.perf_counter): the clock of that cap, seconds.
-    - ``search_threads`` (None = 2 on a machine with 4 or more cores, else 1): 2 lets an
-      ArUco whole-frame search run OpenCV's detector (its last step) on another core while
-      its own full-size pass runs, once the half-size pass found nothing. Same results.
+    - ``search_threads`` (None = 2 on a machine with 4 or more cores, else 1): 2 lets a
+      whole-frame search trace the full-size pass's outlines on another core while its
+      half-size pass runs, and (ArUco) run OpenCV's detector, its last step, there while its
+      own full-size pass runs, once the half-size pass found nothing. Same results.
     """
 
     def __init__(
@@ -214,11 +215,11 @@ class MarkerDetector:
             from .aruco import ArucoFinder
 
             self._finder = ArucoFinder(marker, self.options, camera)
-            if search_threads is None:
-                search_threads = 2 if (os.cpu_count() or 1) >= 4 else 1
-            self._finder.use_threads(int(search_threads))
         else:
             self._finder = SquareFinder(marker, self.options, camera)
+        if search_threads is None:
+            search_threads = 2 if (os.cpu_count() or 1) >= 4 else 1
+        self._finder.use_threads(int(search_threads))
         self.last_stage: Optional[str] = None
         #: What the last ``detect`` call searched (a SearchRecord), None before the first.
         self.last_search: Optional[SearchRecord] = None

@@ -36,6 +36,7 @@ def find_quads(
     approx_rate: float = 0.04,
     max_candidates: int = 64,
     downscale: int = 1,
+    traced: Optional[tuple] = None,
 ) -> List[np.ndarray]:
     """Dark convex quadrilaterals in ``gray`` (within ``roi``), largest first.
 
@@ -44,31 +45,21 @@ def find_quads(
     ``block_px``: the adaptive threshold's window; ``offset_gray``: how much darker than
     the local mean a pixel must be to count as dark (well above sensor noise).
     ``downscale`` 2 thresholds a half-size image (4x fewer pixels; for large search areas).
+    ``traced``: what ``trace_dark_regions`` gave for these same arguments (computed on
+    another thread), else it is computed here.
     """
-    x0, y0 = 0, 0
-    img = gray
-    if roi is not None:
-        x0, y0, x1, y1 = roi
-        img = gray[y0:y1, x0:x1]
-    if img.shape[0] < 8 * downscale or img.shape[1] < 8 * downscale:
-        return []
-    scale = 1.0
-    if downscale > 1:
-        img = cv2.resize(img, (img.shape[1] // downscale, img.shape[0] // downscale), interpolation=cv2.INTER_AREA)
-        scale = float(downscale)
-        block_px = block_px / scale
-        min_side_px = min_side_px / scale
-    binary = cv2.adaptiveThreshold(
-        img, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY_INV, odd(block_px), offset_gray
-    )
-    found = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
-    contours, hierarchy = found[-2], found[-1]
+    if traced is None:
+        traced = trace_dark_regions(gray, block_px=block_px, offset_gray=offset_gray, roi=roi, downscale=downscale)
+    contours, hierarchy = traced
     if hierarchy is None:
         return []
+    x0, y0 = (0, 0) if roi is None else roi[:2]
+    scale = float(downscale)
+    min_side_px = min_side_px / scale
     min_perimeter = 4.0 * min_side_px
     min_area = min_side_px * min_side_px * 0.5
     quads: List[Tuple[float, np.ndarray]] = []
-    perimeters = _outer_perimeters(contours, hierarchy[0], min_area)
+    perimeters = _outer_perimeters(contours, hierarchy, min_area)
     # Plain floats per polygon: a handful of points, where numpy's call overhead dominates.
     for index in np.flatnonzero(perimeters >= min_perimeter).tolist():
         contour, perimeter = contours[index], float(perimeters[index])
@@ -99,6 +90,30 @@ def find_quads(
         quads.append((area, np.array(out)))
     quads.sort(key=lambda item: -item[0])
     return [q for _, q in quads[:max_candidates]]
+
+
+def trace_dark_regions(
+    gray: np.ndarray, *, block_px: int, offset_gray: float = 7.0, roi: Optional[Roi] = None, downscale: int = 1
+) -> tuple:
+    """The threshold pass of ``find_quads`` up to its outlines: (contours, hierarchy (N, 4)
+    or None) of the dark regions, in pixels of the (``roi`` of the) image scaled down by
+    ``downscale``. OpenCV calls only (they let other threads run): a worker thread can
+    trace one pass while another runs."""
+    img = gray
+    if roi is not None:
+        x0, y0, x1, y1 = roi
+        img = gray[y0:y1, x0:x1]
+    if img.shape[0] < 8 * downscale or img.shape[1] < 8 * downscale:
+        return (), None
+    if downscale > 1:
+        img = cv2.resize(img, (img.shape[1] // downscale, img.shape[0] // downscale), interpolation=cv2.INTER_AREA)
+        block_px = block_px / downscale
+    binary = cv2.adaptiveThreshold(
+        img, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY_INV, odd(block_px), offset_gray
+    )
+    found = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+    contours, hierarchy = found[-2], found[-1]
+    return contours, None if hierarchy is None else hierarchy[0]
 
 
 def _outer_perimeters(contours, hierarchy: np.ndarray, min_area: float) -> np.ndarray:

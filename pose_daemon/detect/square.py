@@ -10,13 +10,13 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import Callable, List, Optional, Tuple
+from typing import Any, Callable, List, Optional, Tuple
 
 import cv2
 import numpy as np
 
 from ..camera import Marker
-from .quads import Roi, find_quads, inside_any, odd
+from .quads import Roi, find_quads, inside_any, odd, trace_dark_regions
 from .refine import SEARCH_CONVERGED_PX, SEARCH_ITERATIONS, EdgeFit, fit_edges
 from .response import Response, decode_lut
 
@@ -218,6 +218,27 @@ class OutlineFinder:
         self.options = options
         self.camera = camera
         self.lut = decode_lut(options.gamma)
+        self._pool: Optional[Any] = None  # a ThreadPoolExecutor of one worker once use_threads(2+)
+        #: The next threshold pass's traced dark regions, started on the worker while the
+        #: current pass runs: (future, frame, (stage, roi, block)), or None.
+        self._early_outlines: Optional[tuple] = None
+        #: Whole-frame searches in a row that found nothing (the ArUco finder's OpenCV step
+        #: runs by it; the worker starts work early only after a fruitless search).
+        self.fruitless_searches = 0
+
+    def use_threads(self, threads: int) -> None:
+        """``threads`` >= 2: while a whole-frame search runs its half-size pass, the
+        full-size pass's threshold and outline tracing (OpenCV calls, which let the other
+        thread run) go on another core, so a frame without the marker costs about the longer
+        of the two passes instead of their sum. Only after a fruitless whole-frame search:
+        the first search after a track is lost usually finds the marker in its half-size
+        pass, and work started for it on the other core would only slow it down. Results
+        are the same; the tracked path never uses the worker."""
+        if threads >= 2 and self._pool is None:
+            # Imported here: the daemon's start-up does not pay for it on a single core.
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pose-daemon-search")
 
     def reach_px(self, corners: np.ndarray):
         raise NotImplementedError
@@ -264,11 +285,27 @@ class OutlineFinder:
             return [("quads", 2), ("quads", 1)]
         return [("quads", 1)]
 
+    def _trace(self, gray: np.ndarray, stage: Tuple[str, int], roi: Optional[Roi], block: int) -> tuple:
+        o = self.options
+        return trace_dark_regions(gray, block_px=block, offset_gray=o.threshold_offset, roi=roi, downscale=stage[1])
+
     def stage_items(self, gray: np.ndarray, stage: Tuple[str, int], roi: Optional[Roi], block: int) -> list:
         """The work items of a stage: its rough outlines, largest first."""
+        early = self._early_outlines
+        if early is not None and early[1] is gray and early[2] == (stage, roi, block):
+            self._early_outlines = None
+            traced = early[0].result()
+        else:
+            traced = self._trace(gray, stage, roi, block)
         o = self.options
         return find_quads(
-            gray, min_side_px=o.min_side_px, block_px=block, offset_gray=o.threshold_offset, roi=roi, downscale=stage[1]
+            gray,
+            min_side_px=o.min_side_px,
+            block_px=block,
+            offset_gray=o.threshold_offset,
+            roi=roi,
+            downscale=stage[1],
+            traced=traced,
         )
 
     def process(
@@ -277,11 +314,27 @@ class OutlineFinder:
         cand = self.try_quad(gray, item, stage[1], found)
         return [] if cand is None else [cand]
 
-    def prepare_stage(self, gray: np.ndarray, plan: List[Tuple[str, int]], stage_i: int, roi: Optional[Roi]) -> None:
-        """Called as stage ``stage_i`` of ``plan`` starts (a finder may start later work early)."""
+    def prepare_stage(
+        self, gray: np.ndarray, plan: List[Tuple[str, int]], stage_i: int, roi: Optional[Roi], block: int
+    ) -> None:
+        """Called as stage ``stage_i`` of ``plan`` starts: with a worker (``use_threads``),
+        the next stage's threshold and tracing start on it when that stage is a threshold
+        pass."""
+        if (
+            self._pool is None
+            or self.fruitless_searches == 0
+            or stage_i + 1 >= len(plan)
+            or plan[stage_i + 1][0] != "quads"
+        ):
+            return
+        nxt = plan[stage_i + 1]
+        future = self._pool.submit(self._trace, gray, nxt, roi, block)
+        self._early_outlines = (future, gray, (nxt, roi, block))
 
     def search_ended(self, roi: Optional[Roi], found: bool) -> None:
         """Called when a search ran to its end (not when it stopped at the time cap)."""
+        if roi is None:
+            self.fruitless_searches = 0 if found else self.fruitless_searches + 1
 
     def search(
         self, gray: np.ndarray, roi: Optional[Roi] = None, expected_side_px: Optional[float] = None
@@ -314,7 +367,7 @@ class OutlineFinder:
             stage = plan[stage_i]
             if not first and over is not None and over():
                 return [], (stage_i, skip)
-            self.prepare_stage(gray, plan, stage_i, roi)
+            self.prepare_stage(gray, plan, stage_i, roi, block)
             items = self.stage_items(gray, stage, roi, block)
             out: List[Candidate] = []
             for k in range(min(skip, len(items)), len(items)):

@@ -381,6 +381,11 @@ def _clutter_effects(rng: np.random.Generator):
     return Effects(blur_px=0.8, noise_gray=2.0, lighting_gradient=float(rng.uniform(0.0, 0.4)))
 
 
+#: Search threads of the clutter rows: the daemon's default on a Pi 2 (4 cores), whatever
+#: this machine has; the anchor, OpenCV's detector, uses its own threads on every core.
+CLUTTER_SEARCH_THREADS = 2
+
+
 def run_clutter(n_frames: int, seed: int, camera: Camera, repeat: int) -> List[dict]:
     """Whole-frame search on cluttered scenes (``CLUTTER_SCENES``), pose-daemon and the anchor
     (OpenCV's ArucoDetector with sub-pixel refinement) interleaved on the same frames.
@@ -400,11 +405,12 @@ def run_clutter(n_frames: int, seed: int, camera: Camera, repeat: int) -> List[d
     rows = []
     for s_index, scene in enumerate(CLUTTER_SCENES):
         for kind, marker in markers.items():
-            detector = MarkerDetector(marker)
+            detector = MarkerDetector(marker, search_threads=CLUTTER_SEARCH_THREADS)
             # The marker-free frames go to a detector of their own, one after the other, as a
             # camera that sees no marker for a while: an ArUco search runs OpenCV's detector in
-            # one of every few that find nothing (aruco.OPENCV_EVERY), so their mean counts it.
-            empty_detector = MarkerDetector(marker)
+            # one of every few that find nothing (aruco.OPENCV_EVERY), so their mean counts it,
+            # and after a fruitless search the full-size pass is traced on the second thread.
+            empty_detector = MarkerDetector(marker, search_threads=CLUTTER_SEARCH_THREADS)
             ours, anchor = Tally(f"{scene}, {kind} (pose-daemon)"), Tally(f"{scene}, aruco (anchor)")
             pose_rng = np.random.default_rng([seed, 10, s_index])
             for i in range(n_frames):
@@ -664,8 +670,9 @@ def _print_clutter(rows: List[dict], n_frames: int) -> None:
     print()
     print(
         f"whole-frame search in clutter: {n_frames} frames per scene and marker type with the marker,"
-        f" as many without (false); detection alone, fastest of the repeats, median; anchor ="
-        f" OpenCV ArucoDetector + CORNER_REFINE_SUBPIX, interleaved on the same frames"
+        f" as many without (false); detection alone, fastest of the repeats, median;"
+        f" {CLUTTER_SEARCH_THREADS} search threads (the default on a 4-core Pi 2); anchor ="
+        f" OpenCV ArucoDetector + CORNER_REFINE_SUBPIX (its own threads), interleaved on the same frames"
     )
     header = (
         f"{'scene, marker':<22}{'detected':>9}{'wrong':>6}{'false':>7}{'time':>10}{'no marker':>11}{'mean':>10}"
