@@ -7,7 +7,7 @@ import threading
 
 import numpy as np
 import pytest
-from detect_helpers import ARUCO, CAM, SQUARE, render
+from detect_helpers import ARUCO, CAM, SQUARE, facing_pose, render
 
 from pose_daemon import MarkerDetector
 from pose_daemon.detect import aruco_compat
@@ -281,3 +281,24 @@ def test_code_read_of_many_outlines_at_once_gives_each_ones_verdict() -> None:
                 assert finder.could_be_many(image, np.array(quads[:2])).tolist() == many[:2]
                 verdicts += many
     assert batched >= 4 and any(verdicts) and not all(verdicts)
+
+
+def test_hollow_outlines_are_rejected_before_an_edge_fit_and_the_solid_square_is_found() -> None:
+    """A plain square marker is one ink: outlines with a light middle (print's O and D, dark
+    frames) are dropped by the quick look before any edge fit (they had cost a fit each,
+    most of a square search on a page of print), and the solid square is still found."""
+    image = np.full((CAM.height, CAM.width), 215.0, np.float32)
+    for k, (x, y) in enumerate(((20, 20), (120, 30), (220, 20), (40, 140), (150, 150))):
+        side, stroke = 40 + 4 * k, 5 + k
+        image[y : y + side, x : x + side] = 35.0
+        image[y + stroke : y + side - stroke, x + stroke : x + side - stroke] = 215.0
+    image, _ = render(SQUARE, *facing_pose(20.0, 1.2, 15.0, shift_m=(0.48, 0.34)), seed=3, background=image)
+    detector = MarkerDetector(SQUARE, search_threads=1)
+    fits = []
+    real = detector._finder.refine
+    detector._finder.refine = lambda gray, quad, **kw: fits.append(quad) or real(gray, quad, **kw)
+    corners = detector.detect(image)
+    assert corners is not None
+    # The marker's own outline (both passes may fit it), nothing of the five frames.
+    centres = np.array([q.mean(axis=0) for q in fits])
+    assert len(fits) <= 2 and np.all(np.linalg.norm(centres - corners.mean(axis=0), axis=1) < 3.0)

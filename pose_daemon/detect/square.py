@@ -68,6 +68,8 @@ _g = np.linspace(0.0, 1.0, 7)
 _GRID = np.array([[u, v] for v in _g for u in _g], dtype=np.float64)
 _GRID_RIM = (_GRID.min(axis=1) == 0.0) | (_GRID.max(axis=1) == 1.0)
 _s = np.linspace(0.1, 0.9, 7)
+# The 3 x 3 points around the middle (the inner part of _GRID).
+_CENTRE = np.array([[u, v] for v in (1 / 3, 0.5, 2 / 3) for u in (1 / 3, 0.5, 2 / 3)], dtype=np.float64)
 
 
 # Points just outside each side, spread along it: base + (ru, rv) * direction, where ru/rv
@@ -117,15 +119,30 @@ def _band(d: float) -> np.ndarray:
     )
 
 
-def darker_inside(gray: np.ndarray, corners: np.ndarray, depth: float, min_contrast: float) -> bool:
+def darker_inside(
+    gray: np.ndarray, corners: np.ndarray, depth: float, min_contrast: float, solid: bool = False
+) -> bool:
     """Quick look before a fit: is a polygon's band ``depth`` (canonical) inside its sides
     darker, by ``min_contrast`` grey levels, than a band outside? Rejects the dark halo a
-    threshold draws around a bright sheet, and texture, at a tenth of a fit's cost."""
+    threshold draws around a bright sheet, and texture, at a tenth of a fit's cost.
+
+    ``solid``: also dark in the middle (a plain square marker is one ink): at most one of 9
+    points around the centre lighter than half-way between the band inside and the one
+    outside. Rejects the outlines of hollow shapes (print's O, D, 0; frames), which pass the
+    band test, before their fit; ``SquareFinder.verify`` allows no more (1 of 49)."""
     n = 4 * len(_s)
-    values = sample_canonical(gray, corners, np.concatenate([_band(depth), _band(-0.1)]))
-    inside, outside = values[:n], values[n:]
+    uv = [_band(depth), _band(-0.1)]
+    if solid:
+        uv.append(_CENTRE)
+    values = sample_canonical(gray, corners, np.concatenate(uv))
+    inside, outside = values[:n], values[n : 2 * n]
     outside = outside[np.isfinite(outside)]
-    return len(outside) >= n // 3 and median_of(outside) - median_of(inside) >= min_contrast
+    if len(outside) < n // 3:
+        return False
+    dark, light = median_of(inside), median_of(outside)
+    if light - dark < min_contrast:
+        return False
+    return not solid or np.count_nonzero(values[2 * n :] >= 0.5 * (dark + light)) <= 1
 
 
 def sample_canonical(gray: np.ndarray, corners: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -462,7 +479,7 @@ class SquareFinder(OutlineFinder):
         # Quads come largest first: one inside a marker already found is part of it.
         if not self.shape_ok(quad) or inside_any(quad.mean(axis=0), [c.corners for c in found]):
             return None
-        if not darker_inside(gray, quad, 0.1, 0.5 * o.min_contrast):
+        if not darker_inside(gray, quad, 0.1, 0.5 * o.min_contrast, solid=True):
             return None
         fit = self.refine(
             gray, quad, iterations=SEARCH_ITERATIONS, max_move_px=1.5 * scale + 1.0, converged_px=SEARCH_CONVERGED_PX
