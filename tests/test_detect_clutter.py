@@ -12,7 +12,9 @@ from detect_helpers import ARUCO, CAM, SQUARE, facing_pose, render
 from pose_daemon import MarkerDetector
 from pose_daemon.detect import aruco_compat
 from pose_daemon.detect.aruco import OPENCV_EVERY
+from pose_daemon.detect.multi import MapDetector
 from pose_daemon.detect.quads import find_quads
+from pose_daemon.marker_map import MapMarker, MarkerMap
 from pose_daemon.render import Effects, random_pose, render_empty
 from pose_daemon.tools.bench_detector import CLUTTER_SCENES, clutter_background
 
@@ -234,6 +236,8 @@ def test_opencv_step_on_a_whole_frame_keeps_every_marker_the_size_check_would() 
     finder = MarkerDetector(ARUCO)._finder
     rate = finder._frame_finder(np.zeros((480, 640), np.uint8), False).parameters.minMarkerPerimeterRate
     assert rate == pytest.approx(4.0 * (10.0 - 2.0) / 640.0)
+    # A map's whole-frame search has the same floor.
+    mapper = MapDetector(MarkerMap(ARUCO.dictionary, (MapMarker(ARUCO.id, ARUCO.width, (0.0, 0.0, 0.0)),), "floor"))
     checked = 0
     for i in range(12):
         rng = np.random.default_rng([8, i])
@@ -244,6 +248,10 @@ def test_opencv_step_on_a_whole_frame_keeps_every_marker_the_size_check_would() 
         assert len(whole) == len(region)
         for w, r in zip(whole, region):
             assert np.array_equal(w.corners, r.corners)
+        in_map = mapper._search_opencv(image, {})
+        assert list(in_map) == [ARUCO.id] * len(whole)
+        if whole:
+            assert np.array_equal(in_map[ARUCO.id], whole[0].corners)
         checked += len(whole)
     assert checked >= 6
 

@@ -38,6 +38,23 @@ OPENCV_EVERY = 4
 _UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
 
 
+def whole_frame_finder(dictionary: Any, min_side_px: float, larger_side_px: int) -> aruco_compat.ArucoMarkerFinder:
+    """OpenCV's ArUco detector (no corner refinement: our edge fits replace it) for whole
+    frames whose larger side is ``larger_side_px``.
+
+    Its perimeter floor is 4 * (``min_side_px`` - 2) pixels: a candidate below it cannot pass
+    the minimum side after its corners move out by half a pixel, so nothing we would keep
+    is left out, and on textured clutter the floor of a region search (1 % of the larger
+    side) made OpenCV's step 1.4x its own default's time (hundreds of tiny candidates)."""
+    rate = max(4.0 * (min_side_px - 2.0), 4.0) / float(larger_side_px)
+    return aruco_compat.ArucoMarkerFinder(
+        dictionary,
+        aruco_compat.make_parameters(
+            corner_refine="none", minMarkerPerimeterRate=min(rate, 4.0), minCornerDistanceRate=0.02
+        ),
+    )
+
+
 class ArucoFinder(OutlineFinder):
     """Finds the configured dictionary + id; corners come out as TL, TR, BR, BL."""
 
@@ -250,23 +267,11 @@ class ArucoFinder(OutlineFinder):
 
     def _frame_finder(self, gray: np.ndarray, early: bool):
         """OpenCV's detector for a whole frame of ``gray``'s size (``early``: the one of the
-        worker thread; OpenCV's detector objects are never shared between threads).
-
-        Its perimeter floor is 4 * (min_side_px - 2) pixels: a candidate below it cannot pass
-        the minimum side after its corners move out by half a pixel, so nothing we would keep
-        is left out, and on textured clutter the floor of a region search (1 % of the larger
-        side) made OpenCV's step 1.4x its own default's time (hundreds of tiny candidates)."""
+        worker thread; OpenCV's detector objects are never shared between threads)."""
         key = (max(gray.shape[:2]), early)
         finder = self._frame_finders.get(key)
         if finder is None:
-            rate = max(4.0 * (self.options.min_side_px - 2.0), 4.0) / float(key[0])
-            finder = aruco_compat.ArucoMarkerFinder(
-                self.dictionary,
-                aruco_compat.make_parameters(
-                    corner_refine="none", minMarkerPerimeterRate=min(rate, 4.0), minCornerDistanceRate=0.02
-                ),
-            )
-            self._frame_finders[key] = finder
+            finder = self._frame_finders[key] = whole_frame_finder(self.dictionary, self.options.min_side_px, key[0])
         return finder
 
     def _search_opencv(self, gray: np.ndarray, roi: Optional[Roi], early: bool = False) -> List[Candidate]:
