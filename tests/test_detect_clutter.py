@@ -310,3 +310,27 @@ def test_hollow_outlines_are_rejected_before_an_edge_fit_and_the_solid_square_is
     # The marker's own outline (both passes may fit it), nothing of the five frames.
     centres = np.array([q.mean(axis=0) for q in fits])
     assert len(fits) <= 2 and np.all(np.linalg.norm(centres - corners.mean(axis=0), axis=1) < 3.0)
+
+
+def test_work_started_early_is_taken_only_by_the_search_that_started_it() -> None:
+    """A camera may hand each frame over in the same array, refilled. Outlines traced on the
+    worker for one search (left over when its half-size pass found the marker) must not
+    stand in for the next frame's full-size pass."""
+    near, _ = render(ARUCO, *facing_pose(10.0, 0.8), seed=1)
+    far, truth = render(ARUCO, *facing_pose(25.0, 3.6, 20.0, shift_m=(0.9, 0.6)), seed=2)  # full-size pass only
+    alone = MarkerDetector(ARUCO, search_threads=1)
+    expected = alone.detect(far)
+    assert expected is not None and alone.last_search.stage == "full"
+    detector = MarkerDetector(ARUCO, search_threads=2)
+    empty = render_empty(CAM, effects=Effects(), rng=np.random.default_rng(3))
+    assert detector.detect(empty) is None  # a fruitless search: the next one starts work early
+    frame = near.copy()
+    assert detector.detect(frame) is not None  # found in its half-size pass
+    early = detector._finder._early_outlines
+    assert early is not None
+    early[0].result()  # the full-size pass traced for the near frame, never taken
+    detector.reset()
+    frame[...] = far  # the next frame, in the same array
+    found = detector.detect(frame)
+    assert found is not None and np.array_equal(found, expected)
+    assert float(np.abs(found - truth).max()) < 0.5

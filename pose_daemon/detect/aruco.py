@@ -113,7 +113,7 @@ class ArucoFinder(OutlineFinder):
         )
         self._cell_and_ring_uv = np.concatenate([self._cell_uv, self._ring])
         self._early_finder: Optional[Any] = None  # the worker's OpenCV detector (use_threads)
-        self._pending = None  # (future, frame, roi) of OpenCV's detector started early
+        self._pending = None  # (future, search, roi) of OpenCV's detector started early (search: as _early_outlines)
 
     def use_threads(self, threads: int) -> None:
         """``threads`` >= 2: besides the full-size pass's outlines (``OutlineFinder``), when a
@@ -133,7 +133,7 @@ class ArucoFinder(OutlineFinder):
             return
         if self._pending is not None and not self._pending[0].done():
             return  # one early run at a time (a time-capped search may have left one)
-        self._pending = (self._pool.submit(self._search_opencv, gray, roi, True), gray, roi)
+        self._pending = (self._pool.submit(self._search_opencv, gray, roi, True), self._search_serial, roi)
 
     def reach_px(self, corners: np.ndarray):
         side = min(side_lengths(corners).tolist())
@@ -256,7 +256,7 @@ class ArucoFinder(OutlineFinder):
     ) -> List[Candidate]:
         if stage[0] == "opencv":
             pending, self._pending = self._pending, None
-            if pending is not None and pending[1] is gray and pending[2] == roi:
+            if pending is not None and pending[1] == self._search_serial and pending[2] == roi:
                 return pending[0].result()
             return self._search_opencv(gray, roi)
         # The stage's items passed could_be already (stage_items).

@@ -237,8 +237,11 @@ class OutlineFinder:
         self.lut = decode_lut(options.gamma)
         self._pool: Optional[Any] = None  # a ThreadPoolExecutor of one worker once use_threads(2+)
         #: The next threshold pass's traced dark regions, started on the worker while the
-        #: current pass runs: (future, frame, (stage, roi, block)), or None.
+        #: current pass runs: (future, search, (stage, roi, block)), or None. ``search``
+        #: counts search_from calls: a result is only ever taken by the search that started
+        #: it (a later frame may come in the same array, refilled).
         self._early_outlines: Optional[tuple] = None
+        self._search_serial = 0
         #: Whole-frame searches in a row that found nothing (the ArUco finder's OpenCV step
         #: runs by it; the worker starts work early only after a fruitless search).
         self.fruitless_searches = 0
@@ -309,7 +312,7 @@ class OutlineFinder:
     def stage_items(self, gray: np.ndarray, stage: Tuple[str, int], roi: Optional[Roi], block: int) -> list:
         """The work items of a stage: its rough outlines, largest first."""
         early = self._early_outlines
-        if early is not None and early[1] is gray and early[2] == (stage, roi, block):
+        if early is not None and early[1] == self._search_serial and early[2] == (stage, roi, block):
             self._early_outlines = None
             traced = early[0].result()
         else:
@@ -346,7 +349,7 @@ class OutlineFinder:
             return
         nxt = plan[stage_i + 1]
         future = self._pool.submit(self._trace, gray, nxt, roi, block)
-        self._early_outlines = (future, gray, (nxt, roi, block))
+        self._early_outlines = (future, self._search_serial, (nxt, roi, block))
 
     def search_ended(self, roi: Optional[Roi], found: bool) -> None:
         """Called when a search ran to its end (not when it stopped at the time cap)."""
@@ -373,6 +376,7 @@ class OutlineFinder:
         the marker ends the search. ``over()`` is asked before every item but the first of
         this call: once it says True the search stops and returns the (stage, item) to start
         the next frame's search from. None: the search ran to its end (found or not)."""
+        self._search_serial += 1
         plan = self.stages(gray, roi)
         stage_i, skip = start
         if not 0 <= stage_i < len(plan):
