@@ -234,7 +234,7 @@ def test_opencv_step_on_a_whole_frame_keeps_every_marker_the_size_check_would() 
     found as with the region search's floor, and the textured frame's many tiny outlines
     are not read."""
     finder = MarkerDetector(ARUCO)._finder
-    rate = finder._frame_finder(np.zeros((480, 640), np.uint8), False).parameters.minMarkerPerimeterRate
+    rate = finder._frame_finders.get(np.zeros((480, 640), np.uint8)).parameters.minMarkerPerimeterRate
     assert rate == pytest.approx(4.0 * (10.0 - 2.0) / 640.0)
     # A map's whole-frame search has the same floor.
     mapper = MapDetector(MarkerMap(ARUCO.dictionary, (MapMarker(ARUCO.id, ARUCO.width, (0.0, 0.0, 0.0)),), "floor"))

@@ -38,21 +38,37 @@ OPENCV_EVERY = 4
 _UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
 
 
-def whole_frame_finder(dictionary: Any, min_side_px: float, larger_side_px: int) -> aruco_compat.ArucoMarkerFinder:
-    """OpenCV's ArUco detector (no corner refinement: our edge fits replace it) for whole
-    frames whose larger side is ``larger_side_px``.
+class FrameFinders:
+    """OpenCV's ArUco detector for whole frames (no corner refinement: our edge fits replace
+    it), one per frame size, made on first use. One of these per thread that uses it:
+    OpenCV's detector objects are never shared between threads.
 
-    Its perimeter floor is 4 * (``min_side_px`` - 2) pixels: a candidate below it cannot pass
-    the minimum side after its corners move out by half a pixel, so nothing we would keep
-    is left out, and on textured clutter the floor of a region search (1 % of the larger
-    side) made OpenCV's step 1.4x its own default's time (hundreds of tiny candidates)."""
-    rate = max(4.0 * (min_side_px - 2.0), 4.0) / float(larger_side_px)
-    return aruco_compat.ArucoMarkerFinder(
-        dictionary,
-        aruco_compat.make_parameters(
-            corner_refine="none", minMarkerPerimeterRate=min(rate, 4.0), minCornerDistanceRate=0.02
-        ),
-    )
+    The detector's perimeter floor is 4 * (``min_side_px`` - 2) pixels: a candidate below
+    it cannot pass the minimum side after its corners move out by half a pixel, so nothing
+    we would keep is left out, and on textured clutter the floor of a region search (1 % of
+    the larger side) made OpenCV's step 1.4x its own default's time (hundreds of tiny
+    candidates)."""
+
+    def __init__(self, dictionary: Any, min_side_px: float) -> None:
+        self.dictionary = dictionary
+        self.min_side_px = float(min_side_px)
+        self._by_size: dict = {}
+
+    def get(self, gray: np.ndarray) -> aruco_compat.ArucoMarkerFinder:
+        """The detector for frames of ``gray``'s size."""
+        larger = max(gray.shape[:2])
+        finder = self._by_size.get(larger)
+        if finder is None:
+            # OpenCV's floor is a share of the larger side; its ceiling (maxMarkerPerimeterRate)
+            # is 4 by default, and the floor may not pass it.
+            rate = min(max(4.0 * (self.min_side_px - 2.0), 4.0) / float(larger), 4.0)
+            finder = self._by_size[larger] = aruco_compat.ArucoMarkerFinder(
+                self.dictionary,
+                aruco_compat.make_parameters(
+                    corner_refine="none", minMarkerPerimeterRate=rate, minCornerDistanceRate=0.02
+                ),
+            )
+        return finder
 
 
 class ArucoFinder(OutlineFinder):
@@ -78,9 +94,9 @@ class ArucoFinder(OutlineFinder):
             self.dictionary,
             aruco_compat.make_parameters(corner_refine="none", minMarkerPerimeterRate=0.01, minCornerDistanceRate=0.02),
         )
-        # Whole frames, by (larger side, thread): floors at the perimeter a marker needs to
-        # pass our own size check (see _frame_finder).
-        self._frame_finders: dict = {}
+        # Whole frames: this thread's, and the worker's (use_threads) for OpenCV's step started early.
+        self._frame_finders = FrameFinders(self.dictionary, options.min_side_px)
+        self._worker_frame_finders = FrameFinders(self.dictionary, options.min_side_px)
         cells = self.n_bits + 2
         centres = (np.arange(cells) + 0.5) / cells
         uu, vv = np.meshgrid(centres, centres)
@@ -112,28 +128,32 @@ class ArucoFinder(OutlineFinder):
             ]
         )
         self._cell_and_ring_uv = np.concatenate([self._cell_uv, self._ring])
-        self._early_finder: Optional[Any] = None  # the worker's OpenCV detector (use_threads)
-        self._pending = None  # (future, search, roi) of OpenCV's detector started early (search: as _early_outlines)
-
-    def use_threads(self, threads: int) -> None:
-        """``threads`` >= 2: besides the full-size pass's outlines (``OutlineFinder``), when a
-        whole-frame search reaches its full-size pass (the half-size one found nothing),
-        OpenCV's detector, its last step, starts on the worker too (the marker is then
-        likely absent, and that step would come anyway). The result is the same."""
-        super().use_threads(threads)
-        if self._pool is not None and self._early_finder is None:
-            # Its own OpenCV detector object: never shared between two threads.
-            self._early_finder = aruco_compat.ArucoMarkerFinder(self.dictionary, self._finder.parameters)
+        self._pending = None  # (future, search, roi) of OpenCV's step started early (search: as _early_outlines)
 
     def prepare_stage(
         self, gray: np.ndarray, plan: List[Tuple[str, int]], stage_i: int, roi: Optional[Roi], block: int
     ) -> None:
+        """Besides the next pass's outlines (``OutlineFinder``): with a worker, once a
+        whole-frame search reaches its full-size pass (the half-size one found nothing),
+        OpenCV's detector, its last step when this search has it, starts on the worker too
+        (the marker is then likely absent, and that step would come anyway). The result is
+        the same."""
         super().prepare_stage(gray, plan, stage_i, roi, block)
-        if self._pool is None or stage_i == 0 or stage_i + 1 >= len(plan) or plan[stage_i + 1][0] != "opencv":
+        if (
+            self._pool is None
+            or roi is not None  # (a region search has no half-size pass; its detector is this thread's)
+            or stage_i == 0
+            or stage_i + 1 >= len(plan)
+            or plan[stage_i + 1][0] != "opencv"
+        ):
             return
         if self._pending is not None and not self._pending[0].done():
             return  # one early run at a time (a time-capped search may have left one)
-        self._pending = (self._pool.submit(self._search_opencv, gray, roi, True), self._search_serial, roi)
+        self._pending = (
+            self._pool.submit(self._search_opencv, gray, roi, self._worker_frame_finders),
+            self._search_serial,
+            roi,
+        )
 
     def reach_px(self, corners: np.ndarray):
         side = min(side_lengths(corners).tolist())
@@ -265,24 +285,17 @@ class ArucoFinder(OutlineFinder):
         cand = self._fit_quad(gray, item, stage[1])
         return [] if cand is None else [cand]
 
-    def _frame_finder(self, gray: np.ndarray, early: bool):
-        """OpenCV's detector for a whole frame of ``gray``'s size (``early``: the one of the
-        worker thread; OpenCV's detector objects are never shared between threads)."""
-        key = (max(gray.shape[:2]), early)
-        finder = self._frame_finders.get(key)
-        if finder is None:
-            finder = self._frame_finders[key] = whole_frame_finder(self.dictionary, self.options.min_side_px, key[0])
-        return finder
-
-    def _search_opencv(self, gray: np.ndarray, roi: Optional[Roi], early: bool = False) -> List[Candidate]:
+    def _search_opencv(
+        self, gray: np.ndarray, roi: Optional[Roi], frame_finders: Optional[FrameFinders] = None
+    ) -> List[Candidate]:
+        """OpenCV's step: the marker in ``roi`` (a lost track's region) or the whole frame
+        (``frame_finders``: the worker's, when it runs there)."""
         x0, y0 = 0, 0
-        img = gray
         if roi is not None:
             x0, y0, x1, y1 = roi
-            img = gray[y0:y1, x0:x1]
-            finder = self._early_finder if early else self._finder
+            img, finder = gray[y0:y1, x0:x1], self._finder
         else:
-            finder = self._frame_finder(gray, early)
+            img, finder = gray, (frame_finders or self._frame_finders).get(gray)
         corners_list, ids = finder.detect(img)
         out: List[Candidate] = []
         for corners, marker_id in zip(corners_list, ids):

@@ -36,7 +36,7 @@ from ..camera import Camera
 from ..capture.base import as_gray
 from ..marker_map import MarkerMap
 from . import aruco_compat
-from .aruco import ArucoFinder, whole_frame_finder
+from .aruco import ArucoFinder, FrameFinders
 from .quads import Roi, find_quads, inside_any
 from .refine import SEARCH_CONVERGED_PX, EdgeFit, fit_edges_many, signed_area
 from .square import SquareOptions, darker_inside, median_of, sample_canonical, side_lengths
@@ -323,9 +323,7 @@ class MapDetector:
         dictionary = aruco_compat.get_dictionary(marker_map.dictionary)
         self._decoder = _Decoder(dictionary, list(marker_map.ids), self.options)
         self._nests = {i: marker_map.contains_others(i) for i in marker_map.ids}
-        self._dictionary = dictionary
-        # OpenCV's detector for whole frames, by the frame's larger side (aruco.whole_frame_finder).
-        self._opencv: Dict[int, aruco_compat.ArucoMarkerFinder] = {}
+        self._opencv = FrameFinders(dictionary, self.options.min_side_px)
         #: How each marker was found in the last call: id -> "follow", "partial" (partly out of the
         #: frame), "roi", "predicted" or "full".
         self.last_stages: Dict[int, str] = {}
@@ -690,11 +688,7 @@ class MapDetector:
 
     def _search_opencv(self, gray: np.ndarray, known: Dict[int, np.ndarray]) -> Dict[int, np.ndarray]:
         out: Dict[int, np.ndarray] = {}
-        larger = max(gray.shape[:2])
-        finder = self._opencv.get(larger)
-        if finder is None:
-            finder = self._opencv[larger] = whole_frame_finder(self._dictionary, self.options.min_side_px, larger)
-        corners_list, ids = finder.detect(gray)
+        corners_list, ids = self._opencv.get(gray).detect(gray)
         for corners, marker_id in zip(corners_list, ids.tolist()):
             if marker_id not in self.finders or marker_id in known or marker_id in out:
                 continue
