@@ -7,13 +7,14 @@ import threading
 
 import numpy as np
 import pytest
-from detect_helpers import ARUCO, CAM, SQUARE, facing_pose, render
+from detect_helpers import ARUCO, CAM, SQUARE, aligned, facing_pose, render
 
 from pose_daemon import MarkerDetector
 from pose_daemon.detect import aruco_compat
 from pose_daemon.detect.aruco import OPENCV_EVERY
 from pose_daemon.detect.multi import MapDetector
 from pose_daemon.detect.quads import find_quads
+from pose_daemon.detect.square import FULL_PASS_EVERY
 from pose_daemon.marker_map import MapMarker, MarkerMap
 from pose_daemon.render import Effects, random_pose, render_empty
 from pose_daemon.tools.bench_detector import CLUTTER_SCENES, clutter_background
@@ -96,20 +97,24 @@ def test_time_cap_leaves_the_rest_of_the_search_to_the_next_frame() -> None:
 
 
 def test_time_cap_on_marker_free_frames_cycles_through_every_step() -> None:
-    """Without the marker a capped search never stalls on one step: each search runs both
-    own passes, every OPENCV_EVERY-th also OpenCV's detector (the last step), and starts over."""
+    """Without the marker a capped search never stalls on one step: each search runs its
+    steps (the half-size pass; in turns the full-size pass and OpenCV's detector) and starts
+    over."""
     empty, _ = _scene("text", 1, with_marker=False)
     capped = MarkerDetector(ARUCO, search_budget_ms=0.5, clock=StepClock(1e-3))
-    stages, searches = set(), 0
+    finder = capped._finder
+    stopped_in, searches = set(), 0
     for _ in range(1000):
         assert capped.detect(empty) is None
-        stages.add(capped._cursor[0])
         if capped._cursor == (0, 0):
             searches += 1
-            if searches == OPENCV_EVERY:
+            if searches == OPENCV_EVERY + 1:
                 break
-    assert searches == OPENCV_EVERY and stages >= {0, 1, 2}
-    assert capped._finder.fruitless_searches == OPENCV_EVERY
+        else:  # the search goes on next frame, with the same steps (nothing ended)
+            stopped_in.add(finder.stages(empty, None)[capped._cursor[0]])
+    assert searches == OPENCV_EVERY + 1
+    assert stopped_in >= {("quads", 1), ("opencv", 1)}  # both costly steps reached
+    assert finder.fruitless_searches == OPENCV_EVERY + 1
     assert capped.search_deferrals >= 3
 
 
@@ -130,7 +135,6 @@ def test_opencv_step_runs_in_one_of_every_few_fruitless_searches() -> None:
 
     finder._search_opencv = spy
     for _ in range(2 * OPENCV_EVERY):
-        detector.reset()
         assert detector.detect(empty) is None
     assert ran == [OPENCV_EVERY - 1, 2 * OPENCV_EVERY - 1]
     detector.reset()
@@ -202,10 +206,13 @@ def test_full_size_pass_traced_on_the_worker_after_a_fruitless_search(marker) ->
 
     finder._trace = spy
     found_by = []
-    for i, with_marker in enumerate((False, False, True, False)):
+    # A run of marker-free frames, the marker in the search that has the full-size pass
+    # again (FULL_PASS_EVERY fruitless ones after the first), then a frame without it.
+    with_marker = [False] * (2 * FULL_PASS_EVERY) + [True, False]
+    for i, marker_in_view in enumerate(with_marker):
         rng = np.random.default_rng([9, i])
         background = clutter_background("text", rng, CAM.width, CAM.height)
-        if with_marker:
+        if marker_in_view:
             rvec, tvec = random_pose(rng, CAM, marker, distance_m=(0.5, 1.5), max_tilt_deg=50)
             image, _ = render(marker, rvec, tvec, seed=i, background=background)
         else:
@@ -215,17 +222,80 @@ def test_full_size_pass_traced_on_the_worker_after_a_fruitless_search(marker) ->
         early = finder._early_outlines  # a search that ended early may leave it running
         if early is not None:
             early[0].result()
-        one.reset()
-        two.reset()
-        assert (a is None) == (b is None) == (not with_marker)
+        if marker_in_view:
+            one.reset()
+            two.reset()
+        assert (a is None) == (b is None) == (not marker_in_view)
         assert a is None or np.array_equal(a, b)
         found_by.append(sorted(traced_on))
-    # 1st: no fruitless search before it, both passes traced here; 2nd: after one, the full
-    # pass on the worker; 3rd (the marker, found in the half-size pass): started there all
-    # the same; 4th: after a search that found the marker, the half-size pass only, here.
+    # The run's 1st search: no fruitless one before it, both passes traced here; then the
+    # half-size pass only until the full-size pass's turn, which is traced on the worker; the
+    # marker (found in the half-size pass): started there all the same; after the search that
+    # found it, both passes here again.
     here = [(False, ("quads", 1)), (False, ("quads", 2))]
+    half = [(False, ("quads", 2))]
     worker = [(False, ("quads", 2)), (True, ("quads", 1))]
-    assert found_by == [here, worker, worker, here]
+    turn = [here] + [half] * (FULL_PASS_EVERY - 1) + [worker]
+    assert found_by == turn + [half] * (FULL_PASS_EVERY - 1) + [worker, here]
+
+
+@pytest.mark.parametrize("marker", [ARUCO, SQUARE], ids=["aruco", "square"])
+def test_a_run_of_fruitless_searches_takes_the_costly_steps_in_turns(marker) -> None:
+    """Every search of a marker-free run has the half-size pass; the full-size pass comes in
+    the run's first and every FULL_PASS_EVERY-th after it, OpenCV's step (ArUco) in every
+    OPENCV_EVERY-th, never in the same search; a reset starts a new run."""
+    empty, _ = _scene("text", 1, with_marker=False)
+    detector = MarkerDetector(marker)
+    finder = detector._finder
+    plans = []
+    for _ in range(2 * OPENCV_EVERY):
+        plans.append(finder.stages(empty, None))
+        assert detector.detect(empty) is None
+    half, full, opencv = ("quads", 2), ("quads", 1), ("opencv", 1)
+    for count, plan in enumerate(plans):
+        expected = [half]
+        if count % FULL_PASS_EVERY == 0:
+            expected.append(full)
+        if marker.type == "aruco" and count % OPENCV_EVERY == OPENCV_EVERY - 1:
+            expected.append(opencv)
+        assert plan == expected, count
+        assert not (full in plan and opencv in plan)
+    detector.reset()
+    assert finder.stages(empty, None) == [half, full]
+    # A region search (a lost track's) has every step, whatever the run.
+    assert detector.detect(empty) is None
+    roi_plan = finder.stages(empty, (0, 0, 100, 100))
+    assert roi_plan == [full] + ([opencv] if marker.type == "aruco" else [])
+
+
+@pytest.mark.parametrize("marker", [ARUCO, SQUARE], ids=["aruco", "square"])
+def test_a_far_marker_coming_into_view_in_a_run_is_found_within_its_turn(marker) -> None:
+    """A marker only the full-size pass sees (far: 15 px across; neither the half-size pass
+    nor OpenCV's step finds it) that comes into view during a marker-free run, in any phase of
+    it, is found within FULL_PASS_EVERY frames, in the search that has the full-size pass; a
+    marker the half-size pass sees, in its first."""
+    near, _ = render(marker, *facing_pose(10.0, 0.8), seed=1)
+    far, truth = render(marker, *facing_pose(10.0, 3.0, 40.0), seed=1)
+    finder = MarkerDetector(marker)._finder
+    for downscale, sees in ((2, False), (1, True)):
+        outlines = finder.stage_items(far, ("quads", downscale), None, 25)
+        assert any(finder.process(far, ("quads", downscale), q, None, []) for q in outlines) == sees
+    if marker.type == "aruco":
+        assert finder._search_opencv(far, None) == []
+    empty = render_empty(CAM, effects=Effects(), rng=np.random.default_rng(3))
+    for phase in range(1, FULL_PASS_EVERY + 1):
+        for image, within in ((far, FULL_PASS_EVERY), (near, 1)):
+            detector = MarkerDetector(marker)
+            for _ in range(phase):
+                assert detector.detect(empty) is None
+            found, frames = None, 0
+            while found is None and frames < FULL_PASS_EVERY:
+                turn = detector._finder.fruitless_searches % FULL_PASS_EVERY == 0
+                found = detector.detect(image)
+                frames += 1
+            assert found is not None and frames <= within, (phase, frames)
+            if image is far:
+                assert turn and float(np.abs(aligned(found, truth) - truth).max()) < 0.5
 
 
 def test_opencv_step_on_a_whole_frame_keeps_every_marker_the_size_check_would() -> None:
@@ -323,7 +393,8 @@ def test_work_started_early_is_taken_only_by_the_search_that_started_it() -> Non
     assert expected is not None and alone.last_search.stage == "full"
     detector = MarkerDetector(ARUCO, search_threads=2)
     empty = render_empty(CAM, effects=Effects(), rng=np.random.default_rng(3))
-    assert detector.detect(empty) is None  # a fruitless search: the next one starts work early
+    for _ in range(FULL_PASS_EVERY):  # fruitless searches: the next one has the full-size pass,
+        assert detector.detect(empty) is None  # and its work starts early
     frame = near.copy()
     assert detector.detect(frame) is not None  # found in its half-size pass
     early = detector._finder._early_outlines

@@ -136,15 +136,15 @@ class MarkerDetector:
       so that blur does not shrink the marker (see detect/response.py).
     - ``search_budget_ms`` (None = no cap): time cap per frame, from the call to ``detect``,
       for a whole-frame search. The search runs cheapest first (half-size threshold, full
-      size, then OpenCV's ArUco detector in one of every ``aruco.OPENCV_EVERY`` searches
-      that find nothing) and checks the clock before each candidate; at
+      size, then OpenCV's ArUco detector; in a run of searches that find nothing, the full
+      size in one of every ``square.FULL_PASS_EVERY`` and OpenCV's detector in one of every
+      ``aruco.OPENCV_EVERY``) and checks the clock before each candidate; at
       the cap it stops and the next frame's search goes on from there (``search_deferrals``
       counts such frames). Each frame does at least one step, so the search always advances.
     - ``clock`` (time.perf_counter): the clock of that cap, seconds.
     - ``search_threads`` (None = 2 on a machine with 4 or more cores, else 1): 2 lets a
-      whole-frame search trace the full-size pass's outlines on another core while its
-      half-size pass runs, and (ArUco) run OpenCV's detector, its last step, there while its
-      own full-size pass runs, once the half-size pass found nothing. Same results.
+      whole-frame search after a fruitless one trace the full-size pass's outlines on
+      another core while its half-size pass runs. Same results.
     """
 
     def __init__(
@@ -236,8 +236,10 @@ class MarkerDetector:
     # ------------------------------------------------------------------ state
 
     def reset(self) -> None:
-        """Forget the track: the next frame is searched whole and labelled afresh."""
+        """Forget the track: the next frame is searched whole, with every step of the search
+        (see ``FULL_PASS_EVERY``), and labelled afresh."""
         self._forget_track()
+        self._finder.restart_searches()
         self._cursor: Tuple[int, int] = (0, 0)  # where an interrupted whole-frame search goes on
 
     def _forget_track(self) -> None:

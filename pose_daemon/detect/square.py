@@ -97,6 +97,17 @@ _LEVELS = np.arange(256, dtype=np.float64)
 #: The farthest any edge profile reaches outside a tracked outline (``reach_px``'s cap), pixels.
 MAX_REACH_PX = 3.0
 
+#: A run of whole-frame searches that find nothing (no marker in view) runs the full-size
+#: pass in one of every this many, the half-size pass in every one. The half-size pass finds
+#: nearly every marker of 30 px or more (the ArUco marker on bench detector's frames: 299 of
+#: 300 on the main scenes, 119 of 120 in clutter, 328 of the blur sweep's 334; the full-size
+#: pass the rest, 30-54 px), the full-size pass most far ones under 20 px; on
+#: marker-free clutter it is most of a search's cost (carpet: its outline tracing 1.7 ms of
+#: 2.7). A marker only it sees is found within this many frames of coming into view; the
+#: first search after a marker was seen (a lost track) and after ``MarkerDetector.reset``
+#: has both passes.
+FULL_PASS_EVERY = 4
+
 
 def clamp(value: float, lo: float, hi: float) -> float:
     return min(max(float(value), lo), hi)
@@ -299,10 +310,14 @@ class OutlineFinder:
 
     def stages(self, gray: np.ndarray, roi: Optional[Roi]) -> List[Tuple[str, int]]:
         """The steps of a search, cheapest first: ("quads", downscale) threshold passes. A
-        whole frame is first searched at half size (4x cheaper); markers too small to show
-        there are found by a full-size pass."""
+        whole frame is first searched at half size (4x cheaper); markers it misses are found
+        by a full-size pass. A run of fruitless searches has it in turns: the first search of
+        the run, then every FULL_PASS_EVERY-th (the 5th, 9th, ...; OpenCV's step of the ArUco
+        finder falls on the 8th, 16th, ...)."""
         if roi is None and min(gray.shape) >= 240:
-            return [("quads", 2), ("quads", 1)]
+            if self.fruitless_searches % FULL_PASS_EVERY == 0:
+                return [("quads", 2), ("quads", 1)]
+            return [("quads", 2)]
         return [("quads", 1)]
 
     def _trace(self, gray: np.ndarray, stage: Tuple[str, int], roi: Optional[Roi], block: int) -> tuple:
@@ -350,6 +365,10 @@ class OutlineFinder:
         nxt = plan[stage_i + 1]
         future = self._pool.submit(self._trace, gray, nxt, roi, block)
         self._early_outlines = (future, self._search_serial, (nxt, roi, block))
+
+    def restart_searches(self) -> None:
+        """The next whole-frame search is the first of a run: it has every step."""
+        self.fruitless_searches = 0
 
     def search_ended(self, roi: Optional[Roi], found: bool) -> None:
         """Called when a search ran to its end (not when it stopped at the time cap)."""
