@@ -32,8 +32,11 @@ from .square import (
 #: a lost track). On the benchmark's frames (main, clutter, blur sweep: 460 with the marker)
 #: it never found a marker the own passes missed, and on marker-free clutter it costs more
 #: than both own passes together: run every time, it made a marker-free search 1.6-3.4x
-#: OpenCV's time; one in 4 keeps a marker only it sees found within 4 frames.
-OPENCV_EVERY = 4
+#: OpenCV's time, and with the full-size pass in turns (``FULL_PASS_EVERY``) one in 4 still
+#: cost as much as OpenCV on a carpet (mean 1.0x); one in 8 keeps a marker only it sees found
+#: within 8 frames. It falls on searches without the full-size pass (``FULL_PASS_EVERY``
+#: divides it): the two costly steps of a marker-free run take turns.
+OPENCV_EVERY = 8
 
 _UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
 
@@ -94,9 +97,8 @@ class ArucoFinder(OutlineFinder):
             self.dictionary,
             aruco_compat.make_parameters(corner_refine="none", minMarkerPerimeterRate=0.01, minCornerDistanceRate=0.02),
         )
-        # Whole frames: this thread's, and the worker's (use_threads) for OpenCV's step started early.
+        # Whole frames.
         self._frame_finders = FrameFinders(self.dictionary, options.min_side_px)
-        self._worker_frame_finders = FrameFinders(self.dictionary, options.min_side_px)
         cells = self.n_bits + 2
         centres = (np.arange(cells) + 0.5) / cells
         uu, vv = np.meshgrid(centres, centres)
@@ -128,32 +130,6 @@ class ArucoFinder(OutlineFinder):
             ]
         )
         self._cell_and_ring_uv = np.concatenate([self._cell_uv, self._ring])
-        self._pending = None  # (future, search, roi) of OpenCV's step started early (search: as _early_outlines)
-
-    def prepare_stage(
-        self, gray: np.ndarray, plan: List[Tuple[str, int]], stage_i: int, roi: Optional[Roi], block: int
-    ) -> None:
-        """Besides the next pass's outlines (``OutlineFinder``): with a worker, once a
-        whole-frame search reaches its full-size pass (the half-size one found nothing),
-        OpenCV's detector, its last step when this search has it, starts on the worker too
-        (the marker is then likely absent, and that step would come anyway). The result is
-        the same."""
-        super().prepare_stage(gray, plan, stage_i, roi, block)
-        if (
-            self._pool is None
-            or roi is not None  # (a region search has no half-size pass; its detector is this thread's)
-            or stage_i == 0
-            or stage_i + 1 >= len(plan)
-            or plan[stage_i + 1][0] != "opencv"
-        ):
-            return
-        if self._pending is not None and not self._pending[0].done():
-            return  # one early run at a time (a time-capped search may have left one)
-        self._pending = (
-            self._pool.submit(self._search_opencv, gray, roi, self._worker_frame_finders),
-            self._search_serial,
-            roi,
-        )
 
     def reach_px(self, corners: np.ndarray):
         side = min(side_lengths(corners).tolist())
@@ -255,7 +231,7 @@ class ArucoFinder(OutlineFinder):
     def stages(self, gray: np.ndarray, roi: Optional[Roi]) -> List[Tuple[str, int]]:
         """Our own quadrilaterals and bit reading first (cheap); OpenCV's ArUco detector, with
         its several threshold scales, when they find nothing: in a region search always, in a
-        whole-frame search once in ``OPENCV_EVERY`` fruitless ones (the 4th, 8th, ...)."""
+        whole-frame search once in ``OPENCV_EVERY`` fruitless ones (the 8th, 16th, ...)."""
         own = super().stages(gray, roi)
         if roi is not None or self.fruitless_searches % OPENCV_EVERY == OPENCV_EVERY - 1:
             return own + [("opencv", 1)]
@@ -275,9 +251,6 @@ class ArucoFinder(OutlineFinder):
         self, gray: np.ndarray, stage: Tuple[str, int], item, roi: Optional[Roi], found: List[Candidate]
     ) -> List[Candidate]:
         if stage[0] == "opencv":
-            pending, self._pending = self._pending, None
-            if pending is not None and pending[1] == self._search_serial and pending[2] == roi:
-                return pending[0].result()
             return self._search_opencv(gray, roi)
         # The stage's items passed could_be already (stage_items).
         if inside_any(item.mean(axis=0), [c.corners for c in found]):
@@ -285,17 +258,14 @@ class ArucoFinder(OutlineFinder):
         cand = self._fit_quad(gray, item, stage[1])
         return [] if cand is None else [cand]
 
-    def _search_opencv(
-        self, gray: np.ndarray, roi: Optional[Roi], frame_finders: Optional[FrameFinders] = None
-    ) -> List[Candidate]:
-        """OpenCV's step: the marker in ``roi`` (a lost track's region) or the whole frame
-        (``frame_finders``: the worker's, when it runs there)."""
+    def _search_opencv(self, gray: np.ndarray, roi: Optional[Roi]) -> List[Candidate]:
+        """OpenCV's step: the marker in ``roi`` (a lost track's region) or the whole frame."""
         x0, y0 = 0, 0
         if roi is not None:
             x0, y0, x1, y1 = roi
             img, finder = gray[y0:y1, x0:x1], self._finder
         else:
-            img, finder = gray, (frame_finders or self._frame_finders).get(gray)
+            img, finder = gray, self._frame_finders.get(gray)
         corners_list, ids = finder.detect(img)
         out: List[Candidate] = []
         for corners, marker_id in zip(corners_list, ids):
