@@ -726,7 +726,8 @@ def _print_clutter(rows: List[dict], n_frames: int) -> None:
         "ratio: median over frames of pose-daemon's time / the anchor's on the same frame (with the marker;"
         " no marker: the marker-free frames, in a row, so that the mean counts OpenCV's step of the search;"
         " mean: the ratio of the mean times; CPU: the median by processor time of all threads); arrival:"
-        " the marker coming into view after marker-free frames (each phase of their run alike), found in its"
+        " the marker coming into view after marker-free frames (in each phase of the full-size pass's"
+        " turns alike), found in its"
         f" first frame / within {rows[0]['arrival_within_frames'] if rows else ''} frames"
     )
 
