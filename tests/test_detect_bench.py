@@ -42,11 +42,13 @@ def test_bench_prints_figures_for_both_markers_and_the_anchor(capsys) -> None:
             assert row["time_empty_mean_ms"] > 0 and row["anchor_time_empty_mean_ms"] > 0
             assert row["time_empty_ratio_median"] > 0 and row["cpu_empty_ratio_median"] > 0
             assert row["time_empty_ratio_of_means"] > 0
-        # The marker arriving after a marker-free frame: found, at the latest in its turn.
-        assert row["arrival_within_frames"] == FULL_PASS_EVERY
-        assert 0.0 <= row["arrival_first_frame_rate"] <= row["arrival_within_rate"] <= 1.0
+        # The ArUco marker arriving after a marker-free frame: found, at the latest in its turn
+        # (a plain square is found in some marker-free clutter: no arrival figure).
         if kind == "aruco":
-            assert row["arrival_within_rate"] == 1.0
+            assert row["arrival_within_frames"] == FULL_PASS_EVERY
+            assert 0.0 <= row["arrival_first_frame_rate"] <= row["arrival_within_rate"] == 1.0
+        else:
+            assert "arrival_within_rate" not in row
     # The blur sweep: every condition, size bias against the renderer's truth.
     sweep = {row["condition"]: row for row in result["blur_sweep"]}
     assert list(sweep) == [label for label, _, _ in BLUR_SWEEP]
