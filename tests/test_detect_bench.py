@@ -54,6 +54,7 @@ def test_bench_prints_figures_for_both_markers_and_the_anchor(capsys) -> None:
     assert list(sweep) == [label for label, _, _ in BLUR_SWEEP]
     assert abs(sweep["sRGB, defocus 0.8 px"]["size_bias_mean_pct"]) < 0.2
     assert sweep["sRGB 1.5 px read as linear"]["size_bias_mean_pct"] < -1.0
+    assert all(row["time_median_ms"] > 0 and row["anchor_time_median_ms"] > 0 for row in sweep.values())
 
 
 def test_bench_table_is_readable(capsys) -> None:

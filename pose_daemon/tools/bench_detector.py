@@ -581,6 +581,7 @@ def run_blur_sweep(n_frames: int, seed: int, camera: Camera) -> List[dict]:
         pose_rng = np.random.default_rng([seed, 20])
         tallies = {"ours": Tally(label), "anchor": Tally(label)}
         sizes: Dict[str, List[float]] = {"ours": [], "anchor": []}
+        times: Dict[str, List[float]] = {"ours": [], "anchor": []}
         for i in range(n_frames):
             rvec, tvec = random_pose(pose_rng, camera, marker, distance_m=distance_m, max_tilt_deg=60.0)
             scene_rng = np.random.default_rng([seed, 21, i])
@@ -595,8 +596,13 @@ def run_blur_sweep(n_frames: int, seed: int, camera: Camera) -> List[dict]:
                 camera, marker, rvec, tvec, effects=Effects(**fields), rng=np.random.default_rng([seed, 22, i])
             )
             detector.reset()
+            t0 = time.perf_counter()
             found = {"ours": detector.detect(image)}
+            t1 = time.perf_counter()
             corners, ids = anchor_finder.detect(image)
+            t2 = time.perf_counter()
+            times["ours"].append(t1 - t0)
+            times["anchor"].append(t2 - t1)
             found["anchor"] = next((c.astype(np.float64) for c, m in zip(corners, ids) if int(m) == MARKER_ID), None)
             for key, corners in found.items():
                 _score(tallies[key], corners, truth, rvec, tvec, None)
@@ -612,6 +618,7 @@ def run_blur_sweep(n_frames: int, seed: int, camera: Camera) -> List[dict]:
                     prefix + "corner_rms_px": s["corner_rms_px"],
                     prefix + "size_bias_mean_pct": 100 * float(np.mean(sizes[key])) if sizes[key] else None,
                     prefix + "size_bias_median_pct": 100 * float(np.median(sizes[key])) if sizes[key] else None,
+                    prefix + "time_median_ms": 1e3 * float(np.median(times[key])),
                 }
             )
         rows.append(row)
@@ -749,11 +756,11 @@ def _print_sweep(rows: List[dict], n_frames: int) -> None:
     print()
     print(
         f"blur sweep, aruco marker, {n_frames} frames per condition (same poses): marker size bias ="
-        f" detected / true perimeter - 1"
+        f" detected / true perimeter - 1; time: median per frame of a whole-frame search, interleaved"
     )
     header = (
         f"{'condition':<30}{'detector gamma':>15}{'detected':>9}{'corner RMS':>12}{'size bias mean':>16}"
-        f"{'anchor det.':>12}{'anchor RMS':>12}{'anchor bias':>13}"
+        f"{'time':>9}{'anchor det.':>12}{'anchor RMS':>12}{'anchor bias':>13}{'anchor time':>12}"
     )
     print(header)
     print("-" * len(header))
@@ -762,9 +769,11 @@ def _print_sweep(rows: List[dict], n_frames: int) -> None:
             f"{r['condition']:<30}{str(r['detector_gamma']):>15}"
             f"{_fmt(None if r['detection_rate'] is None else 100 * r['detection_rate'], '.0f', '%'):>9}"
             f"{_fmt(r['corner_rms_px'], '.3f', ' px'):>12}{_fmt(r['size_bias_mean_pct'], '+.3f', ' %'):>16}"
+            f"{_fmt(r['time_median_ms'], '.2f', ' ms'):>9}"
             f"{_fmt(None if r['anchor_detection_rate'] is None else 100 * r['anchor_detection_rate'], '.0f', '%'):>12}"
             f"{_fmt(r['anchor_corner_rms_px'], '.3f', ' px'):>12}"
             f"{_fmt(r['anchor_size_bias_mean_pct'], '+.3f', ' %'):>13}"
+            f"{_fmt(r['anchor_time_median_ms'], '.2f', ' ms'):>12}"
         )
 
 
