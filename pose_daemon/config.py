@@ -346,6 +346,11 @@ class DetectorConfig:
         Rule("float", lo=0, hi=10_000),
         "time cap of a whole-frame search per frame, ms; the rest goes on next frame (0 = no cap)",
     )
+    blur_model: bool = _key(
+        True,
+        Rule("bool"),
+        "type aruco: a blurred marker's corners from a model of its whole pattern (false: edge fits only, faster)",
+    )
 
 
 @dataclass(frozen=True)

@@ -105,6 +105,7 @@ class FrameProcessor:
                 camera=camera,
                 gamma=detector.gamma,
                 search_budget_ms=detector.search_budget_ms or None,
+                blur_model=detector.blur_model,
             ),
             frames=frames,
             prior=prior,

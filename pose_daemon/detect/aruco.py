@@ -5,13 +5,14 @@ edge fits, and followed between frames by reading its bits again.
 
 from __future__ import annotations
 
+import math
 from typing import Any, List, Optional, Tuple
 
 import cv2
 import numpy as np
 
 from ..camera import Marker
-from . import aruco_compat
+from . import aruco_compat, blur_model
 from .quads import Roi, inside_any
 from .refine import SEARCH_CONVERGED_PX, SEARCH_ITERATIONS, EdgeFit, signed_area
 from .square import (
@@ -106,6 +107,7 @@ class ArucoFinder(OutlineFinder):
         expected = np.zeros((cells, cells), dtype=bool)
         expected[1:-1, 1:-1] = self.bits.astype(bool)
         self._expected_white = expected.ravel()
+        self._model = blur_model.MarkerModel(expected)
         border = np.ones((cells, cells), dtype=bool)
         border[1:-1, 1:-1] = False
         self._border = border.ravel()
@@ -207,6 +209,29 @@ class ArucoFinder(OutlineFinder):
         """Is this the marker, with the corners already labelled TL, TR, BR, BL?"""
         return self.orientation(gray, fit) == 0
 
+    def border_model_below_px(self) -> float:
+        # Edges blurred enough for the model of the whole marker need no border model (it
+        # would only cost: the model takes the code's light into account itself).
+        return blur_model.MODEL_MIN_BLUR_PX if self.options.blur_model else math.inf
+
+    def polish(self, gray: np.ndarray, cand: Candidate) -> Candidate:
+        """The marker's corners from the model of its whole blurred pattern (``blur_model``)
+        where its edges are blurred and the model describes the frame; else ``cand``."""
+        fit = cand.fit
+        if not self.options.blur_model or fit is None or fit.blur_px < blur_model.MODEL_MIN_BLUR_PX:
+            return cand
+        lin = gray if self.lut is None else cv2.LUT(gray, self.lut)
+        quiet_px = self.reach_px(cand.corners)[1]
+        least = None if fit.side_blur_px is None else float(fit.side_blur_px.min())
+        model_fit = self._model.fit(lin, cand.corners, fit.blur_px, quiet_px, least)
+        if not blur_model.accept(model_fit, cand.corners, fit.blur_px):
+            return cand
+        return Candidate(model_fit.corners, True, fit)
+
+    def follow(self, gray: np.ndarray, predicted: np.ndarray) -> Optional[Candidate]:
+        cand = super().follow(gray, predicted)
+        return None if cand is None else self.polish(gray, cand)
+
     def try_quad(self, gray: np.ndarray, quad: np.ndarray, scale: int, found: List[Candidate]) -> Optional[Candidate]:
         """A rough outline -> the marker (refined, labelled) or None; the code is read from
         the rough outline first, the edges fitted only when it may be the marker."""
@@ -226,7 +251,7 @@ class ArucoFinder(OutlineFinder):
         if fit is None:
             return None
         k = self.orientation(gray, fit)
-        return None if k is None else Candidate(np.roll(fit.corners, -k, axis=0), True, fit)
+        return None if k is None else self.polish(gray, Candidate(np.roll(fit.corners, -k, axis=0), True, fit))
 
     def stages(self, gray: np.ndarray, roi: Optional[Roi]) -> List[Tuple[str, int]]:
         """Our own quadrilaterals and bit reading first (cheap); OpenCV's ArUco detector, with
@@ -283,5 +308,5 @@ class ArucoFinder(OutlineFinder):
             fit = self.refine(gray, pts, iterations=2, max_move_px=3.0)
             if fit is None:
                 continue
-            out.append(Candidate(fit.corners, True, fit))
+            out.append(self.polish(gray, Candidate(fit.corners, True, fit)))
         return out

@@ -88,6 +88,8 @@ MODEL_SHAPE_TOLERANCE = 1.06
 MODEL_MISFIT_MAX = 0.92
 #: The border model is fitted on samples at most this many blur sigmas outside the edge.
 MODEL_OUTER_SIGMAS = 1.5
+#: Edges blurred this much (sigma, px) or more get each side's blur in their EdgeFit.
+SIDE_BLUR_REPORT_PX = 1.0
 #: Share of a side's profiles that must stay for its clean ones to be told apart.
 _MIN_CLEAN_FRACTION = 0.25
 
@@ -100,6 +102,8 @@ class EdgeFit:
     residual_px: float  # RMS distance of the edge points to their side's line
     contrast: float  # mean light - dark grey levels across the edges
     valid_fraction: float  # share of profiles that crossed the edge cleanly
+    blur_px: float = 0.0  # the edges' blur, Gaussian sigma, the most blurred side
+    side_blur_px: Optional[np.ndarray] = None  # each side's (4,), from SIDE_BLUR_REPORT_PX on
 
 
 def signed_area(corners: np.ndarray) -> float:
@@ -390,6 +394,7 @@ def fit_edges(
     lut: Optional[np.ndarray] = None,
     check_blur: bool = True,
     border_fraction: Optional[float] = None,
+    border_model_below_px: float = math.inf,
 ) -> Optional[EdgeFit]:
     """Refine approximate corners (4, 2) of a dark quadrilateral on a lighter surround.
 
@@ -408,6 +413,9 @@ def fit_edges(
     profiles are centred within ``WINDOW_BLUR_SIGMAS`` of the estimated blur and clear of
     the blurred corners (off: as soon as the corners settle and the profiles reach past the
     blur; a tracked marker's predicted corners are already centred).
+    ``border_fraction``: the border model (see the module's notes), only on edges blurred less
+    than ``border_model_below_px`` (beyond, a model of the whole marker takes over: the ArUco
+    finder's ``blur_model``).
     """
     h, w = gray.shape
     start = np.asarray(corners, dtype=np.float64).reshape(4, 2)
@@ -418,7 +426,7 @@ def fit_edges(
     if n_off < 4:
         return None
     distorted = camera is not None and camera.has_distortion
-    fit_parts: Optional[Tuple[np.ndarray, float, np.ndarray, np.ndarray, float]] = None
+    fit_parts: Optional[tuple] = None
     m = int(samples_per_side)
     n = 4 * m
     rows = np.arange(n)
@@ -497,6 +505,7 @@ def fit_edges(
         cell_px = 0.0 if border_fraction is None else border_fraction * float(length.min())
         if (
             border_fraction is not None
+            and blur_px < border_model_below_px
             and 0.0 < MODEL_MIN_CELL_SIGMAS * blur_px <= cell_px
             and cell_px - inner < MODEL_CELL_SIGMAS * blur_px
         ):
@@ -570,7 +579,9 @@ def fit_edges(
         # cleanly (they count as valid when on their side's line).
         n_valid = n_used if crossed is ok else int((crossed.reshape(4, m) & (np.abs(res) <= 0.5)).sum())
         # The last pass's fit is the result: what it reports is put together after the loop.
-        fit_parts = (refined, sq_sum / n_used, contrast, ok, n_valid / n)
+        # Each side's blur is reported only where the sides are blurred (a sharp pass skips it).
+        side_blur = _side_blur(light, dark, rise, crossed, m) if blur_px >= SIDE_BLUR_REPORT_PX else None
+        fit_parts = (refined, sq_sum / n_used, contrast, ok, n_valid / n, blur_px, side_blur)
         moved = float(np.abs(refined - current).max())
         current = refined
         # Profiles along normals a fraction of a degree off find the same edge points, but
@@ -603,7 +614,7 @@ def fit_edges(
                 break
     if fit_parts is None:
         return None
-    refined, mean_sq, contrast, ok, valid_fraction = fit_parts
+    refined, mean_sq, contrast, ok, valid_fraction, blur_px, side_blur = fit_parts
     if max_move_px is not None and float(np.abs(refined - start).max()) > max_move_px:
         return None
     return EdgeFit(
@@ -611,6 +622,8 @@ def fit_edges(
         residual_px=math.sqrt(mean_sq),
         contrast=float(contrast[ok].mean()),
         valid_fraction=valid_fraction,
+        blur_px=blur_px,
+        side_blur_px=side_blur,
     )
 
 

@@ -46,6 +46,7 @@ class SquareOptions:
     max_aspect_ratio_error: float = 3.0  # measured W:H may differ from the marker's by this factor
     ring_px: float = 2.5  # how far outside the sides the light ring is sampled
     gamma: Response = 1.0  # the camera's response (response.py): edges fitted in linear light
+    blur_model: bool = True  # ArUco: a blurred marker's corners from its whole pattern (blur_model.py)
 
 
 def side_lengths(corners: np.ndarray) -> np.ndarray:
@@ -301,7 +302,12 @@ class OutlineFinder:
             lut=self.lut,
             check_blur=check_blur,
             border_fraction=self.border_fraction,
+            border_model_below_px=self.border_model_below_px(),
         )
+
+    def border_model_below_px(self) -> float:
+        """Edges blurred less than this get the edge fits' border model (``fit_edges``)."""
+        return math.inf
 
     # ------------------------------------------------------------------ search
 
