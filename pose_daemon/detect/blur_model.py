@@ -184,8 +184,8 @@ class MarkerModel:
         # The model is drawn over the whole box (its blur needs the margin); the frame is
         # compared only where the box lies in it.
         h, w = lin.shape
-        patch = np.zeros((y1 - y0, x1 - x0), np.float32)
-        seen = np.zeros((y1 - y0, x1 - x0), np.float32)
+        patch: np.ndarray = np.zeros((y1 - y0, x1 - x0), np.float32)
+        seen: np.ndarray = np.zeros((y1 - y0, x1 - x0), np.float32)
         ix0, iy0, ix1, iy1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
         if ix1 - ix0 < 8 or iy1 - iy0 < 8:
             return None
