@@ -78,6 +78,7 @@ def _blurred_frame(effects: Effects, roll_deg: float = 17.0, distance_m: float =
     return image, truth
 
 
+@pytest.mark.pi
 def test_the_model_recovers_corners_and_blur_from_a_wrong_start() -> None:
     """From corners 0.3-0.4 px off and a blur guess 30 % short: the renderer's corners within
     0.03 px, its defocus (sigma 2.5 px, plus the pixel's own 1/12 px^2) within 5 %."""
@@ -92,6 +93,7 @@ def test_the_model_recovers_corners_and_blur_from_a_wrong_start() -> None:
     assert fit.misfit < 1.2
 
 
+@pytest.mark.pi
 def test_a_motion_smear_is_fitted_as_one_of_its_length_and_direction() -> None:
     effects = Effects(blur_px=0.8, motion_blur_px=8.0, motion_blur_angle_deg=30.0, noise_gray=2.0, gamma="srgb")
     image, truth = _blurred_frame(effects)
