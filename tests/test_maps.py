@@ -672,10 +672,11 @@ def test_fit_edges_many_gives_what_fit_edges_gives_each_outline():
                 if want is not None:
                     compared += 1
                     assert np.array_equal(got.corners, want.corners)
-                    assert (got.residual_px, got.contrast, got.valid_fraction) == (
+                    assert (got.residual_px, got.contrast, got.valid_fraction, got.blur_px) == (
                         want.residual_px,
                         want.contrast,
                         want.valid_fraction,
+                        want.blur_px,
                     )
     assert compared > 40
     with pytest.raises(ValueError, match="as many"):

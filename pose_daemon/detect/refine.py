@@ -103,7 +103,7 @@ class EdgeFit:
     contrast: float  # mean light - dark grey levels across the edges
     valid_fraction: float  # share of profiles that crossed the edge cleanly
     blur_px: float = 0.0  # the edges' blur, Gaussian sigma, the most blurred side
-    side_blur_px: Optional[np.ndarray] = None  # each side's (4,), from SIDE_BLUR_REPORT_PX on
+    side_blur_px: Optional[np.ndarray] = None  # each side's (4,), from SIDE_BLUR_REPORT_PX on (fit_edges)
 
 
 def signed_area(corners: np.ndarray) -> float:
@@ -887,5 +887,6 @@ def fit_edges_many(
             residual_px=math.sqrt(mean_sq),
             contrast=float(contrast_i[ok_i].mean()),
             valid_fraction=valid_fraction,
+            blur_px=float(blur_all[i]),
         )
     return results
