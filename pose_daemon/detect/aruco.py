@@ -17,6 +17,7 @@ from .quads import Roi, inside_any
 from .refine import SEARCH_CONVERGED_PX, SEARCH_ITERATIONS, EdgeFit, signed_area
 from .square import (
     MAX_REACH_PX,
+    UNIT_SQUARE,
     Candidate,
     OutlineFinder,
     SquareOptions,
@@ -38,8 +39,6 @@ from .square import (
 #: within 8 frames. It falls on searches without the full-size pass (``FULL_PASS_EVERY``
 #: divides it): the two costly steps of a marker-free run take turns.
 OPENCV_EVERY = 8
-
-_UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
 
 
 class FrameFinders:
@@ -115,7 +114,7 @@ class ArucoFinder(OutlineFinder):
         # Cell index permutations: the grid read from corners rolled by k is grid[perm[k]].
         self._perms = []
         for k in range(4):
-            H = cv2.getPerspectiveTransform(_UNIT, np.roll(_UNIT, -k, axis=0))
+            H = cv2.getPerspectiveTransform(UNIT_SQUARE, np.roll(UNIT_SQUARE, -k, axis=0))
             uv = cv2.perspectiveTransform(self._cell_uv.reshape(-1, 1, 2), H).reshape(-1, 2)
             idx = np.floor(uv * cells).astype(int).clip(0, cells - 1)
             self._perms.append(idx[:, 1] * cells + idx[:, 0])

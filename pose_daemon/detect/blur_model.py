@@ -42,6 +42,8 @@ from typing import Optional, Tuple
 import cv2
 import numpy as np
 
+from .square import UNIT_SQUARE
+
 #: Edges blurred less than this (Gaussian sigma, pixels: the edge fit's ``blur_px``) keep
 #: the edge fit: there the code's light does not reach the profiles and their noise is small.
 MODEL_MIN_BLUR_PX = 1.2
@@ -76,7 +78,6 @@ _PAD_CELLS = 2
 _SMEAR_POINTS = 32
 #: The largest blur the fit may try (sigma, pixels of the fitted patch; a smear 4 times that).
 _MAX_BLUR_PX = 8.0
-_UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
 
 
 @dataclass
@@ -129,7 +130,7 @@ def _psf_ok(psf: np.ndarray, smear: bool) -> bool:
 
 
 def _homography(corners: np.ndarray) -> np.ndarray:
-    return cv2.getPerspectiveTransform(_UNIT, np.asarray(corners, dtype=np.float32)).astype(np.float64)
+    return cv2.getPerspectiveTransform(UNIT_SQUARE, np.asarray(corners, dtype=np.float32)).astype(np.float64)
 
 
 class MarkerModel:

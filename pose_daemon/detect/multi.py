@@ -39,7 +39,7 @@ from . import aruco_compat
 from .aruco import ArucoFinder, FrameFinders
 from .quads import Roi, find_quads, inside_any
 from .refine import SEARCH_CONVERGED_PX, EdgeFit, fit_edges_many, signed_area
-from .square import SquareOptions, darker_inside, median_of, sample_canonical, side_lengths
+from .square import UNIT_SQUARE, SquareOptions, darker_inside, median_of, sample_canonical, side_lengths
 
 #: A marker partly out of the frame is followed while this many of its corners are inside.
 MIN_PARTIAL_CORNERS = 2
@@ -69,8 +69,6 @@ SEARCH_MODES = ("inline", "next_frame", "when_done")
 FOLLOW_ITERATIONS = 2
 #: ``_find_tracked``'s ``fit`` when no batch fitted the marker (it is fitted on its own).
 _NOT_FITTED = object()
-
-_UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
 
 
 def _fit_side(
@@ -222,7 +220,7 @@ class _Decoder:
         self.max_bit_errors = int(getattr(dictionary, "maxCorrectionBits", 0))
         perms = []
         for k in range(4):
-            H = cv2.getPerspectiveTransform(_UNIT, np.roll(_UNIT, -k, axis=0))
+            H = cv2.getPerspectiveTransform(UNIT_SQUARE, np.roll(UNIT_SQUARE, -k, axis=0))
             uv = cv2.perspectiveTransform(self.cell_uv.reshape(-1, 1, 2), H).reshape(-1, 2)
             idx = np.floor(uv * cells).astype(int).clip(0, cells - 1)
             perms.append(idx[:, 1] * cells + idx[:, 0])

@@ -64,7 +64,7 @@ def side_lengths(corners: np.ndarray) -> np.ndarray:
 
 
 # Canonical marker square [0, 1]^2, corners in image-clockwise order from its top-left.
-_UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
+UNIT_SQUARE = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=np.float32)
 _g = np.linspace(0.0, 1.0, 7)
 _GRID = np.array([[u, v] for v in _g for u in _g], dtype=np.float64)
 _GRID_RIM = (_GRID.min(axis=1) == 0.0) | (_GRID.max(axis=1) == 1.0)
@@ -160,7 +160,7 @@ def darker_inside(
 def sample_canonical(gray: np.ndarray, corners: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Grey levels at canonical marker coordinates ``uv`` (N, 2) in [0, 1]^2 (plus margins),
     NaN where the point falls outside the image."""
-    H = cv2.getPerspectiveTransform(_UNIT, np.asarray(corners, dtype=np.float32))
+    H = cv2.getPerspectiveTransform(UNIT_SQUARE, np.asarray(corners, dtype=np.float32))
     pts = cv2.perspectiveTransform(uv.reshape(-1, 1, 2).astype(np.float64), H).reshape(-1, 2)
     h, w = gray.shape
     inside = (pts[:, 0] >= 0) & (pts[:, 0] <= w - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= h - 1)
