@@ -426,7 +426,8 @@ def fit_edges(
     if n_off < 4:
         return None
     distorted = camera is not None and camera.has_distortion
-    fit_parts: Optional[tuple] = None
+    # (corners, mean square residual, contrast, ok, valid share, blur, the side-blur inputs)
+    fit_parts: Optional[Tuple[np.ndarray, float, np.ndarray, np.ndarray, float, float, Tuple[np.ndarray, ...]]] = None
     m = int(samples_per_side)
     n = 4 * m
     rows = np.arange(n)
@@ -579,9 +580,7 @@ def fit_edges(
         # cleanly (they count as valid when on their side's line).
         n_valid = n_used if crossed is ok else int((crossed.reshape(4, m) & (np.abs(res) <= 0.5)).sum())
         # The last pass's fit is the result: what it reports is put together after the loop.
-        # Each side's blur is reported only where the sides are blurred (a sharp pass skips it).
-        side_blur = _side_blur(light, dark, rise, crossed, m) if blur_px >= SIDE_BLUR_REPORT_PX else None
-        fit_parts = (refined, sq_sum / n_used, contrast, ok, n_valid / n, blur_px, side_blur)
+        fit_parts = (refined, sq_sum / n_used, contrast, ok, n_valid / n, blur_px, (light, dark, rise, crossed))
         moved = float(np.abs(refined - current).max())
         current = refined
         # Profiles along normals a fraction of a degree off find the same edge points, but
@@ -614,9 +613,14 @@ def fit_edges(
                 break
     if fit_parts is None:
         return None
-    refined, mean_sq, contrast, ok, valid_fraction, blur_px, side_blur = fit_parts
+    refined, mean_sq, contrast, ok, valid_fraction, blur_px, side_inputs = fit_parts
     if max_move_px is not None and float(np.abs(refined - start).max()) > max_move_px:
         return None
+    # Each side's blur, of the last pass, only where the edges are blurred (sharp: skipped).
+    side_blur = None
+    if blur_px >= SIDE_BLUR_REPORT_PX:
+        light, dark, rise, crossed = side_inputs
+        side_blur = _side_blur(light, dark, rise, crossed, m)
     return EdgeFit(
         corners=refined,
         residual_px=math.sqrt(mean_sq),
