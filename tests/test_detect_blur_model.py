@@ -97,9 +97,7 @@ def test_the_model_recovers_corners_and_blur_from_a_wrong_start() -> None:
 def test_a_motion_smear_is_fitted_as_one_of_its_length_and_direction() -> None:
     effects = Effects(blur_px=0.8, motion_blur_px=8.0, motion_blur_angle_deg=30.0, noise_gray=2.0, gamma="srgb")
     image, truth = _blurred_frame(effects)
-    lut = decode_lut("srgb")
-    image_lin = cv2.LUT(image, lut)
-    fit = _model_of(MarkerDetector(ARUCO)).fit(image_lin, truth + 0.2, 2.5, 6.0, 1.0)
+    fit = _model_of(MarkerDetector(ARUCO)).fit(image, truth + 0.2, 2.5, 6.0, 1.0, decode_lut("srgb"))
     assert fit is not None
     assert rms(fit.corners, truth) < 0.05
     assert 7.0 < fit.smear_px < 9.0, fit.smear_px

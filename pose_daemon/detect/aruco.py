@@ -219,10 +219,9 @@ class ArucoFinder(OutlineFinder):
         fit = cand.fit
         if not self.options.blur_model or fit is None or fit.blur_px < blur_model.MODEL_MIN_BLUR_PX:
             return cand
-        lin = gray if self.lut is None else cv2.LUT(gray, self.lut)
         quiet_px = self.reach_px(cand.corners)[1]
         least = None if fit.side_blur_px is None else float(fit.side_blur_px.min())
-        model_fit = self._model.fit(lin, cand.corners, fit.blur_px, quiet_px, least)
+        model_fit = self._model.fit(gray, cand.corners, fit.blur_px, quiet_px, least, self.lut)
         if not blur_model.accept(model_fit, cand.corners, fit.blur_px):
             return cand
         return Candidate(model_fit.corners, True, fit)

@@ -42,12 +42,12 @@ from typing import Optional, Tuple
 import cv2
 import numpy as np
 
-from .square import UNIT_SQUARE
+from .square import UNIT_SQUARE, side_lengths
 
 #: Edges blurred less than this (Gaussian sigma, pixels: the edge fit's ``blur_px``) keep
 #: the edge fit: there the code's light does not reach the profiles and their noise is small.
 MODEL_MIN_BLUR_PX = 1.2
-#: Largest change of a corner from the edge fit's, in blur sigmas (and never over 1.5 px):
+#: Largest change of a corner from the edge fit's, in blur sigmas (within 0.5-1.5 px):
 #: further means the model did not describe the frame (an occlusion, a wrong code).
 MODEL_MAX_MOVE_SIGMAS = 0.5
 MODEL_MAX_MOVE_PX = 1.5
@@ -158,13 +158,15 @@ class MarkerModel:
 
     def fit(
         self,
-        lin: np.ndarray,
+        gray: np.ndarray,
         corners: np.ndarray,
         blur_px: float,
         quiet_px: float,
         least_blur_px: Optional[float] = None,
+        lut: Optional[np.ndarray] = None,
     ) -> Optional[BlurFit]:
-        """Fit the model to ``lin`` (the frame in linear intensity, float32 or uint8) from
+        """Fit the model to the frame ``gray`` (uint8; ``lut``: its response, grey level ->
+        linear intensity, ``response.decode_lut``, None for a linear frame) from
         ``corners`` (4, 2) TL, TR, BR, BL (the edge fit's) and ``blur_px`` (its sigma);
         ``quiet_px``: how far outside the marker the surround is the quiet zone's light;
         ``least_blur_px``: the least blurred side's sigma (a smear blurs some sides only).
@@ -174,7 +176,7 @@ class MarkerModel:
         blocks averaged: an integer factor leaving that much blur), which a blurred image
         loses nothing to and which costs a fraction; the least blurred side sets the factor."""
         c0 = np.asarray(corners, dtype=np.float64).reshape(4, 2)
-        side = float(np.mean(np.hypot(*(np.roll(c0, -1, axis=0) - c0).T)))
+        side = float(side_lengths(c0).mean())
         if not side > 4.0 or not blur_px > 0.0:
             return None
         least = blur_px if least_blur_px is None or not least_blur_px > 0.0 else min(least_blur_px, blur_px)
@@ -184,13 +186,15 @@ class MarkerModel:
         x1, y1 = (int(math.ceil(v / s)) * s for v in c0.max(axis=0) + margin)
         # The model is drawn over the whole box (its blur needs the margin); the frame is
         # compared only where the box lies in it.
-        h, w = lin.shape
+        h, w = gray.shape
         patch: np.ndarray = np.zeros((y1 - y0, x1 - x0), np.float32)
         seen: np.ndarray = np.zeros((y1 - y0, x1 - x0), np.float32)
         ix0, iy0, ix1, iy1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
         if ix1 - ix0 < 8 or iy1 - iy0 < 8:
             return None
-        patch[iy0 - y0 : iy1 - y0, ix0 - x0 : ix1 - x0] = lin[iy0:iy1, ix0:ix1]
+        # Only the box is linearised (the frame's other pixels are not needed).
+        box = gray[iy0:iy1, ix0:ix1]
+        patch[iy0 - y0 : iy1 - y0, ix0 - x0 : ix1 - x0] = box if lut is None else cv2.LUT(box, lut)
         seen[iy0 - y0 : iy1 - y0, ix0 - x0 : ix1 - x0] = 1.0
         if s > 1:
             size = ((x1 - x0) // s, (y1 - y0) // s)
@@ -215,19 +219,18 @@ class MarkerModel:
     def _fit_patch(
         self, patch: np.ndarray, seen: np.ndarray, c0: np.ndarray, blur_px: float, quiet_px: float
     ) -> Optional[BlurFit]:
-        """``fit`` in the coordinates of ``patch`` (float32), where ``seen`` (its pixels in
-        the frame)."""
-        side = float(np.mean(np.hypot(*(np.roll(c0, -1, axis=0) - c0).T)))
+        """``fit`` in the coordinates of ``patch`` (float32, linear intensity), where ``seen``
+        (its pixels in the frame)."""
+        side = float(side_lengths(c0).mean())
         cell_px = side / self.cells
         tex, r = self._texture(cell_px)
         ramp_var = (cell_px / r) ** 2 / 12.0  # the texture's ramp (bilinear: a box) as a blur, px^2
         ph, pw = patch.shape
         X, Y = np.meshgrid(np.arange(pw, dtype=np.float32), np.arange(ph, dtype=np.float32))
-        origin = np.zeros(2)
 
         def unit_coords(c: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
             # (Python floats: the arithmetic stays in float32 on every numpy.)
-            (a, b, e), (f, g, k), (p, q, t) = np.linalg.inv(_homography(c - origin)).tolist()
+            (a, b, e), (f, g, k), (p, q, t) = np.linalg.inv(_homography(c)).tolist()
             d = p * X + q * Y + t
             return (a * X + b * Y + e) / d, (f * X + g * Y + k) / d
 
@@ -241,7 +244,7 @@ class MarkerModel:
         n = int(mask.sum())
         if n < 100:
             return None
-        y = patch[mask].astype(np.float32)
+        y = patch[mask]
         xs, ys = X[mask], Y[mask]
         basis = np.column_stack([np.ones(n), (xs - xs.mean()) / side, (ys - ys.mean()) / side]).astype(np.float32)
 
@@ -278,7 +281,7 @@ class MarkerModel:
         def dh_dc(c: np.ndarray) -> np.ndarray:
             """d(homography's 8 free entries)/d(corner coordinates), central differences."""
             dhdc = np.empty((8, 8))
-            flat = (c - origin).ravel()
+            flat = c.ravel()
             for j in range(8):
                 e = np.zeros(8)
                 e[j] = 1e-3
@@ -294,7 +297,7 @@ class MarkerModel:
             mx, my = Mx[mask], My[mask]
             # The model moves with the corners: d(residual)/dh = contrast * grad(M) . dx/dh
             # (dx/dh: the homography's Jacobian at each pixel's pattern point), then dh/dc.
-            h6, h7 = _homography(c - origin)[2, :2].tolist()
+            h6, h7 = _homography(c)[2, :2].tolist()
             den = h6 * uu + h7 * vv + 1.0
             a, b = contrast * mx / den, contrast * my / den
             ab = a * xs + b * ys
