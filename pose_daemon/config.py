@@ -445,6 +445,12 @@ class AttitudeConfig:
         "re-fit the pose with the attitude's roll and pitch (without attitude: level, max_tilt_deg "
         "as 3 sigma) as a weighted prior",
     )
+    heading_window_s: float = _key(
+        1.5,
+        Rule("float", lo=0, hi=10),
+        "without attitude, at a wall marker: choose and polish the heading by the last this many "
+        "seconds of headings (0 = frame by frame)",
+    )
 
     def check(self) -> None:
         s = self.source.strip()

@@ -25,6 +25,7 @@ from .detect import MarkerDetector
 from .geometry import VehicleFrames
 from .pose.continuity import Track, choose_by_continuity
 from .pose.estimator import estimate_pose
+from .pose.heading_track import HeadingTrack
 from .pose.prior import MIN_PRIOR_SIGMA_DEG, CornerNoise, HeadingReference, PriorSettings, choose_solution
 from .pose.types import EstimationError, Pose
 from .result import FrameResult
@@ -74,6 +75,9 @@ class FrameProcessor:
         self._clock = clock
         # The autopilot's heading reference against the marker's: outlives tracks.
         self.heading = HeadingReference()
+        # Without attitude, a wall marker's recent headings (the tilt prior's): one per track.
+        window_s = self.prior.heading_window_s
+        self.heading_track = HeadingTrack(window_s) if window_s > 0 else None
         self.corner_noise = CornerNoise()
         self.frames_seen = self.frames_with_attitude = 0
 
@@ -144,7 +148,12 @@ class FrameProcessor:
     def reset(self) -> None:
         """Forget tracking state (after a source restart or a long gap)."""
         self.detector.reset()
+        self._lose_track()
+
+    def _lose_track(self) -> None:
         self.track.reset()
+        if self.heading_track is not None:
+            self.heading_track.reset()
 
     def process(self, frame: Frame) -> FrameResult:
         result = FrameResult(seq=frame.seq, t_capture_s=frame.t_capture_s, attitude=frame.attitude)
@@ -163,11 +172,11 @@ class FrameProcessor:
         except (ValueError, cv2.error) as exc:
             # A camera glitch (wrong size, empty or corrupt buffer) costs this frame only.
             result.error = f"bad frame: {exc}"
-            self.track.reset()
+            self._lose_track()
             return result
         if corners is None:
             result.error = "no marker"
-            self.track.reset()  # lost: the next sighting starts a new track
+            self._lose_track()  # lost: the next sighting starts a new track
             return result
         result.corners = corners
         with timed(result, "estimate"):
@@ -182,7 +191,7 @@ class FrameProcessor:
                 )
             except EstimationError as exc:
                 result.error = f"pose: {exc}"
-                self.track.reset()
+                self._lose_track()
             else:
                 result.pose = self._choose(pose, corners, result)
         return result
@@ -204,6 +213,8 @@ class FrameProcessor:
             marker=self.marker,
             heading=self.heading,
             corner_sigma_px=self.corner_noise.sigma_px,
+            heading_track=self.heading_track,
+            t_capture_s=float(result.t_capture_s),
         )
         result.corner_sigma_px = self.corner_noise.sigma_px
         result.corner_noise_pending = result.corner_sigma_px is None

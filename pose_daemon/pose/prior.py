@@ -31,6 +31,7 @@ from ..geometry import (
     paper_angles_deg_from_R_cam_marker,
     rotation_angle_deg_3x3,
 )
+from .heading_track import HeadingTrack
 from .types import Pose
 
 __all__ = [
@@ -38,6 +39,7 @@ __all__ = [
     "Choice",
     "CornerNoise",
     "HeadingReference",
+    "HeadingTerm",
     "RESOLVED_BY",
     "choose_solution",
     "gate_bound_px",
@@ -92,6 +94,7 @@ class PriorSettings:
     attitude_sigma_deg: float = 1.0  # an attitude's accuracy when it does not state one
     polish: bool = True  # re-fit the chosen pose with the attitude's down as a prior term
     corner_sigma_px: float = 0.3  # corner noise the polish weighs the prior against, until measured
+    heading_window_s: float = 1.5  # the tilt prior's heading track at a wall marker (0 = none)
 
     @classmethod
     def from_config(cls, cfg) -> PriorSettings:
@@ -105,6 +108,7 @@ class PriorSettings:
             gate=cfg.gate.max_rms_px > 0,
             attitude_sigma_deg=cfg.attitude.sigma_deg,
             polish=cfg.attitude.polish,
+            heading_window_s=cfg.attitude.heading_window_s,
         )
 
 
@@ -147,6 +151,18 @@ def _swap(pose: Pose) -> Pose:
     )
 
 
+@dataclass(frozen=True)
+class HeadingTerm:
+    """A prior term on the vehicle's heading for ``polish_toward``: the body's x axis in the
+    local frame (``R_local_marker R^T forward_cam``, ``forward_cam`` the body's x axis in the
+    camera frame) turned about the vertical to ``yaw_rad``, weighed ``weight_px`` per radian."""
+
+    R_local_marker: np.ndarray
+    forward_cam: np.ndarray
+    yaw_rad: float
+    weight_px: float
+
+
 def polish_toward_down(
     pose: Pose,
     corners_px: np.ndarray,
@@ -176,9 +192,11 @@ def polish_toward(
     marker: Marker,
     terms: Sequence[Tuple[np.ndarray, np.ndarray, float]],
     iterations: int = 3,
+    heading: Optional[HeadingTerm] = None,
 ) -> Tuple[Pose, float]:
     """``polish_toward_down`` with any number of direction terms (dir in the marker frame,
-    wanted dir in the camera frame, weight px): down, and the heading once it is known."""
+    wanted dir in the camera frame, weight px): down, and the heading once it is known;
+    ``heading`` adds a term on the vehicle's heading itself (``HeadingTerm``)."""
     obj = marker.object_points.astype(np.float64)
     uv = np.asarray(corners_px, dtype=np.float64).reshape(-1)
     rvec = np.asarray(pose.rvec, dtype=np.float64).reshape(3).copy()
@@ -195,6 +213,17 @@ def polish_toward(
             # dR is (3, 9): d R.flat / d rvec_k, row-major R.
             J_dir[:, :3] = w * (dR.reshape(3, 3, 3) @ d_m).T
             Js.append(J_dir)
+        if heading is not None:
+            # yaw = atan2(v_y, v_x) of v = R_local_marker R^T forward_cam (the body's x axis in
+            # the local frame); d v / d rvec_k = R_local_marker dR_k^T forward_cam.
+            v = heading.R_local_marker @ (R.T @ heading.forward_cam)
+            dv = heading.R_local_marker @ np.einsum("kij,i->jk", dR.reshape(3, 3, 3), heading.forward_cam)
+            h2 = max(float(v[0] ** 2 + v[1] ** 2), 1e-12)
+            turn = math.remainder(math.atan2(v[1], v[0]) - heading.yaw_rad, math.tau)
+            rs.append(np.array([heading.weight_px * turn]))
+            J_head = np.zeros((1, 6))
+            J_head[0, :3] = heading.weight_px * (v[0] * dv[1] - v[1] * dv[0]) / h2
+            Js.append(J_head)
         return np.concatenate(rs), np.vstack(Js)
 
     r, J = residual(rvec, tvec)
@@ -434,6 +463,8 @@ def choose_solution(
     marker: Optional[Marker] = None,
     heading: Optional[HeadingReference] = None,
     corner_sigma_px: Optional[float] = None,
+    heading_track: Optional[HeadingTrack] = None,
+    t_capture_s: Optional[float] = None,
 ) -> Choice:
     """The solution to send for the estimator's ``pose`` (the better fit, its other planar
     solution in ``pose.alternative``), or why none is sent.
@@ -444,7 +475,9 @@ def choose_solution(
     autopilot's heading reference (learnt and used here), or None for roll and pitch only;
     ``corner_sigma_px`` the measured corner noise (CornerNoise; else ``settings``').
     With ``corners_px``, ``camera`` and ``marker`` and ``settings.polish``, an attitude also
-    polishes the candidates (``polish_toward``) and the one with the lower cost is chosen."""
+    polishes the candidates (``polish_toward``) and the one with the lower cost is chosen.
+    ``heading_track`` (with ``t_capture_s``): the tilt prior's track of a wall marker's recent
+    headings, which then chooses and polishes the heading too (``_track_heading``)."""
     bound_px = gate_bound_px(settings, side_px)
     if settings.gate and pose.reprojection_error_px > bound_px:
         return Choice(
@@ -477,6 +510,8 @@ def choose_solution(
             marker,
             heading,
             corner_sigma_px,
+            heading_track=heading_track,
+            t_capture_s=t_capture_s,
         )
         return dataclasses.replace(choice, flipped=choice.pose is not None)
     two = bool(alt_ok and alt is not None and rotation_angle_deg_3x3(pose.R, alt.R) >= SAME_POSE_DEG)
@@ -493,6 +528,8 @@ def choose_solution(
         marker,
         heading,
         corner_sigma_px,
+        heading_track=heading_track,
+        t_capture_s=t_capture_s,
     )
 
 
@@ -509,6 +546,9 @@ def _choose(
     marker: Optional[Marker],
     heading: Optional[HeadingReference],
     corner_sigma_px: Optional[float],
+    *,
+    heading_track: Optional[HeadingTrack] = None,
+    t_capture_s: Optional[float] = None,
 ) -> Choice:
     """choose_solution past the gate: ``two`` = the alternative is still a contender."""
     candidates: List[Pose] = [pose, _swap(pose)] if two else [pose]
@@ -546,6 +586,24 @@ def _choose(
         wall = heading_unseen_by_down(frames)
         if settings.polish and corners_px is not None and camera is not None and marker is not None and not wall:
             return _polish_level(candidates, agree, frames, settings, bound_px, corners_px, camera, marker, noise_px)
+        polishing = settings.polish and corners_px is not None and camera is not None and marker is not None
+        if polishing and heading_track is not None and t_capture_s is not None:
+            assert corners_px is not None and camera is not None and marker is not None
+            return _track_heading(
+                pose,
+                candidates,
+                agree,
+                frames,
+                settings,
+                bound_px,
+                by_continuity,
+                corners_px,
+                camera,
+                marker,
+                noise_px,
+                heading_track,
+                float(t_capture_s),
+            )
         if len(candidates) == 1:
             choice = Choice(pose, "clear", down_error_deg=tilt[0])
         elif len(agree) == 1:
@@ -569,6 +627,70 @@ def _choose(
         return Choice(pose, "clear")
     chosen = by_continuity(pose)
     return Choice(chosen, "continuity", flipped=chosen is not pose)
+
+
+def _track_heading(
+    pose: Pose,
+    candidates: List[Pose],
+    agree: List[int],
+    frames: VehicleFrames,
+    settings: PriorSettings,
+    bound_px: float,
+    by_continuity: Callable[[Pose], Pose],
+    corners_px: np.ndarray,
+    camera: Camera,
+    marker: Marker,
+    corner_sigma_px: float,
+    track: HeadingTrack,
+    t_capture_s: float,
+) -> Choice:
+    """The tilt prior at a wall marker with a heading track: each candidate within the tilt
+    bound polished towards level (``_level_terms``); once the track predicts the heading, the
+    candidate whose fit and heading together cost least is chosen and pulled towards the
+    prediction too (weight: corner noise over the prediction's own sigma); before that, the
+    tilt bound and the track's continuity choose as without it. Every frame's candidates, as
+    polished towards level (not towards the track: its samples stay the image's), teach the
+    track."""
+    terms = _level_terms(frames, settings, corner_sigma_px)
+    level = {i: polish_toward(candidates[i], corners_px, camera, marker, terms) for i in agree}
+    yaw = {i: _body_yaw(frames, level[i][0]) for i in agree}
+    lowest = min(level[i][1] for i in agree)
+    noise2 = max(corner_sigma_px, 1e-3) ** 2
+    fit_cost = {i: (level[i][1] - lowest) / noise2 for i in agree}
+    prediction = track.predict(t_capture_s)
+    track.add(t_capture_s, [yaw[i] for i in agree], [fit_cost[i] for i in agree])
+
+    if prediction is None:
+        if len(agree) == 1:
+            best = agree[0]
+        else:
+            best = 0 if by_continuity(pose) is pose else 1
+        polished = level[best][0]
+    else:
+        spread = math.hypot(prediction.sigma_rad, prediction.sample_sigma_rad)
+        best = min(
+            agree, key=lambda i: fit_cost[i] + (math.remainder(yaw[i] - prediction.yaw_rad, math.tau) / spread) ** 2
+        )
+        term = HeadingTerm(
+            frames.R_local_marker,
+            frames.R_cam_body[:, 0],
+            prediction.yaw_rad,
+            corner_sigma_px / max(prediction.sigma_rad, math.radians(MIN_PRIOR_SIGMA_DEG)),
+        )
+        polished = polish_toward(level[best][0], corners_px, camera, marker, terms, heading=term)[0]
+    tilt_deg = angle_between_deg(frames.down_cam_from_marker(polished.R), frames.down_cam_level)
+    withheld = _leaves_level(polished, tilt_deg, settings, bound_px)
+    if withheld is not None:
+        return withheld
+    other = candidates[1 - best] if len(candidates) == 2 else None
+    polished = dataclasses.replace(
+        polished, alternative=None if other is None else dataclasses.replace(other, alternative=None)
+    )
+    if len(candidates) == 1:
+        return Choice(polished, "clear", down_error_deg=tilt_deg)
+    if len(agree) == 1:
+        return Choice(polished, "tilt", down_error_deg=tilt_deg, flipped=best == 1)
+    return Choice(polished, "continuity", down_error_deg=tilt_deg, flipped=best == 1)
 
 
 def _polish_level(

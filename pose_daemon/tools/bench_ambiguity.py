@@ -51,6 +51,10 @@ G = 9.81
 # The attitude's heading reference is not the marker's: a constant turn the daemon must not need.
 YAW_REFERENCE_OFFSET_RAD = 0.7
 TILT_PRIOR_DEG = 15.0
+# The turning flight: in front of the wall, turning +-40 deg on a 6 s sine (up to 42 deg/s)
+# besides the hover's drift, to show how the tilt prior's heading track follows a turn.
+TURN_DEG = 40.0
+TURN_PERIOD_S = 6.0
 # Extra corner noise on top of the renderer's: none, and what real webcam photos of small
 # markers show (issue 11: corners within 0.3-0.4 px of a many-point reference).
 EXTRA_CORNER_NOISE_PX = (0.0, 0.3)
@@ -72,11 +76,12 @@ class Flight:
 
 
 def vehicle_at(
-    placement: str, size: str, t_s: float, phases: np.ndarray
+    placement: str, size: str, t_s: float, phases: np.ndarray, turn_deg: float = 0.0
 ) -> Tuple[np.ndarray, Tuple[float, float, float]]:
     """The vehicle's position in the marker's local frame (FRD, z down, metres) and its
     (roll, pitch, yaw) at ``t_s``: it hovers with a wobble and drifts on slow sines, tilting
-    into its accelerations as a multicopter does."""
+    into its accelerations as a multicopter does; ``turn_deg``: it also turns to and fro by
+    that much on a TURN_PERIOD_S sine."""
     lo_px, hi_px = SIZES_PX[size]
     # Distance range that images the 0.2 m marker between lo_px and hi_px across.
     d_near, d_far = CAMERA.fx * MARKER.width / hi_px, CAMERA.fx * MARKER.width / lo_px
@@ -97,15 +102,16 @@ def vehicle_at(
         p = np.array([-dist, lat_amp * s[1], vert_amp * s[2]])
         acc = np.array([d_amp * a[0], lat_amp * a[1]])
         yaw = math.radians(8.0) * math.sin(2 * math.pi * t_s / 15.0 + phases[6])
+    yaw += math.radians(turn_deg) * math.sin(2 * math.pi * t_s / TURN_PERIOD_S)
     # Forward acceleration pitches the nose down, rightward acceleration rolls right.
     pitch = -math.atan2(acc[0], G) + wobble[0]
     roll = math.atan2(acc[1], G) + wobble[1]
     return p, (float(roll), float(pitch), float(yaw))
 
 
-def render_flight(placement: str, size: str, n_frames: int, seed: int) -> Flight:
+def render_flight(placement: str, size: str, n_frames: int, seed: int, turn_deg: float = 0.0) -> Flight:
     """``n_frames`` rendered frames of one flight, through the real detector (the corners
-    as found; ``with_corner_noise`` adds more)."""
+    as found; ``with_corner_noise`` adds more); ``turn_deg`` as for ``vehicle_at``."""
     frames = VehicleFrames.from_settings(PLACEMENTS[placement], placement=placement)
     rng = np.random.default_rng(seed)
     phases = rng.uniform(0, 2 * math.pi, 8)
@@ -115,7 +121,7 @@ def render_flight(placement: str, size: str, n_frames: int, seed: int) -> Flight
     effects = Effects()  # the renderer's blur and noise, as a camera gives them
     for i in range(n_frames):
         t = i / FPS
-        p, rpy = vehicle_at(placement, size, t, phases)
+        p, rpy = vehicle_at(placement, size, t, phases, turn_deg)
         R_cm, tvec = frames.camera_pose(VehiclePose(p, R_from_euler_rpy(*rpy)))
         rvec = cv2.Rodrigues(R_cm)[0].reshape(3)
         rendered = render_marker(CAMERA, MARKER, rvec, tvec, effects=effects, rng=rng, background=background)
