@@ -55,11 +55,14 @@ def test_clutter_is_never_a_square_and_the_small_bench_runs_end_to_end(capsys):
     assert tex.shape == (600, 800) and tex.dtype == np.float32 and tex.min() < 80 < tex.max()
     assert main(["bench", "ambiguity", "--frames", "30", "--clutter", "4", "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
-    assert len(result["flights"]) == 8 and result["clutter"]["frames"] == 4
+    assert len(result["flights"]) == 10 and result["clutter"]["frames"] == 4
     for flight in result["flights"]:
         names = [r["strategy"] for r in flight["rows"]]
         assert names[:4] == ["estimator alone", "truth picks (best choice)", "continuity (before)", "tilt prior 15 deg"]
-        assert len(names) == 12
+        wall = flight["placement"].startswith("wall")
+        assert (names[4] == "tilt prior 15 deg, frame by frame") == wall
+        attitude_rows = 0 if flight["placement"] == "wall, turning" else 8
+        assert len(names) == 4 + wall + attitude_rows
         for r in flight["rows"]:
             assert r["sent"] + r["withheld"] <= r["detected"] <= 30
         # No way of choosing between the two solutions beats the truth's choice.

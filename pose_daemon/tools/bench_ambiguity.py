@@ -7,8 +7,10 @@ marker (camera looking ahead), the marker 20-40 px or 40-80 px across at 640x480
 renderer's blur and noise. The same detected corners go through: the estimator alone (its
 better fit), the truth's pick of the two solutions (the best any choice can do: what is
 left is noise no choice mends), continuity (the daemon before the prior: the track's choice, no gate), the
-tilt prior (max_tilt_deg, no attitude) and the attitude prior (choice only, and choice +
-polish) with attitude noise 0.5 and 2 deg and lag 0 and 40 ms. The attitude's yaw is on
+tilt prior (max_tilt_deg, no attitude; at the wall also without its heading track, frame by
+frame) and the attitude prior (choice only, and choice + polish) with attitude noise 0.5 and
+2 deg and lag 0 and 40 ms; and a wall flight that also turns +-40 deg, through the strategies
+without attitude. The attitude's yaw is on
 another reference than the marker's (as a compass heading would be). Figures: flips
 (rotation error > 10 deg) among the poses sent, rotation and translation error median /
 p95, frames withheld, and the median rotation error on the frames both the strategy and the
@@ -35,7 +37,7 @@ from ..capture.base import Frame
 from ..detect import MarkerDetector
 from ..geometry import R_from_euler_rpy, VehicleFrames, VehiclePose, rotation_angle_deg_3x3
 from ..pose.estimator import estimate_pose
-from ..pose.prior import PriorSettings
+from ..pose.prior import PriorSettings, heading_unseen_by_down
 from ..processing import FrameProcessor
 from ..render import Effects, make_background, render_marker, render_plane
 
@@ -266,13 +268,25 @@ def run_strategy(
     return row
 
 
-def strategies(flight: Flight, seed: int) -> List[Row]:
+def strategies(flight: Flight, seed: int, attitude: bool = True) -> List[Row]:
+    """The rows of one flight: without attitude, then (``attitude``) each attitude's two."""
     rows = [
         run_strategy(flight, "estimator alone", None),
         run_strategy(flight, "truth picks (best choice)", None, truth_picks=True),
         run_strategy(flight, "continuity (before)", PriorSettings(gate=False)),
         run_strategy(flight, f"tilt prior {TILT_PRIOR_DEG:g} deg", PriorSettings(max_tilt_deg=TILT_PRIOR_DEG)),
     ]
+    if heading_unseen_by_down(flight.frames):
+        # The tilt prior's heading track works at a wall marker only: there, the same without it.
+        rows.append(
+            run_strategy(
+                flight,
+                f"tilt prior {TILT_PRIOR_DEG:g} deg, frame by frame",
+                PriorSettings(max_tilt_deg=TILT_PRIOR_DEG, heading_window_s=0.0),
+            )
+        )
+    if not attitude:
+        return rows
     for noise in ATTITUDE_NOISE_DEG:
         for lag in ATTITUDE_LAG_S:
             atts = _attitudes(flight, noise, lag, seed + int(noise * 10) + int(lag * 1000))
@@ -369,7 +383,8 @@ def run_clutter(n_frames: int, seed: int) -> Dict[str, int]:
 
 
 def run_bench(n_frames: int = 300, n_clutter: int = 500, seed: int = 0) -> Dict[str, object]:
-    """Every flight (placement x marker size) through every strategy, then the clutter."""
+    """Every flight (placement x marker size) through every strategy, a turning wall flight
+    through those without attitude, then the clutter."""
     if n_frames < 1 or n_clutter < 0:
         raise ValueError("frames must be >= 1 and clutter >= 0")
     flights = []
@@ -390,6 +405,19 @@ def run_bench(n_frames: int = 300, n_clutter: int = 500, seed: int = 0) -> Dict[
                     }
                 )
             k += 1
+    # The wall flight again, turning: the rows without attitude (the heading track's case).
+    rendered = render_flight("wall", "20-40", n_frames, seed + 101 * k, turn_deg=TURN_DEG)
+    for noise in EXTRA_CORNER_NOISE_PX:
+        flight = with_corner_noise(rendered, noise, seed + 13 * k) if noise else rendered
+        flights.append(
+            {
+                "placement": "wall, turning",
+                "size_px": "20-40",
+                "frames": n_frames,
+                "extra_corner_noise_px": noise,
+                "rows": [r.summary() for r in strategies(flight, seed + 7 * k, attitude=False)],
+            }
+        )
     clutter = run_clutter(n_clutter, seed + 999) if n_clutter else None
     return {"flights": flights, "clutter": clutter}
 
