@@ -495,28 +495,11 @@ def choose_solution(
         # Long rectangles pass for squares seen very obliquely (measured on clutter: 58-71 deg);
         # a real marker that oblique is rarely found and its pose is poor anyway.
         return Choice(None, withheld="gated", reason=f"marker seen {view:.0f} deg off its face (> {max_view:g})")
-    if view > max_view:
-        # Only the alternative is believable: it is the one.
-        choice = _choose(
-            _swap(pose),
-            False,
-            frames,
-            attitude,
-            settings,
-            bound_px,
-            by_continuity,
-            corners_px,
-            camera,
-            marker,
-            heading,
-            corner_sigma_px,
-            heading_track=heading_track,
-            t_capture_s=t_capture_s,
-        )
-        return dataclasses.replace(choice, flipped=choice.pose is not None)
-    two = bool(alt_ok and alt is not None and rotation_angle_deg_3x3(pose.R, alt.R) >= SAME_POSE_DEG)
-    return _choose(
-        pose,
+    # Only the alternative is believable when the pose is seen too far off its face: it is the one.
+    swapped = view > max_view
+    two = bool(not swapped and alt_ok and alt is not None and rotation_angle_deg_3x3(pose.R, alt.R) >= SAME_POSE_DEG)
+    choice = _choose(
+        _swap(pose) if swapped else pose,
         two,
         frames,
         attitude,
@@ -528,9 +511,10 @@ def choose_solution(
         marker,
         heading,
         corner_sigma_px,
-        heading_track=heading_track,
+        heading_track=heading_track if t_capture_s is not None else None,
         t_capture_s=t_capture_s,
     )
+    return dataclasses.replace(choice, flipped=choice.pose is not None) if swapped else choice
 
 
 def _choose(
