@@ -9,10 +9,12 @@ import numpy as np
 import pytest
 
 from pose_daemon import estimate_pose
+from pose_daemon.capture.base import Frame
 from pose_daemon.config import ConfigError, parse_config
 from pose_daemon.geometry import rotation_angle_deg_3x3
 from pose_daemon.pose.heading_track import HeadingTrack
 from pose_daemon.pose.prior import HeadingTerm, PriorSettings, _body_yaw, polish_toward
+from pose_daemon.processing import FrameProcessor
 from pose_daemon.tools import bench_ambiguity as B
 
 FPS = 30.0
@@ -158,6 +160,34 @@ def test_the_heading_track_leaves_floor_markers_and_sharp_corners_alone():
     wall = B.render_flight("wall", "20-40", 150, seed=2 + 101 * 2)
     by_frame, tracked = _tilt_run(wall, 0.0), _tilt_run(wall, 1.5)
     assert tracked["flips"] <= by_frame["flips"] and tracked["sent"] == by_frame["sent"]
+
+
+def test_the_heading_track_sends_each_pose_with_its_own_alternative():
+    # The quality's flip risk and the preview read pose.alternative: the track changes which
+    # solution is sent and how it is polished, not what is sent beside it.
+    flight = B.with_corner_noise(B.render_flight("wall", "20-40", 120, seed=2 + 101 * 2), 0.3, 2 + 13 * 2)
+    image = np.zeros((B.CAMERA.height, B.CAMERA.width), np.uint8)
+    sent = {}
+    for window_s in (0.0, 1.5):
+        proc = FrameProcessor(
+            B.CAMERA,
+            B.MARKER,
+            detector=B._Scripted(flight.corners),
+            frames=flight.frames,
+            prior=PriorSettings(max_tilt_deg=15.0, heading_window_s=window_s),
+        )
+        results = [proc.process(Frame(image, t, i)) for i, t in enumerate(flight.t_s)]
+        sent[window_s] = {i: r for i, r in enumerate(results) if r.pose is not None}
+    assert sent[0.0].keys() == sent[1.5].keys() and len(sent[1.5]) >= 110
+    with_alternative = 0
+    for i, tracked in sent[1.5].items():
+        by_frame = sent[0.0][i]
+        assert (tracked.pose.alternative is None) == (by_frame.pose.alternative is None), i
+        if tracked.choice.flipped == by_frame.choice.flipped and tracked.pose.alternative is not None:
+            # The same solution chosen: the same other solution beside it.
+            assert np.allclose(tracked.pose.alternative.R, by_frame.pose.alternative.R), i
+            with_alternative += 1
+    assert with_alternative >= 50
 
 
 def test_heading_window_in_the_config():

@@ -477,7 +477,7 @@ def choose_solution(
     With ``corners_px``, ``camera`` and ``marker`` and ``settings.polish``, an attitude also
     polishes the candidates (``polish_toward``) and the one with the lower cost is chosen.
     ``heading_track`` (with ``t_capture_s``): the tilt prior's track of a wall marker's recent
-    headings, which then chooses and polishes the heading too (``_track_heading``)."""
+    headings, which then chooses and polishes the heading too (``_level_wall``)."""
     bound_px = gate_bound_px(settings, side_px)
     if settings.gate and pose.reprojection_error_px > bound_px:
         return Choice(
@@ -567,13 +567,12 @@ def _choose(
                 reason=f"the vehicle would be tilted {min(tilt):.1f} deg (max_tilt_deg {settings.max_tilt_deg:g})",
             )
         noise_px = settings.corner_sigma_px if corner_sigma_px is None else corner_sigma_px
-        wall = heading_unseen_by_down(frames)
-        if settings.polish and corners_px is not None and camera is not None and marker is not None and not wall:
-            return _polish_level(candidates, agree, frames, settings, bound_px, corners_px, camera, marker, noise_px)
-        polishing = settings.polish and corners_px is not None and camera is not None and marker is not None
-        if polishing and heading_track is not None and t_capture_s is not None:
-            assert corners_px is not None and camera is not None and marker is not None
-            return _track_heading(
+        if settings.polish and corners_px is not None and camera is not None and marker is not None:
+            if not heading_unseen_by_down(frames):  # the down sees the mirror: the polished costs choose
+                return _polish_level(
+                    candidates, agree, frames, settings, bound_px, corners_px, camera, marker, noise_px
+                )
+            return _level_wall(
                 pose,
                 candidates,
                 agree,
@@ -586,26 +585,17 @@ def _choose(
                 marker,
                 noise_px,
                 heading_track,
-                float(t_capture_s),
+                t_capture_s,
             )
         if len(candidates) == 1:
-            choice = Choice(pose, "clear", down_error_deg=tilt[0])
-        elif len(agree) == 1:
-            choice = Choice(candidates[agree[0]], "tilt", down_error_deg=tilt[agree[0]], flipped=agree[0] == 1)
-        else:
-            chosen = by_continuity(pose)
-            choice = Choice(
-                chosen, "continuity", down_error_deg=tilt[0 if chosen is pose else 1], flipped=chosen is not pose
-            )
-        if settings.polish and corners_px is not None and camera is not None and marker is not None:
-            # A wall marker: its mirror turns about the vertical, which a tilt prior cannot see,
-            # so the tilt bound and the track choose as without the polish (choosing by the
-            # polished costs flipped more: 24.8 against 22.8 % on bench ambiguity's wall flight
-            # at 20-40 px with 0.3 px of noise). The pose chosen is then pulled towards a level
-            # vehicle's down, which takes out the part of its heading error that comes with its
-            # tilt error: 22.8 -> 14.1 % flips there, 5.3 -> 3.3 % at 40-80 px.
-            return _level_chosen(choice, frames, settings, bound_px, corners_px, camera, marker, noise_px)
-        return choice
+            return Choice(pose, "clear", down_error_deg=tilt[0])
+        best = _tilt_or_continuity(pose, agree, by_continuity)
+        return Choice(
+            candidates[best],
+            "tilt" if len(agree) == 1 else "continuity",
+            down_error_deg=tilt[best],
+            flipped=best == 1,
+        )
 
     if len(candidates) == 1:
         return Choice(pose, "clear")
@@ -613,7 +603,15 @@ def _choose(
     return Choice(chosen, "continuity", flipped=chosen is not pose)
 
 
-def _track_heading(
+def _tilt_or_continuity(pose: Pose, agree: List[int], by_continuity: Callable[[Pose], Pose]) -> int:
+    """Which candidate (0: ``pose``, 1: its alternative) the tilt bound leaves, or where it
+    leaves both, the track's continuity picks."""
+    if len(agree) == 1:
+        return agree[0]
+    return 0 if by_continuity(pose) is pose else 1
+
+
+def _level_wall(
     pose: Pose,
     candidates: List[Pose],
     agree: List[int],
@@ -625,56 +623,57 @@ def _track_heading(
     camera: Camera,
     marker: Marker,
     corner_sigma_px: float,
-    track: HeadingTrack,
-    t_capture_s: float,
+    track: Optional[HeadingTrack],
+    t_capture_s: Optional[float],
 ) -> Choice:
-    """The tilt prior at a wall marker with a heading track: each candidate within the tilt
-    bound polished towards level (``_level_terms``); once the track predicts the heading, the
-    candidate whose fit and heading together cost least is chosen and pulled towards the
-    prediction too (weight: corner noise over the prediction's own sigma); before that, the
-    tilt bound and the track's continuity choose as without it. Every frame's candidates, as
-    polished towards level (not towards the track: its samples stay the image's), teach the
-    track."""
-    terms = _level_terms(frames, settings, corner_sigma_px)
-    level = {i: polish_toward(candidates[i], corners_px, camera, marker, terms) for i in agree}
-    yaw = {i: _body_yaw(frames, level[i][0]) for i in agree}
-    lowest = min(level[i][1] for i in agree)
-    noise2 = max(corner_sigma_px, 1e-3) ** 2
-    fit_cost = {i: (level[i][1] - lowest) / noise2 for i in agree}
-    prediction = track.predict(t_capture_s)
-    track.add(t_capture_s, [yaw[i] for i in agree], [fit_cost[i] for i in agree])
+    """The tilt prior's polish at a wall marker, whose mirror turns about the vertical, which
+    the down does not see.
 
-    if prediction is None:
-        if len(agree) == 1:
-            best = agree[0]
-        else:
-            best = 0 if by_continuity(pose) is pose else 1
-        polished = level[best][0]
+    Without a heading ``track`` (or before it predicts), the tilt bound and the track's
+    continuity choose as without the polish (choosing by the polished costs flipped more:
+    24.8 against 22.8 % on bench ambiguity's wall flight at 20-40 px with 0.3 px of noise),
+    and the chosen pose is pulled towards a level vehicle's down (``_level_terms``): that takes
+    out the part of its heading error that comes with its tilt error (22.8 -> 14.1 % flips
+    there). With a track, every candidate within the bound is pulled towards level and teaches
+    it (as the image gives it, never as pulled towards the track); once it predicts, the
+    candidate whose fit and heading together cost least is chosen and pulled towards the
+    prediction too (weight: corner noise over the prediction's own sigma): 14.1 -> 2.0 %.
+    Withheld as ``_polish_level`` withholds. The pose sent keeps its own alternative."""
+    terms = _level_terms(frames, settings, corner_sigma_px)
+    if track is None or t_capture_s is None:
+        best = _tilt_or_continuity(pose, agree, by_continuity)
+        polished = polish_toward(candidates[best], corners_px, camera, marker, terms)[0]
     else:
-        spread = math.hypot(prediction.sigma_rad, prediction.sample_sigma_rad)
-        best = min(
-            agree, key=lambda i: fit_cost[i] + (math.remainder(yaw[i] - prediction.yaw_rad, math.tau) / spread) ** 2
-        )
-        term = HeadingTerm(
-            frames.R_local_marker,
-            frames.R_cam_body[:, 0],
-            prediction.yaw_rad,
-            corner_sigma_px / max(prediction.sigma_rad, math.radians(MIN_PRIOR_SIGMA_DEG)),
-        )
-        polished = polish_toward(level[best][0], corners_px, camera, marker, terms, heading=term)[0]
+        level = {i: polish_toward(candidates[i], corners_px, camera, marker, terms) for i in agree}
+        yaw = {i: _body_yaw(frames, level[i][0]) for i in agree}
+        lowest = min(level[i][1] for i in agree)
+        noise2 = max(corner_sigma_px, 1e-3) ** 2
+        fit_cost = {i: (level[i][1] - lowest) / noise2 for i in agree}
+        prediction = track.predict(t_capture_s)
+        track.add(t_capture_s, [yaw[i] for i in agree], [fit_cost[i] for i in agree])
+        if prediction is None:
+            best = _tilt_or_continuity(pose, agree, by_continuity)
+            polished = level[best][0]
+        else:
+            spread = math.hypot(prediction.sigma_rad, prediction.sample_sigma_rad)
+            best = min(
+                agree,
+                key=lambda i: fit_cost[i] + (math.remainder(yaw[i] - prediction.yaw_rad, math.tau) / spread) ** 2,
+            )
+            term = HeadingTerm(
+                frames.R_local_marker,
+                frames.R_cam_body[:, 0],
+                prediction.yaw_rad,
+                corner_sigma_px / max(prediction.sigma_rad, math.radians(MIN_PRIOR_SIGMA_DEG)),
+            )
+            polished = polish_toward(level[best][0], corners_px, camera, marker, terms, heading=term)[0]
     tilt_deg = angle_between_deg(frames.down_cam_from_marker(polished.R), frames.down_cam_level)
     withheld = _leaves_level(polished, tilt_deg, settings, bound_px)
     if withheld is not None:
         return withheld
-    other = candidates[1 - best] if len(candidates) == 2 else None
-    polished = dataclasses.replace(
-        polished, alternative=None if other is None else dataclasses.replace(other, alternative=None)
-    )
     if len(candidates) == 1:
         return Choice(polished, "clear", down_error_deg=tilt_deg)
-    if len(agree) == 1:
-        return Choice(polished, "tilt", down_error_deg=tilt_deg, flipped=best == 1)
-    return Choice(polished, "continuity", down_error_deg=tilt_deg, flipped=best == 1)
+    return Choice(polished, "tilt" if len(agree) == 1 else "continuity", down_error_deg=tilt_deg, flipped=best == 1)
 
 
 def _polish_level(
@@ -727,31 +726,6 @@ def _leaves_level(polished: Pose, tilt_deg: float, settings: PriorSettings, boun
             f"reprojection RMS {polished.reprojection_error_px:.2f} px (bound {bound_px:.2f})"
         ),
     )
-
-
-def _level_chosen(
-    choice: Choice,
-    frames: VehicleFrames,
-    settings: PriorSettings,
-    bound_px: float,
-    corners_px: np.ndarray,
-    camera: Camera,
-    marker: Marker,
-    corner_sigma_px: float,
-) -> Choice:
-    """``choice``'s pose (a wall marker's, chosen without the polish) re-fitted towards a level
-    vehicle's down (``_level_terms``), its other solution kept as it was; withheld as
-    ``_polish_level`` withholds."""
-    assert choice.pose is not None
-    polished = polish_toward(choice.pose, corners_px, camera, marker, _level_terms(frames, settings, corner_sigma_px))[
-        0
-    ]
-    tilt = angle_between_deg(frames.down_cam_from_marker(polished.R), frames.down_cam_level)
-    withheld = _leaves_level(polished, tilt, settings, bound_px)
-    if withheld is not None:
-        return withheld
-    pose = dataclasses.replace(polished, alternative=choice.pose.alternative)
-    return dataclasses.replace(choice, pose=pose, down_error_deg=tilt)
 
 
 def _choose_by_attitude(
