@@ -25,7 +25,6 @@ import numpy as np
 from ..attitude import Attitude
 from ..camera import Camera, Marker
 from ..geometry import (
-    R_from_euler_rpy_3x3,
     VehicleFrames,
     angle_between_deg,
     paper_angles_deg_from_R_cam_marker,
@@ -753,15 +752,16 @@ def _choose_by_attitude(
     # Each candidate's cost in sigmas squared: its down, and its heading once that is known.
     cost = [(e / sigma_down_deg) ** 2 for e in err]
     reference = heading.reference() if heading is not None else None
-    north_att: Optional[np.ndarray] = None
+    yaw_local: Optional[float] = None  # the attitude's heading on the marker's local frame
     head: List[float] = []
     if reference is not None:
         assert heading is not None
         offset, sigma_reference_deg = reference
         sigma_head_deg = math.hypot(sigma_down_deg, sigma_reference_deg)
-        R_local_body = R_from_euler_rpy_3x3(roll, pitch, yaw + offset)
-        north_att = frames.R_cam_body @ R_local_body[0]
-        head = [angle_between_deg(c.R @ frames.R_local_marker[0], north_att) for c in candidates]
+        # The heading alone (the body's yaw), not a direction: a direction's tilt would count
+        # the attitude's pitch a second time beside the down.
+        yaw_local = yaw + offset
+        head = [abs(math.degrees(math.remainder(_body_yaw(frames, c) - yaw_local, math.tau))) for c in candidates]
         heading.check(min(head))
         cost = [c + (h / sigma_head_deg) ** 2 for c, h in zip(cost, head)]
     best = min(range(len(candidates)), key=lambda i: cost[i])
@@ -835,15 +835,21 @@ def _choose_by_attitude(
         # attitude's alone (and the heading reference's).
         sigma_prior_deg = max(sigma_att_deg, MIN_PRIOR_SIGMA_DEG)
         terms = [(frames.R_local_marker[2], down_att, w_down)]
-        if north_att is not None and reference is not None:
-            sigma_north_deg = math.hypot(sigma_prior_deg, reference[1])
-            terms.append((frames.R_local_marker[0], north_att, corner_sigma_px / math.radians(sigma_north_deg)))
+        head_term: Optional[HeadingTerm] = None
+        if yaw_local is not None and reference is not None:
+            sigma_yaw_deg = math.hypot(sigma_prior_deg, reference[1])
+            head_term = HeadingTerm(
+                frames.R_local_marker,
+                frames.R_cam_body[:, 0],
+                yaw_local,
+                corner_sigma_px / math.radians(sigma_yaw_deg),
+            )
         # The cheap costs' favourite first; the other too only when it could still win.
         order = [best] + [i for i in range(len(candidates)) if i != best]
-        results = {best: polish_toward(candidates[best], corners_px, camera, marker, terms)}
+        results = {best: polish_toward(candidates[best], corners_px, camera, marker, terms, heading=head_term)}
         for i in order[1:]:
             if not decisive_polish(cost, best, i):
-                results[i] = polish_toward(candidates[i], corners_px, camera, marker, terms)
+                results[i] = polish_toward(candidates[i], corners_px, camera, marker, terms, heading=head_term)
         best = min(results, key=lambda i: results[i][1])
         polished = results[best][0]
         e = angle_between_deg(frames.down_cam_from_marker(polished.R), down_att)
