@@ -212,7 +212,7 @@ class FrameProcessor:
             camera=self.camera,
             marker=self.marker,
             heading=self.heading,
-            corner_sigma_px=self.corner_noise.sigma_px,
+            corner_sigma_px=self.corner_noise.estimate_px(pose.reprojection_error_px),
             heading_track=self.heading_track,
             t_capture_s=float(result.t_capture_s),
         )

@@ -92,7 +92,7 @@ class PriorSettings:
     gate: bool = True
     attitude_sigma_deg: float = 1.0  # an attitude's accuracy when it does not state one
     polish: bool = True  # re-fit the chosen pose with the attitude's down as a prior term
-    corner_sigma_px: float = 0.3  # corner noise the polish weighs the prior against, until measured
+    corner_sigma_px: float = 0.3  # corner noise the priors are weighed against when none is given
     heading_window_s: float = 1.5  # the tilt prior's heading track at a wall marker (0 = none)
 
     @classmethod
@@ -259,6 +259,14 @@ def polish_toward(
     return polished, cost
 
 
+# Corner noise is believed within these bounds, pixels.
+CORNER_SIGMA_MIN_PX, CORNER_SIGMA_MAX_PX = 0.01, 2.0
+
+
+def _clamp_corner_sigma(sigma_px: float) -> float:
+    return min(max(sigma_px, CORNER_SIGMA_MIN_PX), CORNER_SIGMA_MAX_PX)
+
+
 class CornerNoise:
     """The corner noise of this camera and detector, from the best fits' reprojection RMS.
 
@@ -279,8 +287,21 @@ class CornerNoise:
     def sigma_px(self) -> Optional[float]:
         if len(self._rms) < self.min_samples:
             return None
-        median = sorted(self._rms)[len(self._rms) // 2]
-        return min(max(median / 0.589, 0.01), 2.0)
+        return _clamp_corner_sigma(sorted(self._rms)[len(self._rms) // 2] / 0.589)
+
+    def estimate_px(self, rms_px: float) -> float:
+        """``sigma_px`` once measured; until then the same from the frames seen so far and
+        this one (reprojection RMS ``rms_px``). A fixed guess would weigh the priors many times
+        off: 0.3 px against a sharp camera's 0.02."""
+        measured = self.sigma_px
+        if measured is not None:
+            return measured
+        rms = list(self._rms)
+        if math.isfinite(rms_px) and rms_px >= 0:
+            rms.append(float(rms_px))
+        if not rms:
+            return PriorSettings.corner_sigma_px
+        return _clamp_corner_sigma(sorted(rms)[len(rms) // 2] / 0.589)
 
 
 class HeadingReference:
@@ -472,7 +493,7 @@ def choose_solution(
     marker's mean side in the image; ``by_continuity(pose)``: the track's choice between
     ``pose`` and its alternative (returns one of the two). ``heading``: the track of the
     autopilot's heading reference (learnt and used here), or None for roll and pitch only;
-    ``corner_sigma_px`` the measured corner noise (CornerNoise; else ``settings``').
+    ``corner_sigma_px`` the corner noise (``CornerNoise.estimate_px``; else ``settings``').
     With ``corners_px``, ``camera`` and ``marker`` and ``settings.polish``, an attitude also
     polishes the candidates (``polish_toward``) and the one with the lower cost is chosen.
     ``heading_track`` (with ``t_capture_s``): the tilt prior's track of a wall marker's recent
@@ -536,6 +557,7 @@ def _choose(
     """choose_solution past the gate: ``two`` = the alternative is still a contender."""
     candidates: List[Pose] = [pose, _swap(pose)] if two else [pose]
     down_meas = [frames.down_cam_from_marker(c.R) for c in candidates]
+    noise_px = settings.corner_sigma_px if corner_sigma_px is None else corner_sigma_px
 
     if attitude is not None:
         return _choose_by_attitude(
@@ -551,8 +573,7 @@ def _choose(
             camera,
             marker,
             heading,
-            settings.corner_sigma_px if corner_sigma_px is None else corner_sigma_px,
-            corner_sigma_px is not None,
+            noise_px,
         )
 
     if settings.max_tilt_deg > 0:
@@ -565,7 +586,6 @@ def _choose(
                 withheld="inconsistent",
                 reason=f"the vehicle would be tilted {min(tilt):.1f} deg (max_tilt_deg {settings.max_tilt_deg:g})",
             )
-        noise_px = settings.corner_sigma_px if corner_sigma_px is None else corner_sigma_px
         if settings.polish and corners_px is not None and camera is not None and marker is not None:
             if not heading_unseen_by_down(frames):  # the down sees the mirror: the polished costs choose
                 return _polish_level(
@@ -741,7 +761,6 @@ def _choose_by_attitude(
     marker: Optional[Marker],
     heading: Optional[HeadingReference],
     corner_sigma_px: float,
-    noise_measured: bool = True,
 ) -> Choice:
     roll, pitch, yaw = attitude.rpy_rad
     down_att = frames.down_cam_from_attitude(roll, pitch)
@@ -797,8 +816,7 @@ def _choose_by_attitude(
         # A wall marker's mirror solution (and its noise) turns about the vertical: until the
         # heading reference is known, roll and pitch cannot say which is right, and only sharp
         # corners give the heading well enough alone. The frame still taught the reference
-        # (above); otherwise it is not sent. Noise not yet measured: this frame's own residual.
-        noise_px = corner_sigma_px if noise_measured else candidates[best].reprojection_error_px / 0.589
+        # (above); otherwise it is not sent.
         sigma_heading = heading_sigma_deg(
             candidates[best],
             corners_px,
@@ -807,7 +825,7 @@ def _choose_by_attitude(
             frames,
             down_att,
             max(sigma_att_deg, MIN_PRIOR_SIGMA_DEG),
-            noise_px,
+            corner_sigma_px,
         )
         if sigma_heading > HEADING_KNOWN_SIGMA_DEG:
             return Choice(
