@@ -428,7 +428,11 @@ class AttitudeConfig:
     max_extrapolation_s: float = _key(
         0.05, Rule("float", lo=0, hi=1), "furthest past the newest attitude sample a capture time may be"
     )
-    sigma_deg: float = _key(1.0, Rule("float", lo=0, hi=30), "stated accuracy of roll and pitch, degrees")
+    sigma_deg: float = _key(
+        1.0,
+        Rule("float", lo=0, hi=30),
+        "stated accuracy of roll and pitch, degrees (the image's measurement of it is used where worse)",
+    )
     max_error_deg: float = _key(
         15.0,
         Rule("float", lo=0, hi=90, lo_open=True),

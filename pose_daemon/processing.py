@@ -26,7 +26,14 @@ from .geometry import VehicleFrames
 from .pose.continuity import Track, choose_by_continuity
 from .pose.estimator import estimate_pose
 from .pose.heading_track import HeadingTrack
-from .pose.prior import MIN_PRIOR_SIGMA_DEG, CornerNoise, HeadingReference, PriorSettings, choose_solution
+from .pose.prior import (
+    MIN_PRIOR_SIGMA_DEG,
+    AttitudeAccuracy,
+    CornerNoise,
+    HeadingReference,
+    PriorSettings,
+    choose_solution,
+)
 from .pose.types import EstimationError, Pose
 from .result import FrameResult
 
@@ -79,6 +86,8 @@ class FrameProcessor:
         window_s = self.prior.heading_window_s
         self.heading_track = HeadingTrack(window_s) if window_s > 0 else None
         self.corner_noise = CornerNoise()
+        # How well the attitude agrees with the image (its lag, the mount): outlives tracks.
+        self.attitude_accuracy = AttitudeAccuracy()
         self.frames_seen = self.frames_with_attitude = 0
 
     @classmethod
@@ -142,8 +151,13 @@ class FrameProcessor:
 
     def status(self) -> Optional[str]:
         """The attitude's freshness for the status line: the live source's figures, or how
-        many frames came with an attitude of their own (None when none ever did)."""
-        return attitude_status(self.attitude_source, self._clock(), self.frames_with_attitude, self.frames_seen)
+        many frames came with an attitude of their own (None when none ever did); then, once
+        measured, how well its down agrees with the image's (AttitudeAccuracy)."""
+        text = attitude_status(self.attitude_source, self._clock(), self.frames_with_attitude, self.frames_seen)
+        measured = self.attitude_accuracy.measured_deg
+        if text is None or measured is None:
+            return text
+        return f"{text}, agrees with the image to {measured:.1f} deg"
 
     def reset(self) -> None:
         """Forget tracking state (after a source restart or a long gap)."""
@@ -215,6 +229,7 @@ class FrameProcessor:
             corner_sigma_px=self.corner_noise.estimate_px(pose.reprojection_error_px),
             heading_track=self.heading_track,
             t_capture_s=float(result.t_capture_s),
+            attitude_accuracy=self.attitude_accuracy,
         )
         result.corner_sigma_px = self.corner_noise.sigma_px
         result.corner_noise_pending = result.corner_sigma_px is None
@@ -229,12 +244,10 @@ class FrameProcessor:
                 # searched and labelled afresh.
                 self.detector.reset()
             return None
-        if result.attitude is not None and self.prior.polish:
+        if result.attitude is not None and self.prior.polish and choice.attitude_sigma_deg is not None:
             # The choice re-fitted the pose towards the attitude's down (or found it agreeing):
-            # the covariance sent takes that information in.
-            sigma = result.attitude.sigma_rad
-            sigma_deg = math.degrees(sigma) if sigma is not None else self.prior.attitude_sigma_deg
-            result.prior_down_sigma_rad = math.radians(max(sigma_deg, MIN_PRIOR_SIGMA_DEG))
+            # the covariance sent takes that information in, at the accuracy it was weighed at.
+            result.prior_down_sigma_rad = math.radians(max(choice.attitude_sigma_deg, MIN_PRIOR_SIGMA_DEG))
         t_s = float(result.t_capture_s)
         result.track_innovation = self.track.innovation(choice.pose.R, t_s)
         self.track.follow(choice.pose, flipped=choice.flipped, t_capture_s=t_s)

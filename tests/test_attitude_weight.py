@@ -1,5 +1,6 @@
 """How much the attitude's polish trusts the attitude (pose/prior.py): its heading counted once,
-and the corner noise of a flight's first frames."""
+the corner noise of a flight's first frames, and the attitude's accuracy as the image measures
+it (AttitudeAccuracy), against what the renderer's truth says each should be."""
 
 from __future__ import annotations
 
@@ -13,8 +14,16 @@ from pose_daemon import estimate_pose
 from pose_daemon.attitude import Attitude
 from pose_daemon.capture.base import Frame
 from pose_daemon.geometry import angle_between_deg, euler_rpy_from_R
-from pose_daemon.pose.prior import CornerNoise, HeadingReference, PriorSettings, choose_solution
+from pose_daemon.pose.prior import (
+    AttitudeAccuracy,
+    CornerNoise,
+    HeadingReference,
+    PriorSettings,
+    choose_solution,
+    down_variance_rad2,
+)
 from pose_daemon.processing import FrameProcessor
+from pose_daemon.tools import bench_ambiguity as bench
 
 
 class _Scripted:
@@ -112,3 +121,94 @@ def test_a_sharp_cameras_first_frames_are_not_pulled_towards_a_noisy_attitude():
         if angle_between_deg(result.pose.R[:, 2], raw.R[:, 2]) < 5:  # the same solution, polished
             moves.append(_down_move_deg(result.pose, raw, frames))
     assert len(moves) >= 6 and max(moves) < 0.3, moves
+
+
+def test_attitude_accuracy_measures_an_attitude_worse_than_it_states():
+    rng = np.random.default_rng(1)
+    acc = AttitudeAccuracy()
+    image_var = math.radians(0.1) ** 2 * 2  # the image gives the down to 0.1 deg per axis
+    for _ in range(9):
+        acc.observe(math.radians(1.0), image_var, 0.5)
+    assert acc.measured_deg is None and acc.sigma_deg(0.5) == 0.5  # not enough frames yet
+    acc = AttitudeAccuracy()
+    for _ in range(400):
+        e = rng.normal(0.0, math.radians(1.0), 2) + rng.normal(0.0, math.radians(0.1), 2)
+        acc.observe(float(np.hypot(*e)), image_var, 0.5)
+        # Frames whose image gives the down no better than the attitude do not count.
+        acc.observe(math.radians(10.0), math.radians(0.4) ** 2 * 2, 0.5)
+    assert acc.measured_deg == pytest.approx(1.0, rel=0.12)
+    assert acc.sigma_deg(0.5) == acc.measured_deg  # stated too proud: the measured one
+    assert acc.sigma_deg(3.0) == 3.0  # stated too modest: kept
+    acc.observe(math.nan, image_var, 0.5)  # ignored
+    assert acc.measured_deg == pytest.approx(1.0, rel=0.12)
+
+
+def test_down_variance_is_the_corners_information_for_the_down():
+    """down_variance_rad2 against the spread of the down over many noisy copies of one view."""
+    frames, _R_lb, _R_cm, corners = _views("floor", 1, seed=2, noise_px=0.0)[0]
+    pose = estimate_pose(corners, CAMERA, MARKER)
+    d_m = frames.R_local_marker[2]
+    rng = np.random.default_rng(4)
+    errors = []
+    for _ in range(400):
+        noisy = estimate_pose(corners + rng.normal(0.0, 0.05, corners.shape), CAMERA, MARKER)
+        if angle_between_deg(noisy.R[:, 2], pose.R[:, 2]) < 10:  # the same planar solution
+            errors.append(math.radians(angle_between_deg(noisy.R @ d_m, pose.R @ d_m)) ** 2)
+    assert np.mean(errors) == pytest.approx(down_variance_rad2(pose, CAMERA, MARKER, d_m, 0.05), rel=0.25)
+
+
+@pytest.fixture(scope="module")
+def floor_flight():
+    """bench ambiguity's first flight: over a floor marker 20-40 px across, sharp corners."""
+    return bench.render_flight("floor", "20-40", 300, 0)
+
+
+def _true_down_error_deg(flight, atts) -> float:
+    errors = [
+        angle_between_deg(
+            flight.frames.down_cam_from_attitude(*a.rpy_rad[:2]),
+            flight.frames.down_cam_from_attitude(*flight.rpy_rad[i][:2]),
+        )
+        for i, a in enumerate(atts)
+    ]
+    return math.sqrt(float(np.mean(np.square(errors))) / 2)  # per axis
+
+
+def test_a_late_attitude_is_weighed_at_the_accuracy_the_image_measures(floor_flight):
+    """40 ms of lag on a 0.5 deg attitude: at the flight's turn rates its down is 0.63 deg off
+    per axis, and weighed at 0.5 the polish pulled the sharp corners' poses towards that error
+    (bench ambiguity, floor 20-40 px: 0.34 deg median where the estimator alone had 0.31). The
+    image measures the attitude's real accuracy; the polish, the covariance sent and the status
+    line take it, and the median is back under the estimator's."""
+    atts = bench._attitudes(floor_flight, 0.5, 0.04, 45)  # the bench's own row
+    truth = _true_down_error_deg(floor_flight, atts)
+    assert 0.6 < truth < 0.7
+    proc = FrameProcessor(
+        bench.CAMERA, bench.MARKER, detector=_Scripted(floor_flight.corners), frames=floor_flight.frames
+    )
+    image = np.zeros((bench.CAMERA.height, bench.CAMERA.width), np.uint8)
+    last = None
+    for i in range(len(floor_flight.corners)):
+        result = proc.process(Frame(image, floor_flight.t_s[i], i, attitude=atts[i]))
+        last = result if result.pose is not None else last
+    measured = proc.attitude_accuracy.measured_deg
+    assert measured == pytest.approx(truth, rel=0.15)
+    assert last is not None and last.prior_down_sigma_rad == pytest.approx(math.radians(measured), rel=0.05)
+    assert f"agrees with the image to {measured:.1f} deg" in (proc.status() or "")
+
+    row = bench.run_strategy(floor_flight, "lag", PriorSettings(polish=True, attitude_sigma_deg=0.5), atts).summary()
+    assert row["flips"] == 0
+    assert row["both_right_med_deg"] <= row["estimator_both_right_med_deg"], row
+
+
+def test_an_attitude_as_good_as_it_states_keeps_its_weight(floor_flight):
+    atts = bench._attitudes(floor_flight, 0.5, 0.0, 45)
+    proc = FrameProcessor(
+        bench.CAMERA, bench.MARKER, detector=_Scripted(floor_flight.corners), frames=floor_flight.frames
+    )
+    image = np.zeros((bench.CAMERA.height, bench.CAMERA.width), np.uint8)
+    for i in range(len(floor_flight.corners)):
+        proc.process(Frame(image, floor_flight.t_s[i], i, attitude=atts[i]))
+    measured = proc.attitude_accuracy.measured_deg
+    assert measured is not None and measured == pytest.approx(_true_down_error_deg(floor_flight, atts), rel=0.15)
+    assert proc.attitude_accuracy.sigma_deg(0.5) < 0.6

@@ -34,6 +34,7 @@ from .heading_track import HeadingTrack
 from .types import Pose
 
 __all__ = [
+    "AttitudeAccuracy",
     "PriorSettings",
     "Choice",
     "CornerNoise",
@@ -41,6 +42,7 @@ __all__ = [
     "HeadingTerm",
     "RESOLVED_BY",
     "choose_solution",
+    "down_variance_rad2",
     "gate_bound_px",
     "heading_sample",
     "heading_sigma_deg",
@@ -78,6 +80,8 @@ HEADING_KNOWN_SIGMA_DEG = 2.0
 # The tilt prior's polish takes max_tilt_deg as this many sigma of the vehicle's tilt (a bound
 # is 3 sigma, as the attitude's bound is at least 3 of its sigma).
 TILT_BOUND_SIGMAS = 3.0
+# The attitude's accuracy is measured on frames whose image gives the down to this share of it.
+ACCURACY_FROM_IMAGE_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -123,6 +127,7 @@ class Choice:
     reason: str = ""
     down_error_deg: Optional[float] = None
     flipped: bool = False  # the estimator's alternative was chosen over its better fit
+    attitude_sigma_deg: Optional[float] = None  # the accuracy the attitude was weighed at (AttitudeAccuracy)
 
 
 def gate_bound_px(settings: PriorSettings, side_px: float) -> float:
@@ -302,6 +307,75 @@ class CornerNoise:
         if not rms:
             return PriorSettings.corner_sigma_px
         return _clamp_corner_sigma(sorted(rms)[len(rms) // 2] / 0.589)
+
+
+class AttitudeAccuracy:
+    """How well the attitude's down really agrees with the image's: the attitude's accuracy as
+    measured, where the one it states is too kind.
+
+    The polish weighs the attitude at its stated accuracy, but what reaches the camera frame is
+    worse by whatever the statement leaves out: a capture timestamp a few tens of milliseconds
+    off (a webcam's, a USB transfer's) turns every turn rate into an attitude error, a camera
+    mount a degree off adds its own tilt. Weighed as if it were exact, that error pulls poses the
+    image already gives well off the truth (bench ambiguity: 40 ms of lag at 0.5 deg stated
+    made the floor's sharp-corner median 0.34 against the estimator's 0.31 deg).
+
+    Measured from the frames whose image gives the down to under half the attitude's sigma (its
+    own down variance from the corners' information, ``down_variance_rad2``): the angle between the
+    two downs, squared, is 2 sigma^2 + the image's variance, an exponential whose median is
+    2 ln 2 sigma^2 (a median, so a frame with mislabelled corners does not move it). ``sigma_deg``
+    is the larger of the stated and the measured: a too modest statement is kept (the image
+    leaning on itself costs little), a too proud one is corrected.
+    """
+
+    def __init__(self, window: int = 100, min_samples: int = 10) -> None:
+        self._excess: Deque[float] = collections.deque(maxlen=window)
+        self.min_samples = int(min_samples)
+
+    def observe(self, angle_rad: float, image_variance_rad2: float, sigma_deg: float) -> None:
+        """One frame: ``angle_rad`` between the attitude's down and the image's (the chosen
+        solution's, unpolished), ``image_variance_rad2`` the image's down variance (both axes),
+        ``sigma_deg`` the attitude's accuracy in use (the frame counts only when the image is
+        twice as sure)."""
+        if not (math.isfinite(angle_rad) and math.isfinite(image_variance_rad2)):
+            return
+        if (
+            image_variance_rad2 / 2.0
+            <= (ACCURACY_FROM_IMAGE_SHARE * math.radians(max(sigma_deg, MIN_PRIOR_SIGMA_DEG))) ** 2
+        ):
+            self._excess.append(angle_rad * angle_rad - image_variance_rad2)
+
+    @property
+    def measured_deg(self) -> Optional[float]:
+        """The attitude's down error per axis (1 sigma, degrees) the image measures, or None
+        before ``min_samples`` frames."""
+        if len(self._excess) < self.min_samples:
+            return None
+        median = sorted(self._excess)[len(self._excess) // 2]
+        return math.degrees(math.sqrt(max(median, 0.0) / (2.0 * math.log(2.0))))
+
+    def sigma_deg(self, stated_deg: float) -> float:
+        """The accuracy to weigh the attitude at: the stated, or the measured where worse."""
+        measured = self.measured_deg
+        return stated_deg if measured is None else max(stated_deg, measured)
+
+
+def down_variance_rad2(pose: Pose, camera: Camera, marker: Marker, down_m: np.ndarray, corner_sigma_px: float) -> float:
+    """The variance (rad^2, both axes together) of the down direction ``R @ down_m`` that
+    ``pose``'s four corners give at corner noise ``corner_sigma_px``: the rotation block of
+    the inverse of the corners' information (OpenCV's projection Jacobian), through the
+    down's own Jacobian."""
+    obj = marker.object_points.astype(np.float64)
+    rvec = np.asarray(pose.rvec, dtype=np.float64).reshape(3)
+    tvec = np.asarray(pose.tvec, dtype=np.float64).reshape(3)
+    _, J = cv2.projectPoints(obj, rvec, tvec, camera.K, camera.dist_coeffs)
+    ok, cov = cv2.invert(J[:, :6].T @ J[:, :6], flags=cv2.DECOMP_CHOLESKY)
+    if not ok:
+        return math.inf
+    dR = cv2.Rodrigues(rvec)[1]  # (3, 9): d R.flat / d rvec_k, row-major R
+    D = (dR.reshape(3, 3, 3) @ np.asarray(down_m, dtype=np.float64)).T  # d (R down_m) / d rvec
+    var = float(np.trace(D @ cov[:3, :3] @ D.T)) * corner_sigma_px**2
+    return var if math.isfinite(var) and var >= 0 else math.inf
 
 
 class HeadingReference:
@@ -485,6 +559,7 @@ def choose_solution(
     corner_sigma_px: Optional[float] = None,
     heading_track: Optional[HeadingTrack] = None,
     t_capture_s: Optional[float] = None,
+    attitude_accuracy: Optional[AttitudeAccuracy] = None,
 ) -> Choice:
     """The solution to send for the estimator's ``pose`` (the better fit, its other planar
     solution in ``pose.alternative``), or why none is sent.
@@ -533,6 +608,7 @@ def choose_solution(
         corner_sigma_px,
         heading_track=heading_track if t_capture_s is not None else None,
         t_capture_s=t_capture_s,
+        attitude_accuracy=attitude_accuracy,
     )
     return dataclasses.replace(choice, flipped=choice.pose is not None) if swapped else choice
 
@@ -553,6 +629,7 @@ def _choose(
     *,
     heading_track: Optional[HeadingTrack] = None,
     t_capture_s: Optional[float] = None,
+    attitude_accuracy: Optional[AttitudeAccuracy] = None,
 ) -> Choice:
     """choose_solution past the gate: ``two`` = the alternative is still a contender."""
     candidates: List[Pose] = [pose, _swap(pose)] if two else [pose]
@@ -560,7 +637,11 @@ def _choose(
     noise_px = settings.corner_sigma_px if corner_sigma_px is None else corner_sigma_px
 
     if attitude is not None:
-        return _choose_by_attitude(
+        stated_deg = math.degrees(attitude.sigma_rad) if attitude.sigma_rad is not None else settings.attitude_sigma_deg
+        # Weighed at what the image has measured of it where that is worse than stated (a late
+        # timestamp, a mount a degree off), learnt from the frames before this one.
+        sigma_att_deg = attitude_accuracy.sigma_deg(stated_deg) if attitude_accuracy is not None else stated_deg
+        choice = _choose_by_attitude(
             pose,
             candidates,
             down_meas,
@@ -574,7 +655,10 @@ def _choose(
             marker,
             heading,
             noise_px,
+            sigma_att_deg,
+            attitude_accuracy,
         )
+        return dataclasses.replace(choice, attitude_sigma_deg=sigma_att_deg)
 
     if settings.max_tilt_deg > 0:
         level = frames.down_cam_level
@@ -761,11 +845,14 @@ def _choose_by_attitude(
     marker: Optional[Marker],
     heading: Optional[HeadingReference],
     corner_sigma_px: float,
+    sigma_att_deg: float,
+    accuracy: Optional[AttitudeAccuracy],
 ) -> Choice:
+    """The attitude's choice (and polish), the attitude weighed at ``sigma_att_deg``;
+    ``accuracy`` learns from this frame how well the attitude agrees with the image."""
     roll, pitch, yaw = attitude.rpy_rad
     down_att = frames.down_cam_from_attitude(roll, pitch)
     err = [angle_between_deg(d, down_att) for d in down_meas]
-    sigma_att_deg = math.degrees(attitude.sigma_rad) if attitude.sigma_rad is not None else settings.attitude_sigma_deg
     bound_deg = max(settings.attitude_bound_deg, 3.0 * sigma_att_deg)
     sigma_down_deg = math.hypot(sigma_att_deg, VISION_DOWN_SIGMA_DEG)
     # Each candidate's cost in sigmas squared: its down, and its heading once that is known.
@@ -785,6 +872,12 @@ def _choose_by_attitude(
         cost = [c + (h / sigma_head_deg) ** 2 for c, h in zip(cost, head)]
     best = min(range(len(candidates)), key=lambda i: cost[i])
     decisive = len(candidates) == 1 or cost[1 - best] - cost[best] > 4.0  # 2 sigma
+    if accuracy is not None and decisive and err[best] <= bound_deg and camera is not None and marker is not None:
+        accuracy.observe(
+            math.radians(err[best]),
+            down_variance_rad2(candidates[best], camera, marker, frames.R_local_marker[2], corner_sigma_px),
+            sigma_att_deg,
+        )
 
     # The down term's weight in a polish: corner noise against the attitude's accuracy (radians).
     w_down = corner_sigma_px / math.radians(max(sigma_att_deg, MIN_PRIOR_SIGMA_DEG))
