@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pytest
-from test_prior import CAMERA, MARKER, _keep, _side, _views
+from test_prior import CAMERA, MARKER, _keep, _Scripted, _side, _views
 
 from pose_daemon import estimate_pose
 from pose_daemon.attitude import Attitude
@@ -24,21 +24,6 @@ from pose_daemon.pose.prior import (
 )
 from pose_daemon.processing import FrameProcessor
 from pose_daemon.tools import bench_ambiguity as bench
-
-
-class _Scripted:
-    """A detector that hands out given corners in order."""
-
-    def __init__(self, corners) -> None:
-        self._corners, self._i = list(corners), 0
-
-    def detect(self, gray):
-        c = self._corners[self._i]
-        self._i += 1
-        return c
-
-    def reset(self) -> None:
-        pass
 
 
 def _down_move_deg(pose_a, pose_b, frames) -> float:
