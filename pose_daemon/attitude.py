@@ -416,15 +416,15 @@ class AutopilotAttitude:
         return text + f", used {f['used']} missing {f['missing']}"
 
 
-def attitude_status(source: object, now_s: float, frames_with_attitude: int, frames_seen: int) -> Optional[str]:
-    """The attitude's freshness for the status line, one wording for every processor: the live
-    source's own figures, else how many frames came with an attitude of their own (None when
-    none ever did)."""
+def attitude_status(source: object, now_s: float, frames_with_own_attitude: int, frames_seen: int) -> Optional[str]:
+    """The attitude's freshness for the status line, one wording for every processor: how many
+    frames came with an attitude of their own (a recording's, the synthetic source's), which is
+    the one used for them; else the live source's own figures (None when there is neither)."""
+    if frames_with_own_attitude:
+        return f"attitude in {frames_with_own_attitude}/{frames_seen} frames"
     status = getattr(source, "status", None)
     if callable(status):
         return status(now_s)
-    if frames_with_attitude:
-        return f"attitude in {frames_with_attitude}/{frames_seen} frames"
     return None
 
 

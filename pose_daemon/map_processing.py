@@ -71,7 +71,7 @@ class MapFrameProcessor:
         self._last: Optional[Tuple[np.ndarray, np.ndarray]] = None
         #: The corners found in the last frame, by id (outliers included).
         self.last_found: Dict[int, np.ndarray] = {}
-        self.frames_seen = self.frames_with_attitude = 0
+        self.frames_seen = self.frames_with_own_attitude = 0
 
     @classmethod
     def from_models(
@@ -127,7 +127,7 @@ class MapFrameProcessor:
 
     def status(self) -> Optional[str]:
         """The attitude's freshness for the status line (as FrameProcessor.status)."""
-        return attitude_status(self.attitude_source, self._clock(), self.frames_with_attitude, self.frames_seen)
+        return attitude_status(self.attitude_source, self._clock(), self.frames_with_own_attitude, self.frames_seen)
 
     def reset(self) -> None:
         self.detector.reset()
@@ -157,7 +157,7 @@ class MapFrameProcessor:
         if result.attitude is None and self.attitude_source is not None:
             result.attitude = self.attitude_source.attitude_at(frame.t_capture_s, self._clock())
         self.frames_seen += 1
-        self.frames_with_attitude += result.attitude is not None
+        self.frames_with_own_attitude += frame.attitude is not None
         t0 = time.perf_counter()
         predicted = None
         if self._last is not None:

@@ -88,7 +88,7 @@ class FrameProcessor:
         self.corner_noise = CornerNoise()
         # How well the attitude agrees with the image (its lag, the mount): outlives tracks.
         self.attitude_accuracy = AttitudeAccuracy()
-        self.frames_seen = self.frames_with_attitude = 0
+        self.frames_seen = self.frames_with_own_attitude = 0
 
     @classmethod
     def from_models(
@@ -153,7 +153,7 @@ class FrameProcessor:
         """The attitude's freshness for the status line: the live source's figures, or how
         many frames came with an attitude of their own (None when none ever did); then, once
         measured, how well its down agrees with the image's (AttitudeAccuracy)."""
-        text = attitude_status(self.attitude_source, self._clock(), self.frames_with_attitude, self.frames_seen)
+        text = attitude_status(self.attitude_source, self._clock(), self.frames_with_own_attitude, self.frames_seen)
         measured = self.attitude_accuracy.measured_deg
         if text is None or measured is None:
             return text
@@ -174,7 +174,7 @@ class FrameProcessor:
         if result.attitude is None and self.attitude_source is not None:
             result.attitude = self.attitude_source.attitude_at(frame.t_capture_s, self._clock())
         self.frames_seen += 1
-        self.frames_with_attitude += result.attitude is not None
+        self.frames_with_own_attitude += frame.attitude is not None
         try:
             with timed(result, "detect"):
                 corners: Optional[np.ndarray] = (

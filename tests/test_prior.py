@@ -233,6 +233,29 @@ def test_withheld_frames_are_counted_on_the_status_line_with_the_attitude():
     assert proc.status() == "attitude in 1/1 frames"
 
 
+def test_the_status_line_names_the_attitude_the_frames_used():
+    """The demo's frames carry the synthetic source's attitude while its MAVLink output's live
+    source has heard no autopilot: the status line said "attitude none yet" of frames that all
+    had one. The frames' own attitude is the one used for them, so it is the one counted; a
+    live source speaks for frames that come without."""
+
+    class Silent:
+        def attitude_at(self, t_capture_s, t_now_s):
+            return None
+
+        def status(self, t_now_s):
+            return "attitude none yet"
+
+    image = np.zeros((480, 640), np.uint8)
+    proc = FrameProcessor(CAMERA, MARKER, detector=_Scripted([None, None]), attitude_source=Silent())
+    proc.process(Frame(image, 0.0, 0, attitude=Attitude((0.0, 0.0, 0.0))))
+    proc.process(Frame(image, 0.1, 1))
+    assert proc.status() == "attitude in 1/2 frames"
+    live = FrameProcessor(CAMERA, MARKER, detector=_Scripted([None]), attitude_source=Silent())
+    live.process(Frame(image, 0.0, 0))
+    assert live.status() == "attitude none yet"
+
+
 def test_a_long_rectangle_that_fits_an_oblique_square_is_gated_by_the_view_angle():
     # 46 x 21 px: a 0.1 m square ~65 deg off its face images like this, to a fraction of a pixel.
     c = np.array([[300.0, 230.0], [346.0, 230.0], [346.0, 251.0], [300.0, 251.0]])
