@@ -283,16 +283,17 @@ class CornerNoise:
     def __init__(self, window: int = 31, min_samples: int = 5) -> None:
         self._rms: Deque[float] = collections.deque(maxlen=window)
         self.min_samples = int(min_samples)
+        self._sigma_px: Optional[float] = None  # worked out once per observed frame
 
     def observe(self, rms_px: float) -> None:
         if math.isfinite(rms_px) and rms_px >= 0:
             self._rms.append(float(rms_px))
+            if len(self._rms) >= self.min_samples:
+                self._sigma_px = _clamp_corner_sigma(sorted(self._rms)[len(self._rms) // 2] / 0.589)
 
     @property
     def sigma_px(self) -> Optional[float]:
-        if len(self._rms) < self.min_samples:
-            return None
-        return _clamp_corner_sigma(sorted(self._rms)[len(self._rms) // 2] / 0.589)
+        return self._sigma_px
 
     def estimate_px(self, rms_px: float) -> float:
         """``sigma_px`` once measured; until then the same from the frames seen so far and
