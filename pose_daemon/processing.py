@@ -244,7 +244,7 @@ class FrameProcessor:
                 # searched and labelled afresh.
                 self.detector.reset()
             return None
-        if result.attitude is not None and self.prior.polish and choice.attitude_sigma_deg is not None:
+        if self.prior.polish and choice.attitude_sigma_deg is not None:
             # The choice re-fitted the pose towards the attitude's down (or found it agreeing):
             # the covariance sent takes that information in, at the accuracy it was weighed at.
             result.prior_down_sigma_rad = math.radians(max(choice.attitude_sigma_deg, MIN_PRIOR_SIGMA_DEG))

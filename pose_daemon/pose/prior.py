@@ -127,7 +127,7 @@ class Choice:
     reason: str = ""
     down_error_deg: Optional[float] = None
     flipped: bool = False  # the estimator's alternative was chosen over its better fit
-    attitude_sigma_deg: Optional[float] = None  # the accuracy the attitude was weighed at (AttitudeAccuracy)
+    attitude_sigma_deg: Optional[float] = None  # the accuracy the attitude was weighed at; None without one
 
 
 def gate_bound_px(settings: PriorSettings, side_px: float) -> float:
