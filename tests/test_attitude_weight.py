@@ -128,6 +128,19 @@ def test_attitude_accuracy_measures_an_attitude_worse_than_it_states():
     assert acc.measured_deg == pytest.approx(1.0, rel=0.12)
 
 
+def test_attitude_accuracy_is_unbiased_where_the_image_is_only_twice_as_sure():
+    # The image's share is subtracted from each frame's angle at the chi-squared median's
+    # scale: subtracted from the angle squared as it is, it would leave 1 - 0.44 s^2 / sigma^2
+    # (0.94 deg here, half the attitude's sigma per axis, the most a frame may have).
+    rng = np.random.default_rng(7)
+    acc = AttitudeAccuracy(window=4000)
+    image_sigma_rad = math.radians(0.5)
+    for _ in range(4000):
+        e = rng.normal(0.0, math.radians(1.0), 2) + rng.normal(0.0, image_sigma_rad, 2)
+        acc.observe(float(np.hypot(*e)), 2.0 * image_sigma_rad**2, 1.0)
+    assert acc.measured_deg == pytest.approx(1.0, rel=0.025)
+
+
 def test_down_variance_is_the_corners_information_for_the_down():
     """down_variance_rad2 against the spread of the down over many noisy copies of one view."""
     frames, _R_lb, _R_cm, corners = _views("floor", 1, seed=2, noise_px=0.0)[0]

@@ -322,11 +322,14 @@ class AttitudeAccuracy:
     made the floor's sharp-corner median 0.34 against the estimator's 0.31 deg).
 
     Measured from the frames whose image gives the down to under half the attitude's sigma (its
-    own down variance from the corners' information, ``down_variance_rad2``): the angle between the
-    two downs, squared, is 2 sigma^2 + the image's variance, an exponential whose median is
-    2 ln 2 sigma^2 (a median, so a frame with mislabelled corners does not move it). ``sigma_deg``
-    is the larger of the stated and the measured: a too modest statement is kept (the image
-    leaning on itself costs little), a too proud one is corrected.
+    own down variance from the corners' information, ``down_variance_rad2``). The two downs
+    differ by sigma^2 + s^2 per axis (s^2 the image's, half its ``down_variance_rad2``), so the
+    angle between them, squared, is that times a chi-squared of 2 degrees, whose median is
+    2 ln 2: a frame's angle is below its median exactly when angle^2 / (2 ln 2) - s^2 is below
+    sigma^2, so the median of that over the frames is sigma^2 whatever each frame's s (and a
+    frame with mislabelled corners does not move a median). ``sigma_deg`` is the larger of the
+    stated and the measured: a too modest statement is kept (the image leaning on itself costs
+    little), a too proud one is corrected.
     """
 
     def __init__(self, window: int = 100, min_samples: int = 10) -> None:
@@ -344,7 +347,7 @@ class AttitudeAccuracy:
             image_variance_rad2 / 2.0
             <= (ACCURACY_FROM_IMAGE_SHARE * math.radians(max(sigma_deg, MIN_PRIOR_SIGMA_DEG))) ** 2
         ):
-            self._excess.append(angle_rad * angle_rad - image_variance_rad2)
+            self._excess.append(angle_rad * angle_rad / (2.0 * math.log(2.0)) - image_variance_rad2 / 2.0)
 
     @property
     def measured_deg(self) -> Optional[float]:
@@ -353,7 +356,7 @@ class AttitudeAccuracy:
         if len(self._excess) < self.min_samples:
             return None
         median = sorted(self._excess)[len(self._excess) // 2]
-        return math.degrees(math.sqrt(max(median, 0.0) / (2.0 * math.log(2.0))))
+        return math.degrees(math.sqrt(max(median, 0.0)))
 
     def sigma_deg(self, stated_deg: float) -> float:
         """The accuracy to weigh the attitude at: the stated, or the measured where worse."""
