@@ -71,6 +71,38 @@ def test_clutter_is_never_a_square_and_the_small_bench_runs_end_to_end(capsys):
     assert "| marker-free clutter frames |" in bench.format_tables(result)
 
 
+def test_the_pooled_bench_adds_up_each_seeds_flights(capsys):
+    single = [bench.run_bench(30, 0, seed=seed) for seed in (3, 4)]
+    assert (
+        main(["bench", "ambiguity", "--frames", "30", "--clutter", "0", "--seed", "3", "--seeds", "2", "--json"]) == 0
+    )
+    pooled = json.loads(capsys.readouterr().out)
+    assert pooled["seeds"] == [3, 4] and pooled["clutter"] is None
+    assert len(pooled["flights"]) == len(single[0]["flights"]) == 10
+    for i, flight in enumerate(pooled["flights"]):
+        assert flight["placement"] == single[0]["flights"][i]["placement"]
+        for j, r in enumerate(flight["rows"]):
+            rows = [one["flights"][i]["rows"][j] for one in single]
+            assert r["strategy"] == rows[0]["strategy"] and r["flights"] == 2
+            assert r["sent"] == sum(x["sent"] for x in rows) and r["flips"] == sum(x["flips"] for x in rows)
+            over = sum(x["flip_pct"] is not None and x["flip_pct"] > bench.FLIP_TARGET_PCT for x in rows)
+            assert r["flights_over_flip_target"] == over
+            diffs = [
+                x["both_right_med_deg"] - x["estimator_both_right_med_deg"]
+                for x in rows
+                if x["both_right_med_deg"] is not None
+            ]
+            assert r["median_diff_mean_deg"] == pytest.approx(np.mean(diffs), abs=1e-12)
+            assert r["flights_worse"] == sum(d > 0 for d in diffs)
+            if r["strategy"] == "estimator alone":
+                assert r["both_right_med_deg"] == r["estimator_both_right_med_deg"] and r["flights_worse"] == 0
+    text = bench.format_pooled_tables(pooled)
+    assert text.startswith("seeds 3..4 (2 flights each)")
+    assert text.count("\n| floor | 20-40 px | renderer |") == len(pooled["flights"][0]["rows"])
+
+
 def test_bench_ambiguity_refuses_bad_counts(capsys):
     assert main(["bench", "ambiguity", "--frames", "5"]) == 2
     assert "--frames must be at least 30" in capsys.readouterr().err
+    assert main(["bench", "ambiguity", "--seeds", "0"]) == 2
+    assert "--seeds must be at least 1" in capsys.readouterr().err

@@ -48,6 +48,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--clutter", type=int, default=500, metavar="N", help="marker-free clutter frames (default 500, 0 = none)"
     )
     p["ambiguity"].add_argument("--seed", type=int, default=0, help="random seed of flights, noise and clutter")
+    p["ambiguity"].add_argument(
+        "--seeds",
+        type=int,
+        default=1,
+        metavar="N",
+        help="fly every flight with seeds SEED..SEED+N-1 and pool them per flight and strategy "
+        "(default 1: the one seed's full table)",
+    )
     for name in ("estimator", "detector", "quality", "ambiguity"):
         p[name].add_argument("--json", action="store_true", help="print one JSON object instead of tables")
     p["pipeline"].add_argument(
@@ -120,7 +128,11 @@ def run(a: argparse.Namespace) -> int:
     elif a.bench == "ambiguity":
         _check(a.frames >= 30, f"--frames must be at least 30, got {a.frames}")
         _check(a.clutter >= 0, f"--clutter must be 0 or more, got {a.clutter}")
-        report = bench.run_bench(a.frames, a.clutter, a.seed)
+        _check(a.seeds >= 1, f"--seeds must be at least 1, got {a.seeds}")
+        if a.seeds > 1:
+            report = bench.run_pooled(a.frames, range(a.seed, a.seed + a.seeds), a.clutter)
+        else:
+            report = bench.run_bench(a.frames, a.clutter, a.seed)
     else:
         _check(a.poses >= 1, f"--poses must be at least 1, got {a.poses}")
         report = bench.run_bench(a.poses)
