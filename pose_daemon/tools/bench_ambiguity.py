@@ -491,6 +491,16 @@ def _f(value: Optional[float], spec: str) -> str:
     return "-" if value is None else format(value, spec)
 
 
+def _rows(result: Dict[str, Any]) -> Iterator[Tuple[str, Dict[str, Any]]]:
+    """Each row of each flight, with the flight's first three cells (placement, marker, corner
+    noise) as a table row's start."""
+    for flight in result["flights"]:
+        extra = flight["extra_corner_noise_px"]
+        noise = f"+{extra:g} px" if extra else "renderer"
+        for r in flight["rows"]:
+            yield f"| {flight['placement']} | {flight['size_px']} px | {noise}", r
+
+
 def format_tables(result: Dict[str, Any]) -> str:
     """The figures as Markdown tables (the README's form)."""
     lines = [
@@ -498,21 +508,16 @@ def format_tables(result: Dict[str, Any]) -> str:
         "| trans med / p95 mm | rot med both right (estimator) | estimate+choice ms |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for flight in result["flights"]:
-        extra = flight["extra_corner_noise_px"]
-        noise = f"+{extra:g} px" if extra else "renderer"
-        for r in flight["rows"]:
-            lines.append(
-                f"| {flight['placement']} | {flight['size_px']} px "
-                f"| {noise} "
-                f"| {r['strategy']} "
-                f"| {r['sent']}/{r['detected']} | {r['withheld']} "
-                f"| {_f(r['flip_pct'], '.1f')} % ({r['flips']}) "
-                f"| {_f(r['rot_med_deg'], '.2f')} / {_f(r['rot_p95_deg'], '.1f')} "
-                f"| {_f(r['trans_med_mm'], '.0f')} / {_f(r['trans_p95_mm'], '.0f')} "
-                f"| {_f(r['both_right_med_deg'], '.2f')} ({_f(r['estimator_both_right_med_deg'], '.2f')}) "
-                f"| {_f(r['estimate_ms'], '.2f')} |"
-            )
+    for flight_cells, r in _rows(result):
+        lines.append(
+            f"{flight_cells} | {r['strategy']} "
+            f"| {r['sent']}/{r['detected']} | {r['withheld']} "
+            f"| {_f(r['flip_pct'], '.1f')} % ({r['flips']}) "
+            f"| {_f(r['rot_med_deg'], '.2f')} / {_f(r['rot_p95_deg'], '.1f')} "
+            f"| {_f(r['trans_med_mm'], '.0f')} / {_f(r['trans_p95_mm'], '.0f')} "
+            f"| {_f(r['both_right_med_deg'], '.2f')} ({_f(r['estimator_both_right_med_deg'], '.2f')}) "
+            f"| {_f(r['estimate_ms'], '.2f')} |"
+        )
     return "\n".join(lines + _clutter_lines(result.get("clutter")))
 
 
@@ -530,18 +535,15 @@ def format_pooled_tables(result: Dict[str, Any]) -> str:
         "per flight: mean +- s.e. deg | flights worse |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
-    for flight in result["flights"]:
-        extra = flight["extra_corner_noise_px"]
-        noise = f"+{extra:g} px" if extra else "renderer"
-        for r in flight["rows"]:
-            lines.append(
-                f"| {flight['placement']} | {flight['size_px']} px | {noise} | {r['strategy']} "
-                f"| {_f(r['flip_pct'], '.2f')} % ({r['flips']}/{r['sent']}) "
-                f"| {r['flights_over_flip_target']}/{r['flights']} "
-                f"| {_f(r['both_right_med_deg'], '.3f')} ({_f(r['estimator_both_right_med_deg'], '.3f')}) "
-                f"| {_f(r['median_diff_mean_deg'], '+.4f')} +- {_f(r['median_diff_se_deg'], '.4f')} "
-                f"| {r['flights_worse']}/{r['flights']} |"
-            )
+    for flight_cells, r in _rows(result):
+        lines.append(
+            f"{flight_cells} | {r['strategy']} "
+            f"| {_f(r['flip_pct'], '.2f')} % ({r['flips']}/{r['sent']}) "
+            f"| {r['flights_over_flip_target']}/{r['flights']} "
+            f"| {_f(r['both_right_med_deg'], '.3f')} ({_f(r['estimator_both_right_med_deg'], '.3f')}) "
+            f"| {_f(r['median_diff_mean_deg'], '+.4f')} +- {_f(r['median_diff_se_deg'], '.4f')} "
+            f"| {r['flights_worse']}/{r['flights']} |"
+        )
     return "\n".join(lines + _clutter_lines(result.get("clutter")))
 
 
