@@ -335,6 +335,7 @@ class AttitudeAccuracy:
     def __init__(self, window: int = 100, min_samples: int = 10) -> None:
         self._excess: Deque[float] = collections.deque(maxlen=window)
         self.min_samples = int(min_samples)
+        self._measured_deg: Optional[float] = None  # worked out once per observed frame
 
     def observe(self, angle_rad: float, image_variance_rad2: float, sigma_deg: float) -> None:
         """One frame: ``angle_rad`` between the attitude's down and the image's (the chosen
@@ -348,15 +349,15 @@ class AttitudeAccuracy:
             <= (ACCURACY_FROM_IMAGE_SHARE * math.radians(max(sigma_deg, MIN_PRIOR_SIGMA_DEG))) ** 2
         ):
             self._excess.append(angle_rad * angle_rad / (2.0 * math.log(2.0)) - image_variance_rad2 / 2.0)
+            if len(self._excess) >= self.min_samples:
+                median = sorted(self._excess)[len(self._excess) // 2]
+                self._measured_deg = math.degrees(math.sqrt(max(median, 0.0)))
 
     @property
     def measured_deg(self) -> Optional[float]:
         """The attitude's down error per axis (1 sigma, degrees) the image measures, or None
         before ``min_samples`` frames."""
-        if len(self._excess) < self.min_samples:
-            return None
-        median = sorted(self._excess)[len(self._excess) // 2]
-        return math.degrees(math.sqrt(max(median, 0.0)))
+        return self._measured_deg
 
     def sigma_deg(self, stated_deg: float) -> float:
         """The accuracy to weigh the attitude at: the stated, or the measured where worse."""
