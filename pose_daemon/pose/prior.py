@@ -268,8 +268,11 @@ def polish_toward(
 CORNER_SIGMA_MIN_PX, CORNER_SIGMA_MAX_PX = 0.01, 2.0
 
 
-def _clamp_corner_sigma(sigma_px: float) -> float:
-    return min(max(sigma_px, CORNER_SIGMA_MIN_PX), CORNER_SIGMA_MAX_PX)
+def _corner_sigma_from_rms(rms_px: Sequence[float]) -> float:
+    """The corner noise the best fits' reprojection RMS values imply (their median / 0.589,
+    see ``CornerNoise``), within the believed bounds."""
+    median = sorted(rms_px)[len(rms_px) // 2]
+    return min(max(median / 0.589, CORNER_SIGMA_MIN_PX), CORNER_SIGMA_MAX_PX)
 
 
 class CornerNoise:
@@ -289,7 +292,7 @@ class CornerNoise:
         if math.isfinite(rms_px) and rms_px >= 0:
             self._rms.append(float(rms_px))
             if len(self._rms) >= self.min_samples:
-                self._sigma_px = _clamp_corner_sigma(sorted(self._rms)[len(self._rms) // 2] / 0.589)
+                self._sigma_px = _corner_sigma_from_rms(self._rms)
 
     @property
     def sigma_px(self) -> Optional[float]:
@@ -307,7 +310,7 @@ class CornerNoise:
             rms.append(float(rms_px))
         if not rms:
             return PriorSettings.corner_sigma_px
-        return _clamp_corner_sigma(sorted(rms)[len(rms) // 2] / 0.589)
+        return _corner_sigma_from_rms(rms)
 
 
 class AttitudeAccuracy:
