@@ -186,11 +186,16 @@ class Row:
     estimator_both_right_deg: List[float] = field(default_factory=list)
     estimate_s: List[float] = field(default_factory=list)
 
+    @property
+    def flips(self) -> int:
+        """Poses sent more than FLIP_DEG off the truth."""
+        return sum(e > FLIP_DEG for e in self.rot_deg)
+
     def summary(self) -> Dict[str, object]:
         def pct(values: List[float], q: float, scale: float = 1.0) -> Optional[float]:
             return float(np.percentile(values, q)) * scale if values else None
 
-        flips = sum(e > FLIP_DEG for e in self.rot_deg)
+        flips = self.flips
         return {
             "strategy": self.strategy,
             "detected": self.detected,
@@ -440,7 +445,7 @@ class Pooled:
         """One seed's flight."""
         self.flights += 1
         self.sent += row.sent
-        flips = sum(e > FLIP_DEG for e in row.rot_deg)
+        flips = row.flips
         self.flips += flips
         self.flights_over_target += int(row.sent > 0 and 100.0 * flips / row.sent > FLIP_TARGET_PCT)
         self.both_right_deg += row.both_right_deg
