@@ -21,7 +21,7 @@ import numpy as np
 from .camera import Marker
 from .geometry import MARKER_PLACEMENTS, R_from_euler_rpy
 
-__all__ = ["MapMarker", "MarkerMap", "MapError", "markers_from_tables", "floor_grid", "landing_pad", "MARKER_KEYS"]
+__all__ = ["MapMarker", "MarkerMap", "MapError", "markers_from_tables", "floor_grid", "MARKER_KEYS"]
 
 MARKER_KEYS = ("id", "size", "position", "rotation_deg")
 
@@ -237,51 +237,3 @@ def floor_grid(
             markers.append(MapMarker(first_id + k, float(sizes_m[k % len(sizes_m)]), (x, y, 0.0)))
             k += 1
     return MarkerMap(dictionary, tuple(markers), placement)
-
-
-def landing_pad(
-    dictionary: str = "DICT_4X4_50",
-    outer_m: float = 0.6,
-    inner_m: Optional[float] = None,
-    outer_id: Optional[int] = None,
-    inner_id: Optional[int] = None,
-) -> MarkerMap:
-    """A nested pad centred on the map origin (the landing point): a large marker whose four
-    centre bits are white, and a small marker inside that white square.
-
-    The small one fits inside the white centre with the large marker's cell centres left
-    white (its side is 0.6 of a cell); it carries the pose near the ground, the large one
-    from altitude, and both are one map, so there is no switch.
-    """
-    from .detect import aruco_compat
-
-    d = aruco_compat.get_dictionary(dictionary)
-    n = int(d.markerSize)
-    if n % 2:
-        raise ValueError(f"a nested pad needs an even marker size (4x4, 6x6 ...), {dictionary} has {n}x{n} bits")
-    cells = n + 2
-    cell_m = outer_m / cells
-    if inner_m is None:
-        inner_m = round(0.6 * cell_m, 6)  # leaves the outer marker's cell centres white
-    if not inner_m <= 0.6 * cell_m + 1e-12:
-        raise ValueError(f"the inner marker must be at most 0.6 of an outer cell ({0.6 * cell_m:.3f} m)")
-    c0, c1 = n // 2 - 1, n // 2 + 1
-    candidates = [
-        i for i in range(aruco_compat.dictionary_size(d)) if aruco_compat.marker_bits(d, i)[c0:c1, c0:c1].all()
-    ]
-    if outer_id is None:
-        if not candidates:
-            raise ValueError(f"no marker of {dictionary} has its centre bits white")
-        outer_id = candidates[0]
-    elif outer_id not in candidates:
-        raise ValueError(
-            f"marker {outer_id} of {dictionary} does not have its four centre bits white; "
-            f"choose one of {candidates[:10]}"
-        )
-    if inner_id is None:
-        inner_id = next(i for i in range(aruco_compat.dictionary_size(d)) if i != outer_id)
-    if inner_id == outer_id:
-        raise ValueError("the inner and the outer marker need different ids")
-    return MarkerMap(
-        dictionary, (MapMarker(int(outer_id), float(outer_m)), MapMarker(int(inner_id), float(inner_m))), "floor"
-    )

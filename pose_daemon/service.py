@@ -112,10 +112,10 @@ def build_processor(cfg: Config, attitude_source=None):
     ``attitude_source`` (``live_attitude``) for the attitude of frames that carry none. With a
     [map], the whole-frame searches while tracking run beside the frames, never holding one up
     (MapDetector's "when_done")."""
-    from .processing import FrameProcessor
+    from .processing.marker import FrameProcessor
 
     if cfg.map is not None:
-        from .map_processing import MapFrameProcessor
+        from .processing.map import MapFrameProcessor
 
         return MapFrameProcessor.from_config(cfg, attitude_source=attitude_source, search="when_done")
     return FrameProcessor.from_config(cfg, attitude_source=attitude_source)

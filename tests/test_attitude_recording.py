@@ -19,7 +19,7 @@ from pose_daemon.capture.synthetic import SyntheticSource
 from pose_daemon.config import parse_config
 from pose_daemon.errors import EndOfStream, SourceError
 from pose_daemon.geometry import R_from_euler_rpy, rotation_angle_deg_3x3
-from pose_daemon.processing import FrameProcessor
+from pose_daemon.processing.marker import FrameProcessor
 from pose_daemon.render import Effects, Trajectory
 
 FLOOR = """

@@ -12,6 +12,7 @@ from test_prior import CAMERA, MARKER, _keep, _Scripted, _side, _views
 
 from pose_daemon import estimate_pose
 from pose_daemon.attitude import Attitude
+from pose_daemon.bench import ambiguity as bench
 from pose_daemon.capture.base import Frame
 from pose_daemon.geometry import angle_between_deg, euler_rpy_from_R
 from pose_daemon.pose.prior import (
@@ -22,8 +23,7 @@ from pose_daemon.pose.prior import (
     choose_solution,
     down_variance_rad2,
 )
-from pose_daemon.processing import FrameProcessor
-from pose_daemon.tools import bench_ambiguity as bench
+from pose_daemon.processing.marker import FrameProcessor
 
 
 def _down_move_deg(pose_a, pose_b, frames) -> float:

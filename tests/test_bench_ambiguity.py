@@ -9,9 +9,9 @@ import math
 import numpy as np
 import pytest
 
+from pose_daemon.bench import ambiguity as bench
 from pose_daemon.cli import main
 from pose_daemon.geometry import R_from_euler_rpy, VehiclePose
-from pose_daemon.tools import bench_ambiguity as bench
 
 
 @pytest.mark.parametrize("placement", ["floor", "wall"])

@@ -499,8 +499,8 @@ def test_recording_cut_off_mid_line_replays_the_frames_before_it(tmp_path: Path,
 
 def test_as_gray_is_the_one_conversion_of_sources_detector_and_calibration() -> None:
     from pose_daemon.capture import opencv, replay
-    from pose_daemon.capture.base import as_gray
     from pose_daemon.detect import detector
+    from pose_daemon.image import as_gray
     from pose_daemon.tools import calibrate
 
     assert detector.as_gray is as_gray and opencv.as_gray is as_gray
@@ -526,7 +526,7 @@ def test_as_gray_is_the_one_conversion_of_sources_detector_and_calibration() -> 
     ],
 )
 def test_as_gray_refuses_what_it_cannot_convert(image, message: str) -> None:
-    from pose_daemon.capture.base import as_gray
+    from pose_daemon.image import as_gray
 
     with pytest.raises(ValueError) as info:
         as_gray(image)

@@ -311,8 +311,8 @@ def _rule(cls: type, key: str):
 def test_every_list_of_choices_is_its_owners():
     # A copied list drifts: a new MAVLink message or pose method must need one edit, not two.
     from pose_daemon.camera import MARKER_TYPES
+    from pose_daemon.config.forms import MESSAGES
     from pose_daemon.geometry import MARKER_PLACEMENTS, MOUNT_PRESETS
-    from pose_daemon.outputs.mavlink import MESSAGES
     from pose_daemon.pose.loop import METHODS
 
     assert _rule(MarkerConfig, "type").choices is MARKER_TYPES

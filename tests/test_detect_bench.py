@@ -6,9 +6,9 @@ import json
 
 import pytest
 
+from pose_daemon.bench.detector import BLUR_SWEEP, CLUTTER_SCENES
 from pose_daemon.cli import main
 from pose_daemon.detect.square import FULL_PASS_EVERY
-from pose_daemon.tools.bench_detector import BLUR_SWEEP, CLUTTER_SCENES
 
 
 def test_bench_prints_figures_for_both_markers_and_the_anchor(capsys) -> None:

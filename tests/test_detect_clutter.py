@@ -10,6 +10,7 @@ import pytest
 from detect_helpers import ARUCO, CAM, SQUARE, aligned, facing_pose, render
 
 from pose_daemon import MarkerDetector
+from pose_daemon.bench.detector import CLUTTER_SCENES, clutter_background
 from pose_daemon.detect import aruco_compat
 from pose_daemon.detect.aruco import OPENCV_EVERY
 from pose_daemon.detect.multi import MapDetector
@@ -17,7 +18,6 @@ from pose_daemon.detect.quads import find_quads
 from pose_daemon.detect.square import FULL_PASS_EVERY
 from pose_daemon.marker_map import MapMarker, MarkerMap
 from pose_daemon.render import Effects, random_pose, render_empty
-from pose_daemon.tools.bench_detector import CLUTTER_SCENES, clutter_background
 
 
 def _scene(kind: str, i: int, with_marker: bool = True, distance_m=(0.5, 1.5)):
@@ -327,7 +327,7 @@ def test_opencv_step_on_a_whole_frame_keeps_every_marker_the_size_check_would() 
 
 def test_config_search_budget_reaches_the_detector_and_zero_means_no_cap() -> None:
     from pose_daemon.config import parse_config
-    from pose_daemon.processing import FrameProcessor
+    from pose_daemon.processing.marker import FrameProcessor
 
     def detector_for(text: str):
         cfg = parse_config(text, "c.toml")

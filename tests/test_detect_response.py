@@ -64,7 +64,7 @@ def test_bad_gamma_is_refused(bad) -> None:
 def test_config_gamma_reaches_the_daemons_detector() -> None:
     from pose_daemon.config import parse_config
     from pose_daemon.errors import ConfigError
-    from pose_daemon.processing import FrameProcessor
+    from pose_daemon.processing.marker import FrameProcessor
 
     cfg = parse_config("[detector]\ngamma = 2.2\n")
     processor = FrameProcessor.from_config(cfg)

@@ -26,7 +26,7 @@ from pose_daemon.errors import EndOfStream
 from pose_daemon.outputs import open_outputs
 from pose_daemon.outputs.plain_serial import parse_pose_line
 from pose_daemon.pipeline import Pipeline
-from pose_daemon.processing import FrameProcessor
+from pose_daemon.processing.marker import FrameProcessor
 
 FPS = 30.0
 N_FRAMES = 45

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 from pose_daemon import estimate_pose
+from pose_daemon.bench import ambiguity as B
 from pose_daemon.capture.base import Frame
 from pose_daemon.config import ConfigError, parse_config
 from pose_daemon.geometry import rotation_angle_deg_3x3
 from pose_daemon.pose.heading_track import HeadingTrack
 from pose_daemon.pose.prior import HeadingTerm, PriorSettings, _body_yaw, polish_toward
-from pose_daemon.processing import FrameProcessor
-from pose_daemon.tools import bench_ambiguity as B
+from pose_daemon.processing.marker import FrameProcessor
 
 FPS = 30.0
 

@@ -13,14 +13,14 @@ import pytest
 
 pytest.importorskip("scipy")
 
+from pose_daemon.bench import mapbuild as bm  # noqa: E402
 from pose_daemon.capture.recording import RecordingWriter  # noqa: E402
 from pose_daemon.cli import main  # noqa: E402
 from pose_daemon.config import load_config  # noqa: E402
 from pose_daemon.errors import UserError  # noqa: E402
-from pose_daemon.map_build import build_map  # noqa: E402
+from pose_daemon.maps.build import build_map  # noqa: E402
+from pose_daemon.maps.survey import detect_walkthrough, load_map_file  # noqa: E402
 from pose_daemon.marker_map import MapMarker, MarkerMap  # noqa: E402
-from pose_daemon.tools import bench_mapbuild as bm  # noqa: E402
-from pose_daemon.tools.map_survey import detect_walkthrough, load_map_file  # noqa: E402
 
 DICT = "DICT_4X4_50"
 

@@ -13,11 +13,11 @@ from pose_daemon import geometry as g
 from pose_daemon.attitude import Attitude
 from pose_daemon.camera import Camera
 from pose_daemon.capture.base import Frame
-from pose_daemon.map_processing import MapFrameProcessor
 from pose_daemon.marker_map import MapMarker, MarkerMap, floor_grid
 from pose_daemon.pose.map_solve import GravityPrior, solve_map_pose
+from pose_daemon.processing.map import MapFrameProcessor
 from pose_daemon.render import Effects
-from pose_daemon.render_map import camera_position_map, map_pose_looking_down, render_map
+from pose_daemon.render.map import camera_position_map, map_pose_looking_down, render_map
 
 CAM = Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
 ONE_FAR = MarkerMap("DICT_4X4_50", (MapMarker(1, 0.15, (0.5, 0.0, 0.0)),), "floor")
@@ -179,7 +179,7 @@ def test_the_processor_asks_the_live_attitude_when_the_frame_has_none():
 
 def test_a_config_with_a_map_gives_the_map_processor_the_live_attitude_and_the_mount():
     from pose_daemon.config import parse_config
-    from pose_daemon.processing import FrameProcessor
+    from pose_daemon.processing.marker import FrameProcessor
 
     cfg = parse_config(
         '[map]\ndictionary = "DICT_4X4_50"\nplacement = "floor"\n[[map.markers]]\nid = 1\nsize = 0.15\n'

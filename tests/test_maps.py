@@ -22,17 +22,13 @@ from pose_daemon.capture.base import Frame
 from pose_daemon.capture.synthetic import SyntheticSource
 from pose_daemon.config import parse_config
 from pose_daemon.errors import ConfigError
-from pose_daemon.map_processing import MapFrameProcessor
-from pose_daemon.marker_map import MapMarker, MarkerMap, floor_grid, landing_pad
+from pose_daemon.maps.pad import landing_pad
+from pose_daemon.marker_map import MapMarker, MarkerMap, floor_grid
 from pose_daemon.pose.map_solve import GravityPrior, solve_map_pose
-from pose_daemon.processing import FrameProcessor
+from pose_daemon.processing.map import MapFrameProcessor
+from pose_daemon.processing.marker import FrameProcessor
 from pose_daemon.render import Effects
-from pose_daemon.render_map import (
-    MapTrajectory,
-    camera_position_map,
-    map_pose_looking_down,
-    render_map,
-)
+from pose_daemon.render.map import MapTrajectory, camera_position_map, map_pose_looking_down, render_map
 
 CAM = Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
 CAM_DIST = Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, dist=(-0.25, 0.08, 0.0, 0.0, 0.0), width=640, height=480)
@@ -474,8 +470,8 @@ path = "{tmp_path / "poses.jsonl"}"
 
 
 def test_bench_map_reports_every_figure_and_its_command_refuses_bad_arguments(capsys):
+    from pose_daemon.bench import map as bench_map
     from pose_daemon.cli import main
-    from pose_daemon.tools import bench_map
 
     report = bench_map.run_bench(frames=20, descent_frames=12, repeat=2, seed=1)
     assert [f["markers"] for f in report["flights"]] == [9, 16]
@@ -494,7 +490,8 @@ def test_bench_map_reports_every_figure_and_its_command_refuses_bad_arguments(ca
 def test_marker_pad_sheet_holds_both_markers_and_prints_its_map(tmp_path, capsys):
     from pose_daemon.cli import main
     from pose_daemon.detect.multi import MapDetector
-    from pose_daemon.tools.marker_sheet import pad_layout, to_image
+    from pose_daemon.maps.pad import pad_layout
+    from pose_daemon.tools.marker_sheet import to_image
 
     sheet = pad_layout(0.15)
     page = to_image(sheet, 150.0)

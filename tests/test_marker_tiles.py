@@ -20,9 +20,10 @@ import pytest
 from pose_daemon.cli import main
 from pose_daemon.config import parse_config
 from pose_daemon.detect import aruco_compat
-from pose_daemon.marker_map import MarkerMap, landing_pad
-from pose_daemon.tools import marker_tiles
-from pose_daemon.tools.marker_tiles import grid_map, grid_sheets, tiled_sheets
+from pose_daemon.maps import tiles as marker_tiles
+from pose_daemon.maps.pad import landing_pad
+from pose_daemon.maps.tiles import grid_map, grid_sheets, tiled_sheets
+from pose_daemon.marker_map import MarkerMap
 
 DPI = 150.0
 PX_PER_MM = DPI / 25.4

@@ -26,10 +26,11 @@ from mavlink_helpers import (
 
 from pose_daemon import geometry as g
 from pose_daemon.config import parse_config
+from pose_daemon.config.forms import parse_connection
 from pose_daemon.errors import ConfigError
 from pose_daemon.outputs import MavlinkOutput
 from pose_daemon.outputs import mavlink as mavlink_module
-from pose_daemon.outputs.mavlink import PoseMessageInputs, encode_pose_messages, parse_connection
+from pose_daemon.outputs.mavlink import PoseMessageInputs, encode_pose_messages
 from pose_daemon.outputs.quality import pose_quality
 from pose_daemon.result import time_usec_from_s
 

@@ -21,7 +21,7 @@ from pose_daemon.capture.replay import ReplaySource
 from pose_daemon.errors import EndOfStream
 from pose_daemon.outputs.mavlink import PoseMessageInputs, encode_pose_messages
 from pose_daemon.outputs.plain_serial import parse_pose_line, pose_line
-from pose_daemon.processing import FrameProcessor
+from pose_daemon.processing.marker import FrameProcessor
 from pose_daemon.render import Effects, render_marker
 from pose_daemon.result import FrameResult, time_usec_from_s
 

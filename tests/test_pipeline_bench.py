@@ -35,8 +35,8 @@ def test_bench_pipeline_rejects_bad_arguments(capsys):
 def test_bench_source_plays_its_frames_forth_and_back_at_its_rate():
     import numpy as np
 
+    from pose_daemon.bench.pipeline import PacedSource
     from pose_daemon.errors import EndOfStream
-    from pose_daemon.tools.bench_pipeline import PacedSource
 
     images = [np.full((2, 2), k, np.uint8) for k in range(4)]
     source = PacedSource(images, frames=9, fps=1000.0)

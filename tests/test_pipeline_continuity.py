@@ -10,7 +10,7 @@ from pose_daemon import Camera, Marker
 from pose_daemon.capture.base import Frame
 from pose_daemon.geometry import R_from_rvec, rotation_angle_deg, rvec_from_R
 from pose_daemon.pose.continuity import choose_by_continuity
-from pose_daemon.processing import FrameProcessor
+from pose_daemon.processing.marker import FrameProcessor
 
 CAMERA = Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5)
 # A small square far away, seen about 20 deg off its normal: the classic planar ambiguity.

@@ -25,7 +25,7 @@ from pose_daemon.config import ConfigError, parse_config
 from pose_daemon.pipeline import Pipeline
 from pose_daemon.preview import FrameTap, PreviewServer
 from pose_daemon.preview.warnings import Context, evaluate
-from pose_daemon.processing import FrameProcessor
+from pose_daemon.processing.marker import FrameProcessor
 from pose_daemon.render import render_marker, trajectory
 from pose_daemon.result import FrameResult
 from pose_daemon.service import Service

@@ -21,7 +21,7 @@ from pose_daemon.geometry import (
     rvec_from_R,
 )
 from pose_daemon.pose.prior import HeadingReference, PriorSettings, choose_solution, gate_bound_px
-from pose_daemon.processing import FrameProcessor
+from pose_daemon.processing.marker import FrameProcessor
 
 CAMERA = Camera(fx=600.0, fy=600.0, cx=319.5, cy=239.5)
 MARKER = Marker(0.10, 0.10)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from pose_daemon.capture.base import Frame
-from pose_daemon.processing import FrameProcessor
+from pose_daemon.processing.marker import FrameProcessor
 from pose_daemon.render import Effects, render_marker
 
 

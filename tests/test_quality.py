@@ -51,7 +51,7 @@ def test_a_level_camera_over_a_floor_square_gets_a_high_quality():
 
 def test_bench_quality_runs_and_separates(capsys):
     """`pose-daemon bench quality` on a few frames: the report has every case and the figures."""
-    from pose_daemon.tools import bench_quality
+    from pose_daemon.bench import quality as bench_quality
 
     report = bench_quality.run_bench(3, 0, heights_m=(1.0,), tilts_deg=(0.0, 15.0))
     assert [c["tilt_deg"] for c in report["cases"]] == [0.0, 15.0]
@@ -67,7 +67,7 @@ def test_one_bad_corner_is_dropped_and_the_hover_kept_at_the_advised_minimum():
     frames with one corner 3 px off -- residuals of 0.1-0.5 px, which a fixed pixel scale cannot
     tell from a real camera's noise -- fall below it against the corner noise the processor
     measured."""
-    from pose_daemon.tools import bench_quality
+    from pose_daemon.bench import quality as bench_quality
 
     case = bench_quality.run_case(1.0, 0.0, 20, 0)
     sent = [r for r in case["rows"] if r["kind"] == "sent"]
@@ -101,7 +101,7 @@ def test_the_first_frames_before_the_corner_noise_is_measured_get_the_lowest_qua
         result_uncertainty,
         uncertainty,
     )
-    from pose_daemon.processing import FrameProcessor
+    from pose_daemon.processing.marker import FrameProcessor
     from pose_daemon.render import Effects, render_frame
 
     frames = g.VehicleFrames.from_settings("down", placement="floor")
@@ -153,8 +153,8 @@ def test_a_corner_knocked_along_the_unchecked_direction_is_caught_by_the_track()
     1.5 sigma of the corner noise, so fit, precision and flip risk pass it (>= 30 without the
     track); against the track's prediction it jumps far beyond any turn a vehicle can make and
     falls below the README's minimum, while every pose the daemon sent keeps >= 30."""
+    from pose_daemon.bench import quality as bench_quality
     from pose_daemon.outputs.quality import uncertainty
-    from pose_daemon.tools import bench_quality
 
     case = bench_quality.run_case(1.0, 15.0, 19, 1)
     sent = [r for r in case["rows"] if r["kind"] == "sent"]

@@ -6,7 +6,8 @@
 
 from __future__ import annotations
 
+from ..config.forms import SOURCE_FORMS, SOURCE_KINDS, parse_source
 from .base import Frame, FrameSource
-from .sources import SOURCE_FORMS, SOURCE_KINDS, open_source, parse_source
+from .sources import open_source
 
 __all__ = ["Frame", "FrameSource", "SOURCE_FORMS", "SOURCE_KINDS", "open_source", "parse_source"]

@@ -16,7 +16,8 @@ os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
 import cv2  # noqa: E402  (after the variable above)
 
 from ..errors import EndOfStream, SourceError  # noqa: E402
-from .base import Frame, as_gray  # noqa: E402
+from ..image import as_gray  # noqa: E402
+from .base import Frame
 
 _LOG_LEVEL_SILENT = 0  # cv2.utils.logging.LOG_LEVEL_SILENT, the same in OpenCV 4.6 and 5
 

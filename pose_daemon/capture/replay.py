@@ -11,8 +11,9 @@ import cv2
 import numpy as np
 
 from ..errors import EndOfStream, SourceError
+from ..image import as_gray
 from . import recording
-from .base import Frame, as_gray
+from .base import Frame
 from .opencv import OpenCVSource, quiet_opencv
 
 log = logging.getLogger(__name__)

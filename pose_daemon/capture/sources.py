@@ -1,52 +1,22 @@
-"""The ``[camera] source`` string: its forms (``parse_source``) and the frame source it names (``open_source``).
+"""The frame source a ``[camera] source`` string names (``open_source``).
 
-This module owns the forms; config.py validates ``source`` with ``parse_source`` and the
-daemon opens it with ``open_source``, so the string is parsed in one place.
+The string's forms are config/forms.py's (``parse_source``), which config validates with
+too, so the string is parsed in one place.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Optional, Tuple
+from typing import TYPE_CHECKING, Any, Optional
 
+from ..config.forms import parse_source
 from ..errors import SourceError
 from ..geometry import VehicleFrames
 from .base import FrameSource
 
-if TYPE_CHECKING:  # config imports this module: no import back at run time
+if TYPE_CHECKING:
     from ..config import CameraConfig, Config
 
-__all__ = ["SOURCE_FORMS", "SOURCE_KINDS", "open_source", "parse_source"]
-
-#: Every kind ``parse_source`` returns.
-SOURCE_KINDS = ("picamera2", "synthetic", "opencv", "video", "replay", "gstreamer")
-#: The accepted forms, as the config reference and error messages show them.
-SOURCE_FORMS = (
-    '"picamera2", "synthetic", "opencv:N", "video:PATH", "replay:PATH" or a GStreamer pipeline ("... ! appsink")'
-)
-_WORDS = ("picamera2", "synthetic")
-_PREFIXES = ("opencv:", "video:", "replay:")
-
-
-def parse_source(source: str) -> Tuple[str, str]:
-    """(kind, arg) of a ``[camera] source`` string; ValueError saying what was expected otherwise.
-
-    kind is one of SOURCE_KINDS. arg is what follows ``kind:`` (camera index or device path,
-    video file, recording), the whole pipeline for "gstreamer", "" for "picamera2" and
-    "synthetic". Surrounding white space is ignored. The ValueError's message is the
-    expectation alone (e.g. SOURCE_FORMS), for the caller to put in its own sentence.
-    """
-    s = str(source).strip()
-    if s in _WORDS:
-        return s, ""
-    for prefix in _PREFIXES:
-        if s.startswith(prefix) and len(s) > len(prefix):
-            kind, arg = prefix[:-1], s[len(prefix) :]
-            if kind == "opencv" and not (arg.isdigit() or arg.startswith("/")):
-                raise ValueError('"opencv:N" with a camera index N or a device path')
-            return kind, arg
-    if "!" in s:
-        return "gstreamer", s
-    raise ValueError(SOURCE_FORMS)
+__all__ = ["open_source"]
 
 
 def open_source(camera: CameraConfig, cfg: Optional[Config] = None, *, realtime: bool = True) -> FrameSource:

@@ -15,7 +15,7 @@ from ..camera import Camera, Marker
 from ..errors import EndOfStream, SourceError
 from ..geometry import R_from_rvec, VehicleFrames
 from ..render import TRAJECTORY_MOUNTS, Effects, Trajectory, make_background, render_marker
-from ..render_map import MapTrajectory, render_map
+from ..render.map import MapTrajectory, render_map
 from .base import Frame
 
 

@@ -1,7 +1,7 @@
 """``pose-daemon bench {estimator,detector,pipeline,outputs,quality,ambiguity,map,mapbuild}``: figures.
 
 Each benchmark is ``run_bench(...)`` (parameters in, report out) and ``print_report(report)``
-in ``pose_daemon/tools/bench_<name>.py``; this file holds their arguments.
+in ``pose_daemon/bench/<name>.py``; this file holds their arguments.
 """
 
 from __future__ import annotations
@@ -99,7 +99,7 @@ def _check(ok: bool, message: str) -> None:
 
 
 def run(a: argparse.Namespace) -> int:
-    bench = importlib.import_module(f"pose_daemon.tools.bench_{a.bench}")
+    bench = importlib.import_module(f"pose_daemon.bench.{a.bench}")
     if a.bench == "estimator":
         _check(a.n >= 10, f"--n must be at least 10, got {a.n}")
         _check(a.timing_n >= 1, f"--timing-n must be positive, got {a.timing_n}")

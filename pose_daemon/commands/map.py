@@ -36,7 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_build(a: argparse.Namespace) -> int:
-    from ..tools.map_survey import build
+    from ..maps.survey import build
 
     build(
         a.sources,
@@ -56,6 +56,6 @@ def run_build(a: argparse.Namespace) -> int:
 
 
 def run_check(a: argparse.Namespace) -> int:
-    from ..tools.map_survey import check
+    from ..maps.survey import check
 
     return check(a.map, a.source, a.config)

@@ -92,7 +92,8 @@ def _numbers(option: str, text: str, what: str = "a positive number of metres") 
 
 def run(args: argparse.Namespace) -> int:
     from ..errors import UserError
-    from ..tools.marker_sheet import DEFAULT_DICTIONARY, check_out_path, layout, pad_layout, write_pages
+    from ..maps.pad import pad_layout
+    from ..tools.marker_sheet import DEFAULT_DICTIONARY, check_out_path, layout, write_pages
 
     check_out_path(args.out)
     if args.map is not None:
@@ -110,9 +111,10 @@ def run(args: argparse.Namespace) -> int:
     if args.grid is not None:
         sheets, names, config, what = _grid(args, sizes, dictionary)
     elif args.tiled:
-        from ..marker_map import MapMarker, MarkerMap, landing_pad
+        from ..maps.pad import landing_pad
+        from ..maps.tiles import tiled_sheets
+        from ..marker_map import MapMarker, MarkerMap
         from ..tools.marker_sheet import config_lines
-        from ..tools.marker_tiles import tiled_sheets
 
         size = sizes[0]
         if args.pad:
@@ -169,8 +171,8 @@ def _print_map(args: argparse.Namespace) -> int:
 
     from ..config import parse_config
     from ..errors import UserError
+    from ..maps.tiles import grid_sheets
     from ..tools.marker_sheet import write_pages
-    from ..tools.marker_tiles import grid_sheets
 
     for option in ("size", "grid", "spacing", "ids", "id"):
         if getattr(args, option) is not None:
@@ -219,7 +221,7 @@ def _print_map(args: argparse.Namespace) -> int:
 
 def _grid(args: argparse.Namespace, sizes: List[float], dictionary: str) -> Tuple[list, List[str], List[str], str]:
     from ..errors import UserError
-    from ..tools.marker_tiles import grid_map, grid_sheets
+    from ..maps.tiles import grid_map, grid_sheets
 
     if args.pad or args.tiled or args.type != "aruco":
         raise UserError("--grid prints ArUco markers, one or several a sheet: no --pad, --tiled or --type square")

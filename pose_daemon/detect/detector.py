@@ -18,7 +18,7 @@ from typing import Callable, List, NamedTuple, Optional, Tuple
 import numpy as np
 
 from ..camera import Camera, Marker
-from ..capture.base import as_gray
+from ..image import as_gray
 from .quads import Roi
 from .response import Response, check_response
 from .square import MAX_REACH_PX, Candidate, SquareFinder, SquareOptions, aspect_error, side_lengths

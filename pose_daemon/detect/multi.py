@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 
 from ..camera import Camera
-from ..capture.base import as_gray
+from ..image import as_gray
 from ..marker_map import MarkerMap
 from . import aruco_compat
 from .aruco import ArucoFinder, FrameFinders

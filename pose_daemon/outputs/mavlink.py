@@ -73,6 +73,7 @@ from typing import (
 import numpy as np
 
 from ..camera import Camera, Marker
+from ..config.forms import MESSAGES, parse_connection
 from ..geometry import (
     R_from_euler_rpy,
     VehicleFrames,
@@ -97,11 +98,9 @@ from .worker import (
     release_serial_port,
 )
 
-if TYPE_CHECKING:  # config.py may import this module's choices: no import back at run time
+if TYPE_CHECKING:
     from ..config import Config, MavlinkOutputConfig
 
-MESSAGES = ("ODOMETRY", "VISION_POSITION_ESTIMATE", "LANDING_TARGET", "TARGET_RELATIVE")
-AUTOPILOTS = ("auto", "ardupilot", "px4")
 # ArduPilot's AP_VISUALODOM_TIMEOUT_MS: a longer silence makes the feed unhealthy, so the next
 # pose starts a new track (reset_counter + 1).
 HEALTH_GAP_S = 0.3
@@ -247,32 +246,6 @@ def signing_key_bytes(key: str) -> bytes:
         except ValueError:
             pass
     return hashlib.sha256(key.encode("utf-8")).digest()
-
-
-def parse_connection(connection: str, baud: int) -> Tuple[str, str, int]:
-    """(kind, device for mavlink_connection, baud); kind is udpout, udpin, tcp or serial.
-
-    ValueError with what was expected for a string that cannot be a link.
-    """
-    s = connection.strip()
-    for prefix, kind in (("udpout:", "udpout"), ("udpin:", "udpin"), ("udp:", "udpin"), ("tcp:", "tcp")):
-        if s.startswith(prefix):
-            host, sep, port = s[len(prefix) :].rpartition(":")
-            if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-                raise ValueError(f"{prefix}HOST:PORT with a port in 1..65535")
-            return kind, f"{'udpin:' if prefix == 'udp:' else prefix}{host}:{int(port)}", int(baud)
-    if s.startswith("/") or s.upper().startswith("COM"):
-        device, rate = s, int(baud)
-        for sep in (":", ","):
-            head, found, tail = s.rpartition(sep)
-            if found and tail.isdigit() and head:
-                device, rate = head, int(tail)
-                break
-        return "serial", device, rate
-    raise ValueError(
-        "udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT or a serial device such as "
-        "/dev/serial0 (optionally /dev/serial0:921600)"
-    )
 
 
 class _MavlinkLink:

@@ -22,11 +22,11 @@ import cv2
 import numpy as np
 
 from ..camera import Camera
-from ..capture.base import as_gray
 from ..capture.replay import IMAGE_EXTENSIONS
 from ..detect import aruco_compat
 from ..errors import ConfigError, EndOfStream, SourceError, UserError
 from ..geometry import R_from_rvec
+from ..image import as_gray
 
 BOARD_KINDS = ("chessboard", "charuco")
 MIN_VIEWS = 10

@@ -88,7 +88,7 @@ def config_lines(marker_type: str, size_m: float, dictionary: Optional[str], mar
     return lines
 
 
-def _runs(cells: np.ndarray) -> List[Tuple[int, int, int]]:
+def white_runs(cells: np.ndarray) -> List[Tuple[int, int, int]]:
     """Horizontal runs of white cells: (row, first column, length)."""
     runs = []
     for r, row in enumerate(cells):
@@ -180,7 +180,7 @@ def layout(
         config=config_lines(marker_type, size_m, dictionary, marker_id),
     )
     sheet.fills.append((0.0, [(x0, y0, size_mm, size_mm)]))
-    whites = [(x0 + c * cell_mm, y0 + r * cell_mm, n * cell_mm, cell_mm) for r, c, n in _runs(cells)]
+    whites = [(x0 + c * cell_mm, y0 + r * cell_mm, n * cell_mm, cell_mm) for r, c, n in white_runs(cells)]
     if whites:
         sheet.fills.append((1.0, whites))
     # Cut marks at the quiet zone's corners. Not a closed outline: a printed frame around the
@@ -458,48 +458,3 @@ def write_pages(sheets: Sequence[Sheet], path: Path, *, dpi: float = 300.0, name
         except OSError as exc:
             raise UserError(f"cannot write {p}: {exc.strerror or exc}") from None
     return [p for p, _ in files]
-
-
-def pad_layout(
-    size_m: float, *, dictionary: Optional[str] = None, outer_id: Optional[int] = None, paper: str = "a4"
-) -> Sheet:
-    """The nested landing pad (marker_map.landing_pad) on one sheet: the outer marker as
-    ``layout`` places it, the inner marker drawn inside its white centre; ``config`` holds the
-    matching [map] lines. UserError when the outer marker does not fit on the paper."""
-    from ..marker_map import landing_pad
-
-    dictionary = (dictionary or DEFAULT_DICTIONARY).strip().upper()
-    if not (isinstance(size_m, (int, float)) and math.isfinite(size_m) and size_m > 0):
-        raise UserError(f"--size must be a positive number of metres, got {size_m}")
-    try:
-        pad = landing_pad(dictionary, outer_m=float(size_m), outer_id=outer_id)
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
-    outer, inner = pad.markers
-    sheet = layout("aruco", outer.size_m, dictionary=dictionary, marker_id=outer.id, paper=paper)
-    x0, y0, side_mm, _ = sheet.marker_rect
-    inner_mm = inner.size_m * 1000.0
-    ix, iy = x0 + (side_mm - inner_mm) / 2.0, y0 + (side_mm - inner_mm) / 2.0
-    cells = aruco_cells(dictionary, inner.id)
-    cell_mm = inner_mm / cells.shape[0]
-    sheet.fills.append((0.0, [(ix, iy, inner_mm, inner_mm)]))
-    sheet.fills.append((1.0, [(ix + c * cell_mm, iy + r * cell_mm, n * cell_mm, cell_mm) for r, c, n in _runs(cells)]))
-    # The caption's [marker] lines become a pointer to the [map] lines (printed with the sheet).
-    mono = [t for t in sheet.texts if t.mono]
-    for t in mono:
-        sheet.texts.remove(t)
-    if mono:
-        sheet.texts.append(
-            Text(
-                mono[0].x_mm,
-                mono[0].y_mm,
-                f"landing pad: outer id {outer.id} ({outer.size_m * 1000:g} mm), inner id "
-                f"{inner.id} ({inner.size_m * 1000:.4g} mm), centres together; [map] lines "
-                "printed by pose-daemon marker --pad",
-                size_pt=7.0,
-            )
-        )
-    sheet.config = pad.to_toml_lines()
-    while sheet.config and not sheet.config[-1]:
-        sheet.config.pop()
-    return sheet

@@ -16,7 +16,7 @@ from ..geometry import VehicleFrames
 from ..outputs.jsonl import json_line
 from ..pipeline import Processor
 from ..pose.prior import PriorSettings
-from ..processing import FrameProcessor
+from ..processing.marker import FrameProcessor
 from ..result import FrameResult
 from .accuracy import Accuracy
 
@@ -72,7 +72,7 @@ def replay(
             )
     processor: Processor
     if cfg.map is not None:  # a map names its own markers: the recording's [marker] is not used
-        from ..map_processing import MapFrameProcessor
+        from ..processing.map import MapFrameProcessor
 
         # The recording's attitude (each frame's own) is the solve's prior term.
         processor = MapFrameProcessor.from_models(

@@ -38,7 +38,7 @@ from ..detect import MarkerDetector
 from ..geometry import R_from_euler_rpy, VehicleFrames, VehiclePose, rotation_angle_deg_3x3
 from ..pose.estimator import estimate_pose
 from ..pose.prior import PriorSettings, heading_unseen_by_down
-from ..processing import FrameProcessor
+from ..processing.marker import FrameProcessor
 from ..render import Effects, make_background, render_marker, render_plane
 
 CAMERA = Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)

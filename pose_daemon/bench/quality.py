@@ -28,19 +28,13 @@ import numpy as np
 
 from ..camera import Camera, Marker
 from ..capture.base import Frame
-from ..geometry import (
-    R_from_euler_rpy,
-    VehicleFrames,
-    VehiclePose,
-    rotation_angle_deg_3x3,
-    rvec_from_R,
-)
+from ..geometry import R_from_euler_rpy, VehicleFrames, VehiclePose, rotation_angle_deg_3x3, rvec_from_R
 from ..outputs.quality import pose_quality, resolved_by_prior, result_uncertainty, uncertainty
 from ..pose.continuity import choose_by_continuity
 from ..pose.estimator import estimate_pose
 from ..pose.prior import choose_solution
 from ..pose.types import EstimationError
-from ..processing import FrameProcessor
+from ..processing.marker import FrameProcessor
 from ..render import Effects, render_frame
 
 CAMERA = Camera(fx=600.0, fy=600.0, cx=319.5, cy=239.5, width=640, height=480)

@@ -29,8 +29,8 @@ from ..capture.base import Frame
 from ..capture.replay import ReplaySource
 from ..config import load_config
 from ..errors import ConfigError, EndOfStream, SourceError, UserError
-from ..map_build import MapBuild, build_map, require_scipy
 from ..marker_map import MapMarker, MarkerMap
+from .build import MapBuild, build_map, require_scipy
 
 if TYPE_CHECKING:
     from ..detect.multi import MapDetector
@@ -244,7 +244,7 @@ def report_lines(build: MapBuild, walk: Optional[Walkthrough] = None) -> List[st
 def plot_build(build: MapBuild, path: Path, title: str = "") -> None:
     """The map from above (each marker's outline and id) with the camera path."""
     from ..plotting import new_figure, save_figure
-    from .plot import top_view_axes
+    from ..tools.plot import top_view_axes
 
     placement = build.marker_map.placement
     h, v, hlabel, vlabel = top_view_axes(placement)
@@ -372,8 +372,8 @@ class MarkerCheck:
 
 def check_map(marker_map: MarkerMap, frames: Iterator[Frame], camera: Camera) -> Tuple[List[MarkerCheck], int, int]:
     """Per-marker residuals of a replay against ``marker_map``; (checks, frames, frames with a pose)."""
-    from ..map_processing import MapFrameProcessor
     from ..pose.map_solve import map_corners_px
+    from ..processing.map import MapFrameProcessor
 
     proc = MapFrameProcessor(camera, marker_map)
     residuals: Dict[int, List[float]] = {i: [] for i in marker_map.ids}

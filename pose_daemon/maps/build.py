@@ -38,10 +38,10 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .camera import Camera
-from .errors import UserError
-from .geometry import R_from_rvec, euler_rpy_from_R, rot_z
-from .marker_map import MapMarker, MarkerMap
+from ..camera import Camera
+from ..errors import UserError
+from ..geometry import R_from_rvec, euler_rpy_from_R, rot_z
+from ..marker_map import MapMarker, MarkerMap
 
 __all__ = [
     "MISSING_SCIPY",

@@ -163,7 +163,7 @@ def run_bench(
         raise ValueError(f"preview must be one of {', '.join(PREVIEW_MODES)}, got {preview!r}")
     from ..outputs import open_outputs
     from ..pipeline import Pipeline
-    from ..processing import FrameProcessor
+    from ..processing.marker import FrameProcessor
     from ..service import GIL_SWITCH_INTERVAL_S
 
     previous_interval = sys.getswitchinterval()

@@ -26,13 +26,14 @@ import numpy as np
 
 from ..camera import Camera
 from ..capture.base import Frame
-from ..map_processing import MapFrameProcessor
-from ..marker_map import MapMarker, MarkerMap, floor_grid, landing_pad
+from ..maps.pad import landing_pad
+from ..marker_map import MapMarker, MarkerMap, floor_grid
 from ..pose.estimator import estimate_pose
 from ..pose.types import EstimationError
-from ..processing import FrameProcessor
+from ..processing.map import MapFrameProcessor
+from ..processing.marker import FrameProcessor
 from ..render import Effects
-from ..render_map import MapTrajectory, camera_position_map, map_pose_looking_down, render_map
+from ..render.map import MapTrajectory, camera_position_map, map_pose_looking_down, render_map
 
 CAMERA = Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
 FPS = 30.0

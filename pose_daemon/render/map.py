@@ -12,18 +12,10 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
-from .camera import Camera
-from .geometry import R_from_rvec, rot_x, rot_y, rvec_from_R
-from .marker_map import MarkerMap
-from .render import (
-    Effects,
-    TruePose,
-    _apply_effects,
-    _background,
-    _marker_pyramid,
-    _pose_arrays,
-    _render_plane_layer,
-)
+from ..camera import Camera
+from ..geometry import R_from_rvec, rot_x, rot_y, rvec_from_R
+from ..marker_map import MarkerMap
+from .scene import Effects, TruePose, _apply_effects, _background, _marker_pyramid, _pose_arrays, _render_plane_layer
 
 __all__ = [
     "MapFrame",

@@ -26,11 +26,11 @@ import numpy as np
 from ..camera import Camera
 from ..capture.base import Frame
 from ..geometry import rot_x, rot_y, rotation_angle_deg, rvec_from_R
-from ..map_build import require_scipy
-from ..map_processing import MapFrameProcessor
+from ..maps.build import require_scipy
 from ..marker_map import MapMarker, MarkerMap
+from ..processing.map import MapFrameProcessor
 from ..render import Effects
-from ..render_map import MapTrajectory, camera_position_map, render_map
+from ..render.map import MapTrajectory, camera_position_map, render_map
 
 DICTIONARY = "DICT_4X4_50"
 AREA_M = 4.0
@@ -177,8 +177,8 @@ def daemon_error(
 def run_case(
     n_markers: int, duration_s: float, seed: int, camera: Camera, validation_frames: int = 300
 ) -> Dict[str, Any]:
-    from ..map_build import build_map
-    from .map_survey import detect_placeholder_map, survey_detector
+    from ..maps.build import build_map
+    from ..maps.survey import detect_placeholder_map, survey_detector
 
     n_side = int(round(math.sqrt(n_markers)))
     truth, sizes = random_floor_map(n_side, seed)

@@ -28,8 +28,8 @@ import numpy as np
 
 from ..errors import UserError
 from ..marker_map import MapMarker, MarkerMap
-from . import marker_sheet as ms
-from .marker_sheet import PAPERS_MM, PRINTER_MARGIN_MM, Rect, Sheet, Text
+from ..tools import marker_sheet as ms
+from ..tools.marker_sheet import PAPERS_MM, PRINTER_MARGIN_MM, Rect, Sheet, Text
 
 OVERLAP_MM = 10.0  # glue strip: a tile's right and bottom edges run this far under the next sheet
 BORDER_MM = 12.0  # band around a tiled print's quiet zone holding the registration crosses
@@ -97,7 +97,7 @@ def quiet_mm(size_mm: float, cells: int) -> float:
 def _draw_marker(plane: Plane, cells: np.ndarray, u0: float, v0: float, side_mm: float) -> None:
     plane.fills.append((0.0, (u0, v0, side_mm, side_mm)))
     cell = side_mm / cells.shape[0]
-    plane.fills += [(1.0, (u0 + c * cell, v0 + r * cell, n * cell, cell)) for r, c, n in ms._runs(cells)]
+    plane.fills += [(1.0, (u0 + c * cell, v0 + r * cell, n * cell, cell)) for r, c, n in ms.white_runs(cells)]
 
 
 def _cross(plane: Plane, u: float, v: float) -> None:

@@ -21,16 +21,16 @@ from typing import Any, Callable, Dict, Optional, Tuple
 import cv2
 import numpy as np
 
-from .attitude import attitude_status
-from .camera import Camera
-from .capture.base import Frame
-from .detect.square import side_lengths
-from .geometry import VehicleFrames, angle_between_deg
-from .marker_map import MarkerMap
-from .pose.map_solve import GravityPrior, largest_marker, map_corners_px, solve_map_pose
-from .pose.prior import MIN_PRIOR_SIGMA_DEG, Choice, PriorSettings, gate_bound_px
-from .pose.types import EstimationError
-from .result import FrameResult
+from ..attitude import attitude_status
+from ..camera import Camera
+from ..capture.base import Frame
+from ..detect.square import side_lengths
+from ..geometry import VehicleFrames, angle_between_deg
+from ..marker_map import MarkerMap
+from ..pose.map_solve import GravityPrior, largest_marker, map_corners_px, solve_map_pose
+from ..pose.prior import MIN_PRIOR_SIGMA_DEG, Choice, PriorSettings, gate_bound_px
+from ..pose.types import EstimationError
+from ..result import FrameResult
 
 
 class MapFrameProcessor:
@@ -57,7 +57,7 @@ class MapFrameProcessor:
         clock: Callable[[], float] = time.monotonic,
         search: str = "next_frame",
     ) -> None:
-        from .detect.multi import MapDetector
+        from ..detect.multi import MapDetector
 
         self.camera = camera
         self.map = marker_map
@@ -90,7 +90,7 @@ class MapFrameProcessor:
         ``frames``, ``prior`` and ``attitude_source`` as for the constructor; ``search``: where
         the detector's whole-frame searches run while tracking (MapDetector: "next_frame" gives
         the same output every run, "when_done" never holds up a tracked frame: the live daemon)."""
-        from .detect.multi import MapDetector
+        from ..detect.multi import MapDetector
 
         return cls(
             camera,

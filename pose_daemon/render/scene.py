@@ -20,9 +20,9 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 
-from .camera import Camera, Marker
-from .detect.response import Response, check_response, decode, encode, is_linear
-from .geometry import R_UNROT_MARKER, R_from_rvec, VehicleFrames, rot_z, rvec_from_R
+from ..camera import Camera, Marker
+from ..detect.response import Response, check_response, decode, encode, is_linear
+from ..geometry import R_UNROT_MARKER, R_from_rvec, VehicleFrames, rot_z, rvec_from_R
 
 __all__ = [
     "Effects",
@@ -182,7 +182,7 @@ def aruco_bits(dictionary: str, marker_id: int) -> np.ndarray:
     read from detect/aruco_compat's image of the marker (OpenCV's own pattern)."""
     key = (dictionary, marker_id)
     if key not in _ARUCO_BITS:
-        from .detect import aruco_compat
+        from ..detect import aruco_compat
 
         d = aruco_compat.get_dictionary(dictionary)
         size = int(d.markerSize) + 2
@@ -729,7 +729,7 @@ def render_empty(
 def aruco_texture(marker: Marker, white: float = 220.0, black: float = 25.0) -> Tuple[np.ndarray, Tuple[float, float]]:
     """OpenCV's own image of an ArUco marker on white paper with a quiet zone of a quarter of
     its side: (grey texture float32, (width, height) metres) for ``render_plane``."""
-    from .detect import aruco_compat
+    from ..detect import aruco_compat
 
     cells = aruco_compat.marker_image(aruco_compat.get_dictionary(marker.dictionary), marker.id, 600)
     tex = cv2.copyMakeBorder(cells, 150, 150, 150, 150, cv2.BORDER_CONSTANT, value=255)

@@ -22,13 +22,7 @@ import numpy as np
 
 from ..camera import Camera, Marker
 from ..config import JsonlOutputConfig, MavlinkOutputConfig, SerialOutputConfig
-from ..geometry import (
-    R_from_euler_rpy,
-    VehicleFrames,
-    VehiclePose,
-    paper_angles_deg_from_R_cam_marker,
-    rvec_from_R,
-)
+from ..geometry import R_from_euler_rpy, VehicleFrames, VehiclePose, paper_angles_deg_from_R_cam_marker, rvec_from_R
 from ..outputs.jsonl import JsonlOutput
 from ..outputs.mavlink import MavlinkOutput, PoseMessageInputs, encode_pose_messages
 from ..outputs.plain_serial import PlainSerialOutput

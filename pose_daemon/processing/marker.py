@@ -17,16 +17,16 @@ from typing import Any, Callable, Iterator, Optional
 import cv2
 import numpy as np
 
-from .attitude import attitude_status
-from .camera import Camera, Marker
-from .capture.base import Frame
-from .config import Config, DetectorConfig, EstimatorConfig
-from .detect import MarkerDetector
-from .geometry import VehicleFrames
-from .pose.continuity import Track, choose_by_continuity
-from .pose.estimator import estimate_pose
-from .pose.heading_track import HeadingTrack
-from .pose.prior import (
+from ..attitude import attitude_status
+from ..camera import Camera, Marker
+from ..capture.base import Frame
+from ..config import Config, DetectorConfig, EstimatorConfig
+from ..detect import MarkerDetector
+from ..geometry import VehicleFrames
+from ..pose.continuity import Track, choose_by_continuity
+from ..pose.estimator import estimate_pose
+from ..pose.heading_track import HeadingTrack
+from ..pose.prior import (
     MIN_PRIOR_SIGMA_DEG,
     AttitudeAccuracy,
     CornerNoise,
@@ -34,8 +34,8 @@ from .pose.prior import (
     PriorSettings,
     choose_solution,
 )
-from .pose.types import EstimationError, Pose
-from .result import FrameResult
+from ..pose.types import EstimationError, Pose
+from ..result import FrameResult
 
 
 @contextmanager
@@ -131,7 +131,7 @@ class FrameProcessor:
         mount, [attitude] and [gate] keys; ``attitude_source`` as for the constructor (a [map]
         gives a MapFrameProcessor, asking the same source)."""
         if cfg.map is not None:
-            from .map_processing import MapFrameProcessor
+            from .map import MapFrameProcessor
 
             return MapFrameProcessor.from_config(cfg, attitude_source=attitude_source)  # type: ignore[return-value]
         return cls.from_models(

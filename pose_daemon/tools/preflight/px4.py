@@ -1,0 +1,163 @@
+"""Preflight findings for PX4: EKF2 external vision, its delay and time sync, the MAVLink
+instances, the vision target estimator for TARGET_RELATIVE."""
+
+from __future__ import annotations
+
+import math
+from typing import Dict, List
+
+from .findings import QUALITY_MIN, Finding, Observation, delay_ms, fmt, watched_findings
+
+# PX4's vision target estimator (src/modules/vision_target_estimator, a beta module of PX4 1.18
+# built only into *_visionTargetEst targets): what decides whether it fuses TARGET_RELATIVE.
+VTE_PARAMS = ["VTE_EN", "VTE_POS_EN", "VTE_AID_MASK", "VTE_TASK_MASK", "VTE_EV_NOISE_MD", "VTE_EVP_NOISE"]
+# VTE_AID_MASK bit 2: "target relative position from vision-based data".
+VTE_AID_VISION = 4
+# VTE_TASK_MASK: bit 0 precision landing, bit 1 debug (always active), bit 2 precision takeoff.
+VTE_TASK_PRECLAND = 1
+VTE_TASKS = 1 | 2 | 4
+PX4_PARAMS = (
+    ["EKF2_EV_CTRL", "EKF2_HGT_REF", "EKF2_EV_DELAY", "EKF2_GPS_CTRL", "EKF2_EV_QMIN"]
+    + [f"MAV_{n}_{k}" for n in range(0, 3) for k in ("CONFIG", "MODE", "RATE")]
+    + VTE_PARAMS
+)
+
+
+def check_px4(cfg, obs: Observation, link_kind: str = "udpout") -> List[Finding]:
+    """The findings for PX4 (EKF2 external vision, MAVLink instances)."""
+    m = cfg.output.mavlink
+    p = {k: v for k, (v, _t) in obs.params.items()}
+    out: List[Finding] = []
+    ctrl = p.get("EKF2_EV_CTRL")
+    if ctrl is None:
+        out.append(Finding("PROBLEM", "EKF2_EV_CTRL not reported by the autopilot"))
+    else:
+        wanted = (int(ctrl) | 1 | 8) & ~4  # horizontal position and yaw; no velocity is sent
+        if wanted != int(ctrl):
+            out += [
+                Finding(
+                    "PROBLEM",
+                    f"EKF2_EV_CTRL = {int(ctrl)}: EKF2 needs bit 0 (horizontal position) and "
+                    "bit 3 (yaw), not bit 2 (no velocity is sent)",
+                ),
+                Finding("FIX", param="EKF2_EV_CTRL", value=wanted),
+            ]
+        else:
+            out.append(Finding("OK", f"EKF2_EV_CTRL = {int(ctrl)}"))
+    hgt = p.get("EKF2_HGT_REF")
+    if hgt is not None:
+        if hgt == 1 and p.get("EKF2_GPS_CTRL", 0) == 0:
+            out += [
+                Finding("PROBLEM", "EKF2_HGT_REF = 1 (GPS) with GPS off"),
+                Finding("FIX", param="EKF2_HGT_REF", value=3),
+            ]
+        else:
+            out.append(Finding("OK", f"EKF2_HGT_REF = {fmt(hgt)}"))
+    if "EKF2_GPS_CTRL" in p:
+        out.append(Finding("OK", f"EKF2_GPS_CTRL = {fmt(p['EKF2_GPS_CTRL'])}"))
+    qmin = p.get("EKF2_EV_QMIN")
+    if qmin is not None:
+        if "VISION_POSITION_ESTIMATE" in m.messages and qmin > 0:
+            out += [
+                Finding(
+                    "PROBLEM",
+                    f"EKF2_EV_QMIN = {fmt(qmin)} drops every VISION_POSITION_ESTIMATE (no quality field: taken as 0)",
+                ),
+                Finding("FIX", param="EKF2_EV_QMIN", value=0),
+            ]
+        elif qmin > QUALITY_MIN:
+            out += [
+                Finding("PROBLEM", f"EKF2_EV_QMIN = {fmt(qmin)} is above the README's {QUALITY_MIN}"),
+                Finding("FIX", param="EKF2_EV_QMIN", value=QUALITY_MIN),
+            ]
+        else:
+            out.append(Finding("OK", f"EKF2_EV_QMIN = {fmt(qmin)}"))
+    delay = delay_ms(obs)
+    ev_delay = p.get("EKF2_EV_DELAY")
+    if delay is not None and ev_delay is not None:
+        p50, p90 = delay
+        synced = obs.timesync_answered > 0
+        if not synced and ev_delay < math.floor(p50):
+            out += [
+                Finding(
+                    "PROBLEM",
+                    f"EKF2_EV_DELAY = {fmt(ev_delay)} ms and no TIMESYNC: PX4 stamps poses "
+                    f"on arrival, the measured delay is median {p50:.0f} ms",
+                ),
+                Finding("FIX", param="EKF2_EV_DELAY", value=min(300, math.ceil(p50))),
+            ]
+        else:
+            out.append(
+                Finding(
+                    "OK",
+                    f"EKF2_EV_DELAY = {fmt(ev_delay)} ms (measured capture-to-send delay: median "
+                    f"{p50:.0f} ms, p90 {p90:.0f} ms" + ("; TIMESYNC answered" if synced else "") + ")",
+                )
+            )
+    for n in range(3):
+        keys = [f"MAV_{n}_{k}" for k in ("CONFIG", "MODE", "RATE") if f"MAV_{n}_{k}" in p]
+        if keys:
+            out.append(Finding("OK", ", ".join(f"{k} = {fmt(p[k])}" for k in keys)))
+    if "TARGET_RELATIVE" in m.messages:
+        out += _check_vte(p)
+    return out + watched_findings(cfg, obs, ekf="EKF2")
+
+
+def _check_vte(p: Dict[str, float]) -> List[Finding]:
+    """PX4's vision target estimator, for TARGET_RELATIVE (VTE_PARAMS): built in, started, its
+    position filter on, vision aiding on, a task that uses it, and the message's pos_std used."""
+    out: List[Finding] = []
+    if "VTE_EN" not in p:
+        return [
+            Finding(
+                "PROBLEM",
+                "VTE_EN not reported: this PX4 build has no vision target estimator, so TARGET_RELATIVE "
+                "is not used (build a _visionTargetEst target, or send LANDING_TARGET)",
+            )
+        ]
+
+    def flag(name: str, why: str) -> None:
+        if p.get(name, 0) == 1:
+            out.append(Finding("OK", f"{name} = 1"))
+        else:
+            out.extend(
+                [
+                    Finding("PROBLEM", f"{name} = {fmt(p.get(name))}: {why} (PX4 applies it at the next reboot)"),
+                    Finding("FIX", param=name, value=1),
+                ]
+            )
+
+    flag("VTE_EN", "the vision target estimator is not started")
+    flag("VTE_POS_EN", "its position filter, which takes TARGET_RELATIVE, is off")
+    aid = p.get("VTE_AID_MASK")
+    if aid is not None:
+        if int(aid) & VTE_AID_VISION:
+            out.append(Finding("OK", f"VTE_AID_MASK = {int(aid)} (vision relative position on)"))
+        else:
+            out += [
+                Finding("PROBLEM", f"VTE_AID_MASK = {int(aid)}: bit 2 (vision relative position) is off"),
+                Finding("FIX", param="VTE_AID_MASK", value=int(aid) | VTE_AID_VISION),
+            ]
+    task = p.get("VTE_TASK_MASK")
+    if task is not None:
+        if int(task) & VTE_TASKS:
+            out.append(Finding("OK", f"VTE_TASK_MASK = {int(task)}"))
+        else:
+            out += [
+                Finding(
+                    "PROBLEM", f"VTE_TASK_MASK = {int(task)}: no task (bit 0 precision landing) runs the estimator"
+                ),
+                Finding("FIX", param="VTE_TASK_MASK", value=int(task) | VTE_TASK_PRECLAND),
+            ]
+    mode = p.get("VTE_EV_NOISE_MD")
+    if mode is not None and mode != 0:
+        out += [
+            Finding(
+                "PROBLEM",
+                f"VTE_EV_NOISE_MD = {fmt(mode)}: PX4 replaces the pos_std sent by VTE_EVP_NOISE scaled with the height",
+            ),
+            Finding("FIX", param="VTE_EV_NOISE_MD", value=0),
+        ]
+    if "VTE_EVP_NOISE" in p:
+        out.append(Finding("OK", f"VTE_EVP_NOISE = {fmt(p['VTE_EVP_NOISE'])} m (the least pos_std PX4 takes)"))
+    return out

@@ -1,0 +1,227 @@
+"""``pose-daemon preflight``: would the autopilot use the feed? Checked on the configured link.
+
+Runs the daemon's own feed (the config's source -> FrameProcessor -> MavlinkOutput) for a few
+seconds, identifies the autopilot from its HEARTBEAT, reads the parameters that decide whether
+the feed is used (PARAM_REQUEST_READ), watches what the autopilot says (STATUSTEXT,
+EKF_STATUS_REPORT / ESTIMATOR_STATUS, GPS_GLOBAL_ORIGIN, HOME_POSITION) and measures the
+capture-to-bytes-written delay. The findings are lines of three kinds (interface.md):
+
+    OK <what holds>
+    PROBLEM <what is wrong, and what it does>
+    FIX: <parameter> = <value>
+
+``apply``: after the findings, each FIX is set with PARAM_SET (the type the autopilot gave in
+PARAM_VALUE; PX4's integers bytewise) and read back. Result: 0 when the autopilot would use
+the feed, 1 when not; a config or link that cannot be used is a UserError (exit 2).
+"""
+
+from __future__ import annotations
+
+import functools
+import struct
+import threading
+import time
+from typing import Any, Callable, List, Sequence
+
+from ...errors import SourceError, UserError
+from .ardupilot import ARDUPILOT_PARAMS, check_ardupilot
+from .findings import (
+    MAV_PARAM_TYPE_REAL32,
+    POS_HORIZ_FLAGS,
+    Finding,
+    Observation,
+    fmt,
+    param_value,
+    param_wire,
+)
+from .px4 import PX4_PARAMS, check_px4
+
+# EKF_STATUS_REPORT (ardupilotmega.xml, id 193) is not in the common dialect the link decodes:
+# its payload is read here (five floats, then the uint16 flags).
+EKF_STATUS_REPORT_ID = 193
+HEARTBEAT_TIMEOUT_S = 10.0
+PARAM_TIMEOUT_S = 2.0
+
+
+class _Watcher:
+    """Collects an Observation from the output's received messages (the output's thread)."""
+
+    def __init__(self, out) -> None:
+        self.out = out
+        self.obs = Observation()
+        self.lock = threading.Lock()
+
+    def handle(self, msg: Any, now: float) -> None:
+        kind = msg.get_type()
+        src = msg.get_srcSystem()
+        with self.lock:
+            if self.obs.system is not None and src != self.obs.system:
+                return
+            if kind == "PARAM_VALUE":
+                name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode("ascii", "replace")
+                name = name.rstrip("\x00")
+                self.obs.params[name] = (
+                    param_value(msg.param_value, msg.param_type, self.obs.autopilot),
+                    int(msg.param_type),
+                )
+            elif kind == "STATUSTEXT":
+                text = msg.text if isinstance(msg.text, str) else msg.text.decode("ascii", "replace")
+                self.obs.statustexts.append((int(msg.severity), text.rstrip("\x00")))
+            elif kind == "ESTIMATOR_STATUS":
+                self._flags(int(msg.flags))
+            elif kind == f"UNKNOWN_{EKF_STATUS_REPORT_ID}":
+                buf = bytes(msg.data)
+                payload = buf[10 : 10 + buf[1]] + bytes(22)
+                self._flags(struct.unpack("<fffffH", payload[:22])[5])
+            elif kind == "GPS_GLOBAL_ORIGIN":
+                self.obs.origin_seen = True
+            elif kind == "HOME_POSITION":
+                self.obs.home_seen = True
+            elif kind == "TIMESYNC" and msg.tc1 == 0:
+                self.obs.timesync_answered += 1
+
+    def _flags(self, flags: int) -> None:
+        # The watch asks "did the EKF use the feed": a report that it did is kept over later
+        # ones (the feed stops at the end of the watch).
+        old = self.obs.ekf_flags
+        if old is None or not old & POS_HORIZ_FLAGS or flags & POS_HORIZ_FLAGS:
+            self.obs.ekf_flags = flags
+
+
+def _request_params(out, obs_system: int, component: int, names: Sequence[str]) -> None:
+    for name in names:
+        out.send(lambda mav, n=name: mav.param_request_read_send(obs_system, component, n.encode("ascii"), -1))
+
+
+def run_preflight(
+    cfg,
+    *,
+    seconds: float = 8.0,
+    apply: bool = False,
+    emit: Callable[[str], None] = print,
+    heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S,
+) -> int:
+    """The checks (module docstring); prints each finding with ``emit``; 0 / 1 as documented.
+    UserError for a config without [output.mavlink], a source that cannot open, or no autopilot."""
+    from ...capture.sources import open_source
+    from ...config.forms import parse_connection
+    from ...outputs.mavlink import MavlinkOutput
+    from ...outputs.quality import pose_quality, result_uncertainty
+    from ...processing.marker import FrameProcessor
+
+    m = cfg.output.mavlink
+    if m is None:
+        raise UserError(f"{cfg.name}: preflight needs an [output.mavlink] table")
+    link_kind = parse_connection(m.connection, m.baud)[0]
+    delays_s: List[float] = []
+    out = MavlinkOutput.from_config(
+        cfg,
+        queue_size=0,
+        on_written=lambda _name, result, t_written: delays_s.append(t_written - float(result.t_capture_s)),
+    )
+    watcher = _Watcher(out)
+    watcher.obs.delays_s = delays_s
+    for kind in (
+        "PARAM_VALUE",
+        "STATUSTEXT",
+        "ESTIMATOR_STATUS",
+        f"UNKNOWN_{EKF_STATUS_REPORT_ID}",
+        "GPS_GLOBAL_ORIGIN",
+        "HOME_POSITION",
+        "TIMESYNC",
+    ):
+        out.listen(kind, watcher.handle)
+    obs = watcher.obs
+    try:
+        end = time.monotonic() + heartbeat_timeout_s
+        while out.autopilot_system is None and time.monotonic() < end:
+            time.sleep(0.05)
+        if out.autopilot_system is None:
+            raise UserError(f"no autopilot HEARTBEAT on {m.connection} within {heartbeat_timeout_s:g} s")
+        with watcher.lock:
+            obs.system, obs.autopilot = out.autopilot_system, out.autopilot_kind
+            obs.component = out.stats()["autopilot_component"]
+        names = PX4_PARAMS if obs.autopilot == "px4" else ARDUPILOT_PARAMS
+        _request_params(out, obs.system, obs.component, names)
+        try:
+            source = open_source(cfg.camera, cfg)
+            source.open()
+        except SourceError as exc:
+            raise UserError(
+                f"camera source {cfg.camera.source!r}: {exc} (stop the daemon first if it holds the camera)"
+            ) from None
+        processor = FrameProcessor.from_config(cfg)
+        end = time.monotonic() + seconds
+        retried = False
+        asked_t = -1e18
+        try:
+            while time.monotonic() < end:
+                if time.monotonic() - asked_t >= 1.0:  # GPS_GLOBAL_ORIGIN and HOME_POSITION, once a second
+                    asked_t = time.monotonic()
+                    for msg_id in (49, 242):
+                        out.send(functools.partial(_request_message, obs.system, obs.component, msg_id))
+                result = processor.process(source.read())
+                if result.pose is not None:
+                    obs.qualities.append(
+                        pose_quality(
+                            result.pose, u=result_uncertainty(result, out.frames, cfg.camera.fx, cfg.marker.width)
+                        )
+                    )
+                out.submit(result)
+                if not retried and time.monotonic() > end - seconds + PARAM_TIMEOUT_S:
+                    retried = True
+                    with watcher.lock:
+                        missing = [n for n in names if n not in obs.params]
+                    _request_params(out, obs.system, obs.component, missing)
+        except SourceError as exc:
+            raise UserError(f"camera source {cfg.camera.source!r} failed: {exc}") from None
+        finally:
+            source.close()
+        obs.poses_sent = out.stats()["sent"]
+        with watcher.lock:
+            if obs.autopilot == "px4":
+                findings = check_px4(cfg, obs, link_kind)
+            else:
+                findings = check_ardupilot(cfg, obs, link_kind)
+        findings.insert(0, Finding("OK", f"autopilot {obs.autopilot} (system {obs.system}) on {m.connection}"))
+        for f in findings:
+            emit(f.line())
+        fixes = [f for f in findings if f.kind == "FIX"]
+        problems = [f for f in findings if f.kind == "PROBLEM"]
+        if apply and fixes and _apply(out, watcher, fixes, emit):
+            emit("OK parameters set: run preflight again to watch the feed with them")
+        return 1 if problems else 0
+    finally:
+        out.close()
+
+
+def _request_message(system: int, component: int, msg_id: int, mav: Any) -> None:
+    """MAV_CMD_REQUEST_MESSAGE (512) for ``msg_id`` (GPS_GLOBAL_ORIGIN 49, HOME_POSITION 242)."""
+    mav.command_long_send(system, component, 512, 0, float(msg_id), 0, 0, 0, 0, 0, 0)
+
+
+def _apply(out, watcher: _Watcher, fixes: Sequence[Finding], emit: Callable[[str], None]) -> bool:
+    obs = watcher.obs
+    for f in fixes:
+        assert f.param is not None and f.value is not None  # a FIX names its parameter and value
+        name, value = f.param, float(f.value)
+        _, ptype = obs.params.get(name, (0.0, MAV_PARAM_TYPE_REAL32))
+        wire = param_wire(value, ptype, obs.autopilot)
+        with watcher.lock:
+            obs.params.pop(name, None)
+        out.send(
+            lambda mav, n=name, w=wire, t=ptype: mav.param_set_send(obs.system, obs.component, n.encode("ascii"), w, t)
+        )
+    end = time.monotonic() + PARAM_TIMEOUT_S * 2
+    ok = True
+    for f in fixes:
+        assert f.param is not None and f.value is not None
+        while time.monotonic() < end and f.param not in obs.params:
+            time.sleep(0.02)
+        got = obs.params.get(f.param)
+        if got is not None and abs(got[0] - float(f.value)) < 1e-6:
+            emit(f"OK {f.param} = {fmt(got[0])} set")
+        else:
+            emit(f"PROBLEM {f.param} was not set (the autopilot answered {fmt(got[0]) if got else 'nothing'})")
+            ok = False
+    return ok
