@@ -101,3 +101,112 @@ def test_every_file_and_function_the_map_names_exists():
 def test_the_readme_links_the_map():
     readme = (ROOT / "README.md").read_text(encoding="utf-8")
     assert "(docs/ARCHITECTURE.md)" in readme
+
+
+def _floors(text: str) -> Dict[str, int]:
+    """The Floors table: ``x.py`` or ``x/`` (relative to pose_daemon/) -> its floor."""
+    section = text.split("## Floors", 1)[1].split("\n## ", 1)[0]
+    floors: Dict[str, int] = {}
+    for line in section.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) < 2 or not cells[0].isdigit():
+            continue
+        for entry in re.findall(r"`([^`]+)`", cells[1]):
+            assert entry not in floors, f"{entry} is on two floors of the Floors table"
+            floors[entry] = int(cells[0])
+    return floors
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(PACKAGE).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(["pose_daemon", *parts])
+
+
+def _imports() -> Dict[str, Set[str]]:
+    """Every pose_daemon module -> the pose_daemon modules it imports anywhere in its text
+    (top-level, in functions, under TYPE_CHECKING), ``from package import module`` resolved."""
+    modules = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
+    graph: Dict[str, Set[str]] = {}
+    for name, path in modules.items():
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        found: Set[str] = set()
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                found |= {a.name for a in node.names if a.name in modules}
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = package.split(".")
+                    base = base[: len(base) - (node.level - 1)]
+                    target = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    target = node.module or ""
+                if target not in modules:
+                    continue
+                for a in node.names:
+                    sub = f"{target}.{a.name}"
+                    found.add(sub if sub in modules else target)
+        found.discard(name)
+        graph[name] = found
+    return graph
+
+
+def _floor_of(module: str, floors: Dict[str, int]) -> int:
+    rel = module.split(".")[1:]
+    candidates = [f"{rel[0]}/"] if len(rel) > 1 else []
+    candidates.append(f"{rel[0]}.py" if rel else "__init__.py")
+    if len(rel) == 1 and (PACKAGE / rel[0]).is_dir():
+        candidates = [f"{rel[0]}/"]
+    for c in candidates:
+        if c in floors:
+            return floors[c]
+    raise AssertionError(f"{module} is on no floor of docs/ARCHITECTURE.md's Floors table")
+
+
+def test_every_import_runs_down_the_floors():
+    floors = _floors(_text())
+    assert len(floors) > 10, "the Floors table lists few rooms: has its layout changed?"
+    graph = _imports()
+    up = []
+    for module, targets in sorted(graph.items()):
+        here = _floor_of(module, floors)
+        for target in sorted(targets):
+            if target == "pose_daemon":
+                continue  # the package's face is imported by Python before any module of it
+            there = _floor_of(target, floors)
+            if there > here:
+                up.append(f"{module} (floor {here}) imports {target} (floor {there})")
+    assert not up, "imports that run up the floors:\n" + "\n".join(up)
+
+
+def test_no_modules_import_each_other_in_a_circle():
+    graph = _imports()
+    index: Dict[str, int] = {}
+    low: Dict[str, int] = {}
+    stack: List[str] = []
+    circles: List[List[str]] = []
+
+    def visit(v: str) -> None:  # Tarjan's strongly connected components
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                circles.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    assert not circles, f"modules that import each other in a circle: {circles}"
