@@ -498,18 +498,18 @@ def test_map_file_prints_the_same_sheets_as_the_grid_and_turned_markers(tmp_path
     assert not list(tmp_path.glob("x*.png"))
 
 
-def test_readme_commands_for_several_sheets_run_and_the_option_table_is_complete(
+def test_docs_commands_for_several_sheets_run_and_the_option_table_is_complete(
     tmp_path: Path, monkeypatch, capsys
 ) -> None:
-    """The README's commands of "A landing pad or a floor map on several sheets" work as shown
-    (stdout into the file they name), and its option table names every option of the command."""
+    """docs/markers.md's commands of "A landing pad or a floor map on several sheets" work as
+    shown (stdout into the file they name), and its option table names every option of the command."""
     import argparse
     import shlex
 
     from pose_daemon.commands import marker as marker_command
 
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    section = readme.split("#### A landing pad or a floor map on several sheets", 1)[1]
+    readme = (Path(__file__).resolve().parents[1] / "docs" / "markers.md").read_text()
+    section = readme.split("### A landing pad or a floor map on several sheets", 1)[1]
     block = section.split("```sh", 1)[1].split("```", 1)[0]
     monkeypatch.chdir(tmp_path)
     lines = [line.split("#")[0].strip() for line in block.strip().splitlines()]
@@ -532,7 +532,7 @@ def test_readme_commands_for_several_sheets_run_and_the_option_table_is_complete
     parser = argparse.ArgumentParser()
     marker_command.register(parser.add_subparsers())
     sub = parser._subparsers._group_actions[0].choices["marker"]  # type: ignore[union-attr]
-    table = readme.split("### Printing a marker: `pose-daemon marker`", 1)[1].split("###", 1)[0]
+    table = readme.split("## Printing a marker: `pose-daemon marker`", 1)[1].split("\n#", 1)[0]
     for action in sub._actions:
         for option in action.option_strings:
             if option.startswith("--") and option != "--help":
