@@ -140,11 +140,11 @@ def has_own_attitude_link(cfg: Config) -> bool:
 
 def attitude_link(cfg: Config, attitude, *, clock: Callable[[], float] = time.monotonic):
     """The ``[attitude] source`` link of its own feeding ``attitude``
-    (outputs.attitude_link.MavlinkAttitudeListener, not started), or None when the attitude
+    (outputs.mavlink.MavlinkAttitudeListener, not started), or None when the attitude
     comes over the ``[output.mavlink]`` link or there is none."""
     if attitude is None or not has_own_attitude_link(cfg):
         return None
-    from .outputs.attitude_link import MavlinkAttitudeListener
+    from .outputs.mavlink import MavlinkAttitudeListener
 
     return MavlinkAttitudeListener.of_config(cfg, attitude, clock=clock, start=False)
 

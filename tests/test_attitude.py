@@ -152,7 +152,7 @@ def test_attitude_source_from_config():
         )
         is None
     )
-    # A connection of its own, listened on for the attitude (outputs/attitude_link.py).
+    # A connection of its own, listened on for the attitude (outputs/mavlink/attitude_link.py).
     own = parse_config('[attitude]\nsource = "/dev/ttyACM0"\nbaud = 57600\n')
     assert attitude_connection(own) == "/dev/ttyACM0" and own.attitude.baud == 57600
     assert attitude_connection(parse_config('[attitude]\nsource = "udpin:0.0.0.0:14551"\n')) == "udpin:0.0.0.0:14551"

@@ -1,4 +1,4 @@
-"""outputs/attitude_link.py: the [attitude] source's own MAVLink link, over real UDP to the fake
+"""outputs/mavlink/attitude_link.py: the [attitude] source's own MAVLink link, over real UDP to the fake
 autopilot (real pymavlink both ways): ATTITUDE asked for at 50 Hz, TIMESYNC both ways, the
 attitude at a capture time, the status line's text; and a link that cannot open."""
 
@@ -13,7 +13,7 @@ from mavlink_helpers import of_type, wait_for
 
 from pose_daemon.attitude import AutopilotAttitude, autopilot_attitude_from_config
 from pose_daemon.config import parse_config
-from pose_daemon.outputs.attitude_link import MavlinkAttitudeListener
+from pose_daemon.outputs.mavlink import MavlinkAttitudeListener
 
 
 def test_the_listener_feeds_the_attitude_from_a_px4_over_udp_and_sends_no_poses():

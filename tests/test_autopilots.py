@@ -13,7 +13,7 @@ from fc_acceptance import check
 from mavlink_helpers import CAMERA, MARKER, mavlink_output, of_type, vehicle_result, wait_for
 
 from pose_daemon import geometry as g
-from pose_daemon.outputs import mavlink as mavlink_module
+from pose_daemon.outputs.mavlink import origin as mavlink_module
 from pose_daemon.pose.estimator import estimate_pose
 from pose_daemon.result import FrameResult
 

@@ -617,7 +617,7 @@ def test_service_listens_for_the_attitude_on_a_link_of_its_own_without_a_mavlink
     autopilot on this link."""
     from fake_autopilot import FakeAutopilot
 
-    from pose_daemon.outputs.attitude_link import MavlinkAttitudeListener
+    from pose_daemon.outputs.mavlink import MavlinkAttitudeListener
     from pose_daemon.service import Service
 
     n_frames, fps = 30, 10.0

@@ -29,8 +29,8 @@ from pose_daemon.config import parse_config
 from pose_daemon.config.forms import parse_connection
 from pose_daemon.errors import ConfigError
 from pose_daemon.outputs import MavlinkOutput
-from pose_daemon.outputs import mavlink as mavlink_module
 from pose_daemon.outputs.mavlink import PoseMessageInputs, encode_pose_messages
+from pose_daemon.outputs.mavlink import origin as mavlink_module
 from pose_daemon.outputs.quality import pose_quality
 from pose_daemon.result import time_usec_from_s
 
@@ -621,7 +621,7 @@ def test_target_relative_is_packed_by_pymavlink_as_the_c_library_lays_it_out():
     from fc_acceptance import TargetRelative
     from pymavlink.dialects.v20 import common as mavlink2
 
-    from pose_daemon.outputs import target_relative
+    from pose_daemon.outputs.mavlink import target_relative
 
     assert target_relative.crc_extra() == target_relative.CRC_EXTRA == 28
     mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)

@@ -1,7 +1,7 @@
 """The ``[attitude] source`` link of its own: a MAVLink connection only listened on for the
 autopilot's attitude, where the poses go elsewhere (a plain serial line, JSON) or nowhere.
 
-``MavlinkAttitudeListener`` is the MAVLink output's link machinery (mavlink.py: pymavlink's
+``MavlinkAttitudeListener`` is the MAVLink output's link machinery (output.py: pymavlink's
 opener and MAVLink 2 codec, HEARTBEAT, the autopilot found by its HEARTBEAT, TIMESYNC answered
 and sent, ATTITUDE asked for at 50 Hz with MAV_CMD_SET_MESSAGE_INTERVAL and REQUEST_DATA_STREAM
 for an older ArduPilot, reopening with a doubling pause) with ``attach_attitude`` done at
@@ -15,14 +15,14 @@ from __future__ import annotations
 import time
 from typing import TYPE_CHECKING, Any, Callable, Optional
 
-from ..camera import Camera, Marker
-from ..geometry import VehicleFrames
-from ..result import FrameResult
-from .mavlink import MavlinkOutput
+from ...camera import Camera, Marker
+from ...geometry import VehicleFrames
+from ...result import FrameResult
+from .output import MavlinkOutput
 
 if TYPE_CHECKING:
-    from ..attitude import Attitude, AutopilotAttitude
-    from ..config import Config, MavlinkOutputConfig
+    from ...attitude import Attitude, AutopilotAttitude
+    from ...config import Config, MavlinkOutputConfig
 
 __all__ = ["MavlinkAttitudeListener"]
 
@@ -64,7 +64,7 @@ class MavlinkAttitudeListener(MavlinkOutput):
         with the ``[output.mavlink]`` system and component ids when there is such a section."""
         import dataclasses
 
-        from ..config import MavlinkOutputConfig
+        from ...config import MavlinkOutputConfig
 
         base = cfg.output.mavlink if cfg.output.mavlink is not None else MavlinkOutputConfig()
         link_cfg = dataclasses.replace(
