@@ -38,7 +38,9 @@ from ..marker_map import MarkerMap
 from . import aruco_compat
 from .aruco import ArucoFinder, FrameFinders
 from .quads import Roi, find_quads, inside_any
-from .refine import SEARCH_CONVERGED_PX, EdgeFit, fit_edges_many, signed_area
+from .edge_profiles import EdgeFit, signed_area
+from .refine import SEARCH_CONVERGED_PX
+from .refine_many import fit_edges_many
 from .square import UNIT_SQUARE, SquareOptions, darker_inside, median_of, sample_canonical, side_lengths
 
 #: A marker partly out of the frame is followed while this many of its corners are inside.
