@@ -13,8 +13,8 @@ import numpy as np
 
 from ..camera import Marker
 from . import aruco_compat, blur_model
-from .quads import Roi, inside_any
 from .edge_profiles import EdgeFit, signed_area
+from .quads import Roi, inside_any
 from .refine import SEARCH_CONVERGED_PX, SEARCH_ITERATIONS
 from .square import (
     MAX_REACH_PX,
