@@ -15,14 +15,9 @@ from pose_daemon.attitude import Attitude
 from pose_daemon.bench import ambiguity as bench
 from pose_daemon.capture.base import Frame
 from pose_daemon.geometry import angle_between_deg, euler_rpy_from_R
-from pose_daemon.pose.prior import (
-    AttitudeAccuracy,
-    CornerNoise,
-    HeadingReference,
-    PriorSettings,
-    choose_solution,
-    down_variance_rad2,
-)
+from pose_daemon.pose.heading_reference import HeadingReference
+from pose_daemon.pose.prior import PriorSettings, choose_solution
+from pose_daemon.pose.prior_noise import AttitudeAccuracy, CornerNoise, down_variance_rad2
 from pose_daemon.processing.marker import FrameProcessor
 
 

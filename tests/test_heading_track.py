@@ -14,7 +14,8 @@ from pose_daemon.capture.base import Frame
 from pose_daemon.config import ConfigError, parse_config
 from pose_daemon.geometry import rotation_angle_deg_3x3
 from pose_daemon.pose.heading_track import HeadingTrack
-from pose_daemon.pose.prior import HeadingTerm, PriorSettings, _body_yaw, polish_toward
+from pose_daemon.pose.prior import PriorSettings, _body_yaw
+from pose_daemon.pose.prior_polish import HeadingTerm, polish_toward
 from pose_daemon.processing.marker import FrameProcessor
 
 FPS = 30.0

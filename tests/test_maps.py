@@ -641,7 +641,8 @@ def test_fit_edges_many_gives_what_fit_edges_gives_each_outline():
     """The batched follow fit against one fit_edges call per outline, element for element:
     sharp and blurred edges (those handed back to fit_edges), a motion smear, a gamma camera,
     lens distortion, starts off by up to a few pixels, markers partly out of the frame."""
-    from pose_daemon.detect.refine import fit_edges, fit_edges_many
+    from pose_daemon.detect.refine import fit_edges
+    from pose_daemon.detect.refine_many import fit_edges_many
     from pose_daemon.detect.response import decode_lut
 
     m = floor_grid("DICT_4X4_50", rows=3, cols=3, spacing_m=0.4, sizes_m=(0.15, 0.20))

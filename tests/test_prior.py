@@ -20,7 +20,8 @@ from pose_daemon.geometry import (
     rotation_angle_deg_3x3,
     rvec_from_R,
 )
-from pose_daemon.pose.prior import HeadingReference, PriorSettings, choose_solution, gate_bound_px
+from pose_daemon.pose.heading_reference import HeadingReference
+from pose_daemon.pose.prior import PriorSettings, choose_solution, gate_bound_px
 from pose_daemon.processing.marker import FrameProcessor
 
 CAMERA = Camera(fx=600.0, fy=600.0, cx=319.5, cy=239.5)
@@ -406,7 +407,7 @@ def test_sharp_corners_give_a_wall_markers_heading_without_waiting_for_the_refer
     """Only frames whose own corners leave the heading uncertain wait (``heading_sigma_deg``
     > 2 deg): at 0.3 px on 20-30 px markers they do, with sharp corners (0.02 px, as the
     renderer's) the same views are sent from the first frame."""
-    from pose_daemon.pose.prior import heading_sigma_deg
+    from pose_daemon.pose.heading_reference import heading_sigma_deg
 
     for noise_px, want_unresolved in ((0.3, True), (0.02, False)):
         outcomes = []
@@ -444,7 +445,7 @@ def test_the_heading_reference_learns_a_wall_markers_heading_given_the_attitudes
     20-30 px markers with 0.3 px of corner noise that removes an eighth of the heading error
     (RMS 6.1 -> 5.4 deg over these views, measured); a floor marker's heading is its image's
     turn, which the down does not touch: its sample is the pose itself."""
-    from pose_daemon.pose.prior import heading_sample
+    from pose_daemon.pose.heading_reference import heading_sample
 
     def heading_deg(frames, pose):
         R = frames.vehicle_pose(pose.R, pose.tvec).R_local_body

@@ -37,7 +37,8 @@ from ..capture.base import Frame
 from ..detect import MarkerDetector
 from ..geometry import R_from_euler_rpy, VehicleFrames, VehiclePose, rotation_angle_deg_3x3
 from ..pose.estimator import estimate_pose
-from ..pose.prior import PriorSettings, heading_unseen_by_down
+from ..pose.heading_reference import heading_unseen_by_down
+from ..pose.prior import PriorSettings
 from ..processing.marker import FrameProcessor
 from ..render import Effects, make_background, render_marker, render_plane
 

@@ -13,8 +13,9 @@ import numpy as np
 
 from ..camera import Marker
 from . import aruco_compat, blur_model
+from .edge_profiles import EdgeFit, signed_area
 from .quads import Roi, inside_any
-from .refine import SEARCH_CONVERGED_PX, SEARCH_ITERATIONS, EdgeFit, signed_area
+from .refine import SEARCH_CONVERGED_PX, SEARCH_ITERATIONS
 from .square import (
     MAX_REACH_PX,
     UNIT_SQUARE,
@@ -39,6 +40,68 @@ from .square import (
 #: within 8 frames. It falls on searches without the full-size pass (``FULL_PASS_EVERY``
 #: divides it): the two costly steps of a marker-free run take turns.
 OPENCV_EVERY = 8
+
+
+class CellGrid:
+    """Where an ArUco marker of ``n_bits`` x ``n_bits`` is read, in unit-square coordinates:
+    each cell's centre (the one-cell border included) and a ring of points in the quiet zone;
+    which cells are border, and how each quarter turn of the corners permutes the cells (the
+    grid read from corners rolled by k is grid[perms[k]])."""
+
+    def __init__(self, n_bits: int) -> None:
+        cells = int(n_bits) + 2
+        centres = (np.arange(cells) + 0.5) / cells
+        uu, vv = np.meshgrid(centres, centres)
+        self.cell_uv = np.column_stack([uu.ravel(), vv.ravel()])
+        s = np.linspace(0.1, 0.9, 7)
+        ring = np.concatenate(
+            [
+                np.column_stack([s, np.full_like(s, -0.08)]),
+                np.column_stack([np.full_like(s, 1.08), s]),
+                np.column_stack([s, np.full_like(s, 1.08)]),
+                np.column_stack([np.full_like(s, -0.08), s]),
+            ]
+        )
+        self.uv = np.concatenate([self.cell_uv, ring])
+        border = np.ones((cells, cells), dtype=bool)
+        border[1:-1, 1:-1] = False
+        self.border = border.ravel()
+        self.inner = ~self.border
+        perms = []
+        for k in range(4):
+            H = cv2.getPerspectiveTransform(UNIT_SQUARE, np.roll(UNIT_SQUARE, -k, axis=0))
+            uv = cv2.perspectiveTransform(self.cell_uv.reshape(-1, 1, 2), H).reshape(-1, 2)
+            idx = np.floor(uv * cells).astype(int).clip(0, cells - 1)
+            perms.append(idx[:, 1] * cells + idx[:, 0])
+        self.perms = np.array(perms)
+
+    def read(self, gray: np.ndarray, corners: np.ndarray, min_contrast: float) -> Optional[np.ndarray]:
+        """The cells read white (bool, one per cell, row by row) from the outline ``corners``,
+        or None when a cell lies outside the frame, the ring is mostly outside, or the quiet
+        zone is not lighter than the border by ``min_contrast`` grey levels."""
+        values = sample_canonical(gray, corners, self.uv)
+        n_cells = len(self.cell_uv)
+        cells, ring = values[:n_cells], values[n_cells:]
+        ring = ring[np.isfinite(ring)]
+        if not np.isfinite(cells).all() or len(ring) < 10:
+            return None
+        dark, light = median_of(cells[self.border]), median_of(ring)
+        if light - dark < min_contrast:
+            return None
+        return cells > 0.5 * (dark + light)
+
+    def read_fit(self, gray: np.ndarray, fit: EdgeFit, options: SquareOptions) -> Optional[np.ndarray]:
+        """``read`` from an edge fit that looks like a marker's outline (straight sides, enough
+        contrast and size, by ``options``) whose border reads dark but for one cell; else None."""
+        o = options
+        if fit.residual_px > o.max_edge_residual_px or fit.valid_fraction < 0.6:
+            return None
+        if fit.contrast < o.min_contrast or side_lengths(fit.corners).min() < o.min_side_px:
+            return None
+        white = self.read(gray, fit.corners, o.min_contrast)
+        if white is None or np.count_nonzero(white[self.border]) > 1:
+            return None
+        return white
 
 
 class FrameFinders:
@@ -81,6 +144,8 @@ class ArucoFinder(OutlineFinder):
 
     def __init__(self, marker: Marker, options: SquareOptions, camera=None) -> None:
         super().__init__(marker, options, camera)
+        if marker.dictionary is None or marker.id is None:  # Marker refuses these already
+            raise ValueError("an aruco marker needs a dictionary and an id")
         self.dictionary = aruco_compat.get_dictionary(marker.dictionary)
         n_ids = aruco_compat.dictionary_size(self.dictionary)
         if not 0 <= int(marker.id) < n_ids:
@@ -99,38 +164,15 @@ class ArucoFinder(OutlineFinder):
         )
         # Whole frames.
         self._frame_finders = FrameFinders(self.dictionary, options.min_side_px)
+        self._grid = CellGrid(self.n_bits)
         cells = self.n_bits + 2
-        centres = (np.arange(cells) + 0.5) / cells
-        uu, vv = np.meshgrid(centres, centres)
-        self._cell_uv = np.column_stack([uu.ravel(), vv.ravel()])
         expected = np.zeros((cells, cells), dtype=bool)
         expected[1:-1, 1:-1] = self.bits.astype(bool)
         self._expected_white = expected.ravel()
         self._model = blur_model.MarkerModel(expected)
-        border = np.ones((cells, cells), dtype=bool)
-        border[1:-1, 1:-1] = False
-        self._border = border.ravel()
-        self._inner = ~self._border
-        # Cell index permutations: the grid read from corners rolled by k is grid[perm[k]].
-        self._perms = []
-        for k in range(4):
-            H = cv2.getPerspectiveTransform(UNIT_SQUARE, np.roll(UNIT_SQUARE, -k, axis=0))
-            uv = cv2.perspectiveTransform(self._cell_uv.reshape(-1, 1, 2), H).reshape(-1, 2)
-            idx = np.floor(uv * cells).astype(int).clip(0, cells - 1)
-            self._perms.append(idx[:, 1] * cells + idx[:, 0])
         # The inner cells' indices in each rotation (4, n_bits^2), and their expected colour.
-        self._inner_perms = np.array([perm[self._inner] for perm in self._perms])
-        self._expected_inner = self._expected_white[self._inner]
-        s = np.linspace(0.1, 0.9, 7)
-        self._ring = np.concatenate(
-            [
-                np.column_stack([s, np.full_like(s, -0.08)]),
-                np.column_stack([np.full_like(s, 1.08), s]),
-                np.column_stack([s, np.full_like(s, 1.08)]),
-                np.column_stack([np.full_like(s, -0.08), s]),
-            ]
-        )
-        self._cell_and_ring_uv = np.concatenate([self._cell_uv, self._ring])
+        self._inner_perms = np.array([perm[self._grid.inner] for perm in self._grid.perms])
+        self._expected_inner = self._expected_white[self._grid.inner]
 
     def reach_px(self, corners: np.ndarray):
         side = min(side_lengths(corners).tolist())
@@ -141,25 +183,12 @@ class ArucoFinder(OutlineFinder):
     def orientation(self, gray: np.ndarray, fit: EdgeFit) -> Optional[int]:
         """k such that the corners rolled by k start at the marker's top-left, or None if
         this is not the marker: straight sides, dark border, light quiet zone, its bits."""
-        o = self.options
-        if fit.residual_px > o.max_edge_residual_px or fit.valid_fraction < 0.6:
+        grid = self._grid
+        white = grid.read_fit(gray, fit, self.options)
+        if white is None:
             return None
-        if fit.contrast < o.min_contrast or side_lengths(fit.corners).min() < o.min_side_px:
-            return None
-        values = sample_canonical(gray, fit.corners, self._cell_and_ring_uv)
-        cells, ring = values[: len(self._cell_uv)], values[len(self._cell_uv) :]
-        ring = ring[np.isfinite(ring)]
-        if not np.isfinite(cells).all() or len(ring) < 10:
-            return None
-        dark = median_of(cells[self._border])
-        light = median_of(ring)
-        if light - dark < o.min_contrast:
-            return None
-        white = cells > 0.5 * (dark + light)
-        if np.count_nonzero(white[self._border]) > 1:
-            return None
-        for k, perm in enumerate(self._perms):
-            errors = np.count_nonzero(white[perm][self._inner] != self._expected_white[self._inner])
+        for k, perm in enumerate(grid.perms):
+            errors = np.count_nonzero(white[perm][grid.inner] != self._expected_white[grid.inner])
             if errors <= self.max_bit_errors:
                 return k
         return None
@@ -168,16 +197,8 @@ class ArucoFinder(OutlineFinder):
         """Early rejection, before any sub-pixel work: the code read from the rough outline
         (about a pixel off, so with one more bit error and border cell allowed). Rejects
         the dark squares of a board, print and texture at a fraction of an edge fit's cost."""
-        values = sample_canonical(gray, quad, self._cell_and_ring_uv)
-        cells, ring = values[: len(self._cell_uv)], values[len(self._cell_uv) :]
-        ring = ring[np.isfinite(ring)]
-        if not np.isfinite(cells).all() or len(ring) < 10:
-            return False
-        dark, light = median_of(cells[self._border]), median_of(ring)
-        if light - dark < 0.5 * self.options.min_contrast:
-            return False
-        white = cells > 0.5 * (dark + light)
-        if np.count_nonzero(white[self._border]) > 2:
+        white = self._grid.read(gray, quad, 0.5 * self.options.min_contrast)
+        if white is None or np.count_nonzero(white[self._grid.border]) > 2:
             return False
         errors = np.count_nonzero(white[self._inner_perms] != self._expected_inner, axis=1)
         return bool(errors.min() <= self.max_bit_errors + 1)
@@ -189,17 +210,17 @@ class ArucoFinder(OutlineFinder):
         quads = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
         if len(quads) < 3:
             return np.array([self.could_be(gray, q) for q in quads], dtype=bool)
-        values = sample_canonical_many(gray, quads, self._cell_and_ring_uv)
-        n_cells = len(self._cell_uv)
+        values = sample_canonical_many(gray, quads, self._grid.uv)
+        n_cells = len(self._grid.cell_uv)
         cells, ring = values[:, :n_cells], values[:, n_cells:]
         ok = np.isfinite(cells).all(axis=1) & (np.isfinite(ring).sum(axis=1) >= 10)
         cells = np.where(ok[:, None], cells, 0.0)
-        border = cells[:, self._border]
+        border = cells[:, self._grid.border]
         dark = np.partition(border, border.shape[1] // 2, axis=1)[:, border.shape[1] // 2]
         light = medians_of_rows(np.where(ok[:, None], ring, 0.0))
         ok &= light - dark >= 0.5 * self.options.min_contrast
         white = cells > 0.5 * (dark + light)[:, None]
-        ok &= white[:, self._border].sum(axis=1) <= 2
+        ok &= white[:, self._grid.border].sum(axis=1) <= 2
         # Bit errors against the marker's code in each of its 4 rotations: (N, 4).
         errors = (white[:, self._inner_perms] != self._expected_inner).sum(axis=2)
         return ok & (errors.min(axis=1) <= self.max_bit_errors + 1)
@@ -222,7 +243,7 @@ class ArucoFinder(OutlineFinder):
         quiet_px = self.reach_px(cand.corners)[1]
         least = None if fit.side_blur_px is None else float(fit.side_blur_px.min())
         model_fit = self._model.fit(gray, cand.corners, fit.blur_px, quiet_px, least, self.lut)
-        if not blur_model.accept(model_fit, cand.corners, fit.blur_px):
+        if model_fit is None or not blur_model.accept(model_fit, cand.corners, fit.blur_px):
             return cand
         return Candidate(model_fit.corners, True, fit)
 

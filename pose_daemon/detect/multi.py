@@ -27,7 +27,7 @@ from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -37,15 +37,13 @@ from ..image import as_gray
 from ..marker_map import MarkerMap
 from . import aruco_compat
 from .aruco import ArucoFinder, FrameFinders
+from .edge_profiles import EdgeFit, signed_area
+from .map_decode import MapDecoder
+from .partial import MIN_PARTIAL_CORNERS, corners_inside, fit_partial
 from .quads import Roi, find_quads, inside_any
-from .refine import SEARCH_CONVERGED_PX, EdgeFit, fit_edges_many, signed_area
-from .square import UNIT_SQUARE, SquareOptions, darker_inside, median_of, sample_canonical, side_lengths
-
-#: A marker partly out of the frame is followed while this many of its corners are inside.
-MIN_PARTIAL_CORNERS = 2
-#: ... and while this share of its edge profiles (most of them on the visible sides) fit.
-#: Profiles across each side of a marker partly out of the frame (those inside are used).
-PARTIAL_SAMPLES = 24
+from .refine import SEARCH_CONVERGED_PX
+from .refine_many import fit_edges_many
+from .square import SquareOptions, darker_inside, side_lengths
 
 #: A followed marker's bits are read again once in this many frames (and at once when its edge
 #: fit turns poor, below). Between reads the fit alone checks it: straight sides, dark border
@@ -71,109 +69,6 @@ FOLLOW_ITERATIONS = 2
 _NOT_FITTED = object()
 
 
-def _fit_side(
-    gray: np.ndarray,
-    a: np.ndarray,
-    b: np.ndarray,
-    inner_px: float,
-    outer_px: float,
-    margin_px: float,
-    lut: Optional[np.ndarray],
-    min_contrast: float,
-    camera: Optional[Camera],
-) -> Optional[Tuple[np.ndarray, float, float]]:
-    """The line (nx, ny, c: nx x + ny y = c, in undistorted pixels when the lens distorts) of
-    the dark-to-light edge from corner ``a`` to ``b`` of an image-clockwise outline, fitted
-    on the profiles across it that lie inside the frame; with its RMS residual (px) and mean
-    contrast (grey levels). None when too little of the side is in the frame."""
-    h, w = gray.shape
-    d = b - a
-    length = float(np.hypot(d[0], d[1]))
-    if length < 8.0:
-        return None
-    u = d / length
-    normal = np.array([u[1], -u[0]])  # outward for an image-clockwise outline
-    t = np.linspace(0.12, 0.88, PARTIAL_SAMPLES) * length
-    base = a + t[:, None] * u
-    ok = (base[:, 0] >= margin_px) & (base[:, 0] <= w - 1 - margin_px)
-    ok &= (base[:, 1] >= margin_px) & (base[:, 1] <= h - 1 - margin_px)
-    if int(ok.sum()) < 6:
-        return None
-    base = base[ok]
-    offsets = np.arange(-inner_px, outer_px + 1e-9, 0.5)
-    if len(offsets) < 4:
-        return None
-    pts = base[:, None, :] + offsets[None, :, None] * normal
-    prof = cv2.remap(gray, pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32), cv2.INTER_LINEAR).astype(
-        np.float64
-    )
-    if lut is not None:
-        prof = np.interp(prof, np.arange(256.0), lut)
-        levels = np.interp(prof[:, [0, 1, -2, -1]], np.arange(256.0), np.arange(256.0))
-    dark = 0.5 * (prof[:, 0] + prof[:, 1])
-    light = 0.5 * (prof[:, -1] + prof[:, -2])
-    contrast = light - dark if lut is None else 0.5 * (levels[:, 2] + levels[:, 3] - levels[:, 0] - levels[:, 1])
-    mid = 0.5 * (dark + light)
-    above = prof >= mid[:, None]
-    first = np.argmax(above, axis=1)
-    good = (contrast >= min_contrast) & (first > 0) & above[np.arange(len(first)), first]
-    # A clean crossing: dark before the first sample above the half-way level, light after.
-    good &= ~above[:, 0] & above[:, -1]
-    if int(good.sum()) < 6:
-        return None
-    rows = np.nonzero(good)[0]
-    i1 = first[rows]
-    p0, p1 = prof[rows, i1 - 1], prof[rows, i1]
-    frac = (mid[rows] - p0) / np.maximum(p1 - p0, 1e-9)
-    s_edge = offsets[0] + (i1 - 1 + frac) * 0.5
-    edge = base[rows] + s_edge[:, None] * normal
-    if camera is not None and camera.has_distortion:
-        edge = camera.undistort_normalized(edge) * [camera.fx, camera.fy] + [camera.cx, camera.cy]
-    centre = edge.mean(axis=0)
-    _, _, vt = np.linalg.svd(edge - centre, full_matrices=False)
-    n = vt[1]
-    res = (edge - centre) @ n
-    keep = np.abs(res) <= max(0.3, 3.0 * 1.4826 * float(np.median(np.abs(res))))
-    if int(keep.sum()) < 6:
-        return None
-    centre = edge[keep].mean(axis=0)
-    _, _, vt = np.linalg.svd(edge[keep] - centre, full_matrices=False)
-    n = vt[1]
-    res = (edge[keep] - centre) @ n
-    return np.array([n[0], n[1], float(n @ centre)]), float(np.sqrt(np.mean(res * res))), float(contrast[rows].mean())
-
-
-def _intersect(l1: np.ndarray, l2: np.ndarray) -> Optional[np.ndarray]:
-    A = np.array([l1[:2], l2[:2]])
-    det = float(np.linalg.det(A))
-    if abs(det) < 1e-6:
-        return None
-    return np.linalg.solve(A, np.array([l1[2], l2[2]]))
-
-
-def _inside(px: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Which corners lie in the frame, a pixel in from its border."""
-    x, y = px[:, 0], px[:, 1]
-    return (x >= 1.0) & (x <= width - 2.0) & (y >= 1.0) & (y <= height - 2.0)
-
-
-def _undistort(camera: Optional[Camera], px: np.ndarray) -> np.ndarray:
-    if camera is None or not camera.has_distortion:
-        return px
-    return camera.undistort_normalized(px) * [camera.fx, camera.fy] + [camera.cx, camera.cy]
-
-
-def _line_through(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    d = b - a
-    n = np.array([-d[1], d[0]]) / max(float(np.hypot(d[0], d[1])), 1e-12)
-    return np.array([n[0], n[1], float(n @ a)])
-
-
-def _distort(camera: Camera, pt_undistorted_px: np.ndarray) -> np.ndarray:
-    norm = (pt_undistorted_px - [camera.cx, camera.cy]) / [camera.fx, camera.fy]
-    return camera.project(np.array([[norm[0], norm[1], 1.0]]))[0]
-
-
 class _Track:
     __slots__ = ("last", "previous", "misses", "since_read", "contrast")
 
@@ -190,74 +85,6 @@ class _Track:
         if self.previous is None or self.misses:
             return self.last.copy()
         return self.last + (self.last - self.previous)
-
-
-class _Decoder:
-    """Reads a quadrilateral's cells once and finds which map id (and rotation) it is."""
-
-    def __init__(self, dictionary, ids: List[int], options: SquareOptions) -> None:
-        self.options = options
-        n = int(dictionary.markerSize)
-        self.n_bits = n
-        cells = n + 2
-        centres = (np.arange(cells) + 0.5) / cells
-        uu, vv = np.meshgrid(centres, centres)
-        self.cell_uv = np.column_stack([uu.ravel(), vv.ravel()])
-        s = np.linspace(0.1, 0.9, 7)
-        ring = np.concatenate(
-            [
-                np.column_stack([s, np.full_like(s, -0.08)]),
-                np.column_stack([np.full_like(s, 1.08), s]),
-                np.column_stack([s, np.full_like(s, 1.08)]),
-                np.column_stack([np.full_like(s, -0.08), s]),
-            ]
-        )
-        self.uv = np.concatenate([self.cell_uv, ring])
-        border = np.ones((cells, cells), dtype=bool)
-        border[1:-1, 1:-1] = False
-        self.border = border.ravel()
-        self.inner = ~self.border
-        self.max_bit_errors = int(getattr(dictionary, "maxCorrectionBits", 0))
-        perms = []
-        for k in range(4):
-            H = cv2.getPerspectiveTransform(UNIT_SQUARE, np.roll(UNIT_SQUARE, -k, axis=0))
-            uv = cv2.perspectiveTransform(self.cell_uv.reshape(-1, 1, 2), H).reshape(-1, 2)
-            idx = np.floor(uv * cells).astype(int).clip(0, cells - 1)
-            perms.append(idx[:, 1] * cells + idx[:, 0])
-        self.perms = np.array(perms)
-        expected = []
-        for marker_id in ids:
-            grid = np.zeros((cells, cells), dtype=bool)
-            grid[1:-1, 1:-1] = aruco_compat.marker_bits(dictionary, marker_id).astype(bool)
-            expected.append(grid.ravel()[self.inner])
-        self.ids = np.array(ids, dtype=np.int64)
-        self.expected = np.array(expected)  # (n_ids, n*n)
-
-    def decode(self, gray: np.ndarray, fit) -> Optional[Tuple[int, int]]:
-        """(id, k) with the corners rolled by k starting at the marker's top-left, or None."""
-        o = self.options
-        if fit.residual_px > o.max_edge_residual_px or fit.valid_fraction < 0.6:
-            return None
-        if fit.contrast < o.min_contrast or side_lengths(fit.corners).min() < o.min_side_px:
-            return None
-        values = sample_canonical(gray, fit.corners, self.uv)
-        n_cells = len(self.cell_uv)
-        cells, ring = values[:n_cells], values[n_cells:]
-        ring = ring[np.isfinite(ring)]
-        if not np.isfinite(cells).all() or len(ring) < 10:
-            return None
-        dark, light = median_of(cells[self.border]), median_of(ring)
-        if light - dark < o.min_contrast:
-            return None
-        white = cells > 0.5 * (dark + light)
-        if np.count_nonzero(white[self.border]) > 1:
-            return None
-        read = white[self.perms][:, self.inner]  # (4, n*n): the grid as each rotation reads it
-        errors = (read[:, None, :] != self.expected[None, :, :]).sum(axis=2)  # (4, n_ids)
-        k, j = np.unravel_index(int(np.argmin(errors)), errors.shape)
-        if errors[k, j] > self.max_bit_errors:
-            return None
-        return int(self.ids[j]), int(k)
 
 
 class MapDetector:
@@ -319,7 +146,7 @@ class MapDetector:
             i: ArucoFinder(marker_map.single(i), self.options, camera) for i in marker_map.ids
         }
         dictionary = aruco_compat.get_dictionary(marker_map.dictionary)
-        self._decoder = _Decoder(dictionary, list(marker_map.ids), self.options)
+        self._decoder = MapDecoder(dictionary, list(marker_map.ids), self.options)
         self._nests = {i: marker_map.contains_others(i) for i in marker_map.ids}
         self._opencv = FrameFinders(dictionary, self.options.min_side_px)
         #: How each marker was found in the last call: id -> "follow", "partial" (partly out of the
@@ -414,7 +241,7 @@ class MapDetector:
             starts: Dict[int, np.ndarray] = {}
             for marker_id, track in self._tracks.items():
                 start = track.predict()
-                if marker_id in (predicted or {}) and not _inside(start, w, h).all():
+                if marker_id in (predicted or {}) and not corners_inside(start, w, h).all():
                     # Partly out of the frame: where the map pose puts its corners outside is
                     # better than where its track (corners extrapolated before) would.
                     pts = np.asarray(predicted[marker_id], dtype=np.float64).reshape(4, 2)  # type: ignore[index]
@@ -436,17 +263,17 @@ class MapDetector:
             # The edge fits of every marker followed this frame, all in one batch.
             fits = self._follow_fits(gray, {**starts, **untracked})
             for marker_id, track in self._tracks.items():
-                corners, stage = self._find_tracked(
+                got, stage = self._find_tracked(
                     gray, marker_id, starts[marker_id], track.last, track, fits.get(marker_id, _NOT_FITTED)
                 )
-                if corners is not None:
-                    found[marker_id], stages[marker_id] = corners, stage
+                if got is not None and stage is not None:
+                    found[marker_id], stages[marker_id] = got, stage
                 elif track.misses == 0:
                     lost = True  # lost this frame: look for it (and what replaced it) everywhere once
             for marker_id, pts in untracked.items():
-                corners, _ = self._find_tracked(gray, marker_id, pts, pts, None, fits.get(marker_id, _NOT_FITTED))
-                if corners is not None:
-                    found[marker_id], stages[marker_id] = corners, "predicted"
+                got, _ = self._find_tracked(gray, marker_id, pts, pts, None, fits.get(marker_id, _NOT_FITTED))
+                if got is not None:
+                    found[marker_id], stages[marker_id] = got, "predicted"
             self._since_full += 1
             if found and self.search != "inline":
                 # Tracking: the search goes to the worker (one at a time), the frame on.
@@ -476,7 +303,7 @@ class MapDetector:
         """``fit``: the edge fit of ``predicted`` from ``_follow_fits`` (``_NOT_FITTED``: none)."""
         h, w = gray.shape
         finder = self.finders[marker_id]
-        inside = _inside(predicted, w, h)
+        inside = corners_inside(predicted, w, h)
         if inside.all():
             corners = self._follow(gray, finder, predicted, track, fit)
             if corners is not None:
@@ -506,7 +333,7 @@ class MapDetector:
         which the batch does not take: on `bench map`'s frames (0.15-0.20 m markers 30-100 px
         across, 0.8 px blur) it moved the map's figures slightly the wrong way."""
         h, w = gray.shape
-        ids = [i for i, c in starts.items() if _inside(c, w, h).all()]
+        ids = [i for i, c in starts.items() if corners_inside(c, w, h).all()]
         if not ids:
             return {}
         reach = [self.finders[i].reach_px(starts[i]) for i in ids]
@@ -576,67 +403,18 @@ class MapDetector:
         return fit.corners
 
     def _follow_partial(self, gray: np.ndarray, finder: ArucoFinder, predicted: np.ndarray) -> Optional[np.ndarray]:
-        """A marker of the map partly out of the frame, where the track or the map pose puts it.
-
-        The edge fit of the whole outline needs all four sides; here each side is fitted on
-        its part inside the frame (the sides wholly outside are not), and a corner inside the
-        frame is where its two sides' lines meet (a corner outside keeps its predicted place:
-        the solve leaves such corners out). Its bits cannot all be read, so it is checked by
-        the fit alone (straight sides, contrast, near where it was predicted); a wrong one is
-        the solve's outlier. Markers that leave (or enter) the frame so fade out of the solve
-        corner by corner instead of dropping out whole."""
-        o = self.options
-        h, w = gray.shape
+        """A map marker partly out of the frame, where the track or the map pose puts it
+        (``partial.fit_partial``)."""
         inner, outer = finder.reach_px(predicted)
-        max_move = 0.8 * min(inner, outer) + 0.5
-        corners = np.asarray(predicted, dtype=np.float64).copy()
-        lut = getattr(finder, "lut", None)
-        margin = max(inner, outer) + 1.0
-        for _ in range(2):
-            lines: List[Optional[np.ndarray]] = []
-            residuals: List[float] = []
-            contrasts: List[float] = []
-            for k in range(4):
-                line = _fit_side(
-                    gray, corners[k], corners[(k + 1) % 4], inner, outer, margin, lut, o.min_contrast, self.camera
-                )
-                if line is None:
-                    lines.append(None)
-                    continue
-                lines.append(line[0])
-                residuals.append(line[1])
-                contrasts.append(line[2])
-            # A side wholly out of the frame keeps its predicted line; a corner is where its
-            # two lines meet (a fitted one and a predicted one for a corner out of the frame).
-            und = _undistort(self.camera, corners)
-            pred_lines = [_line_through(und[k], und[(k + 1) % 4]) for k in range(4)]
-            new = corners.copy()
-            # Every corner in the image (the solve uses those) must be measured.
-            inside = ((corners >= -0.5) & (corners <= [w - 0.5, h - 0.5])).all(axis=1)
-            for k in range(4):
-                a, b = lines[(k - 1) % 4], lines[k]
-                if (a is None or b is None) and inside[k]:
-                    return None  # a corner in the frame whose sides cannot be fitted
-                if a is None and b is None:
-                    continue
-                pt = _intersect(pred_lines[(k - 1) % 4] if a is None else a, pred_lines[k] if b is None else b)
-                if pt is None:
-                    return None
-                new[k] = pt if self.camera is None or not self.camera.has_distortion else _distort(self.camera, pt)
-            corners = new
-        if int(sum(line is not None for line in lines)) < 3:
-            return None
-        if max(residuals) > o.max_edge_residual_px or min(contrasts) < o.min_contrast:
-            return None
-        inside = ((corners >= 1.0) & (corners <= [w - 2.0, h - 2.0])).all(axis=1)
-        if int(inside.sum()) < MIN_PARTIAL_CORNERS:
-            return None
-        moved = np.linalg.norm(corners[inside] - predicted[inside], axis=1)
-        if float(moved.max()) > 2.0 * max_move + 1.0:
-            return None
-        if signed_area(corners) <= 0 or side_lengths(corners).min() < o.min_side_px:
-            return None
-        return corners
+        return fit_partial(
+            gray,
+            predicted,
+            inner_px=inner,
+            outer_px=outer,
+            lut=getattr(finder, "lut", None),
+            options=self.options,
+            camera=self.camera,
+        )
 
     def _roi(self, pts: np.ndarray, side: float, w: int, h: int) -> Optional[Roi]:
         margin = max(self.roi_margin * side, 16.0)
@@ -711,10 +489,10 @@ class MapDetector:
                 if track.misses > self.max_misses:
                     del self._tracks[marker_id]
         for marker_id, corners in found.items():
-            track = self._tracks.get(marker_id)
-            if track is None:
+            known = self._tracks.get(marker_id)
+            if known is None:
                 self._tracks[marker_id] = _Track(corners)
             else:
-                track.previous = track.last if track.misses == 0 else None
-                track.last = corners
-                track.misses = 0
+                known.previous = known.last if known.misses == 0 else None
+                known.last = corners
+                known.misses = 0

@@ -16,8 +16,9 @@ import cv2
 import numpy as np
 
 from ..camera import Marker
+from .edge_profiles import EdgeFit
 from .quads import Roi, find_quads, inside_any, odd, trace_dark_regions
-from .refine import SEARCH_CONVERGED_PX, SEARCH_ITERATIONS, EdgeFit, fit_edges
+from .refine import SEARCH_CONVERGED_PX, SEARCH_ITERATIONS, fit_edges
 from .response import Response, decode_lut
 
 

@@ -73,7 +73,7 @@ NEED_POSITION_M = 0.1
 AGREE_DEG = 2.0
 # The choices (prior.RESOLVED_BY) that ruled the other planar solution out.
 RESOLVING_PRIORS = ("attitude", "tilt")
-# No attitude's down is trusted to better than this in the covariance, radians (prior.py's
+# No attitude's down is trusted to better than this in the covariance, radians (prior_noise.py's
 # MIN_PRIOR_SIGMA_DEG).
 MIN_DOWN_SIGMA_RAD = math.radians(0.25)
 LOST_QUALITY = -1

@@ -11,7 +11,7 @@ constant rate through them robustly (every frame's sample the nearer of its two;
 through two of the window's samples from each half, or a constant through one, the one with
 the lowest clipped cost, then refined by least squares on the samples it keeps), and
 predicts the heading at the next capture time with its uncertainty. The caller chooses the
-solution nearer the prediction and pulls the pose towards it (``prior.polish_toward``'s
+solution nearer the prediction and pulls the pose towards it (``prior_polish.polish_toward``'s
 heading term).
 
 What it costs: a turn is followed at its rate; where the rate changes (seen as a curve in

@@ -13,13 +13,11 @@ rectangles fit a square's model worse than a marker does.
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Callable, Deque, List, Optional, Sequence, Tuple
+from typing import Callable, List, Optional, Tuple
 
-import cv2
 import numpy as np
 
 from ..attitude import Attitude
@@ -27,28 +25,31 @@ from ..camera import Camera, Marker
 from ..geometry import (
     VehicleFrames,
     angle_between_deg,
-    paper_angles_deg_from_R_cam_marker,
     rotation_angle_deg_3x3,
 )
+from .heading_reference import (
+    HeadingReference,
+    heading_sample,
+    heading_sigma_deg,
+    heading_unseen_by_down,
+)
 from .heading_track import HeadingTrack
+from .prior_noise import (
+    DEFAULT_CORNER_SIGMA_PX,
+    MIN_PRIOR_SIGMA_DEG,
+    AttitudeAccuracy,
+    down_variance_rad2,
+)
+from .prior_polish import HeadingTerm, polish_toward
 from .types import Pose
 
 __all__ = [
-    "AttitudeAccuracy",
     "PriorSettings",
     "Choice",
-    "CornerNoise",
-    "HeadingReference",
-    "HeadingTerm",
     "RESOLVED_BY",
     "choose_solution",
-    "down_variance_rad2",
     "gate_bound_px",
-    "heading_sample",
-    "heading_sigma_deg",
-    "heading_unseen_by_down",
-    "polish_toward",
-    "polish_toward_down",
+    "view_angle_deg",
 ]
 
 # flip_resolved_by: what picked the solution that was sent.
@@ -63,25 +64,16 @@ __all__ = [
 RESOLVED_BY = ("attitude", "tilt", "continuity", "clear")
 # Two solutions closer than this are one pose: nothing to choose (a face-on view).
 SAME_POSE_DEG = 5.0
-# A heading this far off the learnt reference in 5 frames in a row: the reference moved.
-HEADING_RESET_DEG = 30.0
 # Both candidates are polished unless the cheaper's unpolished cost is this much lower (sigma^2).
 POLISH_BOTH_BELOW = 25.0
-# No attitude is trusted to better than this in the polish, degrees.
-MIN_PRIOR_SIGMA_DEG = 0.25
 # The vision side's own share of the error in the down direction (small markers), degrees.
 VISION_DOWN_SIGMA_DEG = 1.0
-# A marker whose normal is further than this from the vertical (a wall marker): a turn about the
-# vertical, which roll and pitch cannot see, is one of the directions its image shows worst.
-HEADING_UNSEEN_FROM_VERTICAL_DEG = 45.0
-# ... unless its own corners give the heading to this (1 sigma, degrees): the bound the heading
-# reference was once held to before it was used at all.
+# A wall marker's own corners give its heading well enough alone to this (1 sigma, degrees): the
+# bound the heading reference was once held to before it was used at all.
 HEADING_KNOWN_SIGMA_DEG = 2.0
 # The tilt prior's polish takes max_tilt_deg as this many sigma of the vehicle's tilt (a bound
 # is 3 sigma, as the attitude's bound is at least 3 of its sigma).
 TILT_BOUND_SIGMAS = 3.0
-# The attitude's accuracy is measured on frames whose image gives the down to this share of it.
-ACCURACY_FROM_IMAGE_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -96,7 +88,7 @@ class PriorSettings:
     gate: bool = True
     attitude_sigma_deg: float = 1.0  # an attitude's accuracy when it does not state one
     polish: bool = True  # re-fit the chosen pose with the attitude's down as a prior term
-    corner_sigma_px: float = 0.3  # corner noise the priors are weighed against when none is given
+    corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX  # corner noise the priors are weighed against when none is given
     heading_window_s: float = 1.5  # the tilt prior's heading track at a wall marker (0 = none)
 
     @classmethod
@@ -153,393 +145,6 @@ def _swap(pose: Pose) -> Pose:
     return dataclasses.replace(
         alt, alternative=dataclasses.replace(pose, alternative=None), ambiguity_ratio=pose.ambiguity_ratio
     )
-
-
-@dataclass(frozen=True)
-class HeadingTerm:
-    """A prior term on the vehicle's heading for ``polish_toward``: the body's x axis in the
-    local frame (``R_local_marker R^T forward_cam``, ``forward_cam`` the body's x axis in the
-    camera frame) turned about the vertical to ``yaw_rad``, weighed ``weight_px`` per radian."""
-
-    R_local_marker: np.ndarray
-    forward_cam: np.ndarray
-    yaw_rad: float
-    weight_px: float
-
-
-def polish_toward_down(
-    pose: Pose,
-    corners_px: np.ndarray,
-    camera: Camera,
-    marker: Marker,
-    down_m: np.ndarray,
-    down_cam: np.ndarray,
-    weight_px: float,
-    iterations: int = 3,
-) -> Tuple[Pose, float]:
-    """``pose`` re-fitted to its corners with a prior term pulling the down direction it
-    implies (``R @ down_m``, ``down_m`` = down in the marker frame) towards ``down_cam``.
-
-    Minimises sum |reprojection|^2 + weight_px^2 |R down_m - down_cam|^2 (Gauss-Newton on
-    rvec, tvec; OpenCV's projection Jacobian through the distortion). ``weight_px`` = corner
-    noise / the down direction's accuracy (radians): the two terms in the same units.
-    Like PhotonVision's constrained solver and Limelight's MegaTag2, only the poorly seen
-    part of the pose (the marker's tilt) moves. Returns the pose (its reprojection RMS
-    recomputed) and the final cost in px^2."""
-    return polish_toward(pose, corners_px, camera, marker, [(down_m, down_cam, weight_px)], iterations)
-
-
-def polish_toward(
-    pose: Pose,
-    corners_px: np.ndarray,
-    camera: Camera,
-    marker: Marker,
-    terms: Sequence[Tuple[np.ndarray, np.ndarray, float]],
-    iterations: int = 3,
-    heading: Optional[HeadingTerm] = None,
-) -> Tuple[Pose, float]:
-    """``polish_toward_down`` with any number of direction terms (dir in the marker frame,
-    wanted dir in the camera frame, weight px): down, and the heading once it is known;
-    ``heading`` adds a term on the vehicle's heading itself (``HeadingTerm``)."""
-    obj = marker.object_points.astype(np.float64)
-    uv = np.asarray(corners_px, dtype=np.float64).reshape(-1)
-    rvec = np.asarray(pose.rvec, dtype=np.float64).reshape(3).copy()
-    tvec = np.asarray(pose.tvec, dtype=np.float64).reshape(3).copy()
-    terms = [(np.asarray(d_m, dtype=np.float64), np.asarray(d_c, dtype=np.float64), float(w)) for d_m, d_c, w in terms]
-
-    def residual(rv: np.ndarray, tv: np.ndarray):
-        img, J = cv2.projectPoints(obj, rv, tv, camera.K, camera.dist_coeffs)
-        R, dR = cv2.Rodrigues(rv)
-        rs, Js = [img.reshape(-1) - uv], [J[:, :6]]
-        for d_m, d_c, w in terms:
-            rs.append(w * (R @ d_m - d_c))
-            J_dir = np.zeros((3, 6))
-            # dR is (3, 9): d R.flat / d rvec_k, row-major R.
-            J_dir[:, :3] = w * (dR.reshape(3, 3, 3) @ d_m).T
-            Js.append(J_dir)
-        if heading is not None:
-            # yaw = atan2(v_y, v_x) of v = R_local_marker R^T forward_cam (the body's x axis in
-            # the local frame); d v / d rvec_k = R_local_marker dR_k^T forward_cam.
-            v = heading.R_local_marker @ (R.T @ heading.forward_cam)
-            dv = heading.R_local_marker @ np.einsum("kij,i->jk", dR.reshape(3, 3, 3), heading.forward_cam)
-            h2 = max(float(v[0] ** 2 + v[1] ** 2), 1e-12)
-            turn = math.remainder(math.atan2(v[1], v[0]) - heading.yaw_rad, math.tau)
-            rs.append(np.array([heading.weight_px * turn]))
-            J_head = np.zeros((1, 6))
-            J_head[0, :3] = heading.weight_px * (v[0] * dv[1] - v[1] * dv[0]) / h2
-            Js.append(J_head)
-        return np.concatenate(rs), np.vstack(Js)
-
-    r, J = residual(rvec, tvec)
-    cost = float(r @ r)
-    lam = 1e-4
-    eye = np.eye(6)
-    for _ in range(iterations):
-        H = J.T @ J
-        g = J.T @ r
-        ok, step = cv2.solve(H + lam * (eye * np.diag(H) + 1e-12 * eye), -g.reshape(6, 1))
-        if not ok:
-            break
-        step = step.reshape(6)
-        rv_new, tv_new = rvec + step[:3], tvec + step[3:]
-        if tv_new[2] <= 0:
-            lam *= 10.0
-            continue
-        r_new, J_new = residual(rv_new, tv_new)
-        cost_new = float(r_new @ r_new)
-        if cost_new < cost:
-            converged = cost - cost_new < 1e-6 * cost + 1e-9
-            rvec, tvec, r, J, cost = rv_new, tv_new, r_new, J_new, cost_new
-            lam = max(lam / 10.0, 1e-9)
-            if converged:
-                break
-        else:
-            lam *= 10.0
-    R = cv2.Rodrigues(rvec)[0]
-    rms = float(np.sqrt(np.mean(np.sum(r[:8].reshape(4, 2) ** 2, axis=1))))
-    a, b, c = paper_angles_deg_from_R_cam_marker(R)
-    polished = dataclasses.replace(
-        pose, rvec=rvec, tvec=tvec, R=R, alpha_deg=a, beta_deg=b, gamma_deg=c, reprojection_error_px=rms
-    )
-    return polished, cost
-
-
-# Corner noise is believed within these bounds, pixels.
-CORNER_SIGMA_MIN_PX, CORNER_SIGMA_MAX_PX = 0.01, 2.0
-
-
-def _corner_sigma_from_rms(rms_px: Sequence[float]) -> float:
-    """The corner noise the best fits' reprojection RMS values imply (their median / 0.589,
-    see ``CornerNoise``), within the believed bounds."""
-    median = sorted(rms_px)[len(rms_px) // 2]
-    return min(max(median / 0.589, CORNER_SIGMA_MIN_PX), CORNER_SIGMA_MAX_PX)
-
-
-class CornerNoise:
-    """The corner noise of this camera and detector, from the best fits' reprojection RMS.
-
-    Four corners fit a 6-DoF pose with 2 degrees of freedom to spare, so RMS^2 = sigma^2
-    chi2_2 / 4 and the median RMS is 0.589 sigma. The polish weighs the attitude against it:
-    a sharp camera's corners (the renderer's: hundredths of a pixel) are barely pulled, a
-    webcam's small markers (0.3-0.4 px) are pulled as much as they need."""
-
-    def __init__(self, window: int = 31, min_samples: int = 5) -> None:
-        self._rms: Deque[float] = collections.deque(maxlen=window)
-        self.min_samples = int(min_samples)
-        self._sigma_px: Optional[float] = None  # worked out once per observed frame
-
-    def observe(self, rms_px: float) -> None:
-        if math.isfinite(rms_px) and rms_px >= 0:
-            self._rms.append(float(rms_px))
-            if len(self._rms) >= self.min_samples:
-                self._sigma_px = _corner_sigma_from_rms(self._rms)
-
-    @property
-    def sigma_px(self) -> Optional[float]:
-        return self._sigma_px
-
-    def estimate_px(self, rms_px: float) -> float:
-        """``sigma_px`` once measured; until then the same from the frames seen so far and
-        this one (reprojection RMS ``rms_px``). A fixed guess would weigh the priors many times
-        off: 0.3 px against a sharp camera's 0.02."""
-        measured = self.sigma_px
-        if measured is not None:
-            return measured
-        rms = list(self._rms)
-        if math.isfinite(rms_px) and rms_px >= 0:
-            rms.append(float(rms_px))
-        if not rms:
-            return PriorSettings.corner_sigma_px
-        return _corner_sigma_from_rms(rms)
-
-
-class AttitudeAccuracy:
-    """How well the attitude's down really agrees with the image's: the attitude's accuracy as
-    measured, where the one it states is too kind.
-
-    The polish weighs the attitude at its stated accuracy, but what reaches the camera frame is
-    worse by whatever the statement leaves out: a capture timestamp a few tens of milliseconds
-    off (a webcam's, a USB transfer's) turns every turn rate into an attitude error, a camera
-    mount a degree off adds its own tilt. Weighed as if it were exact, that error pulls poses the
-    image already gives well off the truth (bench ambiguity: 40 ms of lag at 0.5 deg stated
-    made the floor's sharp-corner median 0.34 against the estimator's 0.31 deg).
-
-    Measured from the frames whose image gives the down to under half the attitude's sigma (its
-    own down variance from the corners' information, ``down_variance_rad2``). The two downs
-    differ by sigma^2 + s^2 per axis (s^2 the image's, half its ``down_variance_rad2``), so the
-    angle between them, squared, is that times a chi-squared of 2 degrees, whose median is
-    2 ln 2: a frame's angle is below its median exactly when angle^2 / (2 ln 2) - s^2 is below
-    sigma^2, so the median of that over the frames is sigma^2 whatever each frame's s (and a
-    frame with mislabelled corners does not move a median). ``sigma_deg`` is the larger of the
-    stated and the measured: a too modest statement is kept (the image leaning on itself costs
-    little), a too proud one is corrected.
-    """
-
-    def __init__(self, window: int = 100, min_samples: int = 10) -> None:
-        self._excess: Deque[float] = collections.deque(maxlen=window)
-        self.min_samples = int(min_samples)
-        self._measured_deg: Optional[float] = None  # worked out once per observed frame
-
-    def observe(self, angle_rad: float, image_variance_rad2: float, sigma_deg: float) -> None:
-        """One frame: ``angle_rad`` between the attitude's down and the image's (the chosen
-        solution's, unpolished), ``image_variance_rad2`` the image's down variance (both axes),
-        ``sigma_deg`` the attitude's accuracy in use (the frame counts only when the image is
-        twice as sure)."""
-        if not (math.isfinite(angle_rad) and math.isfinite(image_variance_rad2)):
-            return
-        if (
-            image_variance_rad2 / 2.0
-            <= (ACCURACY_FROM_IMAGE_SHARE * math.radians(max(sigma_deg, MIN_PRIOR_SIGMA_DEG))) ** 2
-        ):
-            self._excess.append(angle_rad * angle_rad / (2.0 * math.log(2.0)) - image_variance_rad2 / 2.0)
-            if len(self._excess) >= self.min_samples:
-                median = sorted(self._excess)[len(self._excess) // 2]
-                self._measured_deg = math.degrees(math.sqrt(max(median, 0.0)))
-
-    @property
-    def measured_deg(self) -> Optional[float]:
-        """The attitude's down error per axis (1 sigma, degrees) the image measures, or None
-        before ``min_samples`` frames."""
-        return self._measured_deg
-
-    def sigma_deg(self, stated_deg: float) -> float:
-        """The accuracy to weigh the attitude at: the stated, or the measured where worse."""
-        measured = self.measured_deg
-        return stated_deg if measured is None else max(stated_deg, measured)
-
-
-def down_variance_rad2(pose: Pose, camera: Camera, marker: Marker, down_m: np.ndarray, corner_sigma_px: float) -> float:
-    """The variance (rad^2, both axes together) of the down direction ``R @ down_m`` that
-    ``pose``'s four corners give at corner noise ``corner_sigma_px``: the rotation block of
-    the inverse of the corners' information (OpenCV's projection Jacobian), through the
-    down's own Jacobian."""
-    obj = marker.object_points.astype(np.float64)
-    rvec = np.asarray(pose.rvec, dtype=np.float64).reshape(3)
-    tvec = np.asarray(pose.tvec, dtype=np.float64).reshape(3)
-    _, J = cv2.projectPoints(obj, rvec, tvec, camera.K, camera.dist_coeffs)
-    ok, cov = cv2.invert(J[:, :6].T @ J[:, :6], flags=cv2.DECOMP_CHOLESKY)
-    if not ok:
-        return math.inf
-    dR = cv2.Rodrigues(rvec)[1]  # (3, 9): d R.flat / d rvec_k, row-major R
-    D = (dR.reshape(3, 3, 3) @ np.asarray(down_m, dtype=np.float64)).T  # d (R down_m) / d rvec
-    var = float(np.trace(D @ cov[:3, :3] @ D.T)) * corner_sigma_px**2
-    return var if math.isfinite(var) and var >= 0 else math.inf
-
-
-class HeadingReference:
-    """The constant turn between the autopilot's heading and the marker's local frame.
-
-    The autopilot's yaw is on its own reference (compass, EKF origin), the marker's local
-    frame on the marker's; the difference stays put while the marker does. Learnt from the
-    frames whose heading the marker gives without doubt (one solution, or two that agree on
-    the heading, or two the down direction told apart with a wide margin; a wall marker's
-    heading taken given the attitude's down, ``heading_sample``), it lets the yaw decide too: a
-    wall marker's left/right ambiguity turns about the vertical, which roll and pitch cannot
-    see. ``offset_rad`` is None until ``min_samples`` give it to ``max_sigma_deg``.
-
-    It is used from its fourth sample on, with its own sigma (the samples' spread over the root
-    of their number) as the heading term's weight: on 20-40 px markers with 0.3 px of corner
-    noise a wall marker's heading from the image alone is 5-7 deg (1 sigma) off, so every frame
-    that waited for a reference known to 2 deg (8+ samples) was a coin toss; a reference from 4
-    samples already halves that error, and each later frame sharpens it (with 3 the spread of
-    so few samples was sometimes too small, and the pull too strong, in the bench's flights).
-    """
-
-    def __init__(self, *, window: int = 60, min_samples: int = 4, max_sigma_deg: float = 10.0) -> None:
-        self._samples: Deque[float] = collections.deque(maxlen=window)
-        self.min_samples, self.max_sigma_deg = int(min_samples), float(max_sigma_deg)
-        self._cached: Optional[Tuple[float, float]] = None
-        self._misses = 0
-
-    def reset(self) -> None:
-        self._samples.clear()
-        self._cached = None
-        self._misses = 0
-
-    def check(self, heading_error_deg: float) -> None:
-        """The best solution's heading is ``heading_error_deg`` off the prediction: several
-        frames in a row far off mean the autopilot's heading reference moved (an EKF yaw
-        reset, a reboot); the reference is learnt again."""
-        self._misses = self._misses + 1 if heading_error_deg > HEADING_RESET_DEG else 0
-        if self._misses >= 5:
-            self.reset()
-
-    def observe(self, yaw_marker_rad: float, yaw_autopilot_rad: float) -> None:
-        self._samples.append(
-            math.atan2(math.sin(yaw_marker_rad - yaw_autopilot_rad), math.cos(yaw_marker_rad - yaw_autopilot_rad))
-        )
-        self._cached = None
-
-    def _estimate(self) -> Optional[Tuple[float, float]]:
-        """(circular mean of the samples near the median, robust spread in degrees)."""
-        if self._cached is None and len(self._samples) >= self.min_samples:
-            # Plain floats: 60 samples, once a frame; numpy's per-call cost would dominate.
-            a = list(self._samples)
-            mean = math.atan2(sum(math.sin(v) for v in a), sum(math.cos(v) for v in a))
-            dev = [abs(math.remainder(v - mean, math.tau)) for v in a]
-            spread = math.degrees(sorted(dev)[len(dev) // 2]) * 1.4826  # MAD -> sigma
-            limit = max(3.0 * math.radians(spread), math.radians(2.0))
-            keep = [v for v, d in zip(a, dev) if d <= limit]
-            if keep:
-                mean = math.atan2(sum(math.sin(v) for v in keep), sum(math.cos(v) for v in keep))
-            self._cached = (mean, spread)
-        return self._cached
-
-    def _ready(self) -> Optional[Tuple[float, float]]:
-        """(offset rad, its sigma deg) once the offset is known to ``max_sigma_deg``."""
-        est = self._estimate()
-        if est is None:
-            return None
-        sigma = max(est[1] / math.sqrt(len(self._samples)), 0.25)
-        return (est[0], sigma) if sigma <= self.max_sigma_deg else None
-
-    def reference(self) -> Optional[Tuple[float, float]]:
-        """(offset rad, its sigma deg), or None while the offset is not known well enough."""
-        return self._ready()
-
-    @property
-    def offset_rad(self) -> Optional[float]:
-        ready = self._ready()
-        return ready[0] if ready is not None else None
-
-    @property
-    def sigma_deg(self) -> Optional[float]:
-        """The offset's own uncertainty: the samples' spread over the root of their number."""
-        ready = self._ready()
-        return ready[1] if ready is not None else None
-
-
-def heading_unseen_by_down(frames: VehicleFrames) -> bool:
-    """Whether the marker's normal is more than HEADING_UNSEEN_FROM_VERTICAL_DEG from the
-    vertical (a wall marker): then a turn about the vertical tilts its normal, the direction a
-    small marker's image shows worst, and roll and pitch cannot see it."""
-    cos_normal_vertical = abs(float(frames.R_local_marker[2][2]))
-    return cos_normal_vertical < math.cos(math.radians(HEADING_UNSEEN_FROM_VERTICAL_DEG))
-
-
-def heading_sigma_deg(
-    pose: Pose,
-    corners_px: np.ndarray,
-    camera: Camera,
-    marker: Marker,
-    frames: VehicleFrames,
-    down_cam: np.ndarray,
-    sigma_down_deg: float,
-    corner_sigma_px: float,
-) -> float:
-    """How well ``pose``'s corners (noise ``corner_sigma_px``) and a down direction known to
-    ``sigma_down_deg`` give its turn about the vertical (``down_cam``): 1 sigma, degrees, from
-    the linearised least squares (the turn is a rotation in the camera frame left of R)."""
-    obj = marker.object_points.astype(np.float64)
-    R0 = np.asarray(pose.R, dtype=np.float64)
-    t0 = np.asarray(pose.tvec, dtype=np.float64).reshape(3)
-    d_m = frames.R_local_marker[2]
-    w = max(corner_sigma_px, 1e-6) / math.radians(sigma_down_deg)
-
-    def residual(x: np.ndarray) -> np.ndarray:
-        R = cv2.Rodrigues(x[:3])[0] @ R0
-        img, _ = cv2.projectPoints(obj, cv2.Rodrigues(R)[0], t0 + x[3:], camera.K, camera.dist_coeffs)
-        return np.concatenate([img.reshape(-1), w * (R @ d_m)])
-
-    r0 = residual(np.zeros(6))
-    J = np.empty((r0.size, 6))
-    h = 1e-6
-    for k in range(6):
-        x = np.zeros(6)
-        x[k] = h
-        J[:, k] = (residual(x) - r0) / h
-    info = J.T @ J
-    ok, cov = cv2.invert(info, flags=cv2.DECOMP_SVD)
-    d = np.asarray(down_cam, dtype=np.float64)
-    d = d / np.linalg.norm(d)
-    var = float(d @ cov[:3, :3] @ d) * corner_sigma_px**2
-    return math.degrees(math.sqrt(var)) if var > 0 and math.isfinite(var) else 180.0
-
-
-def heading_sample(
-    pose: Pose,
-    corners_px: Optional[np.ndarray],
-    camera: Optional[Camera],
-    marker: Optional[Marker],
-    frames: VehicleFrames,
-    down_cam: np.ndarray,
-    weight_px: float,
-) -> Pose:
-    """The pose whose heading teaches the heading reference: ``pose`` re-fitted towards the
-    attitude's down (``polish_toward_down``, weight ``weight_px``) where the down does not see
-    the heading (a wall marker, ``heading_unseen_by_down``), else ``pose`` itself.
-
-    A wall marker's image gives its tilt about the horizontal and its turn about the vertical
-    (the heading) with correlated errors, and the frames that teach are chosen by the first
-    (their down told the two solutions apart): a raw solution's heading then carries the
-    part of that tilt's error the choice selected. On 20-40 px markers with 0.3 px of corner
-    noise that bias was 3-10 deg for seconds at a time, of one sign (the bench's wall flight,
-    seed 0), and the reference learnt it at a stated sigma of 1-3 deg; the heading term then
-    pulled poses more than 10 deg off. Given the down, the heading is freed of that part:
-    the same frames teach a reference within 1-3 deg of the truth."""
-    if corners_px is None or camera is None or marker is None or not heading_unseen_by_down(frames):
-        return pose
-    return polish_toward_down(pose, corners_px, camera, marker, frames.R_local_marker[2], down_cam, weight_px)[0]
 
 
 def decisive_polish(cost: List[float], best: int, other: int) -> bool:

@@ -28,7 +28,8 @@ from ..detect.square import side_lengths
 from ..geometry import VehicleFrames, angle_between_deg
 from ..marker_map import MarkerMap
 from ..pose.map_solve import GravityPrior, largest_marker, map_corners_px, solve_map_pose
-from ..pose.prior import MIN_PRIOR_SIGMA_DEG, Choice, PriorSettings, gate_bound_px
+from ..pose.prior import Choice, PriorSettings, gate_bound_px
+from ..pose.prior_noise import MIN_PRIOR_SIGMA_DEG
 from ..pose.types import EstimationError
 from ..result import FrameResult
 

@@ -25,15 +25,10 @@ from ..detect import MarkerDetector
 from ..geometry import VehicleFrames
 from ..pose.continuity import Track, choose_by_continuity
 from ..pose.estimator import estimate_pose
+from ..pose.heading_reference import HeadingReference
 from ..pose.heading_track import HeadingTrack
-from ..pose.prior import (
-    MIN_PRIOR_SIGMA_DEG,
-    AttitudeAccuracy,
-    CornerNoise,
-    HeadingReference,
-    PriorSettings,
-    choose_solution,
-)
+from ..pose.prior import PriorSettings, choose_solution
+from ..pose.prior_noise import MIN_PRIOR_SIGMA_DEG, AttitudeAccuracy, CornerNoise
 from ..pose.types import EstimationError, Pose
 from ..result import FrameResult
 

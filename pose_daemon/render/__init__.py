@@ -1,23 +1,17 @@
 """The renderer: camera frames of a marker or a whole map at a known pose, with a real camera's
 effects, and the trajectories the synthetic source follows."""
 
+from .effects import Effects, make_background
+from .poses import TRAJECTORIES, TRAJECTORY_MOUNTS, Trajectory, TruePose, random_pose, trajectory
 from .scene import (
-    TRAJECTORIES,
-    TRAJECTORY_MOUNTS,
-    Effects,
     RenderedFrame,
-    Trajectory,
-    TruePose,
     aruco_texture,
-    make_background,
-    marker_texture_grid,
-    random_pose,
     render_empty,
     render_frame,
     render_marker,
     render_plane,
-    trajectory,
 )
+from .texture import marker_texture_grid
 
 __all__ = [
     "Effects",

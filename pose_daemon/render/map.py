@@ -1,5 +1,5 @@
 """The renderer for marker maps: every marker of a map in one frame, with the same camera effects
-as one marker (render.py), and trajectories that fly over a floor map or along a wall map.
+as one marker (scene.py), and trajectories that fly over a floor map or along a wall map.
 
 A map pose is the map frame in the camera frame: X_cam = R(rvec) X_map + tvec.
 """
@@ -15,7 +15,11 @@ import numpy as np
 from ..camera import Camera
 from ..geometry import R_from_rvec, rot_x, rot_y, rvec_from_R
 from ..marker_map import MarkerMap
-from .scene import Effects, TruePose, _apply_effects, _background, _marker_pyramid, _pose_arrays, _render_plane_layer
+from .effects import Effects, apply_effects
+from .plane import render_plane_layer
+from .poses import TruePose
+from .scene import pose_arrays, scene_background
+from .texture import marker_pyramid
 
 __all__ = [
     "MapFrame",
@@ -60,8 +64,8 @@ def render_map(
     behind the wall).
     """
     rng = rng if rng is not None else np.random.default_rng()
-    R_cm, t_cm = _pose_arrays(rvec, tvec)
-    scene = _background(camera, effects, rng, background)
+    R_cm, t_cm = pose_arrays(rvec, tvec)
+    scene = scene_background(camera, effects, rng, background)
     if background is not None:
         scene = scene.copy()
     ss = max(1, int(effects.supersample))
@@ -74,7 +78,7 @@ def render_map(
         t = R_cm @ p + t_cm
         if float(R[:, 2] @ t) >= 0.0:
             continue  # its back faces the camera
-        layer = _render_plane_layer(camera, _marker_pyramid(marker_map.single(m.id), effects), R, t, ss)
+        layer = render_plane_layer(camera, marker_pyramid(marker_map.single(m.id), effects), R, t, ss)
         if layer is not None:
             (u0, v0, u1, v1), grey, alpha = layer
             roi = scene[v0:v1, u0:u1]
@@ -86,7 +90,7 @@ def render_map(
             corners[m.id] = px
             if np.all((px >= -0.5) & (px <= lim)):
                 visible.append(m.id)
-    return MapFrame(image=_apply_effects(scene, effects, rng), corners_px=corners, visible=tuple(sorted(visible)))
+    return MapFrame(image=apply_effects(scene, effects, rng), corners_px=corners, visible=tuple(sorted(visible)))
 
 
 def map_pose_looking_down(
