@@ -501,7 +501,7 @@ def test_as_gray_is_the_one_conversion_of_sources_detector_and_calibration() -> 
     from pose_daemon.capture import opencv, replay
     from pose_daemon.detect import detector
     from pose_daemon.image import as_gray
-    from pose_daemon.tools import calibrate
+    from pose_daemon.tools.calibrate import collect as calibrate
 
     assert detector.as_gray is as_gray and opencv.as_gray is as_gray
     assert replay.as_gray is as_gray and calibrate.as_gray is as_gray
