@@ -20,7 +20,7 @@ from pose_daemon.result import FrameResult
 DOWN = g.VehicleFrames.from_settings("down", placement="floor")
 ORIGIN = (47.397742, 8.545594, 488.0)
 ORIGIN_E7 = (473977420, 85455940, 488000)
-# The README's VISO_QUAL_MIN / EKF2_EV_QMIN.
+# The advised VISO_QUAL_MIN / EKF2_EV_QMIN (docs/design/quality.md).
 README_QUAL_MIN = 30
 
 

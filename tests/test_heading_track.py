@@ -139,7 +139,7 @@ def test_the_tilt_prior_with_a_heading_track_stops_a_wall_markers_flips():
 def test_the_heading_track_follows_a_turning_vehicle():
     """A wall flight turning +-40 deg on a 6 s sine (up to 42 deg/s): here the track follows the
     turn (frame by frame: 26 % flips, with the track 4.4 %). Not every turning flight gains as
-    much: the bench's (seeds 0-3) go from 7.7-16.6 % to 1.5-26.9 %, see the README."""
+    much: the bench's (seeds 0-3) go from 7.7-16.6 % to 1.5-26.9 %, see docs/design/planar-solution.md."""
     flight = _turning_flight()
     by_frame, tracked = _tilt_run(flight, 0.0), _tilt_run(flight, 1.5)
     assert by_frame["flip_pct"] >= 15.0, by_frame

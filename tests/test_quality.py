@@ -63,7 +63,7 @@ def test_bench_quality_runs_and_separates(capsys):
 
 def test_one_bad_corner_is_dropped_and_the_hover_kept_at_the_advised_minimum():
     """A hover at 1 m (the case where a corner knocked 3 px off passed most often): every pose
-    the daemon sends is correct and keeps quality >= 30 (README's VISO_QUAL_MIN), and the same
+    the daemon sends is correct and keeps quality >= 30 (the advised VISO_QUAL_MIN), and the same
     frames with one corner 3 px off -- residuals of 0.1-0.5 px, which a fixed pixel scale cannot
     tell from a real camera's noise -- fall below it against the corner noise the processor
     measured."""
@@ -152,7 +152,7 @@ def test_a_corner_knocked_along_the_unchecked_direction_is_caught_by_the_track()
     (near face-on: the tilt). The pose is 8 deg and 14 cm off while its residual stays within
     1.5 sigma of the corner noise, so fit, precision and flip risk pass it (>= 30 without the
     track); against the track's prediction it jumps far beyond any turn a vehicle can make and
-    falls below the README's minimum, while every pose the daemon sent keeps >= 30."""
+    falls below the advised minimum, while every pose the daemon sent keeps >= 30."""
     from pose_daemon.bench import quality as bench_quality
     from pose_daemon.outputs.quality import uncertainty
 

@@ -508,7 +508,7 @@ def _rows(result: Dict[str, Any]) -> Iterator[Tuple[str, Dict[str, Any]]]:
 
 
 def format_tables(result: Dict[str, Any]) -> str:
-    """The figures as Markdown tables (the README's form)."""
+    """The figures as Markdown tables (docs/design/planar-solution.md's form)."""
     lines = [
         "| flight | marker | corner noise | strategy | sent/detected | withheld | flips | rot med / p95 deg "
         "| trans med / p95 mm | rot med both right (estimator) | estimate+choice ms |",
@@ -567,5 +567,5 @@ def _clutter_lines(clutter: Optional[Dict[str, int]]) -> List[str]:
 
 
 def print_report(report: Dict[str, object]) -> None:
-    """The report of ``run_bench`` (or ``run_pooled``) as the README's Markdown tables."""
+    """The report of ``run_bench`` (or ``run_pooled``) as docs/design/planar-solution.md's Markdown tables."""
     print(format_pooled_tables(report) if "seeds" in report else format_tables(report))

@@ -37,7 +37,7 @@ from ..render.map import MapTrajectory, camera_position_map, map_pose_looking_do
 
 CAMERA = Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
 FPS = 30.0
-#: Pi 2 estimate: the factor the README's other benchmarks use (x86-64 dev machine -> Pi 2).
+#: Pi 2 estimate: the factor the other benchmarks use (docs/performance.md) (x86-64 dev machine -> Pi 2).
 PI2_FACTOR = 20.0
 #: Timed runs per frame in the cost rows; the fastest is kept.
 BEST_OF = 3

@@ -12,7 +12,7 @@ MAV_PARAM_TYPE_INT32 = 6
 MAV_PARAM_TYPE_REAL32 = 9
 # EKF_STATUS_REPORT / ESTIMATOR_STATUS flags: horizontal position, relative or absolute.
 POS_HORIZ_FLAGS = 0x08 | 0x10
-# The README's minimum quality (VISO_QUAL_MIN / EKF2_EV_QMIN) for ODOMETRY.
+# The advised minimum quality (docs/design/quality.md) (VISO_QUAL_MIN / EKF2_EV_QMIN) for ODOMETRY.
 QUALITY_MIN = 30
 
 
