@@ -1,6 +1,6 @@
 """pose-daemon: camera pose from the four corners of a known rectangle, for robots and drones.
 
-The stable Python API (see README): Camera, Marker, estimate_pose, estimate_pose_batch,
+The stable Python API (see docs/python-api.md): Camera, Marker, estimate_pose, estimate_pose_batch,
 EstimationError, Pose, MarkerDetector.
 """
 
