@@ -67,7 +67,10 @@ def check_px4(cfg, obs: Observation, link_kind: str = "udpout") -> List[Finding]
             ]
         elif qmin > QUALITY_MIN:
             out += [
-                Finding("PROBLEM", f"EKF2_EV_QMIN = {fmt(qmin)} is above the advised {QUALITY_MIN} (docs/design/quality.md)"),
+                Finding(
+                    "PROBLEM",
+                    f"EKF2_EV_QMIN = {fmt(qmin)} is above the advised {QUALITY_MIN} (docs/design/quality.md)",
+                ),
                 Finding("FIX", param="EKF2_EV_QMIN", value=QUALITY_MIN),
             ]
         else:
