@@ -75,7 +75,11 @@ class MavlinkLink:
         bytes); ``after_send(nbytes)``: called once they were handed to the kernel;
         ``on_discarded()``: a full buffer's stale bytes were discarded."""
         from pymavlink import mavutil
-        from pymavlink.dialects.v20 import common as mavlink2
+
+        # ArduPilot's dialect: common.xml and ArduPilot's own messages (EKF_STATUS_REPORT #193),
+        # so that those are decoded, CRC- and signature-checked, with their sender, rather than
+        # left as MAVLink_unknown (sender 0, nothing checked). PX4 speaks only common messages.
+        from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
         self.kind = kind
         self._on_ignored = on_ignored  # counts received data not believed, by cause
