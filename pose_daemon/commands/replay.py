@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import argparse
 
+from . import describe
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser(
         "replay",
         help="run detection and pose over a recording, image folder or video",
-        description=__doc__.splitlines()[0],
+        description=describe(__doc__),
     )
     parser.add_argument("path", metavar="PATH", help="recording folder, folder of images or video file")
     parser.add_argument(
