@@ -20,7 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="FILE",
         help="TOML config: camera and marker when the recording has none, estimator, detector",
     )
-    parser.add_argument("--out", metavar="FILE", help="write the JSON lines here (default: stdout)")
+    parser.add_argument("--out", metavar="FILE", help="write the JSON lines here (default, or -: stdout)")
     parser.add_argument("--annotate", metavar="DIR", help="also write each frame with corners, axes and pose")
     parser.set_defaults(func=run)
 
