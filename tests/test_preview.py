@@ -546,6 +546,22 @@ def test_the_annotated_frame_shows_the_rejected_solution_and_the_warnings(proces
     assert count(live, WARNING_COLOUR) > 50 and count(plain, WARNING_COLOUR) == 0
 
 
+def test_a_long_warning_is_wrapped_on_the_annotated_frame(processed):
+    """A warning wider than the frame is wrapped onto more rows, not cut off at its right edge."""
+    from pose_daemon.draw import WARNING_COLOUR, annotate_live
+
+    cfg = parse_config("", "c.toml")
+    frame, result = processed[0]
+    image = frame.image[:, :320]  # a narrow frame: 320 px
+    long_warning = "output cannot keep up or fails: mavlink 120 dropped in 5 s (link_busy), jsonl 3 (failed)"
+    live = annotate_live(image, result, cfg.camera.model(), cfg.marker.model(), warnings=[long_warning])
+    orange = np.all(np.abs(live.astype(int) - WARNING_COLOUR) < 40, axis=2)
+    rows, cols = np.nonzero(orange)
+    assert cols.size > 50
+    assert cols.max() < image.shape[1] - 4, "the warning runs off the frame's right edge"
+    assert rows.max() - rows.min() > 19, "one row: not wrapped"
+
+
 def test_a_request_naming_another_host_is_refused(served):
     from pose_daemon.preview.server import host_allowed
 
