@@ -3,7 +3,7 @@ and for the live preview the rejected planar solution, the marker's id and why t
 
 from __future__ import annotations
 
-from typing import Optional, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -81,15 +81,54 @@ def draw_axes(
     return image
 
 
+_TEXT_SCALE = 0.45
+# The text box's margin around the text, pixels (draw_text); a wrapped row keeps it inside the frame.
+_TEXT_PAD = 3
+
+
+def _text_width(text: str) -> int:
+    return cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, _TEXT_SCALE, 1)[0][0]
+
+
+def wrap_text(line: str, width_px: int) -> List[str]:
+    """``line`` cut into rows no wider than ``width_px`` at spaces (a word wider than that is cut
+    where it must), so that a long warning stays on the frame."""
+    rows: List[str] = []
+    current = ""
+    for word in line.split(" "):
+        candidate = f"{current} {word}" if current else word
+        if _text_width(candidate) <= width_px or not candidate:
+            current = candidate
+            continue
+        if current:
+            rows.append(current)
+        while _text_width(word) > width_px and len(word) > 1:
+            cut = 1
+            while cut < len(word) and _text_width(word[: cut + 1]) <= width_px:
+                cut += 1
+            rows.append(word[:cut])
+            word = word[cut:]
+        current = word
+    rows.append(current)
+    return rows
+
+
+def text_rows(image: np.ndarray, lines: Sequence[str], x_px: int = 8) -> List[str]:
+    """The rows ``draw_text`` draws ``lines`` in at ``x_px``: each wrapped to the frame's width."""
+    width_px = max(1, image.shape[1] - x_px - 2 * _TEXT_PAD - 1)
+    return [row for line in lines for row in wrap_text(line, width_px)]
+
+
 def draw_text(
     image: np.ndarray, lines: Sequence[str], origin_px: Tuple[int, int] = (8, 18), colour=(255, 255, 255)
 ) -> np.ndarray:
-    """Lines of text on a dark box (readable on any background), top-left first."""
+    """Lines of text on a dark box (readable on any background), top-left first; a line wider
+    than the frame is wrapped (``text_rows``)."""
     x, y = origin_px
-    for line in lines:
-        (w, h), base = cv2.getTextSize(line, cv2.FONT_HERSHEY_SIMPLEX, 0.45, 1)
-        cv2.rectangle(image, (x - 3, y - h - 3), (x + w + 3, y + base + 1), (0, 0, 0), -1)
-        cv2.putText(image, line, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1, cv2.LINE_AA)
+    for line in text_rows(image, lines, x):
+        (w, h), base = cv2.getTextSize(line, cv2.FONT_HERSHEY_SIMPLEX, _TEXT_SCALE, 1)
+        cv2.rectangle(image, (x - _TEXT_PAD, y - h - 3), (x + w + _TEXT_PAD, y + base + 1), (0, 0, 0), -1)
+        cv2.putText(image, line, (x, y), cv2.FONT_HERSHEY_SIMPLEX, _TEXT_SCALE, colour, 1, cv2.LINE_AA)
         y += h + base + 6
     return image
 
@@ -176,9 +215,10 @@ def annotate_live(
     notes = [(text, WARNING_COLOUR) for text in list(warnings)[:3]]
     if pose is not None and pose.alternative is not None:
         notes.insert(0, (f"rejected solution (magenta): ambiguity {pose.ambiguity_ratio:.2f}", REJECTED_COLOUR))
-    y = out.shape[0] - 8 - 19 * (len(notes) - 1)
-    for text, colour in notes:
-        draw_text(out, [text], origin_px=(8, y), colour=colour)
+    rows = [(row, colour) for text, colour in notes for row in text_rows(out, [text])]
+    y = out.shape[0] - 8 - 19 * (len(rows) - 1)
+    for row, colour in rows:
+        draw_text(out, [row], origin_px=(8, y), colour=colour)
         y += 19
     return out
 

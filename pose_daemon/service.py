@@ -337,6 +337,7 @@ def run_daemon(cfg: Config) -> int:
     """``pose-daemon run``: the service in the main thread until SIGTERM/SIGINT/SIGHUP; exit status."""
     setup_logging(cfg.logging.level)
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
+    startup.check()  # a stop held since the config was read (startup.py: one may have been dropped)
     try:
         service = Service(cfg)
     except UserError:
@@ -346,7 +347,11 @@ def run_daemon(cfg: Config) -> int:
         log.error("cannot start: %s", " ".join(str(exc).split()) or type(exc).__name__)
         return 1
     previous = service.install_signal_handlers()
-    startup.handed_over()
+    pending = startup.handed_over()
+    if pending is not None:
+        # A stop that came while the service was built and whose exception was dropped: the
+        # service stops at once (its outputs closed as after any stop), never READY=1.
+        service.request_stop(f"{signal.Signals(pending).name} during start-up")
     try:
         return service.run()
     finally:

@@ -9,17 +9,25 @@ raises ``StartupStop`` in the main thread, which the command line turns into STO
 line on stderr and exit 0, the same as a stop after start-up. Once the service has installed
 its own handlers (which only set flags), ``handed_over()`` makes these ignore what still comes
 while the process ends. Standard library only: this module must load in milliseconds.
+
+A raised exception can be lost: one raised while Python runs a weakref callback (importlib's
+module locks have one) or a ``__del__`` is printed as "Exception ignored in ..." and dropped. So
+the stop is also recorded (``_stop_signum``) and raised again at safe points until the
+process hands over or finishes: at every import (a finder first on ``sys.meta_path``) and at
+each ``check()`` between start-up steps; ``handed_over()`` returns a stop still pending so
+that the service acts on it.
 """
 
 from __future__ import annotations
 
 import signal
 import sys
-from typing import Dict
+from typing import Dict, Optional
 
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 
 _raising = False
+_stop_signum: Optional[int] = None  # the first stop signal while held, until handed over
 _previous: Dict[int, object] = {}
 
 
@@ -37,10 +45,31 @@ class StartupStop(BaseException):
 
 
 def _on_stop(signum: int, _frame) -> None:
-    global _raising
+    global _stop_signum
     if _raising:
-        _raising = False  # one stop; a second signal while it unwinds is not another exception
-        raise StartupStop(signum)
+        if _stop_signum is None:
+            _stop_signum = signum
+        # Raised each time, not once: the last one may have been dropped (module docstring).
+        raise StartupStop(_stop_signum)
+
+
+def check() -> None:
+    """Raise StartupStop if a stop signal came while held (a safe point between start-up steps)."""
+    if _raising and _stop_signum is not None:
+        raise StartupStop(_stop_signum)
+
+
+class _StopAtImport:
+    """First on ``sys.meta_path`` while held: every import is a safe point (``check()``); it
+    finds nothing itself."""
+
+    @staticmethod
+    def find_spec(_name, _path=None, _target=None):
+        check()
+        return None
+
+
+_FINDER = _StopAtImport()
 
 
 def _on_status(_signum: int, _frame) -> None:
@@ -55,19 +84,26 @@ def hold() -> None:
     for signum in STOP_SIGNALS:
         _previous.setdefault(signum, signal.signal(signum, _on_stop))
     _previous.setdefault(signal.SIGUSR1, signal.signal(signal.SIGUSR1, _on_status))
+    if _FINDER not in sys.meta_path:
+        sys.meta_path.insert(0, _FINDER)
     _raising = True
 
 
-def handed_over() -> None:
-    """The service handles the stop signals now; these handlers, if put back, ignore them."""
-    global _raising
+def handed_over() -> Optional[int]:
+    """The service handles the stop signals now; these handlers, if put back, ignore them.
+    Returns the stop signal that came while held and was not acted on, if any (then stop)."""
+    global _raising, _stop_signum
+    pending = _stop_signum if _raising else None
     _raising = False
+    _stop_signum = None
+    if _FINDER in sys.meta_path:
+        sys.meta_path.remove(_FINDER)
+    return pending
 
 
 def release() -> None:
     """Back to the handlers from before ``hold()`` (Python's: KeyboardInterrupt, default)."""
-    global _raising
-    _raising = False
+    handed_over()
     for signum, handler in _previous.items():
         signal.signal(signum, handler)  # type: ignore[arg-type]
     _previous.clear()
@@ -75,6 +111,7 @@ def release() -> None:
 
 def finish(stop: StartupStop) -> int:
     """STOPPING=1 to systemd and one line on stderr for a stop during start-up; exit status 0."""
+    handed_over()  # what still comes is ignored while the process ends
     from .sdnotify import SdNotifier
 
     notifier = SdNotifier()

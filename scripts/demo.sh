@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Sets up .venv and runs the main job: the daemon on the demo config (a rendered camera moving
 # in front of a wall marker), poses as JSON lines on stdout and MAVLink to udpout:127.0.0.1:14550
-# (open QGroundControl or `mavproxy.py --master=udpin:127.0.0.1:14550` to see them there).
+# (open QGroundControl or `mavproxy.py --master=udpin:127.0.0.1:14550 --no-state` to see them
+# there; --no-state: no mav.tlog left in the current folder).
 #   scripts/demo.sh [--seconds N]   (default: until Ctrl-C)
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -31,25 +31,32 @@ if [ ! -x "$venv/bin/python" ]; then
   fi
 fi
 pip=("$venv/bin/python" -m pip --disable-pip-version-check -q)
-stamp="$venv/.installed-$(cat pyproject.toml scripts/venv.sh | cksum | cut -d' ' -f1)$extras"
-if [ ! -e "$stamp" ]; then
-  if [ "$stack" = bookworm ]; then
-    "${pip[@]}" install "numpy==1.24.*" "opencv-contrib-python-headless==4.6.0.66" \
-      "pymavlink>=2.4.30" "pyserial==3.5" "tomli>=1.1; python_version < '3.11'"
-    "${pip[@]}" install --no-deps -e .
-    if [ -n "$extras" ]; then
-      # numpy pinned again: a newer matplotlib would otherwise pull numpy 2. scipy 1.10 is
-      # Bookworm's (python3-scipy), for `map build`.
-      "${pip[@]}" install "numpy==1.24.*" "pytest>=7" "ruff>=0.4" "mypy>=1.10" "matplotlib>=3.5" "scipy==1.10.*"
-    fi
-  else
-    "${pip[@]}" install --upgrade -e ".$extras"
-  fi
-  if [ -n "$extras" ]; then
-    # A real ground station for the MAVLink tests; see pyproject.toml for why --no-deps.
-    "${pip[@]}" install --no-deps "MAVProxy>=1.8"
-  fi
-  rm -f "$venv"/.installed-*
-  touch "$stamp"
+# One stamp per extras set of this pyproject.toml and this script, so that demo.sh (no extras)
+# and test.sh ([test]) do not reinstall each other's; [test] holds all that the plain one has.
+base="$venv/.installed-$(cat pyproject.toml scripts/venv.sh | cksum | cut -d' ' -f1)"
+stamp="$base$extras"
+if [ -e "$stamp" ] || { [ -z "$extras" ] && [ -e "$base[test]" ]; }; then
+  echo "$venv"
+  exit 0
 fi
+if [ "$stack" = bookworm ]; then
+  "${pip[@]}" install "numpy==1.24.*" "opencv-contrib-python-headless==4.6.0.66" \
+    "pymavlink>=2.4.30" "pyserial==3.5" "tomli>=1.1; python_version < '3.11'"
+  "${pip[@]}" install --no-deps -e .
+  if [ -n "$extras" ]; then
+    # numpy pinned again: a newer matplotlib would otherwise pull numpy 2. scipy 1.10 is
+    # Bookworm's (python3-scipy), for `map build`.
+    "${pip[@]}" install "numpy==1.24.*" "pytest>=7" "ruff>=0.4" "mypy>=1.10" "matplotlib>=3.5" "scipy==1.10.*"
+  fi
+else
+  "${pip[@]}" install --upgrade -e ".$extras"
+fi
+if [ -n "$extras" ]; then
+  # A real ground station for the MAVLink tests; see pyproject.toml for why --no-deps.
+  "${pip[@]}" install --no-deps "MAVProxy>=1.8"
+fi
+for old in "$venv"/.installed-*; do  # an older pyproject.toml or script's stamps
+  case "$old" in "$base" | "$base[test]") ;; *) rm -f "$old" ;; esac
+done
+touch "$stamp"
 echo "$venv"

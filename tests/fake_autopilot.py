@@ -13,7 +13,15 @@ ArduPilot (AP_VisualOdom, AP_NavEKF3, GCS_MAVLink):
   VISION_POSITION_ESTIMATE has no quality: taken as 0, so dropped when VISO_QUAL_MIN > 0.
   Fused only with VISO_TYPE > 0 and EK3_SRC1_POSXY = 6 ("EKF3 IMU0 is using external nav data").
 - LANDING_TARGET with position_valid only in BODY_FRD with distance > 0.
-- TIMESYNC requests every ``timesync_s``; EKF_STATUS_REPORT every 0.5 s.
+- TIMESYNC requests every ``timesync_s``. EKF_STATUS_REPORT only when asked for: once per
+  MAV_CMD_REQUEST_MESSAGE, or at the rate MAV_CMD_SET_MESSAGE_INTERVAL sets (Copter's SRn_EXTRA3
+  is 0: none streamed by default); flags 0x33f while the feed is fused with an origin (as a
+  real EKF3 reported it), 0x1 otherwise.
+- "EKF3 IMU0 is using external nav data" once per EKF start, at the first pose fused.
+  ``uptime_s``: the fake booted that long before it was made (its EKF started long since);
+  ``ext_nav_announced``: and the EKF has said that text already, to an earlier feed.
+- A message whose sender is the autopilot's own (system, component 1) is dropped as a
+  loopback (MAVLink_routing::check_and_forward).
 - Parameters as ArduPilot sends them (PARAM_VALUE's float is the value itself).
 PX4 (mavlink_receiver.cpp, mavlink_timesync, EKF2):
 - HEARTBEAT autopilot 12; an origin is taken at any time.
@@ -148,6 +156,8 @@ class FakeAutopilot:
         message_interval: bool = True,
         boot_age_s: float = 5.0,
         vte: bool = False,
+        uptime_s: float = 0.0,
+        ext_nav_announced: bool = False,
     ) -> None:
         # ArduPilot's dialect (common.xml and EKF_STATUS_REPORT); PX4 uses only common messages.
         from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -188,12 +198,14 @@ class FakeAutopilot:
         self.statustexts: List[str] = []
         self.intervals_us: Dict[int, int] = {}
         self.timesync_offset_ns: Optional[int] = None  # PX4: ours - theirs, once synced
-        self._t_first_heartbeat: Optional[float] = None
+        # Booted uptime_s ago: the first HEARTBEAT (and the EKF's start) lie that far back.
+        self._t_first_heartbeat: Optional[float] = time.monotonic() - uptime_s if uptime_s > 0 else None
         self._wipe_at: Optional[float] = None
         self._last_sent: Dict[str, float] = {}
         self._att_grid: Optional[Tuple[float, float]] = None  # (period, next sample's time)
         self._ext_nav_t: Optional[float] = None
-        self._said_ext_nav = False
+        self._said_ext_nav = ext_nav_announced
+        self.loopbacks_dropped = 0
         self._lock = threading.Lock()
         self._stop = False
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -239,6 +251,9 @@ class FakeAutopilot:
                     return
                 self.peer = addr
                 for msg in self.parser.parse_buffer(data) or []:
+                    if self.kind == "ardupilot" and (msg.get_srcSystem(), msg.get_srcComponent()) == (self.system, 1):
+                        self.loopbacks_dropped += 1  # its own id: taken for a loopback, dropped
+                        continue
                     with self._lock:
                         self.tally.received.append(msg)
                         self._handle(msg, now)
@@ -271,12 +286,13 @@ class FakeAutopilot:
             self.home, self.home_set_by = self.origin, "EKF origin"
         if self.timesync_s and self._every("ts", self.timesync_s, now):
             self.mav.timesync_send(0, time.monotonic_ns())
-        if self._every("ekf", 0.5, now):
+        if self.kind == "ardupilot":
+            ekf_us = self.intervals_us.get(193, 0)
+            if ekf_us > 0 and self._every("ekf", ekf_us / 1e6, now):
+                self._ekf_status_report(now)
+        elif self._every("ekf", 0.5, now):
             flags = 0x01 | (0x08 | 0x10 | 0x20 if self._fusing(now) and self.origin is not None else 0)
-            if self.kind == "ardupilot":
-                self.mav.ekf_status_report_send(flags, 0.1, 0.1, 0.1, 0.1, 0.1)
-            else:
-                self.mav.estimator_status_send(int(now * 1e6), flags, 0, 0, 0, 0, 0, 0, 0, 0)
+            self.mav.estimator_status_send(int(now * 1e6), flags, 0, 0, 0, 0, 0, 0, 0, 0)
         if self.vehicle_state is not None:
             p, _ = self.vehicle_state(now)
             boot_ms = int((now - self._t_boot) * 1e3)
@@ -299,6 +315,10 @@ class FakeAutopilot:
             self.attitudes_sent += 1
             t += period_s
         self._att_grid = (period_s, t)
+
+    def _ekf_status_report(self, now: float) -> None:
+        flags = 0x33F if self._fusing(now) and self.origin is not None else 0x01
+        self.mav.ekf_status_report_send(flags, 0.1, 0.1, 0.1, 0.1, 0.1)
 
     def _fusing(self, now: float) -> bool:
         return self._ext_nav_t is not None and now - self._ext_nav_t < 0.3
@@ -330,7 +350,7 @@ class FakeAutopilot:
             self._pose(msg, now)
         elif kind == "LANDING_TARGET":
             self._landing_target(msg)
-        elif kind == "UNKNOWN_511" and self.kind == "px4":
+        elif kind in ("UNKNOWN_511", "TARGET_RELATIVE") and self.kind == "px4":  # decoded if registered
             self._target_relative(bytes(msg.get_msgbuf()), now)
         elif kind == "REQUEST_DATA_STREAM":
             self.data_stream_requests.append((msg.req_stream_id, msg.req_message_rate, msg.start_stop))
@@ -361,6 +381,8 @@ class FakeAutopilot:
                 self.mav.gps_global_origin_send(*self.origin, int(now * 1e6))
             elif wanted == 242 and self.home is not None:
                 self.mav.home_position_send(*self.home, 0, 0, 0, [1, 0, 0, 0], 0, 0, 0, int(now * 1e6))
+            elif wanted == 193 and self.kind == "ardupilot":
+                self._ekf_status_report(now)
         elif cmd == 511 and self.message_interval:  # MAV_CMD_SET_MESSAGE_INTERVAL
             self.intervals_us[int(msg.param1)] = int(msg.param2)
             result = 0

@@ -110,3 +110,30 @@ def test_argparse_only_in_the_command_line():
         if re.search(r"^\s*(import argparse|from argparse import)", path.read_text(encoding="utf-8"), re.M):
             offenders.append(rel)
     assert offenders == []
+
+
+def _subcommands(parser, name="pose-daemon"):
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            helps = {a.dest: a.help for a in action._choices_actions}
+            for sub_name, sub in action.choices.items():
+                yield f"{name} {sub_name}", sub, helps.get(sub_name)
+                yield from _subcommands(sub, f"{name} {sub_name}")
+
+
+def test_every_command_has_a_whole_description():
+    """Each command's --help says what it does in whole sentences: none is missing (map build and
+    map check had none) and none is a docstring's first line cut mid-sentence (replay, record);
+    a description that is the command's one-line help (bench's) is whole as it is."""
+    from pose_daemon.cli import build_parser
+
+    seen = list(_subcommands(build_parser()))
+    assert {"pose-daemon replay", "pose-daemon record", "pose-daemon map build", "pose-daemon map check"} <= {
+        n for n, _p, _h in seen
+    }
+    for name, parser, help_text in seen:
+        text = (parser.description or "").strip()
+        assert text, f"{name}: no description"
+        assert text.endswith((".", ")")) or text == help_text, f"{name}: {text!r}"

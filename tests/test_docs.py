@@ -239,3 +239,17 @@ def test_the_config_reference_page_is_the_schemas() -> None:
     assert (DOCS / "config.md").read_text(encoding="utf-8") == page(), (
         f"docs/config.md differs from the config schema: regenerate it with `{REGENERATE}`"
     )
+
+
+def test_every_mavproxy_command_shown_says_where_its_log_goes() -> None:
+    """MAVProxy writes mav.tlog (and .raw) into the current folder unless told otherwise: each
+    mavproxy.py command the docs or scripts give a user names its --logfile or has --no-state,
+    so that watching the demo leaves no log in the repository."""
+    shown = []
+    for path in PAGES + sorted((ROOT / "scripts").glob("*.sh")):
+        for line in path.read_text(encoding="utf-8").splitlines():
+            for cmd in re.findall(r"mavproxy\.py [^`\n]*", line):
+                shown.append((_rel(path), cmd))
+    assert len(shown) >= 3, shown
+    bare = [(p, c) for p, c in shown if "--logfile" not in c and "--no-state" not in c]
+    assert not bare, bare

@@ -185,10 +185,12 @@ def test_batch_with_distortion_paper_method_and_bad_rows(marker, rng):
     imgs = np.array([img for _, _, img in cases])
     imgs[2, 1] = np.nan
     imgs[4] = imgs[4][[0, 2, 1, 3]]  # crossed
+    imgs[5, 2, 1] = -1e20  # no image reaches that far
     batch = _assert_batch_equals_estimate_pose(imgs, DISTORTED, marker, method="paper")
-    assert batch.ok.tolist() == [True, True, False, True, False, True]
+    assert batch.ok.tolist() == [True, True, False, True, False, False]
     assert "NaN" in batch.errors[2] and "bow-tie" in batch.errors[4]
-    for i in (0, 1, 3, 5):
+    assert "corner bottom-right" in batch.errors[5] and "out of range" in batch.errors[5]
+    for i in (0, 1, 3):
         assert geometry.rotation_angle_deg(batch.R[i], cases[i][0]) < 1e-4
         assert np.all(np.isfinite(batch.rvec[i]))
 
@@ -207,6 +209,7 @@ GOOD = [[300.0, 200.0], [340.0, 202.0], [338.0, 241.0], [299.0, 239.0]]
         ([[300.0, 200.0], [340.0, np.inf], [338.0, 241.0], [299.0, 239.0]], "NaN or infinity"),
         ([[300.0, 200.0], [300.0, 200.0], [338.0, 241.0], [299.0, 239.0]], "repeated"),
         ([[300.0, 200.0]] * 4, "same point"),
+        ([[1e20, 200.0], [340.0, 202.0], [338.0, 241.0], [299.0, 239.0]], r"top-left \(1e\+20, 200\) is out of range"),
         ([[300.0, 200.0], [320.0, 200.0], [340.0, 200.0], [299.0, 239.0]], "collinear"),
         ([[300.0, 200.0], [320.0, 210.0], [340.0, 220.0], [360.0, 230.0]], "zero area"),
         ([[300.0, 200.0], [338.0, 241.0], [340.0, 202.0], [299.0, 239.0]], "bow-tie"),

@@ -204,3 +204,33 @@ def test_install_rejects_unknown_arguments():
     res = subprocess.run(["bash", str(INSTALL), "--frobnicate"], capture_output=True, text=True, timeout=30)
     assert res.returncode == 2
     assert res.stderr == "install-pi.sh: unknown argument --frobnicate (see --help)\n"
+
+
+def test_venv_sh_keeps_one_stamp_per_extras_set(tmp_path):
+    """demo.sh (venv.sh) and test.sh (venv.sh --test) one after the other install once each,
+    not each time they alternate; a changed pyproject.toml installs again. venv.sh runs on a
+    copy of the tree whose .venv/bin/python only notes what it was asked to do."""
+    (tmp_path / "scripts").mkdir()
+    shutil.copy(ROOT / "scripts" / "venv.sh", tmp_path / "scripts" / "venv.sh")
+    shutil.copy(ROOT / "pyproject.toml", tmp_path / "pyproject.toml")
+    log = tmp_path / "pip.log"
+    python = tmp_path / ".venv" / "bin" / "python"
+    python.parent.mkdir(parents=True)
+    python.write_text(f'#!/bin/sh\necho "$*" >> "{log}"\n')
+    python.chmod(0o755)
+
+    def installs(*args) -> int:
+        before = log.read_text().count("install") if log.exists() else 0
+        res = subprocess.run(
+            ["bash", str(tmp_path / "scripts" / "venv.sh"), *args], capture_output=True, text=True, timeout=60
+        )
+        assert res.returncode == 0 and res.stdout == ".venv\n", res.stderr
+        return (log.read_text().count("install") if log.exists() else 0) - before
+
+    assert installs() > 0  # the first demo
+    assert installs("--test") > 0  # the first tests
+    assert [installs(), installs("--test"), installs(), installs("--test")] == [0, 0, 0, 0]
+    with open(tmp_path / "pyproject.toml", "a") as fh:
+        fh.write("\n# changed\n")
+    assert installs() > 0 and installs() == 0
+    assert installs("--test") > 0 and installs() == 0

@@ -238,6 +238,29 @@ def test_a_second_udpin_daemon_on_one_port_is_warned_about(caplog):
     assert len(warnings) == 1 and f"127.0.0.1:{port}" in warnings[0] and "another" in warnings[0], warnings
 
 
+def test_a_udpin_port_held_unshared_says_the_bind_failed_and_why(caplog):
+    """Another program holds the port without SO_REUSEADDR: pymavlink's bind fails too, so the
+    output is down, and says that the bind failed and why (not that the port is shared)."""
+    import socket
+
+    from mavlink_helpers import mavlink_output
+
+    holder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    holder.bind(("127.0.0.1", 0))
+    port = holder.getsockname()[1]
+    caplog.set_level("WARNING", logger="pose_daemon.outputs")
+    try:
+        out = mavlink_output(f"udpin:127.0.0.1:{port}", WALL, wait_heartbeat=False, queue_size=0)
+        link = out.stats()["link"]
+        out.close()
+    finally:
+        holder.close()
+    said = [r.getMessage() for r in caplog.records]
+    assert not [m for m in said if "bound by another socket too" in m], said
+    assert f"cannot bind UDP 127.0.0.1:{port}: Address already in use (another program holds it" in link, link
+    assert any(f"cannot bind UDP 127.0.0.1:{port}" in m for m in said), said
+
+
 # ---------------------------------------------------------------- the last check before the bytes
 
 

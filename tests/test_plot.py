@@ -268,3 +268,43 @@ def test_a_log_appended_after_restarts_plots_one_run(daemon_log: Path, tmp_path:
     assert "run 1 of 2 (lines 1-60)" in err and "60 frames over 1.97 s, pose in 46" in err
     assert main(["plot", str(log), "--out", str(out), "--run", "3"]) == 2
     assert capsys.readouterr().err == "pose-daemon: error: --run 3: the log holds 2 run(s)\n"
+
+
+def test_two_runs_of_one_boot_appended_are_not_joined_and_the_pause_is_a_gap(
+    daemon_log: Path, tmp_path: Path, capsys
+) -> None:
+    """Within one boot the capture clock goes on across a restart (systemd's case): the second
+    run's frames start at 0 again, 348 s later. The pause is a gap, lines are not drawn across."""
+    first = [json.loads(line) for line in daemon_log.read_text().splitlines()][:40]  # ends with a pose
+    later = first[-1]["t"] + 348.0
+    second = [dict(r, t=round(r["t"] - T0 + later, 6)) for r in first[:30]]
+    log = tmp_path / "two_runs.jsonl"
+    log.write_text("".join(json.dumps(r) + "\n" for r in first + second))
+    series = plot_tool.read_poses(log)
+    assert series.runs() == [(0, 70)] and list(series.restarts()) == [40] and list(series.breaks()) == [40]
+    stats = plot_tool.summarise(series)
+    # Frames 10..19 lost in each run, and the 348 s between the runs.
+    assert stats["gaps"] == 3 and stats["restarts"] == 1
+    assert stats["longest_gap_s"] == pytest.approx(348.0, abs=1e-5)
+    assert (first[-1]["t"], later) in [pytest.approx(g, abs=1e-5) for g in plot_tool.detection_gaps(series)]
+    fig = plot_tool.make_figure(series)
+    ax_pos, ax_top = fig.axes[0], fig.axes[2]
+    y = ax_pos.lines[0].get_ydata()
+    assert len(y) == 71 and np.isnan(y[40]) and np.isfinite(y[39]) and np.isfinite(y[41])
+    assert np.isnan(ax_top.lines[0].get_xdata()[40])
+    assert len(ax_pos.patches) == 3
+    assert main(["plot", str(log), "--out", str(tmp_path / "two.png")]) == 0
+    assert "3 gap(s), longest 348.000 s, 1 restart(s) of the daemon or its camera" in capsys.readouterr().err
+
+
+def test_frames_not_coming_for_a_while_is_a_gap(daemon_log: Path) -> None:
+    # No restart (the counter goes on), but 5 s without a frame between frame 29 and 30.
+    rows = [json.loads(line) for line in daemon_log.read_text().splitlines()]
+    rows = [dict(r, t=r["t"] + (5.0 if r["frame"] >= 30 else 0.0)) for r in rows]
+    log = daemon_log.parent / "stall.jsonl"
+    log.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    series = plot_tool.read_poses(log)
+    assert list(series.restarts()) == [] and list(series.breaks()) == [30]
+    stats = plot_tool.summarise(series)
+    assert stats["gaps"] == 4 and stats["restarts"] == 0
+    assert stats["longest_gap_s"] == pytest.approx(5.0 + 1 / FPS, abs=1e-5)

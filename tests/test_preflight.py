@@ -43,6 +43,111 @@ def _run(capsys, *argv) -> tuple:
     return code, lines
 
 
+def _texts_from_daemon(fc: FakeAutopilot) -> list:
+    return [m.text for m in list(fc.tally.received) if m.get_type() == "STATUSTEXT"]
+
+
+def _ekf_requests(fc: FakeAutopilot) -> list:
+    """The senders (system, component) of MAV_CMD_REQUEST_MESSAGE for EKF_STATUS_REPORT."""
+    return [
+        (m.get_srcSystem(), m.get_srcComponent())
+        for m in list(fc.tally.received)
+        if m.get_type() == "COMMAND_LONG" and m.command == 512 and int(m.param1) == 193
+    ]
+
+
+def _passes(code: int, lines: list) -> None:
+    """A good vehicle: exit 0 and only OK lines, but for the capture-to-send delay past
+    ArduPilot's largest VISO_DELAY_MS that a heavily loaded machine can measure (the test above)."""
+    not_ok = [ln for ln in lines if not ln.startswith("OK ")]
+    if not_ok and not_ok[0].startswith("PROBLEM the measured capture-to-send delay"):
+        assert not_ok == [not_ok[0]] and code == 1, lines
+    else:
+        assert code == 0 and not not_ok, lines
+
+
+GOOD = 'messages = ["ODOMETRY"]\norigin = [47.397742, 8.545594, 488.0]'
+
+
+def test_a_repeated_preflight_passes_on_a_good_ardupilot(tmp_path, capsys):
+    """ArduPilot says "using external nav data" once per EKF start and streams no
+    EKF_STATUS_REPORT unless asked (Copter's SR_EXTRA3 = 0): the verdict comes from the report
+    preflight asks for, so a second run right after the first passes as the first did."""
+    fc = FakeAutopilot(
+        "ardupilot", ekf_start_s=0.0, ekf_bootstrap_s=0.0, heartbeat_s=0.2, params={"VISO_DELAY_MS": 250}
+    )
+    cfg = _config(tmp_path, fc.connection, GOOD)
+    try:
+        runs = [_run(capsys, "--config", cfg) for _ in range(2)]
+        said = fc.statustexts.count("EKF3 IMU0 is using external nav data")
+    finally:
+        fc.close()
+    assert said == 1  # the fake's EKF started once
+    for code, lines in runs:
+        _passes(code, lines)
+        assert "OK EKF3 uses the feed (flags 0x33f)" in lines, lines
+
+
+def test_preflight_30_s_after_boot_passes_and_asks_as_a_ground_station(tmp_path, capsys):
+    """A vehicle up for 30 s (the fake's state) whose EKF announced the external nav long ago, to
+    an earlier feed: preflight asks for EKF_STATUS_REPORT itself, as a ground station id (255/190),
+    not the autopilot's own id that ArduPilot would drop as a loopback."""
+    fc = FakeAutopilot(
+        "ardupilot",
+        heartbeat_s=0.2,
+        uptime_s=30.0,
+        ext_nav_announced=True,
+        params={"VISO_DELAY_MS": 250},
+    )
+    cfg = _config(tmp_path, fc.connection, GOOD)
+    try:
+        code, lines = _run(capsys, "--config", cfg)
+        senders = set(_ekf_requests(fc))
+    finally:
+        fc.close()
+    assert "EKF3 IMU0 is using external nav data" not in fc.statustexts
+    _passes(code, lines)
+    assert "OK EKF3 uses the feed (flags 0x33f)" in lines, lines
+    assert senders == {(255, 190)}, senders
+
+
+def test_a_bad_ardupilot_still_fails_and_odometry_gets_no_vpe_warning(tmp_path, capsys):
+    """EKF3 not taking external nav: the fresh report says so (flags 0x1), on a second run too.
+    VISO_QUAL_MIN > 0 with ODOMETRY only is compared with ODOMETRY's quality: the daemon says
+    nothing about VISION_POSITION_ESTIMATE, which it does not send."""
+    fc = FakeAutopilot(
+        "ardupilot",
+        ekf_start_s=0.0,
+        ekf_bootstrap_s=0.0,
+        heartbeat_s=0.2,
+        params={"EK3_SRC1_POSXY": 3, "VISO_QUAL_MIN": 10, "VISO_DELAY_MS": 250},
+    )
+    cfg = _config(tmp_path, fc.connection, GOOD)
+    try:
+        runs = [_run(capsys, "--config", cfg) for _ in range(2)]
+    finally:
+        fc.close()
+    for code, lines in runs:
+        assert code == 1 and "PROBLEM EKF3 does not use the feed (flags 0x1)" in lines, lines
+        assert "FIX: EK3_SRC1_POSXY = 6" in lines
+    assert not [t for t in _texts_from_daemon(fc) if "VPE" in t]
+
+
+def test_the_daemon_sending_as_the_autopilot_itself_is_a_problem(tmp_path, capsys):
+    """source_component = 1 with system 1 is the autopilot's own id: ArduPilot drops the poses as
+    a loopback. Preflight still reads the parameters (it asks as a ground station) and says why."""
+    fc = FakeAutopilot("ardupilot", ekf_start_s=0.0, ekf_bootstrap_s=0.0, heartbeat_s=0.2)
+    cfg = _config(tmp_path, fc.connection, GOOD + "\nsource_component = 1")
+    try:
+        code, lines = _run(capsys, "--config", cfg)
+    finally:
+        fc.close()
+    assert code == 1 and fc.loopbacks_dropped > 0
+    assert "OK VISO_TYPE = 1" in lines, lines
+    assert any(ln.startswith("PROBLEM [output.mavlink] source_system = 1, source_component = 1 is the") for ln in lines)
+    assert "PROBLEM EKF3 does not use the feed (flags 0x1)" in lines, lines
+
+
 def test_ardupilot_problems_are_fixed_by_apply(tmp_path, capsys):
     fc = FakeAutopilot(
         "ardupilot",
@@ -64,6 +169,7 @@ def test_ardupilot_problems_are_fixed_by_apply(tmp_path, capsys):
         assert "OK VISO_TYPE = 1" in lines and "OK GPS_GLOBAL_ORIGIN reported" in lines
         assert any(ln.startswith("PROBLEM EKF3 does not use the feed") for ln in lines)
         assert fc.param("EK3_SRC1_POSXY") == 3  # nothing set without --apply
+        assert "VPE has no quality: VISO_QUAL_MIN 10 drops all" in _texts_from_daemon(fc)
         code, lines = _run(capsys, "--config", cfg, "--apply")
         assert "OK EK3_SRC1_POSXY = 6 set" in lines and "OK VISO_QUAL_MIN = 0 set" in lines
         assert fc.param("EK3_SRC1_POSXY") == 6 and fc.param("VISO_QUAL_MIN") == 0 and fc.param("VISO_DELAY_MS") > 0
@@ -84,7 +190,7 @@ def test_ardupilot_problems_are_fixed_by_apply(tmp_path, capsys):
     else:
         assert code == 0 and not not_ok, lines
     assert [ln for ln in lines if ln.startswith("OK EKF3 uses the feed")] in (
-        ["OK EKF3 uses the feed (flags 0x39)"],
+        ["OK EKF3 uses the feed (flags 0x33f)"],
         ["OK EKF3 uses the feed"],
     ), lines
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import re
 import socket
 import threading
 import time
@@ -193,6 +194,19 @@ def test_status_json_is_the_status_and_the_last_per_frame_object(served):
     with pytest.raises(urllib.error.HTTPError) as err:
         _get(server, "/nothing")
     assert err.value.code == 404
+
+
+def test_status_json_camera_fps_is_the_status_lines_figure(served):
+    """camera_fps has one owner, the pipeline's status figures: status.json's first answer has
+    it (it was null there while the line said 29.2), equal to the line's "(camera N)"."""
+    server, feeder = served()
+    server.pipeline.stats.count("captured", 30)
+    feeder.feed(20)
+    for _ in range(2):  # the first answer, and one after it
+        s = json.loads(_get(server, "/status.json")[2])["status"]
+        said = re.search(r"fps \(camera ([0-9.]+)\)", s["line"])
+        assert s["camera_fps"] is not None and said is not None, s
+        assert abs(s["camera_fps"] - float(said.group(1))) <= 0.051 and s["camera_fps"] > 0  # 2 vs 1 decimals
 
 
 def test_nothing_is_encoded_while_nobody_watches_and_a_snapshot_is_capped_in_width(served):
@@ -530,6 +544,22 @@ def test_the_annotated_frame_shows_the_rejected_solution_and_the_warnings(proces
 
     assert count(live, REJECTED_COLOUR) > count(plain, REJECTED_COLOUR) + 50
     assert count(live, WARNING_COLOUR) > 50 and count(plain, WARNING_COLOUR) == 0
+
+
+def test_a_long_warning_is_wrapped_on_the_annotated_frame(processed):
+    """A warning wider than the frame is wrapped onto more rows, not cut off at its right edge."""
+    from pose_daemon.draw import WARNING_COLOUR, annotate_live
+
+    cfg = parse_config("", "c.toml")
+    frame, result = processed[0]
+    image = frame.image[:, :320]  # a narrow frame: 320 px
+    long_warning = "output cannot keep up or fails: mavlink 120 dropped in 5 s (link_busy), jsonl 3 (failed)"
+    live = annotate_live(image, result, cfg.camera.model(), cfg.marker.model(), warnings=[long_warning])
+    orange = np.all(np.abs(live.astype(int) - WARNING_COLOUR) < 40, axis=2)
+    rows, cols = np.nonzero(orange)
+    assert cols.size > 50
+    assert cols.max() < image.shape[1] - 4, "the warning runs off the frame's right edge"
+    assert rows.max() - rows.min() > 19, "one row: not wrapped"
 
 
 def test_a_request_naming_another_host_is_refused(served):

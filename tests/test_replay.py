@@ -75,6 +75,14 @@ def test_replay_to_stdout_with_annotated_frames(recording: Path, tmp_path: Path,
     assert (sat > 100).sum() > 200
 
 
+def test_replay_out_dash_is_stdout(recording: Path, tmp_path: Path, capsys, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    assert main(["replay", str(recording), "--out", "-"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == N_FRAMES and json.loads(lines[0])["frame"] == 0
+    assert not (tmp_path / "-").exists()
+
+
 def test_replay_skips_corrupt_and_missing_frames_and_goes_on(recording: Path, tmp_path: Path, capsys) -> None:
     import shutil
 

@@ -12,7 +12,14 @@ from ..geometry import MARKER_PLACEMENTS
 def register(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser("map", help="marker maps: survey one from a walk-through, check one", description=__doc__)
     maps = parser.add_subparsers(dest="map_command", metavar="ACTION", required=True, parser_class=type(parser))
-    b = maps.add_parser("build", help="survey every marker's pose from walk-through recordings or image folders")
+    b = maps.add_parser(
+        "build",
+        help="survey every marker's pose from walk-through recordings or image folders",
+        description="pose-daemon map build: every ArUco marker's pose in one map frame (the anchor's), "
+        "solved jointly from the frames of walk-through recordings or image folders that see two "
+        "markers or more, and written as a map file ([map] with [[map.markers]]) for the daemon's "
+        "[map] table.",
+    )
     b.add_argument("sources", nargs="+", metavar="SOURCE", help="recording folders or folders of images")
     b.add_argument("--config", metavar="FILE", help="TOML config whose [camera] is used when a source has none")
     b.add_argument("--dictionary", required=True, help="OpenCV dictionary of the markers, e.g. DICT_4X4_50")
@@ -28,7 +35,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     b.add_argument("--no-plane", action="store_true", help="leave the markers free of the anchor's plane")
     b.set_defaults(func=run_build)
-    c = maps.add_parser("check", help="replay a recording against a map: residual per marker, moved markers")
+    c = maps.add_parser(
+        "check",
+        help="replay a recording against a map: residual per marker, moved markers",
+        description="pose-daemon map check: replay a recording through the map's own pose pipeline and "
+        "report each marker's RMS corner residual (pixels) under the pose from all the markers in view; "
+        "a marker whose median residual stands out (past a few pixels and several times the others') "
+        "is reported as moved since the survey.",
+    )
     c.add_argument("map", metavar="MAP.toml", help="a map file ([map] with [[map.markers]])")
     c.add_argument("source", metavar="SOURCE", help="recording folder or folder of images")
     c.add_argument("--config", metavar="FILE", help="TOML config whose [camera] is used when the source has none")

@@ -6,11 +6,12 @@ from __future__ import annotations
 import argparse
 
 from ..errors import UserError
+from . import describe
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser(
-        "record", help="record frames from the camera source into a folder", description=__doc__.splitlines()[0]
+        "record", help="record frames from the camera source into a folder", description=describe(__doc__)
     )
     parser.add_argument(
         "--config", metavar="FILE", help="TOML config (default: the embedded demo config, synthetic source)"

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import argparse
 
+from . import describe
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser(
         "replay",
         help="run detection and pose over a recording, image folder or video",
-        description=__doc__.splitlines()[0],
+        description=describe(__doc__),
     )
     parser.add_argument("path", metavar="PATH", help="recording folder, folder of images or video file")
     parser.add_argument(
@@ -18,7 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="FILE",
         help="TOML config: camera and marker when the recording has none, estimator, detector",
     )
-    parser.add_argument("--out", metavar="FILE", help="write the JSON lines here (default: stdout)")
+    parser.add_argument("--out", metavar="FILE", help="write the JSON lines here (default, or -: stdout)")
     parser.add_argument("--annotate", metavar="DIR", help="also write each frame with corners, axes and pose")
     parser.set_defaults(func=run)
 

@@ -17,7 +17,7 @@ from .. import geometry
 from ..camera import Camera, Marker
 from . import loop
 from .ambiguity import ALT_FINISH, ALT_POLISH_ITER, COS_SAME_SIDE, SAME_POSE
-from .checks import DEGENERATE_REL, check_options, quad_problem
+from .checks import DEGENERATE_REL, MAX_CORNER_PX, check_options, corner_range_problem, quad_problem
 from .polish import LAM_DOWN, LAM_FIRST, LAM_UP, POLISH_GAIN, POLISH_MAX_ITER, POLISH_TOL, polish
 from .types import EstimationError
 
@@ -469,6 +469,9 @@ def estimate_pose_batch(
     finite = np.all(np.isfinite(arr), axis=(1, 2))
     for i in np.flatnonzero(~finite):
         errors[i] = "corners contain NaN or infinity"
+    for i in np.flatnonzero(finite & np.any(np.abs(arr) > MAX_CORNER_PX, axis=(1, 2))):
+        errors[i] = corner_range_problem(arr[i].ravel().tolist())
+        finite[i] = False
     # A harmless stand-in for bad rows keeps the vectorised maths free of NaN.
     dummy = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]) * 50.0 + [camera.cx, camera.cy]
     arr[~finite] = dummy

@@ -10,12 +10,24 @@ import numpy as np
 
 from .loop import METHODS
 
-__all__ = ["METHODS", "DEGENERATE_REL", "check_options", "quad_problem", "corners_as_floats", "all_finite"]
+__all__ = [
+    "METHODS",
+    "DEGENERATE_REL",
+    "MAX_CORNER_PX",
+    "check_options",
+    "quad_problem",
+    "corners_as_floats",
+    "corner_range_problem",
+    "all_finite",
+]
 from .types import EstimationError
 
 # Relative size below which two corners coincide / three corners are collinear.
 DEGENERATE_REL = 1e-9
 _NAMES = ("top-left", "top-right", "bottom-right", "bottom-left")
+# No camera's image reaches this far from its origin (pixels); past it the other corners would
+# look like one point next to the far one ("repeated corners"), which misnames the mistake.
+MAX_CORNER_PX = 1e6
 
 
 def check_options(method: str, iterations: int) -> None:
@@ -76,7 +88,22 @@ def corners_as_floats(corners_px) -> List[float]:
     for v in flat:
         if not math.isfinite(v):
             raise EstimationError("corners contain NaN or infinity")
+    problem = corner_range_problem(flat)
+    if problem:
+        raise EstimationError(problem)
     return flat
+
+
+def corner_range_problem(flat: Sequence[float]) -> Optional[str]:
+    """The first corner (of 8 finite floats x0, y0, x1, ...) past MAX_CORNER_PX, named, or None."""
+    for k in range(4):
+        x, y = flat[2 * k], flat[2 * k + 1]
+        if abs(x) > MAX_CORNER_PX or abs(y) > MAX_CORNER_PX:
+            return (
+                f"corner {_NAMES[k]} ({x:g}, {y:g}) is out of range: pixel coordinates are within "
+                f"+-{MAX_CORNER_PX:g} of the image"
+            )
+    return None
 
 
 def all_finite(values: Sequence[float]) -> bool:

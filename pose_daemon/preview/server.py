@@ -259,7 +259,7 @@ class PreviewServer:
     def status(self) -> Dict[str, Any]:
         """The /status.json object: {"status": {...}, "last": per-frame JSON or None}."""
         now = self.clock()
-        snap, old, dt = self._sample(now)
+        snap, _old, _dt = self._sample(now)  # the sample also notes progress (warnings)
         item = self.tap.latest
         history = list(self.tap.history)  # one C-level copy: the tap appends meanwhile
         recent = [r for r in history if item is not None and item.result.t_capture_s - r.t_capture_s <= 2.0]
@@ -275,10 +275,12 @@ class PreviewServer:
         rec = self.recorder
         with self._lock:
             counts = dict(self.counts)
+        line, rates = self.pipeline.status(reset=False)
         status = {
-            "line": self.pipeline.status_line(reset=False),
+            "line": line,
             "fps": None if fps is None else round(fps, 2),
-            "camera_fps": round((snap["captured"] - old["captured"]) / dt, 2) if dt > 0 else None,
+            # The status line's own figure (one owner): the two never disagree.
+            "camera_fps": round(rates["camera_fps"], 2),
             "detected_pct": round(100.0 * sum(r.ok for r in recent) / len(recent), 1) if recent else None,
             "captured": snap["captured"],
             "frames": snap["processed"],

@@ -21,6 +21,10 @@ ANGLE_KEYS = ("alpha_deg", "beta_deg", "gamma_deg")
 ANGLE_LABELS = ("alpha (pitch)", "beta (yaw)", "gamma (roll)")
 # Reading stops here: a pose log this long is a mistake (or not a pose log).
 MAX_BYTES = 2 * 1024**3
+# A step between two frames longer than this many typical steps (and than BREAK_MIN_S) is a
+# break in the stream, as is the frame counter starting again: no frame came in between.
+BREAK_STEPS = 10.0
+BREAK_MIN_S = 0.5
 
 
 @dataclass
@@ -29,7 +33,8 @@ class PoseSeries:
 
     ``t_s``: capture time in seconds (the frame index when the lines carry no ``t``);
     ``position_m``: camera position in the marker frame (NaN where ``ok`` is False);
-    ``angles_deg``: alpha, beta, gamma (NaN where not ok); ``latency_ms``: NaN where absent.
+    ``angles_deg``: alpha, beta, gamma (NaN where not ok); ``latency_ms``: NaN where absent;
+    ``frame``: the lines' frame counter (None when a line lacks one).
     """
 
     t_s: np.ndarray
@@ -40,6 +45,28 @@ class PoseSeries:
     has_time: bool = True
     skipped: List[Tuple[int, str]] = field(default_factory=list)  # (line number, why)
     line: Optional[np.ndarray] = None  # line number of each frame in the file
+    frame: Optional[np.ndarray] = None
+
+    def restarts(self) -> np.ndarray:
+        """Indices where the frame counter starts again (not above the previous frame's): the
+        daemon restarted, or reopened its camera, and appended to the same log. Within one boot
+        the capture clock goes on across a restart, so the time alone does not show it."""
+        if self.frame is None or len(self) < 2:
+            return np.zeros(0, dtype=np.int64)
+        return np.flatnonzero(np.diff(self.frame) <= 0) + 1
+
+    def breaks(self) -> np.ndarray:
+        """Indices where the stream breaks: a restart (``restarts``) or a step in time longer
+        than BREAK_STEPS typical steps and BREAK_MIN_S (frames were not coming). The time from
+        the frame before to this one is a gap, and plotted lines are not joined across it."""
+        if len(self) < 2:
+            return np.zeros(0, dtype=np.int64)
+        jumps = np.zeros(0, dtype=np.int64)
+        if self.has_time:
+            step = np.diff(self.t_s)
+            limit = max(BREAK_MIN_S, BREAK_STEPS * _typical_step(self.t_s))
+            jumps = np.flatnonzero(step > limit) + 1
+        return np.union1d(self.restarts(), jumps).astype(np.int64)
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -62,6 +89,7 @@ class PoseSeries:
             self.has_time,
             self.skipped,
             None if self.line is None else self.line[start:end],
+            None if self.frame is None else self.frame[start:end],
         )
 
 
@@ -82,8 +110,9 @@ def _number(value: Any) -> Optional[float]:
     return float(value) if math.isfinite(value) else None
 
 
-def _parse_line(obj: Any) -> Tuple[Optional[float], bool, List[float], List[float], float]:
-    """(t, ok, position, angles, latency) of one per-frame object; ValueError saying what is wrong."""
+def _parse_line(obj: Any) -> Tuple[Optional[float], bool, List[float], List[float], float, Optional[int]]:
+    """(t, ok, position, angles, latency, frame) of one per-frame object; ValueError saying what
+    is wrong."""
     if not isinstance(obj, dict):
         raise ValueError("not a JSON object")
     ok = obj.get("ok")
@@ -106,7 +135,9 @@ def _parse_line(obj: Any) -> Tuple[Optional[float], bool, List[float], List[floa
         if len(angles) != len(ANGLE_KEYS):
             raise ValueError('"ok": true without numeric ' + ", ".join(ANGLE_KEYS))
     latency = _number(obj.get("latency_ms"))
-    return t, ok, position, angles, (math.nan if latency is None else latency)
+    frame = obj.get("frame")
+    frame = frame if isinstance(frame, int) and not isinstance(frame, bool) else None
+    return t, ok, position, angles, (math.nan if latency is None else latency), frame
 
 
 def read_poses(path: Path) -> PoseSeries:
@@ -148,6 +179,7 @@ def read_poses(path: Path) -> PoseSeries:
         raise UserError(f"{name}: no per-frame JSON object in {len(skipped)} line(s) (line {line_no}: {why})")
     has_time = all(r[0] is not None for r in rows)
     t = np.array([r[0] for r in rows] if has_time else np.arange(len(rows)), dtype=np.float64)
+    has_frame = all(r[5] is not None for r in rows)
     return PoseSeries(
         t_s=t,
         ok=np.array([r[1] for r in rows], dtype=bool),
@@ -157,24 +189,30 @@ def read_poses(path: Path) -> PoseSeries:
         has_time=has_time,
         skipped=skipped,
         line=np.array(numbers, dtype=np.int64),
+        frame=np.array([r[5] for r in rows], dtype=np.int64) if has_frame else None,
     )
 
 
 def detection_gaps(series: PoseSeries) -> List[Tuple[float, float]]:
     """Spans of time without a pose: (start, end) in seconds, from the first frame without a pose
-    to the next frame with one (or the last frame when the log ends without one)."""
+    to the next frame with one (or the last frame when the log ends without one). A break in
+    the stream (``PoseSeries.breaks``: a restart, or no frame for a while) is no pose either:
+    its gap starts at the frame before it."""
     gaps: List[Tuple[float, float]] = []
     t, ok = series.t_s, series.ok
-    i, n = 0, len(series)
-    while i < n:
+    breaks = set(int(b) for b in series.breaks())
+    start: Optional[float] = None
+    for i in range(len(series)):
+        if i in breaks and start is None:
+            start = float(t[i - 1])
         if ok[i]:
-            i += 1
-            continue
-        j = i
-        while j < n and not ok[j]:
-            j += 1
-        gaps.append((float(t[i]), float(t[j] if j < n else t[n - 1])))
-        i = j
+            if start is not None:
+                gaps.append((start, float(t[i])))
+                start = None
+        elif start is None:
+            start = float(t[i])
+    if start is not None:
+        gaps.append((start, float(t[-1])))
     return gaps
 
 
@@ -190,6 +228,7 @@ def summarise(series: PoseSeries) -> Dict[str, Optional[float]]:
         "duration_s": float(series.t_s[-1] - series.t_s[0]) if frames else 0.0,
         "gaps": float(len(gaps)),
         "longest_gap_s": max((b - a for a, b in gaps), default=0.0),
+        "restarts": float(len(series.restarts())),
         "latency_median_ms": None,
         "latency_p95_ms": None,
         "latency_max_ms": None,
@@ -209,6 +248,8 @@ def summary_line(series: PoseSeries, stats: Mapping[str, Any]) -> str:
         f"{int(stats['detected'])} ({100.0 * stats['detection_rate']:.1f} %), {int(stats['gaps'])} "
         f"gap(s), longest {stats['longest_gap_s']:.3f} {unit}"
     )
+    if stats.get("restarts"):
+        line += f", {int(stats['restarts'])} restart(s) of the daemon or its camera"
     if stats["latency_median_ms"] is not None:
         line += (
             f"; latency median {stats['latency_median_ms']:.1f} ms, p95 "
@@ -243,6 +284,13 @@ def make_figure(
     t = series.t_s - t0
     xlabel = "time since first frame (s)" if series.has_time else "frame"
     gaps = [(a - t0, b - t0) for a, b in detection_gaps(series)]
+    breaks = series.breaks()
+
+    def broken(values: np.ndarray) -> np.ndarray:
+        # A NaN row before each break: a line is not drawn across it.
+        return np.insert(values.astype(np.float64), breaks, np.nan, axis=0)
+
+    t_line = broken(t)
 
     def shade(ax: Any) -> None:
         for k, (a, b) in enumerate(gaps):
@@ -256,19 +304,20 @@ def make_figure(
             )
 
     for k, (name, colour) in enumerate(zip("xyz", ("tab:blue", "tab:orange", "tab:green"))):
-        ax_pos.plot(t, series.position_m[:, k], color=colour, lw=1.2, label=name)
+        ax_pos.plot(t_line, broken(series.position_m[:, k]), color=colour, lw=1.2, label=name)
     shade(ax_pos)
     ax_pos.set(title="camera position in the marker frame", xlabel=xlabel, ylabel="m")
     ax_pos.legend(loc="best", fontsize="small")
 
     for k, (name, colour) in enumerate(zip(ANGLE_LABELS, ("tab:purple", "tab:brown", "tab:cyan"))):
-        ax_att.plot(t, series.angles_deg[:, k], color=colour, lw=1.2, label=name)
+        ax_att.plot(t_line, broken(series.angles_deg[:, k]), color=colour, lw=1.2, label=name)
     shade(ax_att)
     ax_att.set(title="attitude (paper's angles)", xlabel=xlabel, ylabel="deg")
     ax_att.legend(loc="best", fontsize="small")
 
     h, v, hlabel, vlabel = top_view_axes(placement)
-    ax_top.plot(series.position_m[:, h], series.position_m[:, v], color="0.6", lw=0.8, zorder=1)
+    path = broken(series.position_m)
+    ax_top.plot(path[:, h], path[:, v], color="0.6", lw=0.8, zorder=1)
     okp = series.position_m[series.ok]
     if okp.shape[0]:
         points = ax_top.scatter(okp[:, h], okp[:, v], c=t[series.ok], s=8, cmap="viridis", zorder=2)

@@ -35,7 +35,7 @@ def replay(
     path: str, config: Optional[str] = None, out_path: Optional[str] = None, annotate: Optional[str] = None
 ) -> int:
     """Every frame of ``path`` through detection and pose estimation, one JSON line per frame
-    to ``out_path`` (stdout without one), annotated images into the folder ``annotate``; the
+    to ``out_path`` (stdout without one or for "-"), annotated images into the folder ``annotate``; the
     camera and marker are the recording's own when it has them, else ``config``'s. Returns
     the exit status; UserError when nothing could be read."""
 
@@ -101,7 +101,8 @@ def replay(
             source.close()
             raise UserError(f"cannot create --annotate folder {annotate_dir}: {exc}") from None
     try:
-        out = open(out_path, "w") if out_path else sys.stdout
+        # "-" is stdout, as for [output.jsonl] path and the usual command-line tools.
+        out = open(out_path, "w") if out_path and out_path != "-" else sys.stdout
     except OSError as exc:
         source.close()
         raise UserError(f"cannot write --out {out_path}: {exc.strerror or exc}") from None

@@ -75,7 +75,11 @@ class MavlinkLink:
         bytes); ``after_send(nbytes)``: called once they were handed to the kernel;
         ``on_discarded()``: a full buffer's stale bytes were discarded."""
         from pymavlink import mavutil
-        from pymavlink.dialects.v20 import common as mavlink2
+
+        # ArduPilot's dialect: common.xml and ArduPilot's own messages (EKF_STATUS_REPORT #193),
+        # so that those are decoded, CRC- and signature-checked, with their sender, rather than
+        # left as MAVLink_unknown (sender 0, nothing checked). PX4 speaks only common messages.
+        from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
         self.kind = kind
         self._on_ignored = on_ignored  # counts received data not believed, by cause
@@ -273,18 +277,39 @@ class MavlinkLink:
 def warn_if_udp_port_taken(device: str) -> None:
     """One log line when another socket has the udpin address bound already: pymavlink binds
     with SO_REUSEADDR, so a second daemon would share the port silently and the datagrams would
-    go to one of them only. Probed with a bind without SO_REUSEADDR, which fails then."""
+    go to one of them only. Probed with a bind without SO_REUSEADDR, which fails then. When the
+    other socket does not share (no SO_REUSEADDR) or the bind fails for another reason, the
+    link cannot open: LinkError saying that the bind failed and why."""
     host, _, port = device.partition(":")[2].rpartition(":")
     probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
         probe.bind((host, int(port)))
     except OSError as exc:
-        if exc.errno == errno.EADDRINUSE:
-            logging.getLogger("pose_daemon.outputs.mavlink").warning(
-                "mavlink output: UDP port %s:%s is bound by another socket too (another pose-daemon or "
-                "ground station?): datagrams from the autopilot reach only one of them",
-                host,
-                port,
-            )
+        if exc.errno != errno.EADDRINUSE:
+            raise LinkError(f"cannot bind UDP {host}:{port}: {exc.strerror or exc}") from None
+        if not _binds_shared(host, int(port)):
+            raise LinkError(
+                f"cannot bind UDP {host}:{port}: {exc.strerror or exc} (another program holds it "
+                f"and does not share it; see which with: ss -ulpn 'sport = :{port}')"
+            ) from None
+        logging.getLogger("pose_daemon.outputs.mavlink").warning(
+            "mavlink output: UDP port %s:%s is bound by another socket too (another pose-daemon or "
+            "ground station?): datagrams from the autopilot reach only one of them",
+            host,
+            port,
+        )
+    finally:
+        probe.close()
+
+
+def _binds_shared(host: str, port: int) -> bool:
+    """Whether a bind with SO_REUSEADDR (as pymavlink's) succeeds on a taken address."""
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        probe.bind((host, port))
+        return True
+    except OSError:
+        return False
     finally:
         probe.close()

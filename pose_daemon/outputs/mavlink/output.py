@@ -413,7 +413,10 @@ class MavlinkOutput(QueuedOutput):
     def _on_param_value(self, msg: Any, now: float) -> None:
         name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode("ascii", "replace")
         if (
-            self._from_autopilot(msg)
+            # Only VISION_POSITION_ESTIMATE lacks a quality: ODOMETRY's is compared as it should
+            # be (and a ground station's or preflight's reading of the parameter comes here too).
+            "VISION_POSITION_ESTIMATE" in self.messages
+            and self._from_autopilot(msg)
             and name.rstrip("\x00") == "VISO_QUAL_MIN"
             and msg.param_value > 0
             and not self._qual_min_warned

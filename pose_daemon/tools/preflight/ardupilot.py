@@ -81,6 +81,15 @@ def check_ardupilot(cfg, obs: Observation, link_kind: str = "udpout") -> List[Fi
     m = cfg.output.mavlink
     p = {k: v for k, (v, _t) in obs.params.items()}
     out: List[Finding] = []
+    if (m.source_system, m.source_component) == (obs.system, obs.component):
+        out.append(
+            Finding(
+                "PROBLEM",
+                f"[output.mavlink] source_system = {m.source_system}, source_component = "
+                f"{m.source_component} is the autopilot's own id: ArduPilot drops every pose as a "
+                "loopback of its own messages (use source_component = 197)",
+            )
+        )
 
     def want(name: str, ok: Sequence[float], fix: float, why: str) -> None:
         if name not in p:

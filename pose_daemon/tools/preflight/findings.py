@@ -83,6 +83,8 @@ def watched_findings(cfg, obs: Observation, ekf: str) -> List[Finding]:
         out.append(Finding("PROBLEM", "no pose was sent during the watch (is the marker in view?)"))
     else:
         out.append(Finding("OK", f"{obs.poses_sent} poses sent"))
+    # The flags of a report asked for while the feed ran decide; "using external nav data" is
+    # said once per EKF start only, so a repeated preflight cannot wait for it.
     using = obs.ekf_flags is not None and obs.ekf_flags & POS_HORIZ_FLAGS
     said = any("external nav" in t for _s, t in obs.statustexts)
     if using or said:

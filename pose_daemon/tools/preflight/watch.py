@@ -18,10 +18,9 @@ the feed, 1 when not; a config or link that cannot be used is a UserError (exit 
 from __future__ import annotations
 
 import functools
-import struct
 import threading
 import time
-from typing import Any, Callable, List, Sequence
+from typing import Any, Callable, List, Optional, Sequence
 
 from ...errors import SourceError, UserError
 from .ardupilot import ARDUPILOT_PARAMS, check_ardupilot
@@ -36,11 +35,20 @@ from .findings import (
 )
 from .px4 import PX4_PARAMS, check_px4
 
-# EKF_STATUS_REPORT (ardupilotmega.xml, id 193) is not in the common dialect the link decodes:
-# its payload is read here (five floats, then the uint16 flags).
+# EKF_STATUS_REPORT (ardupilotmega.xml, #193): ArduPilot streams it only at SRn_EXTRA3's rate,
+# 0 on Copter by default, so preflight asks for it (MAV_CMD_REQUEST_MESSAGE) while it watches.
 EKF_STATUS_REPORT_ID = 193
+GPS_GLOBAL_ORIGIN_ID = 49
+HOME_POSITION_ID = 242
+MAV_CMD_REQUEST_MESSAGE = 512
+EKF_REQUEST_S = 0.5
 HEARTBEAT_TIMEOUT_S = 10.0
 PARAM_TIMEOUT_S = 2.0
+# Preflight's own requests (parameters, commands) go out as a ground station would send them,
+# not with the daemon's id: ArduPilot drops, as a loopback of its own, every message whose
+# sender is its own system and component (MAVLink_routing::check_and_forward).
+GCS_SYSTEM = 255
+GCS_COMPONENT = 190  # MAV_COMP_ID_MISSIONPLANNER
 
 
 class _Watcher:
@@ -50,6 +58,14 @@ class _Watcher:
         self.out = out
         self.obs = Observation()
         self.lock = threading.Lock()
+        # An EKF report counts only once the feed is on the wire (fresh_after_s, the output's
+        # clock): one from before says what the EKF did with an earlier feed, or with none.
+        self.fresh_after_s: Optional[float] = None
+
+    def on_written(self, t_written_s: float) -> None:
+        with self.lock:
+            if self.fresh_after_s is None:
+                self.fresh_after_s = t_written_s
 
     def handle(self, msg: Any, now: float) -> None:
         kind = msg.get_type()
@@ -67,12 +83,9 @@ class _Watcher:
             elif kind == "STATUSTEXT":
                 text = msg.text if isinstance(msg.text, str) else msg.text.decode("ascii", "replace")
                 self.obs.statustexts.append((int(msg.severity), text.rstrip("\x00")))
-            elif kind == "ESTIMATOR_STATUS":
-                self._flags(int(msg.flags))
-            elif kind == f"UNKNOWN_{EKF_STATUS_REPORT_ID}":
-                buf = bytes(msg.data)
-                payload = buf[10 : 10 + buf[1]] + bytes(22)
-                self._flags(struct.unpack("<fffffH", payload[:22])[5])
+            elif kind in ("ESTIMATOR_STATUS", "EKF_STATUS_REPORT"):
+                if self.fresh_after_s is not None and now >= self.fresh_after_s:
+                    self._flags(int(msg.flags))
             elif kind == "GPS_GLOBAL_ORIGIN":
                 self.obs.origin_seen = True
             elif kind == "HOME_POSITION":
@@ -88,9 +101,31 @@ class _Watcher:
             self.obs.ekf_flags = flags
 
 
+def _as_gcs(build: Callable[[Any], Any]) -> Callable[[Any], Any]:
+    """``build(mav)`` sent with preflight's own id (GCS_SYSTEM, GCS_COMPONENT), not the daemon's."""
+
+    def send(mav: Any) -> Any:
+        ids = mav.srcSystem, mav.srcComponent
+        mav.srcSystem, mav.srcComponent = GCS_SYSTEM, GCS_COMPONENT
+        try:
+            return build(mav)
+        finally:
+            mav.srcSystem, mav.srcComponent = ids
+
+    return send
+
+
 def _request_params(out, obs_system: int, component: int, names: Sequence[str]) -> None:
     for name in names:
-        out.send(lambda mav, n=name: mav.param_request_read_send(obs_system, component, n.encode("ascii"), -1))
+        out.send(_as_gcs(functools.partial(_param_request_read, obs_system, component, name)))
+
+
+def _param_request_read(system: int, component: int, name: str, mav: Any) -> None:
+    mav.param_request_read_send(system, component, name.encode("ascii"), -1)
+
+
+def _param_set(system: int, component: int, name: str, wire: float, ptype: int, mav: Any) -> None:
+    mav.param_set_send(system, component, name.encode("ascii"), wire, ptype)
 
 
 def run_preflight(
@@ -114,18 +149,21 @@ def run_preflight(
         raise UserError(f"{cfg.name}: preflight needs an [output.mavlink] table")
     link_kind = parse_connection(m.connection, m.baud)[0]
     delays_s: List[float] = []
-    out = MavlinkOutput.from_config(
-        cfg,
-        queue_size=0,
-        on_written=lambda _name, result, t_written: delays_s.append(t_written - float(result.t_capture_s)),
-    )
+    watcher: Optional[_Watcher] = None
+
+    def written(_name: str, result: Any, t_written: float) -> None:
+        delays_s.append(t_written - float(result.t_capture_s))
+        if watcher is not None:
+            watcher.on_written(t_written)
+
+    out = MavlinkOutput.from_config(cfg, queue_size=0, on_written=written)
     watcher = _Watcher(out)
     watcher.obs.delays_s = delays_s
     for kind in (
         "PARAM_VALUE",
         "STATUSTEXT",
         "ESTIMATOR_STATUS",
-        f"UNKNOWN_{EKF_STATUS_REPORT_ID}",
+        "EKF_STATUS_REPORT",
         "GPS_GLOBAL_ORIGIN",
         "HOME_POSITION",
         "TIMESYNC",
@@ -153,13 +191,18 @@ def run_preflight(
         processor = FrameProcessor.from_config(cfg)
         end = time.monotonic() + seconds
         retried = False
-        asked_t = -1e18
+        asked_t = ekf_asked_t = -1e18
         try:
             while time.monotonic() < end:
                 if time.monotonic() - asked_t >= 1.0:  # GPS_GLOBAL_ORIGIN and HOME_POSITION, once a second
                     asked_t = time.monotonic()
-                    for msg_id in (49, 242):
-                        out.send(functools.partial(_request_message, obs.system, obs.component, msg_id))
+                    for msg_id in (GPS_GLOBAL_ORIGIN_ID, HOME_POSITION_ID):
+                        out.send(_as_gcs(functools.partial(_request_message, obs.system, obs.component, msg_id)))
+                if obs.autopilot != "px4" and time.monotonic() - ekf_asked_t >= EKF_REQUEST_S:
+                    ekf_asked_t = time.monotonic()
+                    out.send(
+                        _as_gcs(functools.partial(_request_message, obs.system, obs.component, EKF_STATUS_REPORT_ID))
+                    )
                 result = processor.process(source.read())
                 if result.pose is not None:
                     obs.qualities.append(
@@ -196,8 +239,8 @@ def run_preflight(
 
 
 def _request_message(system: int, component: int, msg_id: int, mav: Any) -> None:
-    """MAV_CMD_REQUEST_MESSAGE (512) for ``msg_id`` (GPS_GLOBAL_ORIGIN 49, HOME_POSITION 242)."""
-    mav.command_long_send(system, component, 512, 0, float(msg_id), 0, 0, 0, 0, 0, 0)
+    """MAV_CMD_REQUEST_MESSAGE for ``msg_id`` (GPS_GLOBAL_ORIGIN, HOME_POSITION, EKF_STATUS_REPORT)."""
+    mav.command_long_send(system, component, MAV_CMD_REQUEST_MESSAGE, 0, float(msg_id), 0, 0, 0, 0, 0, 0)
 
 
 def _apply(out, watcher: _Watcher, fixes: Sequence[Finding], emit: Callable[[str], None]) -> bool:
@@ -209,9 +252,8 @@ def _apply(out, watcher: _Watcher, fixes: Sequence[Finding], emit: Callable[[str
         wire = param_wire(value, ptype, obs.autopilot)
         with watcher.lock:
             obs.params.pop(name, None)
-        out.send(
-            lambda mav, n=name, w=wire, t=ptype: mav.param_set_send(obs.system, obs.component, n.encode("ascii"), w, t)
-        )
+        assert obs.system is not None  # the autopilot was heard before any FIX
+        out.send(_as_gcs(functools.partial(_param_set, obs.system, obs.component, name, wire, ptype)))
     end = time.monotonic() + PARAM_TIMEOUT_S * 2
     ok = True
     for f in fixes:
