@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from ..config import check_whole, load_config
 
@@ -19,6 +20,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     check_whole(cfg)  # what `pose-daemon run` refuses at start, files and links included
+    for warning in cfg.start_warnings():
+        print(f"{args.config}: warning: {warning}", file=sys.stderr)
     if args.show:
         print(cfg.to_toml(), end="")
     else:
