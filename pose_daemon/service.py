@@ -266,6 +266,8 @@ class Service:
             ", ".join(o.name for o in self.outputs) or "none",
             self.cfg.pipeline.latency_budget_s * 1e3,
         )
+        for warning in self.cfg.start_warnings():
+            log.warning("%s", warning)
         self.notifier.notify("STATUS=waiting for the first frame")
         ready = False
         now = self.clock()

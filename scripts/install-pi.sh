@@ -148,4 +148,4 @@ if [ "$start" = 1 ]; then
   run systemctl restart pose-daemon.service
 fi
 say "== done: journalctl -u pose-daemon -f shows the status lines; edit $etc/pose-daemon.toml, then"
-say "   pose-daemon check-config /etc/pose-daemon/pose-daemon.toml && sudo systemctl restart pose-daemon"
+say "   pose-daemon check-config --syntax-only /etc/pose-daemon/pose-daemon.toml && sudo systemctl restart pose-daemon"

@@ -61,6 +61,28 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="map sheets for the markers of a map file ([map] with [[map.markers]], as --grid or "
         "`map build` print, or a [[markers]] list with --dictionary); every marker flat in the z = 0 plane",
     )
+    boards = parser.add_mutually_exclusive_group()
+    boards.add_argument(
+        "--chessboard",
+        nargs="?",
+        const="6x9",
+        default=None,
+        metavar="COLSxROWS",
+        help="a calibration chessboard instead of a marker: COLSxROWS inner corners (default 6x9); "
+        "--size the square's side (default the largest whole mm that fits); prints its calibrate line",
+    )
+    boards.add_argument(
+        "--charuco",
+        nargs="?",
+        const="5x7",
+        default=None,
+        metavar="COLSxROWS",
+        help="a ChArUco calibration board: COLSxROWS squares (default 5x7); --size the square's side, "
+        "--marker-size its markers' (default 0.75 of it), --dictionary; prints its calibrate line",
+    )
+    parser.add_argument(
+        "--marker-size", type=float, default=None, metavar="METRES", help="--charuco: the markers' side, metres"
+    )
     parser.add_argument("--ids", metavar="LIST", default=None, help="--grid: the ids, comma-separated, row by row")
     parser.add_argument("--dictionary", default=None, help="ArUco dictionary, OpenCV's name (default DICT_4X4_50)")
     parser.add_argument("--id", type=int, default=None, help="ArUco marker id (default 0)")
@@ -96,6 +118,10 @@ def run(args: argparse.Namespace) -> int:
     from ..tools.marker_sheet import DEFAULT_DICTIONARY, check_out_path, layout, write_pages
 
     check_out_path(args.out)
+    if args.chessboard is not None or args.charuco is not None:
+        return _print_board(args)
+    if args.marker_size is not None:
+        raise UserError("--marker-size applies to --charuco only")
     if args.map is not None:
         return _print_map(args)
     if args.size is None:
@@ -163,6 +189,45 @@ def run(args: argparse.Namespace) -> int:
     shown = str(files[0]) if len(files) == 1 else f"{files[0]} ... {files[-1]} ({len(files)} files)"
     print(f"wrote {shown}: {what}, {args.paper}; print at 100% and check the 10 cm bar", file=sys.stderr)
     print("\n".join(config))
+    return 0
+
+
+def _print_board(args: argparse.Namespace) -> int:
+    """A calibration board at true size; its ``calibrate`` line on stdout."""
+    from ..errors import UserError
+    from ..tools.board_sheet import board_spec, layout_board
+    from ..tools.marker_sheet import write_pages
+
+    kind = "chessboard" if args.chessboard is not None else "charuco"
+    for option in ("pad", "tiled"):
+        if getattr(args, option):
+            raise UserError(f"--{kind} prints a calibration board: no --{option}")
+    for option in ("grid", "spacing", "map", "ids", "id"):
+        if getattr(args, option) is not None:
+            raise UserError(f"--{kind} prints a calibration board: no --{option}")
+    square_m = None
+    if args.size is not None:
+        square_m = _numbers("--size", args.size, "the square's side, a positive number of metres")
+        if len(square_m) > 1:
+            raise UserError("--size takes one number with --" + kind)
+    marker_m = args.marker_size
+    if marker_m is not None and not (math.isfinite(marker_m) and marker_m > 0):
+        raise UserError(f"--marker-size must be a positive number of metres, got {marker_m:g}")
+    spec = board_spec(
+        kind,
+        args.chessboard if kind == "chessboard" else args.charuco,
+        square_m=square_m[0] if square_m else None,
+        marker_m=marker_m,
+        dictionary=args.dictionary,
+        paper=args.paper,
+    )
+    sheet = layout_board(spec, args.paper)
+    files = write_pages([sheet], args.out, dpi=args.dpi)
+    print(
+        f"wrote {files[0]}: {spec.describe()}, {args.paper}; print at 100% and check the 10 cm bar",
+        file=sys.stderr,
+    )
+    print("\n".join(sheet.config))
     return 0
 
 

@@ -44,6 +44,14 @@ from .sections import (
 #: repository is a symbolic link to it: one file, nothing to keep equal.
 DEFAULT_CONFIG_FILE = "demo.toml"
 
+#: Sources whose frames are rendered: nothing but the marker is in view.
+RENDERED = ("synthetic",)
+#: Said at start (log, check-config, the preview) while a camera looks for a plain square.
+SQUARE_WARNING = (
+    '[marker] type = "square": any dark square in view passes (floor tiles, windows, a chessboard) '
+    'and its pose is sent; type = "aruco" passes only its id (docs/markers.md)'
+)
+
 
 def default_config_text() -> str:
     """The TOML text of the embedded default configuration (the demo: synthetic source)."""
@@ -82,6 +90,14 @@ class Config:
             size = max(m.size_m for m in self.map.markers)
             return Marker(width=size, height=size)
         return self.marker.model()
+
+    def start_warnings(self) -> List[str]:
+        """Choices in this config a user should hear about at every start (one line each)."""
+        out = []
+        # A rendered scene holds only the marker; a camera's may hold any dark square.
+        if self.map is None and self.marker.type == "square" and parse_source(self.camera.source)[0] not in RENDERED:
+            out.append(SQUARE_WARNING)
+        return out
 
     @classmethod
     def default(cls) -> Config:

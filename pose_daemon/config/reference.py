@@ -65,8 +65,11 @@ config schema (`pose_daemon/config/sections.py`): do not edit it by hand, regene
 connection string and whether a `video:`/`replay:` source exists; an unknown key, a wrong type
 or a value out of range stops the daemon with one line naming the file, the key and what was
 expected, exit 2, e.g. `daemon.toml: [camera] fx: expected a number > 0, got "abc"`
-(`--print` shows every key with its value). Missing keys take the default; `[output.*]` tables
-and `[preview]` are enabled by being present. `[camera] cx`/`cy` must lie inside the image;
+(`--print` shows every key with its value). It then checks the hardware the file names on
+this machine, one `OK`/`PROBLEM` line each (the camera source, each serial device, the user's
+group), exit 1 if any fails; `--syntax-only` checks the file alone (exit 0 or 2, for CI).
+Missing keys take the default; `[output.*]` tables and `[preview]` are enabled by being present.
+`[camera] cx`/`cy` must lie inside the image;
 `[marker] dictionary`/`id` are required for `type = "aruco"` and refused otherwise, and `id` must
 be one of the dictionary's ids; `[estimator] method` must be "iterative" or "paper";
 `[synthetic] trajectory` follows `[marker] placement` unless set. `[map]` and `[marker]` are

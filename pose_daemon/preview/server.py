@@ -251,6 +251,7 @@ class PreviewServer:
             outputs=self._outputs(),
             min_side_px=self.cfg.detector.min_side_px,
             attitude_expected=attitude_connection(self.cfg) is not None,
+            config_warnings=self.cfg.start_warnings(),
         )
         found = evaluate(ctx)
         self._warnings_cache = (now, found)

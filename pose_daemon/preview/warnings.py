@@ -43,6 +43,7 @@ class Context:
     min_side_px: float = 10.0
     ambiguous_ratio: float = 0.1
     attitude_expected: bool = False  # [attitude] names a live source: frames should carry one
+    config_warnings: Sequence[str] = ()  # the config's start warnings (Config.start_warnings)
 
 
 def shortest_side_px(corners) -> float:
@@ -157,6 +158,10 @@ def _output_drops(ctx: Context) -> Optional[str]:
     return "output cannot keep up or fails: " + ", ".join(bad) if bad else None
 
 
+def _config(ctx: Context) -> Optional[str]:
+    return "; ".join(ctx.config_warnings) or None
+
+
 Rule = Callable[[Context], Optional[str]]
 RULES: Tuple[Tuple[str, Rule], ...] = (
     ("source", _source),
@@ -172,6 +177,7 @@ RULES: Tuple[Tuple[str, Rule], ...] = (
     ("autopilot_not_heard", _autopilot),
     ("output_down", _output_down),
     ("output_drops", _output_drops),
+    ("config", _config),
 )
 
 
