@@ -113,10 +113,14 @@ def is_pty(fd: int) -> bool:
 
 
 def discard_tty_output(fd: int) -> None:
-    """Throw away what a tty holds for its reader (TCOFLUSH)."""
+    """Throw away what a tty holds for its reader (TCOFLUSH). LinkError when the tty is gone (a
+    hung-up device fails with termios.error, which is no OSError) so that it is reopened."""
     import termios
 
-    termios.tcflush(fd, termios.TCOFLUSH)
+    try:
+        termios.tcflush(fd, termios.TCOFLUSH)
+    except (termios.error, OSError) as exc:
+        raise LinkError(f"cannot discard what the port holds: {exc}") from exc
 
 
 def release_serial_port(fd: int) -> None:
