@@ -70,8 +70,9 @@ class LinkError(Exception):
 
 class LinkClosed(LinkError):
     """The link's reader went away for good (the pipe behind stdout closed, as `head` does):
-    reopening cannot help. The output stops and calls ``on_closed(reason)``, with which the
-    pipeline ends the run, as SIGPIPE ends `yes | head`."""
+    reopening cannot help. The output stops and calls ``on_closed(reason)``: the pipeline
+    lets the other outputs go on, and ends the run, as SIGPIPE ends `yes | head`, only when
+    no output is left."""
 
 
 def hold_serial_port(fd: int, device: str) -> None:
@@ -321,6 +322,11 @@ class QueuedOutput:
     @property
     def link_up(self) -> bool:
         return self._link_up
+
+    @property
+    def closed_for_good(self) -> bool:
+        """True once the link closed for good (LinkClosed: stdout's reader went away)."""
+        return self._gone
 
     # ------------------------------------------------------------------ for subclasses
 
