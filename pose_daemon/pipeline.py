@@ -244,7 +244,8 @@ class Pipeline:
     ``processor`` has ``process(frame) -> FrameResult`` and ``reset()`` (FrameProcessor).
     ``outputs`` builds the outputs (``functools.partial(open_outputs, cfg)``) with the
     pipeline's latency budget as their ``max_age_s`` and its hooks: ``on_written`` feeds the
-    stats (and then calls the ``on_written`` given here), ``on_closed`` ends the run. They
+    stats (and then calls the ``on_written`` given here), ``on_closed`` stops that output alone
+    (``_output_closed``: the run ends when no output is left). They
     are in ``self.outputs``; whoever made the pipeline closes them after ``stop``.
     The source is opened by the capture thread and reopened with a doubling pause when it
     raises SourceError; EndOfStream ends the run (closing the outputs writes what they queued).
@@ -282,8 +283,9 @@ class Pipeline:
         self._stop = threading.Event()
         self._slot = NewestSlot()
         self.finished = threading.Event()  # set when the run ended (end of stream or stop)
-        self.outputs: List[Output] = list(
-            outputs(max_age_s=self.latency_budget_s, on_written=self._written, on_closed=self.end)
+        self.outputs: List[Output] = []  # until built: an output closed meanwhile ends the run
+        self.outputs = list(
+            outputs(max_age_s=self.latency_budget_s, on_written=self._written, on_closed=self._output_closed)
         )
         self.on_idle = on_idle
         self.first_frame = threading.Event()  # set when the first frame was processed
@@ -338,6 +340,16 @@ class Pipeline:
         self._stop.set()
         self._slot.close()
         self.finished.set()
+
+    def _output_closed(self, reason: str) -> None:
+        """An output's reader went away for good (stdout's reader gone: a crashed log reader,
+        journald restarted, `| head`). While another output can still write (the flight feed:
+        MAVLink, serial), that one output stops alone, with one warning; the run ends, as
+        SIGPIPE ends a filter, only when no output is left."""
+        if all(getattr(o, "closed_for_good", False) for o in self.outputs):
+            self.end(reason)
+            return
+        log.warning("%s; the other outputs go on", reason)
 
     def wait(self, timeout_s: Optional[float] = None) -> bool:
         """Wait for the end of the run; True if it ended."""

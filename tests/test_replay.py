@@ -207,3 +207,91 @@ def test_replay_refuses_an_index_entry_outside_the_recording(recording: Path, tm
         "recording folder (absolute, or with ..)\n"
     )
     assert not ann.exists() or list(ann.iterdir()) == []
+
+
+def _with_entry(recording: Path, tmp_path: Path, key: str, text: str, line: int = 2) -> Path:
+    """A copy of ``recording`` whose index line ``line`` has ``key`` set to the JSON ``text``
+    (written as is: NaN, Infinity and 1e999 are what a broken writer leaves)."""
+    import shutil
+
+    from pose_daemon.capture.recording import INDEX_FILE
+
+    rec = tmp_path / "rec"
+    shutil.copytree(recording, rec)
+    index = rec / INDEX_FILE
+    lines = index.read_text().splitlines(keepends=True)
+    entry = json.loads(lines[line - 1])
+    entry[key] = "@@"
+    lines[line - 1] = json.dumps(entry).replace('"@@"', text) + "\n"
+    index.write_text("".join(lines))
+    return rec
+
+
+@pytest.mark.parametrize(
+    "key, text",
+    [
+        ("t_capture_s", "NaN"),
+        ("t_capture_s", "-Infinity"),
+        ("t_capture_s", "1e999"),
+        ("t_capture_s", "1e300"),
+        ("t_capture_s", '"12.5"'),
+        ("t_capture_s", "true"),
+        ("seq", "NaN"),
+        ("seq", "-3"),
+        ("seq", "1.5"),
+        ("attitude_rpy_rad", "[0.1, NaN, 0.0]"),
+        ("attitude_rpy_rad", "[0.1, 0.0, 1e9]"),
+        ("attitude_sigma_rad", "Infinity"),
+        ("attitude_sigma_rad", "-0.1"),
+        ("true_tvec", "[0.0, 0.0, NaN]"),
+        ("true_rvec", "[1e999, 0.0, 0.0]"),
+        ("true_corners", "[[1, 2], [3, 4]]"),
+        ("true_corners", '[[1, 2], [3, 4], [5, 6], [7, "x"]]'),
+    ],
+)
+def test_replay_of_a_number_that_is_no_time_or_attitude_is_one_line_naming_file_line_and_key(
+    recording: Path, tmp_path: Path, capsys, key: str, text: str
+) -> None:
+    rec = _with_entry(recording, tmp_path, key, text)
+    if key == "attitude_sigma_rad":
+        rec = _with_entry(rec, tmp_path / "b", "attitude_rpy_rad", "[0.1, 0.0, 0.0]")
+    assert main(["replay", str(rec), "--out", str(tmp_path / "out.jsonl")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"pose-daemon: error: {rec / 'index.jsonl'}:2: {key} "), err
+
+
+def test_replay_of_a_nan_time_exits_2_without_a_traceback(recording: Path, tmp_path: Path) -> None:
+    rec = _with_entry(recording, tmp_path, "t_capture_s", "NaN")
+    res = _cli("replay", str(rec))
+    assert res.returncode == 2 and res.stdout == "", res.stderr
+    assert res.stderr.startswith(f"pose-daemon: error: {rec / 'index.jsonl'}:2: t_capture_s ")
+    assert res.stderr.count("\n") == 1 and "Traceback" not in res.stderr
+
+
+@pytest.mark.parametrize("text", ["NaN", "Infinity", "-5", "1e9", '"30"'])
+def test_replay_of_a_recording_whose_fps_is_no_rate_is_one_line(
+    recording: Path, tmp_path: Path, capsys, text: str
+) -> None:
+    import shutil
+
+    from pose_daemon.capture.recording import META_FILE
+
+    rec = tmp_path / "rec"
+    shutil.copytree(recording, rec)
+    meta = json.loads((rec / META_FILE).read_text())
+    meta["fps"] = "@@"
+    (rec / META_FILE).write_text(json.dumps(meta).replace('"@@"', text))
+    assert main(["replay", str(rec), "--out", str(tmp_path / "out.jsonl")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"pose-daemon: error: {rec / META_FILE}: fps "), err
+
+
+def test_run_on_a_recording_with_a_nan_time_is_one_line_exit_2(recording: Path, tmp_path: Path, capsys) -> None:
+    # Not a camera to reopen every 5 s for ever: the user's recording to fix.
+    rec = _with_entry(recording, tmp_path, "t_capture_s", "NaN")
+    cfg = tmp_path / "run.toml"
+    cfg.write_text(f'[camera]\nsource = "replay:{rec}"\n')
+    assert main(["run", "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert err.startswith(f"pose-daemon: error: {cfg}: [camera] source: {rec / 'index.jsonl'}:2: t_capture_s "), err

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import os
+import signal
+import socket
 import subprocess
 import sys
 import time
@@ -99,3 +101,58 @@ def test_a_link_that_opens_but_fails_at_once_is_reopened_after_a_doubling_pause(
         FrameResult(seq=9, t_capture_s=clock[0], corners=None, pose=None, error="no marker", stage_s={}, latency_s=0.0)
     )
     assert round(out._next_open_t - clock[0], 3) == 0.5
+
+
+def test_a_closed_stdout_stops_the_json_lines_alone_and_mavlink_goes_on(tmp_path):
+    """The flight feed outlives its log: with MAVLink beside JSON lines on stdout, the reader of
+    stdout going away (a crashed log reader, journald restarted) stops the JSON lines only, with
+    one warning; the daemon keeps running and the autopilot keeps getting poses."""
+    from pymavlink.dialects.v20 import common as mavlink2
+    from test_run import SMALL_CAMERA, _Lines
+
+    sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sink.bind(("127.0.0.1", 0))
+    sink.settimeout(0.2)
+    cfg = tmp_path / "daemon.toml"
+    cfg.write_text(
+        f"{SMALL_CAMERA}\n[pipeline]\nstatus_interval_s = 0.5\n"
+        f'[output.mavlink]\nconnection = "udpout:127.0.0.1:{sink.getsockname()[1]}"\nwait_heartbeat = false\n'
+        '[output.jsonl]\npath = "-"\n'
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pose_daemon", "run", "--config", str(cfg)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=ENV,
+    )
+    err = _Lines(proc.stderr)
+    odometry_after = 0
+    try:
+        lines = [proc.stdout.readline() for _ in range(2)]
+        proc.stdout.close()
+        err.wait_for("jsonl output closed: stdout closed by its reader (broken pipe)")
+        mav = mavlink2.MAVLink(None)
+        end = time.monotonic() + 60.0  # generous: a loaded machine; the count is what is judged
+        while odometry_after < 30 and time.monotonic() < end and proc.poll() is None:
+            try:
+                data = sink.recv(65536)
+            except socket.timeout:
+                continue
+            odometry_after += sum(1 for m in mav.parse_buffer(data) or [] if m.get_type() == "ODOMETRY")
+        running = proc.poll() is None
+        err.wait_for("link closed: stdout closed by its reader")  # the status line says so
+        proc.send_signal(signal.SIGTERM)
+        rc = proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        sink.close()
+    text = err.text()
+    assert [json.loads(line)["frame"] >= 0 for line in lines] == [True, True]
+    assert running and odometry_after >= 30, text
+    assert rc == 0, text
+    assert text.count("jsonl output closed: stdout closed by its reader (broken pipe)") == 1, text
+    assert "the other outputs go on" in text and "stopping: jsonl" not in text, text
+    assert "Traceback" not in text and "Exception ignored" not in text, text

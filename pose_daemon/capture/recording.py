@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import time
 from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any, Dict, List, Optional, Union
@@ -37,6 +38,13 @@ INDEX_FILE = "index.jsonl"
 _log = logging.getLogger(__name__)
 TRUTH_KEYS = ("true_rvec", "true_tvec", "true_corners")
 ATTITUDE_KEY, ATTITUDE_SIGMA_KEY = "attitude_rpy_rad", "attitude_sigma_rad"
+# Every number read from a recording is checked against these: a NaN, an infinity or an absurd
+# value is a broken recording, said in one line naming the file, the line and the key.
+MAX_TIME_S = 1e10  # a capture time beyond +-317 years is no clock's
+MAX_FPS = 10000.0
+MAX_ANGLE_RAD = 2 * math.pi
+TRUTH_SHAPES = {"true_rvec": (3,), "true_tvec": (3,), "true_corners": (4, 2)}
+MAX_TRUTH = 1e6  # rad, m or px: a larger truth value is no scene's
 
 
 def is_recording(path: Union[str, Path]) -> bool:
@@ -133,7 +141,47 @@ def read_meta(path: Union[str, Path]) -> Dict[str, Any]:
         raise SourceError(f"{meta_path}: not valid JSON ({exc})") from exc
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise SourceError(f"{meta_path}: not a {FORMAT} file")
+    fps = meta.get("fps")
+    if fps is not None and fps != 0 and not _is_number(fps, 0.0, MAX_FPS):
+        raise SourceError(f"{meta_path}: fps must be a number of frames per second in (0, {MAX_FPS:g}], got {fps!r}")
     return meta
+
+
+def _is_number(value: Any, lo: float, hi: float) -> bool:
+    """A JSON number (no bool, no string), finite, within [lo, hi]."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    return math.isfinite(value) and lo <= value <= hi
+
+
+def check_entry_numbers(entry: Dict[str, Any]) -> None:
+    """Every number of one index entry, checked: ValueError("KEY must be ..., got ...") for a
+    NaN, an infinity, a string or bool where a number belongs, or an absurd value."""
+    t = entry["t_capture_s"]
+    if not _is_number(t, -MAX_TIME_S, MAX_TIME_S):
+        raise ValueError(f"t_capture_s must be a finite number of seconds within +-{MAX_TIME_S:g}, got {t!r}")
+    seq = entry.get("seq", 0)
+    if isinstance(seq, bool) or not isinstance(seq, int) or seq < 0:
+        raise ValueError(f"seq must be a whole number >= 0, got {seq!r}")
+    rpy, sigma = entry.get(ATTITUDE_KEY), entry.get(ATTITUDE_SIGMA_KEY)
+    if rpy is not None and not (
+        isinstance(rpy, list) and len(rpy) == 3 and all(_is_number(v, -MAX_ANGLE_RAD, MAX_ANGLE_RAD) for v in rpy)
+    ):
+        raise ValueError(f"{ATTITUDE_KEY} must be [roll, pitch, yaw], finite radians within +-2 pi, got {rpy!r}")
+    if sigma is not None and not _is_number(sigma, 0.0, math.pi):
+        raise ValueError(f"{ATTITUDE_SIGMA_KEY} must be a number of radians in [0, pi], got {sigma!r}")
+    for key, shape in TRUTH_SHAPES.items():
+        if key not in entry:
+            continue
+        try:
+            ok = np.asarray(entry[key]).shape == shape and all(
+                _is_number(v, -MAX_TRUTH, MAX_TRUTH) for v in np.asarray(entry[key], dtype=object).ravel()
+            )
+        except ValueError:  # a ragged list
+            ok = False
+        if not ok:
+            size = " x ".join(str(n) for n in shape)
+            raise ValueError(f"{key} must be {size} finite numbers within +-{MAX_TRUTH:g}, got {entry[key]!r}")
 
 
 def camera_from_meta(meta: Dict[str, Any]) -> Optional[Camera]:
@@ -183,19 +231,25 @@ def read_index(path: Union[str, Path]) -> List[Dict[str, Any]]:
         try:
             entry = json.loads(line)
             entry["file"] = str(entry["file"])
+            if "t_capture_s" not in entry:
+                raise KeyError("t_capture_s")
             if _outside(entry["file"]):
                 raise SourceError(
                     f"{index_path}:{n}: frame file {json.dumps(entry['file'])} lies outside "
                     "the recording folder (absolute, or with ..)"
                 )
-            entry["t_capture_s"] = float(entry["t_capture_s"])
-            entry["seq"] = int(entry.get("seq", len(entries)))
-            entry["attitude"] = attitude_from_entry(entry)
         except (ValueError, KeyError, TypeError) as exc:
             if n == len(lines) and not text.endswith("\n"):
                 _log.warning("%s:%d: skipping the unfinished last line (recording cut off)", index_path, n)
                 break
             raise SourceError(f"{index_path}:{n}: not a frame entry ({exc})") from exc
+        try:
+            check_entry_numbers(entry)
+            entry["t_capture_s"] = float(entry["t_capture_s"])
+            entry["seq"] = int(entry.get("seq", len(entries)))
+            entry["attitude"] = attitude_from_entry(entry)
+        except ValueError as exc:
+            raise SourceError(f"{index_path}:{n}: {exc}") from exc
         entries.append(entry)
     return entries
 

@@ -24,6 +24,7 @@ import numpy as np
 from ..geometry import VehicleFrames
 from ..result import FrameResult, time_usec_from_s
 from .base import ClosedHook, WrittenHook
+from .device_path import DeviceWatch
 from .quality import LOST_QUALITY, pose_quality, result_uncertainty
 from .worker import (
     LinkBusy,
@@ -123,6 +124,7 @@ class PlainSerialOutput(QueuedOutput):
         self._serial = None
         self._fd: Optional[int] = None  # the tty's descriptor (None for a pyserial URL)
         self._pty = False
+        self._watch: Optional[DeviceWatch] = None  # the device the port's path named at open
         self._last_sent_t: Optional[float] = None
         super().__init__(
             queue_size=queue_size,
@@ -158,9 +160,15 @@ class PlainSerialOutput(QueuedOutput):
                 port.close()
                 raise
             self._fd, self._pty = fd, is_pty(fd)
+            self._watch = DeviceWatch(self.cfg.port, fd)
         else:
-            self._fd, self._pty = None, False
+            self._fd, self._pty, self._watch = None, False, None
         self._serial = port
+
+    def _tick(self, now: float) -> None:
+        # An unplugged, reset or replaced device: reopen the path (LinkError), see device_path.py.
+        if self._watch is not None:
+            self._watch.check()
 
     def _queued_bytes(self) -> Optional[int]:
         if self._fd is None:

@@ -70,8 +70,9 @@ class LinkError(Exception):
 
 class LinkClosed(LinkError):
     """The link's reader went away for good (the pipe behind stdout closed, as `head` does):
-    reopening cannot help. The output stops and calls ``on_closed(reason)``, with which the
-    pipeline ends the run, as SIGPIPE ends `yes | head`."""
+    reopening cannot help. The output stops and calls ``on_closed(reason)``: the pipeline
+    lets the other outputs go on, and ends the run, as SIGPIPE ends `yes | head`, only when
+    no output is left."""
 
 
 def hold_serial_port(fd: int, device: str) -> None:
@@ -113,10 +114,14 @@ def is_pty(fd: int) -> bool:
 
 
 def discard_tty_output(fd: int) -> None:
-    """Throw away what a tty holds for its reader (TCOFLUSH)."""
+    """Throw away what a tty holds for its reader (TCOFLUSH). LinkError when the tty is gone (a
+    hung-up device fails with termios.error, which is no OSError) so that it is reopened."""
     import termios
 
-    termios.tcflush(fd, termios.TCOFLUSH)
+    try:
+        termios.tcflush(fd, termios.TCOFLUSH)
+    except (termios.error, OSError) as exc:
+        raise LinkError(f"cannot discard what the port holds: {exc}") from exc
 
 
 def release_serial_port(fd: int) -> None:
@@ -317,6 +322,11 @@ class QueuedOutput:
     @property
     def link_up(self) -> bool:
         return self._link_up
+
+    @property
+    def closed_for_good(self) -> bool:
+        """True once the link closed for good (LinkClosed: stdout's reader went away)."""
+        return self._gone
 
     # ------------------------------------------------------------------ for subclasses
 

@@ -19,6 +19,7 @@ import struct
 import time
 from typing import Any, Callable, List, Optional, Tuple
 
+from ..device_path import DeviceWatch
 from ..worker import (
     LinkBusy,
     LinkError,
@@ -117,9 +118,11 @@ class MavlinkLink:
             self.mav.signing.allow_unsigned_callback = None
         port = self.conn.port
         self.pty = False
+        self._watch: Optional[DeviceWatch] = None  # a serial path's device, checked each read
         if kind == "serial":
             port.write_timeout = WRITE_TIMEOUT_S
             self.pty = is_pty(port.fd)
+            self._watch = DeviceWatch(device, port.fd)
         else:
             port.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER_BYTES)
             if kind == "tcp":
@@ -190,10 +193,7 @@ class MavlinkLink:
         """A full buffer: the reader stopped. What waits for it is stale; a serial port discards
         it (TCOFLUSH), a TCP connection is left for the queue check to reset."""
         if self.kind == "serial":
-            try:
-                discard_tty_output(self.conn.port.fd)
-            except OSError:
-                return
+            discard_tty_output(self.conn.port.fd)  # LinkError when the port is gone
             self._on_discarded()
 
     def read_messages(self) -> List[Any]:
@@ -201,6 +201,8 @@ class MavlinkLink:
         call (RX_DATAGRAMS, RX_BYTES, RX_SECONDS): what is left waits for the next call, so
         reading never holds up sending however much arrives. A datagram larger than
         RX_MAX_DATAGRAM is junk: dropped unparsed and counted as ``oversized``."""
+        if self._watch is not None:
+            self._watch.check()  # unplugged, reset or replaced behind its path: LinkError, reopen
         out: List[Any] = []
         t_end = time.perf_counter() + RX_SECONDS
         budget = RX_BYTES
