@@ -344,6 +344,35 @@ def euler_rpy_from_R(R: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]
     return roll, pitch, yaw
 
 
+def euler_rpy_from_R_3x3(R: np.ndarray) -> Tuple[float, float, float]:
+    """(roll, pitch, yaw) in radians of one R = Rz(yaw) Ry(pitch) Rx(roll), exact at every
+    pitch: the pitch from atan2 (not arcsin, which loses half the digits near +-90 deg), and at
+    +-90 deg, where only roll -+ yaw is defined, the roll 0."""
+    R = np.asarray(R, dtype=np.float64)
+    c = math.hypot(R[2, 1], R[2, 2])
+    pitch = math.atan2(-R[2, 0], c)
+    if c < 1e-12:
+        return 0.0, pitch, math.atan2(-R[0, 1], R[1, 1])
+    return math.atan2(R[2, 1], R[2, 2]), pitch, math.atan2(R[1, 0], R[0, 0])
+
+
+def R_from_quaternion(w: float, x: float, y: float, z: float) -> np.ndarray:
+    """A quaternion (w, x, y, z), normalised here, -> its rotation matrix (3, 3) (parent <- child:
+    the child's axes are the columns). ValueError for a zero or non-finite quaternion."""
+    q = np.array([w, x, y, z], dtype=np.float64)
+    n = float(np.linalg.norm(q))
+    if not (math.isfinite(n) and n > 1e-12):
+        raise ValueError(f"a rotation quaternion must be finite and non-zero, got {[w, x, y, z]}")
+    w, x, y, z = (q / n).tolist()
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
 def R_body_cam_for_mount(preset: str, rotation_deg=(0.0, 0.0, 0.0)) -> np.ndarray:
     """Camera axes in the body FRD frame (3, 3) for a mount preset plus a (roll, pitch, yaw) turn."""
     if preset not in _R_BODY_CAM_PRESET:

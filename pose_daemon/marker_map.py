@@ -133,8 +133,10 @@ class MarkerMap:
                 return True
         return False
 
-    def to_toml_lines(self, with_header: bool = True) -> List[str]:
-        """The map in the config's [map] format (interface.md)."""
+    def to_toml_lines(self, with_header: bool = True, exact: bool = False) -> List[str]:
+        """The map in the config's [map] format (interface.md); ``exact``: every number with
+        all its digits (the shortest text that reads back as the same float), else 6 decimals."""
+        g = _exact if exact else _g
         lines: List[str] = []
         if with_header:
             lines += ["[map]", f'dictionary = "{self.dictionary}"', f'placement = "{self.placement}"', ""]
@@ -142,12 +144,16 @@ class MarkerMap:
             lines += [
                 "[[map.markers]]",
                 f"id = {m.id}",
-                f"size = {_g(m.size_m)}",
-                "position = [" + ", ".join(_g(v) for v in m.position_m) + "]",
-                "rotation_deg = [" + ", ".join(_g(v) for v in m.rotation_deg) + "]",
+                f"size = {g(m.size_m)}",
+                "position = [" + ", ".join(g(v) for v in m.position_m) + "]",
+                "rotation_deg = [" + ", ".join(g(v) for v in m.rotation_deg) + "]",
                 "",
             ]
         return lines
+
+
+def _exact(v: float) -> str:
+    return repr(float(v) + 0.0)  # + 0.0: no "-0.0"
 
 
 def _g(v: float) -> str:
@@ -196,7 +202,7 @@ def markers_from_tables(
         if n_ids is not None and mid >= n_ids:
             raise MapError(where, "id", f"an integer in [0, {n_ids - 1}] (the ids of {dictionary})", mid)
         if mid in seen:
-            raise MapError(where, "id", f"an id not used before (markers[{seen[mid]}] has id {mid})", mid)
+            raise MapError(where, "id", f"an id not used before ({prefix}[{seen[mid]}] has id {mid})", mid)
         seen[mid] = i
         if "size" not in table:
             raise MapError(where, "size", "a number > 0 (metres; every marker needs its size)", None, False)

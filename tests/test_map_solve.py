@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from pose_daemon import geometry as g
 from pose_daemon.attitude import Attitude
@@ -221,3 +222,82 @@ def test_a_marker_leaving_the_frame_is_followed_partly_and_its_visible_corners_s
             assert float(np.abs(proc.last_found[left][inside] - frame.corners_px[left][inside]).max()) < 0.15
             partial_used += 1
     assert whole_frames >= 3 and partial_used >= 3
+
+
+# --------------------------------------------------------------------------- the start does not matter
+
+FIELD_CAM = Camera(fx=900.0, fy=900.0, cx=639.5, cy=359.5, width=1280, height=720, dist=(0.05, -0.1, 0.0, 0.0, 0.0))
+# AprilTags of 0.165 m on the walls of a field (x along it, z up): rotation [90, 0, 90] faces +x
+# with its top up. One far tag alone; two tags 1.2 m apart whose planes differ by 4 deg.
+ONE_WALL_TAG = MarkerMap("DICT_APRILTAG_36h11", (MapMarker(3, 0.165, (0.0, 4.0, 1.4), (90.0, 0.0, 90.0)),), "floor")
+TWO_WALL_TAGS = MarkerMap(
+    "DICT_APRILTAG_36h11",
+    (MapMarker(3, 0.165, (0.0, 4.0, 1.4), (90.0, 0.0, 90.0)), MapMarker(4, 0.165, (0.05, 5.2, 1.3), (90.0, 0.0, 94.0))),
+    "floor",
+)
+
+
+def _looking(centre, target):
+    """(R_cam_map, tvec) of a level camera at ``centre`` looking at ``target`` (map frame, z up)."""
+    centre, target = np.asarray(centre, dtype=np.float64), np.asarray(target, dtype=np.float64)
+    f = (target - centre) / np.linalg.norm(target - centre)
+    r = np.cross(f, [0.0, 0.0, 1.0])
+    r /= np.linalg.norm(r)
+    R_cam_map = np.column_stack([r, np.cross(f, r), f]).T
+    return R_cam_map, -R_cam_map @ centre
+
+
+@pytest.mark.parametrize(
+    "marker_map, centres",
+    [
+        (ONE_WALL_TAG, [(6.0, 1.5, 0.9), (4.5, 6.5, 1.8), (5.5, 3.0, 0.5)]),
+        (TWO_WALL_TAGS, [(7.0, 5.5, 1.0), (6.5, 2.5, 1.6), (7.5, 4.0, 0.6)]),
+    ],
+    ids=["one-far-tag", "two-far-tags-nearly-coplanar"],
+)
+def test_fresh_and_warm_starts_give_the_same_pose_the_lowest_minimum(marker_map, centres):
+    """Rendered far tags; each frame solved fresh, from an unrelated pose (a vehicle that lost
+    the map and finds it again elsewhere), from the other frames' poses (a replay in another
+    order) and from its own other minimum: one answer, the one of lowest cost."""
+    from pose_daemon.detect.multi import MapDetector
+
+    rng = np.random.default_rng(11)
+    views = []
+    for centre in centres:
+        R, t = _looking(centre, marker_map.markers[0].position_m)
+        frame = render_map(FIELD_CAM, marker_map, g.rvec_from_R(R), t, effects=Effects(), rng=rng)
+        found = MapDetector(marker_map, camera=FIELD_CAM).detect(frame.image)
+        assert sorted(found) == sorted(marker_map.ids)
+        views.append((found, solve_map_pose(found, FIELD_CAM, marker_map)))
+    unrelated = [_looking((2.0, 1.0, 0.5), (0.0, 6.0, 2.0)), _looking((9.0, 8.0, 3.0), (0.0, 3.0, 0.0))]
+    for found, fresh in views:
+        warm_starts = unrelated + [(p.R, p.tvec) for _, p in views if p is not fresh]
+        if fresh.alternative is not None:
+            warm_starts.append((fresh.alternative.R, fresh.alternative.tvec))
+        for previous in warm_starts:
+            warm = solve_map_pose(found, FIELD_CAM, marker_map, previous=previous)
+            apart_m = float(
+                np.linalg.norm(camera_position_map(warm.rvec, warm.tvec) - camera_position_map(fresh.rvec, fresh.tvec))
+            )
+            assert apart_m < 1e-3 and float(g.rotation_angle_deg(warm.R, fresh.R)) < 0.01
+            assert abs(warm.reprojection_error_px - fresh.reprojection_error_px) < 1e-6
+
+
+def test_the_other_minimum_of_a_far_tag_goes_into_the_quality_and_the_covariance():
+    """As for one marker: the alternative's likelihood lowers the quality and its step widens
+    the covariance sent, unless the attitude chose the branch."""
+    from pose_daemon.outputs.quality import pose_quality, uncertainty
+
+    R, t = _looking((6.0, 1.5, 0.9), (0.0, 4.0, 1.4))
+    frame = render_map(FIELD_CAM, ONE_WALL_TAG, g.rvec_from_R(R), t, effects=Effects(), rng=np.random.default_rng(4))
+    from pose_daemon.detect.multi import MapDetector
+
+    found = MapDetector(ONE_WALL_TAG, camera=FIELD_CAM).detect(frame.image)
+    pose = solve_map_pose(found, FIELD_CAM, ONE_WALL_TAG)
+    assert pose.alternative is not None and 0.0 < pose.ambiguity_ratio <= 1.0
+    assert math.isclose(pose.ambiguity_ratio, pose.reprojection_error_px / pose.alternative.reprojection_error_px)
+    u = uncertainty(pose, FIELD_CAM.fx, 0.165, corner_sigma_px=0.3)
+    assert u.p_other > 0.01
+    assert np.trace(u.sent_cov_rotation_rad2) > 2.0 * np.trace(u.cov_rotation_rad2)
+    resolved = uncertainty(pose, FIELD_CAM.fx, 0.165, corner_sigma_px=0.3, flip_resolved=True)
+    assert pose_quality(pose, FIELD_CAM.fx, 0.165, u=u) < pose_quality(pose, FIELD_CAM.fx, 0.165, u=resolved)

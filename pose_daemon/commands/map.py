@@ -1,5 +1,5 @@
-"""``pose-daemon map {build,check}``: survey a marker map from a walk-through, and check a map
-against a recording (a moved marker)."""
+"""``pose-daemon map {build,check,import}``: survey a marker map from a walk-through, check a map
+against a recording (a moved, turned, mirrored or mis-sized marker), and read a field layout."""
 
 from __future__ import annotations
 
@@ -47,6 +47,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("source", metavar="SOURCE", help="recording folder or folder of images")
     c.add_argument("--config", metavar="FILE", help="TOML config whose [camera] is used when the source has none")
     c.set_defaults(func=run_check)
+    i = maps.add_parser("import", help="a WPILib / PhotonVision AprilTag field layout (JSON) as a map file")
+    i.add_argument("layout", type=Path, metavar="LAYOUT.json", help="the field layout JSON")
+    i.add_argument("--out", type=Path, required=True, metavar="MAP.toml", help="the map file to write")
+    i.add_argument(
+        "--size",
+        type=float,
+        required=True,
+        metavar="METRES",
+        help="the tags' size, outer edge of the black border (the layout holds none; FRC's: 0.1651)",
+    )
+    i.add_argument(
+        "--dictionary",
+        default="DICT_APRILTAG_36h11",
+        help="OpenCV dictionary of the tags (default DICT_APRILTAG_36h11)",
+    )
+    i.set_defaults(func=run_import)
 
 
 def run_build(a: argparse.Namespace) -> int:
@@ -73,3 +89,10 @@ def run_check(a: argparse.Namespace) -> int:
     from ..maps.survey import check
 
     return check(a.map, a.source, a.config)
+
+
+def run_import(a: argparse.Namespace) -> int:
+    from ..maps.layout import import_layout
+
+    import_layout(a.layout, a.out, a.size, a.dictionary)
+    return 0

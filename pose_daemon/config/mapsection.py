@@ -39,6 +39,8 @@ def map_config(table: Any, name: str) -> MapConfig:
         path = Path(cfg.file)
         if not path.is_absolute() and not name.startswith("<"):
             path = Path(name).parent / path
+        if path.suffix.lower() == ".json":
+            return _layout_config(cfg, path, name)
         try:
             mode = path.stat().st_mode
             if not stat.S_ISREG(mode):
@@ -65,6 +67,10 @@ def map_config(table: Any, name: str) -> MapConfig:
             where = "[map] "
         else:
             entries = data.get("markers")
+    if cfg.size is not None:
+        raise ConfigError(
+            f"{name}: [map] size: only with a field layout file (.json); a map's markers each give their size"
+        )
     if dictionary is None:
         raise ConfigError(
             f"{name}: [map] dictionary: expected an OpenCV dictionary name such as "
@@ -99,6 +105,46 @@ def map_config(table: Any, name: str) -> MapConfig:
         label = f"{err.where} {err.key}".strip()
         raise ConfigError(f"{source}: {where}{label}: expected {err.expected}{got}") from None
     return replace(cfg, dictionary=dictionary, markers=markers)
+
+
+def _markers(entries: Any, dictionary: str, source: str, where: str) -> Any:
+    """markers_from_tables with its MapError as one ConfigError line."""
+    from ..marker_map import MapError, markers_from_tables
+
+    n_ids = None
+    try:
+        from ..detect import aruco_compat
+
+        n_ids = aruco_compat.dictionary_size(aruco_compat.get_dictionary(dictionary))
+    except ImportError:  # an OpenCV build without aruco: the detector reports it
+        pass
+    except ValueError:
+        raise ConfigError(
+            f"{source}: [map] dictionary: expected an OpenCV ArUco or AprilTag dictionary name "
+            f'such as "DICT_4X4_50", got {show(dictionary)}'
+        ) from None
+    try:
+        return markers_from_tables(entries, n_ids, dictionary, prefix="tags")
+    except MapError as err:
+        got = f", got {show(err.got)}" if err.has_got else ""
+        raise ConfigError(f"{source}: {where}{err.where} {err.key}: expected {err.expected}{got}") from None
+
+
+def _layout_config(cfg: MapConfig, path: Path, name: str) -> MapConfig:
+    """[map] file naming a WPILib / PhotonVision field layout JSON: its tags, [map] size each."""
+    from ..map_layout import LAYOUT_DICTIONARY, LayoutError, layout_tables, read_layout_file
+
+    if cfg.size is None:
+        raise ConfigError(
+            f"{name}: [map] size: expected the tags' size in metres (outer edge of the black border; "
+            f"FRC's are 0.1651): the field layout {str(path)!r} holds none"
+        )
+    dictionary = cfg.dictionary if cfg.dictionary is not None else LAYOUT_DICTIONARY
+    try:
+        tables = layout_tables(read_layout_file(path), cfg.size, dictionary)
+    except LayoutError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    return replace(cfg, dictionary=dictionary, markers=_markers(tables, dictionary, str(path), ""))
 
 
 def check_aruco(marker: MarkerConfig) -> None:

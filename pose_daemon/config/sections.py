@@ -358,7 +358,16 @@ class MapConfig:
         "floor", Rule("str", choices=MARKER_PLACEMENTS), "how the map frame sits in the room, as [marker] placement"
     )
     file: Optional[str] = setting(
-        None, Rule("str", nonempty=True), "a TOML file holding the [[markers]] (or [[map.markers]]) entries"
+        None,
+        Rule("str", nonempty=True),
+        "a TOML file holding the [[markers]] (or [[map.markers]]) entries, or a WPILib / PhotonVision "
+        "AprilTag field layout (.json; dictionary then defaults to DICT_APRILTAG_36h11)",
+    )
+    size: Optional[float] = setting(
+        None,
+        Rule("float", lo=0, lo_open=True, hi=100.0),
+        "metres, outer edge of the black border of every tag of a field layout `file` (required "
+        "with one: the layout holds no tag size; FRC's tags are 0.1651)",
     )
     markers: Tuple[Any, ...] = ()  # MapMarker entries, from [[map.markers]] or the file
 

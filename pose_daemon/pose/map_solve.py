@@ -1,18 +1,23 @@
 """One camera pose from every visible marker of a map: a least-squares solve over all corners.
 
-1. Start: while tracking, the previous frame's pose (no per-marker estimate); otherwise, or
-   when that start does not fit, each visible marker's own pose (the paper's estimator, both
-   planar solutions) carried into the map frame, the best under a robust (capped) cost first.
+1. Starts: the previous frame's pose (the warm start), each visible marker's own pose (the
+   paper's estimator, both planar solutions) carried into the map frame, and OpenCV's SQPnP over
+   every corner (two markers or more); the distinct ones, best under a robust (capped) cost
+   first, each solved (at most MAX_STARTS).
 2. Gauss-Newton over all corners at once on the 6 camera parameters, damped
    (Levenberg-Marquardt) only when a full step does not lower the cost, through the lens
    distortion (one cv2.projectPoints call per step gives the residuals and their analytic
    Jacobian), with the attitude's gravity as a prior term (three closed-form rows).
 3. Outliers: a marker whose corners stay far off the common pose (a marker that was moved, a
    wrong id) is left out and the solve repeated without it.
-4. The other planar branch: the plane's normal mirrored about the line of sight, solved too;
-   the branch with the lower cost (prior included) is the pose, the ratio of their residuals
-   the ambiguity.
-5. The covariance of (rotation, translation): the inverse of the corners' information at the
+4. The lowest minimum wins, judged on every corner alike (capped) plus the prior: the pose does
+   not depend on the start, so not on the frames before it either (a track that lost the map
+   and finds it again elsewhere, a replay in another order).
+5. The other minima: the other planar branch (the plane's normal mirrored about the line of
+   sight) and the starts' other distinct minima. The best of them is the pose's alternative,
+   its residual against the pose's the ambiguity ratio (outputs/quality.py weighs it as for one
+   marker); it is the pose when it fits better (prior included).
+6. The covariance of (rotation, translation): the inverse of the corners' information at the
    measured corner noise plus the prior's information.
 
 The pose is the map frame in the camera frame (X_cam = R X_map + tvec).
@@ -50,8 +55,10 @@ OUTLIER_PX = 3.0
 ROBUST_CAP_PX = 6.0
 #: Under the chosen start, markers within this RMS (pixels) take part in the first solve.
 START_INLIER_PX = 12.0
-#: Distinct starts solved at most when markers are left out.
-MAX_STARTS = 4
+#: Distinct starts solved at most (a start next to a minimum already found is not solved).
+MAX_STARTS = 6
+#: A start whose robust cost is over this many times the best minimum's so far is not solved.
+PRUNE_FACTOR = 4.0
 #: Corner noise assumed when whitening residuals against a prior, and the floor of the
 #: covariance's residual scale (a tiny residual does not prove a tiny error).
 CORNER_SIGMA_PX = 0.3
@@ -309,6 +316,51 @@ def _robust_cost(camera: Camera, obj: np.ndarray, img: np.ndarray, R: np.ndarray
     return float(np.minimum(d2, ROBUST_CAP_PX**2).sum())
 
 
+def _marker_poses(camera: Camera, corners: np.ndarray, size_m: float, estimate) -> List[Tuple[np.ndarray, np.ndarray]]:
+    """A marker's two planar poses (R_cam_marker, t): OpenCV's IPPE for squares (a tenth of the
+    paper's estimator's time, which is the fallback when IPPE finds none)."""
+    h = size_m / 2.0
+    obj = np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+    out = []
+    try:
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+            obj,
+            np.asarray(corners, dtype=np.float64).reshape(4, 2),
+            camera._K,
+            camera._dist,
+            flags=cv2.SOLVEPNP_IPPE_SQUARE,
+        )
+    except cv2.error:
+        n = 0
+    for k in range(int(n)):
+        r, t = np.asarray(rvecs[k], dtype=np.float64).reshape(3), np.asarray(tvecs[k], dtype=np.float64).reshape(3)
+        if np.all(np.isfinite(r)) and np.all(np.isfinite(t)):
+            out.append((R_from_rvec(r), t))
+    if out:
+        return out
+    try:
+        pose = estimate(corners)
+    except EstimationError:
+        return []
+    return [(c.R, np.asarray(c.tvec, dtype=np.float64)) for c in (pose, pose.alternative) if c is not None]
+
+
+def _robust_costs(
+    camera: Camera, obj: np.ndarray, img: np.ndarray, poses: Sequence[Tuple[np.ndarray, np.ndarray]]
+) -> np.ndarray:
+    """_robust_cost of every pose, in one projection (inf for a pose with a corner behind)."""
+    R = np.array([p[0] for p in poses], dtype=np.float64)  # (K, 3, 3)
+    t = np.array([p[1] for p in poses], dtype=np.float64).reshape(-1, 1, 3)
+    pts = np.einsum("nj,kij->kni", obj, R) + t  # (K, N, 3)
+    front = np.all(pts[..., 2] > 1e-6, axis=1)
+    out = np.full(len(poses), np.inf)
+    if front.any():
+        n = obj.shape[0]
+        d = camera.project(pts[front].reshape(-1, 3)).reshape(-1, n, 2) - img
+        out[front] = np.minimum(np.sum(d * d, axis=2), ROBUST_CAP_PX**2).sum(axis=1)
+    return out
+
+
 def _starts(
     camera: Camera,
     marker_map: MarkerMap,
@@ -316,22 +368,18 @@ def _starts(
     estimate,
     previous: Optional[Tuple[np.ndarray, np.ndarray]],
 ) -> List[Tuple[np.ndarray, np.ndarray]]:
-    """(R_cam_map, t) for every start: the previous pose, each marker's two planar poses."""
+    """(R_cam_map, t) for every start: the previous pose (first), each marker's two planar poses.
+    ``estimate(corners, marker_id)``: the per-marker fallback (the paper's estimator)."""
     out = []
     if previous is not None:
         out.append((np.asarray(previous[0], dtype=np.float64), np.asarray(previous[1], dtype=np.float64)))
     for marker_id, corners in observed.items():
-        try:
-            pose = estimate(corners, camera, marker_map.single(marker_id))
-        except EstimationError:
-            continue
         R_map_marker, p = marker_map.T_map_marker(marker_id)
-        for cand in (pose, pose.alternative):
-            if cand is None:
-                continue
+        size_m = marker_map.marker(marker_id).size_m
+        for R_cam_marker, t in _marker_poses(camera, corners, size_m, lambda c, i=marker_id: estimate(c, i)):
             # T_cam_map = T_cam_marker T_marker_map
-            R = cand.R @ R_map_marker.T
-            out.append((R, cand.tvec - R @ p))
+            R = R_cam_marker @ R_map_marker.T
+            out.append((R, t - R @ p))
     return out
 
 
@@ -351,6 +399,54 @@ def _mirror_start(R: np.ndarray, t: np.ndarray, obj: np.ndarray, normal_map: np.
         return None
     Rm = R_from_rvec(axis / s * angle)
     return Rm @ R, Rm @ (t - c) + c
+
+
+#: A start closer than this to another start or to a minimum found (rotation, radians;
+#: translation as a share of the distance) ends in the same minimum: it is not solved.
+NEAR_RAD = 0.05
+NEAR_SHARE = 0.05
+#: Two minima whose rotations lie further apart than this are distinct (degrees).
+DISTINCT_DEG = 2.0
+
+
+def _near(R_a: np.ndarray, t_a: np.ndarray, R_b: np.ndarray, t_b: np.ndarray) -> bool:
+    """Are two poses one (within NEAR_RAD of rotation and NEAR_SHARE of their distance)?"""
+    if float(np.linalg.norm(rvec_from_R(R_a.T @ R_b))) > NEAR_RAD:
+        return False
+    return float(np.linalg.norm(t_a - t_b)) <= NEAR_SHARE * max(float(np.linalg.norm(t_a)), 1e-9)
+
+
+def _distinct(R_a: np.ndarray, R_b: np.ndarray) -> bool:
+    return float(np.linalg.norm(rvec_from_R(R_a.T @ R_b))) > math.radians(DISTINCT_DEG)
+
+
+def _sqpnp_start(camera: Camera, obj: np.ndarray, img: np.ndarray) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+    """OpenCV's SQPnP over every corner (the multi-tag solve; its global minimum of its own
+    algebraic cost), through the lens distortion; None when it finds nothing."""
+    if obj.shape[0] < 4:
+        return None
+    try:
+        ok, rvec, tvec = cv2.solvePnP(obj, img, camera._K, camera._dist, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        return None
+    if not ok or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+        return None
+    return R_from_rvec(np.asarray(rvec, dtype=np.float64).reshape(3)), np.asarray(tvec, dtype=np.float64).reshape(3)
+
+
+def _as_pose(R: np.ndarray, t: np.ndarray, err_px: float) -> Pose:
+    """A map minimum as a plain Pose (the alternative of a MapPose)."""
+    a, b, g = paper_angles_deg_from_R_cam_marker(R)
+    return Pose(
+        rvec=rvec_from_R(R),
+        tvec=np.array(t, dtype=np.float64),
+        R=np.array(R, dtype=np.float64),
+        alpha_deg=a,
+        beta_deg=b,
+        gamma_deg=g,
+        reprojection_error_px=err_px,
+        method="map",
+    )
 
 
 def solve_map_pose(
@@ -382,8 +478,8 @@ def solve_map_pose(
     if not finite.any():
         raise EstimationError("no marker of the map in view")
 
-    def estimate(corners, cam, marker):
-        return estimate_pose(corners, cam, marker, method=method, iterations=iterations)
+    def estimate(corners, marker_id):
+        return estimate_pose(corners, camera, marker_map.single(marker_id), method=method, iterations=iterations)
 
     # A corner outside the image (of a marker partly out of the frame) was extrapolated from
     # the visible parts of its sides: it is left out, the marker's other corners count.
@@ -440,78 +536,98 @@ def solve_map_pose(
             keep = new_keep
         return fit, keep, rms_all
 
-    best = None
-    if previous is not None:
-        # Tracking: the last pose is the start. It stands when the markers it keeps are a
-        # majority that each fit in absolute terms (with one marker the relative outlier test
-        # cannot see a start that was far off: a jump in the track).
-        R0, t0 = np.asarray(previous[0], dtype=np.float64), np.asarray(previous[1], dtype=np.float64)
-        sol = solve_from(R0, t0, np.ones(n_all, dtype=bool))
+    # Every start the frame gives (each marker's two planar poses, SQPnP over every corner)
+    # and the warm start (the last pose) are solved, the distinct ones only, and the lowest
+    # cost wins: the pose does not depend on where the solve started, nor on the frames before.
+    starts = _starts(camera, marker_map, obs, estimate, previous)
+    sq = _sqpnp_start(camera, obj_all[seen], img_all[seen]) if n_all > 1 else None
+    if sq is not None:
+        starts.append(sq)
+    if not starts:
+        raise EstimationError("no marker of the map gives a pose")
+    costs = _robust_costs(camera, obj_all[seen], img_all[seen], starts)
+    order = [int(k) for k in np.argsort(costs, kind="stable") if math.isfinite(costs[k])]
+    if not order:
+        raise EstimationError("no start puts the map in front of the camera")
+
+    def score(f: _Fit) -> float:
+        # Each minimum judged on every corner alike (a marker left out counts at the robust
+        # cap), plus the prior's term: the same yardstick whichever markers each solve kept.
+        return _robust_cost(camera, obj_all[seen], img_all[seen], f.R, f.t) / CORNER_SIGMA_PX**2 + _prior_cost(
+            prior, f.R
+        )
+
+    solutions: List[Tuple[_Fit, np.ndarray, np.ndarray]] = []
+    tried: List[Tuple[np.ndarray, np.ndarray]] = []
+    best_score = math.inf
+    for k in order:
+        if costs[k] / CORNER_SIGMA_PX**2 > PRUNE_FACTOR * best_score:
+            # The rest fit worse than a minimum already found, by far: a solve only descends
+            # (starts are in order of their cost).
+            break
+        R0, t0 = starts[k]
+        # A start next to one already tried, or to a minimum already found, ends in that minimum.
+        if any(_near(R0, t0, Rt, tt) for Rt, tt in tried) or any(_near(R0, t0, f.R, f.t) for f, _, _ in solutions):
+            continue
+        tried.append((R0, t0))
+        # Inliers under the start: generous, a start from one marker is only roughly right for
+        # the others.
+        rms0 = rms_under(R0, t0, np.ones(n_all, dtype=bool))
+        sol = solve_from(R0, t0, rms0 < max(START_INLIER_PX, float(np.min(rms0)) * 4.0))
         if sol is not None:
-            fit, keep, rms_all = sol
-            if 2 * int(keep.sum()) > n_all and float(rms_all[keep].max()) <= outlier_px:
-                best = sol
-    if best is None:
-        starts = _starts(camera, marker_map, obs, estimate, previous)
-        if not starts:
-            raise EstimationError("no marker of the map gives a pose")
-        costs = [_robust_cost(camera, obj_all[seen], img_all[seen], R, t) for R, t in starts]
-        order = np.argsort(costs)
-        if not math.isfinite(costs[order[0]]):
-            raise EstimationError("no start puts the map in front of the camera")
-        # The best start first; while its solve leaves markers out, the next distinct starts
-        # too (a start on one marker's wrong planar branch makes the others look like outliers).
-        tried: List[np.ndarray] = []
-        best_key = None
-        for k in order[:MAX_STARTS]:
-            if not math.isfinite(costs[k]):
-                break
-            R0, t0 = starts[k]
-            if any(float(np.abs(R0 - Rt).max()) < 0.02 for Rt in tried):
-                continue
-            tried.append(R0)
-            # Inliers under the start: generous, a start from one marker is only roughly right
-            # for the others.
-            rms0 = rms_under(R0, t0, np.ones(n_all, dtype=bool))
-            sol = solve_from(R0, t0, rms0 < max(START_INLIER_PX, float(np.min(rms0)) * 4.0))
-            if sol is None:
-                continue
-            key = (-int(sol[1].sum()), sol[0].cost)
-            if best_key is None or key < best_key:
-                best, best_key = sol, key
-            if best[1].all():
-                break
-        if best is None:
-            raise EstimationError("no start puts the map in front of the camera")
-    fit, keep, rms_all = best
+            found = [sol]
+            if not sol[1].all():
+                # Markers left out under a start from one marker may fit the common pose once
+                # all take part: that minimum too.
+                whole = solve_from(sol[0].R, sol[0].t, np.ones(n_all, dtype=bool))
+                if whole is not None and not np.array_equal(whole[1], sol[1]):
+                    found.append(whole)
+            for f in found:
+                solutions.append(f)
+                best_score = min(best_score, score(f[0]))
+        if len(tried) >= MAX_STARTS:
+            break
+    if not solutions:
+        raise EstimationError("no start puts the map in front of the camera")
+    scores = [score(f) for f, _, _ in solutions]
+    ranked = [solutions[k] for k in np.argsort(scores, kind="stable")]
+    fit, keep, rms_all = ranked[0]
     ids = [i for i, k in zip(all_ids, keep) if k]
     outliers = [i for i, k in zip(all_ids, keep) if not k]
     rows = rows_of(keep)
     obj, img = obj_all[rows], img_all[rows]
     n_img = obj.shape[0]
-    # The other planar branch, for the ambiguity ratio (and taken when it fits better): the
-    # mirror of the largest marker's plane, solved over every inlier corner without the prior
-    # (the ratio says how well the image alone tells the two apart). "Fits better" counts the
-    # prior's term too: the attitude picks the branch.
+    # The other minima: the other planar branch (the mirror of the largest marker's plane,
+    # solved over every inlier corner without the prior: how well the image alone tells the two
+    # apart) and every distinct minimum of the starts over the same markers. The best of them
+    # is the alternative, as for one marker (outputs/quality.py: its likelihood and its step
+    # go into the quality and the covariance); it is taken when it fits better, prior included.
     largest = largest_marker(obs, ids)
     R_mm, _ = marker_map.T_map_marker(largest)
     normal_map = R_mm[:, 2]
-    ambiguity = 0.0
+    others: List[_Fit] = [f for f, k, _ in ranked[1:] if np.array_equal(k, keep)]
     mirror = _mirror_start(fit.R, fit.t, obj, normal_map)
     if mirror is not None:
         try:
-            alt = _fit(camera, obj, img.reshape(-1), mirror[0], mirror[1], None, ALT_ITER, CORNER_SIGMA_PX)
+            others.append(_fit(camera, obj, img.reshape(-1), mirror[0], mirror[1], None, ALT_ITER, CORNER_SIGMA_PX))
         except EstimationError:
-            alt = None
-        if alt is not None and float((fit.R @ normal_map) @ (alt.R @ normal_map)) < math.cos(math.radians(2.0)):
-            # A distinct minimum.
-            err, err_alt = math.sqrt(fit.sse_px / n_img), math.sqrt(alt.sse_px / n_img)
-            ambiguity = 1.0 if err_alt <= 0.0 else min(1.0, err / err_alt)
-            if alt.cost + _prior_cost(prior, alt.R) < fit.cost:  # the other branch fits better: take it
-                other = fit
-                fit = _fit(camera, obj, img.reshape(-1), alt.R, alt.t, prior, MAX_ITER, CORNER_SIGMA_PX)
-                err = math.sqrt(fit.sse_px / n_img)
-                ambiguity = min(1.0, err / max(math.sqrt(other.sse_px / n_img), 1e-12))
+            pass
+    others = [f for f in others if _distinct(f.R, fit.R)]
+    alt = min(others, key=lambda f: f.sse_px) if others else None
+    if alt is not None and alt.cost + (_prior_cost(prior, alt.R) if alt.info_prior is None else 0.0) < fit.cost:
+        # The other minimum fits better: take it (solved with the prior), keep this one as the other.
+        taken = (
+            alt
+            if alt.info_prior is not None or prior is None
+            else _fit(camera, obj, img.reshape(-1), alt.R, alt.t, prior, MAX_ITER, CORNER_SIGMA_PX)
+        )
+        fit, alt = taken, fit
+    ambiguity = 0.0
+    alternative = None
+    if alt is not None:
+        err, err_alt = math.sqrt(fit.sse_px / n_img), math.sqrt(alt.sse_px / n_img)
+        ambiguity = 1.0 if err_alt <= 0.0 else min(1.0, err / err_alt)
+        alternative = _as_pose(alt.R, alt.t, err_alt)
     R, t = fit.R, fit.t
     rms = fit.marker_rms(marker_of_row[rows], n_all)[keep]
     err = math.sqrt(fit.sse_px / n_img)
@@ -539,7 +655,7 @@ def solve_map_pose(
         reprojection_error_px=err,
         method="map",
         iterations=0,
-        alternative=None,
+        alternative=alternative,
         ambiguity_ratio=float(ambiguity),
         marker_ids=tuple(ids),
         marker_residuals_px=tuple(float(v) for v in rms),
