@@ -22,6 +22,11 @@ PX4 (mavlink_receiver.cpp, mavlink_timesync, EKF2):
 - ODOMETRY / VISION_POSITION_ESTIMATE quality against EKF2_EV_QMIN (VPE: 0).
 - TIMESYNC requests every ``timesync_s``; once answered, a pose's ``time_usec`` is mapped onto
   its clock, before that the arrival time stands in (``stamped_by``).
+- ``px4_sync=True``: PX4's own TIMESYNC instead (``Px4Timesync``; src/lib/timesync/Timesync.cpp,
+  streams/TIMESYNC.hpp): requests (tc1 = 0, ts1 = its boot clock in ns) at 10 Hz or at the
+  rate MAV_CMD_SET_MESSAGE_INTERVAL asks for message 111 (0: the default again); an answer
+  counts only with a round trip under 10 ms, and the offset is used (poses stamped by their
+  ``time_usec``) only after 500 such samples; until then every pose is stamped on arrival.
 - TARGET_RELATIVE (#511, the development dialect PX4 builds its vision target estimator with):
   decoded as PX4's C library lays it out (mavlink_msg_target_relative.h: timestamp at 0, x/y/z
   at 8, pos_std at 20, yaw_std at 32, q_target at 36, q_sensor at 52, id/frame/type at 68-70,
@@ -148,6 +153,7 @@ class FakeAutopilot:
         message_interval: bool = True,
         boot_age_s: float = 5.0,
         vte: bool = False,
+        px4_sync: bool = False,
     ) -> None:
         # ArduPilot's dialect (common.xml and EKF_STATUS_REPORT); PX4 uses only common messages.
         from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -179,6 +185,8 @@ class FakeAutopilot:
         self.vehicle_state = vehicle_state
         self.message_interval = message_interval
         self._t_boot = time.monotonic() - boot_age_s
+        assert not px4_sync or kind == "px4"
+        self.px4_sync: Optional[Px4Timesync] = Px4Timesync(self._t_boot) if px4_sync else None
         self.attitudes_sent = 0
         self.data_stream_requests: List[Tuple[int, int, int]] = []  # (stream id, rate Hz, start_stop)
         self.tally = Tally()
@@ -269,7 +277,11 @@ class FakeAutopilot:
                 self.tally.origins_wiped += 1
         if self.kind == "ardupilot" and self.origin is not None and self.home is None and self.ekf_running(now):
             self.home, self.home_set_by = self.origin, "EKF origin"
-        if self.timesync_s and self._every("ts", self.timesync_s, now):
+        if self.px4_sync is not None:
+            period_s = self.px4_sync.period_s(self.intervals_us.get(111))
+            if period_s is not None and self._every("ts", period_s, now):
+                self.mav.timesync_send(0, self.px4_sync.request())
+        elif self.timesync_s and self._every("ts", self.timesync_s, now):
             self.mav.timesync_send(0, time.monotonic_ns())
         if self._every("ekf", 0.5, now):
             flags = 0x01 | (0x08 | 0x10 | 0x20 if self._fusing(now) and self.origin is not None else 0)
@@ -343,6 +355,10 @@ class FakeAutopilot:
         elif kind == "TIMESYNC":
             if msg.tc1 == 0:
                 self.mav.timesync_send(time.monotonic_ns() - int(self._t_boot * 1e9), msg.ts1)
+            elif self.px4_sync is not None:
+                self.tally.timesync_answers.append((msg.tc1, msg.ts1, time.monotonic_ns()))
+                if self.px4_sync.answer(msg.tc1, msg.ts1):
+                    self.timesync_offset_ns = self.px4_sync.offset_ns
             else:
                 self.tally.timesync_answers.append((msg.tc1, msg.ts1, time.monotonic_ns()))
                 rtt_ns = time.monotonic_ns() - msg.ts1
@@ -500,6 +516,61 @@ class FakeAutopilot:
                 value = int(round(msg.param_value)) if math.isfinite(msg.param_value) else 0
             self.params[name][0] = value
         self._send_param(name, names.index(name))
+
+
+class Px4Timesync:
+    """PX4's TIMESYNC filter as src/lib/timesync/Timesync.cpp keeps it: the request stream at 10 Hz
+    (streams/TIMESYNC.hpp, configured at 10 Hz on every link) or the interval asked for; each
+    answer (tc1 > 0, whoever it is for) is a sample when its round trip on PX4's clock is under
+    MAX_RTT_SAMPLE (10 ms), and the offset is trusted (``sync_converged``) from
+    CONVERGENCE_WINDOW (500) samples on. ``requests``: ts1 -> the answers to it (our receive
+    time, boot ns), so that a test can see each request answered once and how fast."""
+
+    MAX_RTT_NS = 10_000_000
+    CONVERGENCE_WINDOW = 500
+    DEFAULT_PERIOD_S = 0.1
+
+    def __init__(self, t_boot_s: float) -> None:
+        self._t_boot_ns = int(round(t_boot_s * 1e9))
+        self.sequence = 0  # good samples
+        self.high_rtt = 0  # samples over the gate
+        self.unknown = 0  # answers carrying a ts1 never sent
+        self.requests: Dict[int, List[int]] = {}
+        self.offset_ns: Optional[int] = None
+        self.converged_at_ns: Optional[int] = None
+
+    def now_ns(self) -> int:
+        return time.monotonic_ns() - self._t_boot_ns
+
+    def period_s(self, interval_us: Optional[int]) -> Optional[float]:
+        """MavlinkReceiver::set_message_interval: > 0 that interval, 0 the default, < 0 stopped."""
+        if interval_us is None or interval_us == 0:
+            return self.DEFAULT_PERIOD_S
+        return interval_us / 1e6 if interval_us > 0 else None
+
+    def request(self) -> int:
+        ts1 = self.now_ns()
+        self.requests[ts1] = []
+        return ts1
+
+    def rtts_ns(self) -> List[int]:
+        return [got[0] - ts1 for ts1, got in self.requests.items() if got]
+
+    def answer(self, tc1: int, ts1: int) -> bool:
+        """One answer; True once converged."""
+        now = self.now_ns()
+        if ts1 in self.requests:
+            self.requests[ts1].append(now)
+        else:
+            self.unknown += 1  # not an answer to one of ours (PX4 would still take it)
+        if now - ts1 < self.MAX_RTT_NS:
+            self.sequence += 1
+            self.offset_ns = tc1 - (ts1 + now) // 2
+        else:
+            self.high_rtt += 1
+        if self.sequence >= self.CONVERGENCE_WINDOW and self.converged_at_ns is None:
+            self.converged_at_ns = now
+        return self.converged_at_ns is not None
 
 
 def _R_from_q(q) -> List[List[float]]:
