@@ -99,7 +99,94 @@ def test_px4_integer_parameters_are_set_bytewise(tmp_path, capsys):
     assert code == 1
     assert "FIX: EKF2_EV_CTRL = 9" in lines and "OK EKF2_EV_CTRL = 9 set" in lines
     assert fc.param("EKF2_EV_CTRL") == 9 and fc.params["EKF2_EV_CTRL"][1] == MAV_PARAM_TYPE_INT32
-    assert any(ln.startswith("OK EKF2_EV_DELAY = 0 ms") and "TIMESYNC answered" in ln for ln in lines), lines
+    # TIMESYNC every 0.5 s (this fake's rate, not PX4's): PX4's 500 good exchanges are minutes away.
+    assert any(
+        ln.startswith("PROBLEM EKF2_EV_DELAY = 0 ms and PX4's TIMESYNC will not converge soon") for ln in lines
+    ), lines
+
+
+def test_px4_ev_delay_is_judged_against_the_sync_px4_has_reached(tmp_path, capsys):
+    """PX4 (fake_autopilot.Px4Timesync) dates poses by capture time only after 500 round trips under
+    10 ms: a 2.5 s watch cannot see that many, so EKF2_EV_DELAY = 0 is not accepted because
+    TIMESYNC was answered; preflight says how far the sync is and how long it needs, and the
+    fake agrees that it has not converged."""
+    fc = FakeAutopilot("px4", heartbeat_s=0.2, px4_sync=True)
+    cfg = _config(tmp_path, fc.connection)
+    try:
+        code, lines = _run(capsys, "--config", cfg)
+        sequence, converged = fc.px4_sync.sequence, fc.timesync_offset_ns is not None
+    finally:
+        fc.close()
+    assert code == 1 and not converged
+    said = [ln for ln in lines if "TIMESYNC" in ln]
+    m = re.match(
+        r"PROBLEM PX4's TIMESYNC has not converged yet: (\d+) of the 500 good exchanges it needs, about (\d+) s more "
+        r"\(a new run counts from 0: --seconds (\d+)\); until then PX4 dates poses on arrival",
+        said[0] if len(said) == 1 else "",
+    )
+    assert m, said
+    assert 0 < int(m[1]) <= sequence + 5  # no more than PX4 itself counted (a few in flight at the end)
+    assert not [ln for ln in lines if ln.startswith("FIX: EKF2_EV_DELAY")]
+
+
+@pytest.mark.parametrize(
+    "ev_delay, sync, expected",
+    [
+        (0, {"answered": 620, "good": 610}, ["OK EKF2_EV_DELAY = 0 ms; PX4's TIMESYNC converged (610 good"]),
+        (
+            20,
+            {"answered": 620, "good": 610},
+            ["PROBLEM EKF2_EV_DELAY = 20 ms: PX4's TIMESYNC converged", "FIX: EKF2_EV_DELAY = 0"],
+        ),
+        (
+            0,
+            {"answered": 0, "good": 0},
+            [
+                "PROBLEM EKF2_EV_DELAY = 0 ms and PX4's TIMESYNC will not converge soon (no TIMESYNC",
+                "FIX: EKF2_EV_DELAY = 18",
+            ],
+        ),
+        (
+            0,
+            {"answered": 80, "good": 0},
+            [
+                "PROBLEM EKF2_EV_DELAY = 0 ms and PX4's TIMESYNC will not converge soon (0 of 80",
+                "FIX: EKF2_EV_DELAY = 18",
+            ],
+        ),
+        (25, {"answered": 80, "good": 0}, ["OK EKF2_EV_DELAY = 25 ms covers the arrival dating"]),
+        (
+            0,
+            {"answered": 300, "good": 290, "good_rate_hz": 95.0, "seconds_to_window": 2.2},
+            [
+                "PROBLEM PX4's TIMESYNC has not converged yet: 290 of the 500 good exchanges it needs, about 2 s more "
+                "(a new run counts from 0: --seconds 9)"
+            ],
+        ),
+        (
+            0,
+            {"answered": 40, "good": 40, "good_rate_hz": 8.0, "seconds_to_window": 57.5},
+            ["PROBLEM PX4's TIMESYNC has not converged yet: 40 of the 500"],
+        ),
+        (
+            0,
+            {"answered": 40, "good": 30, "good_rate_hz": 5.0, "seconds_to_window": 94.0},
+            [
+                "PROBLEM EKF2_EV_DELAY = 0 ms and PX4's TIMESYNC will not converge soon (30 of 40",
+                "FIX: EKF2_EV_DELAY = 18",
+            ],
+        ),
+    ],
+)
+def test_px4_ev_delay_advice_follows_the_delay_px4_applies(ev_delay, sync, expected):
+    from pose_daemon.tools.preflight import Observation, check_px4
+
+    cfg = parse_config('[output.mavlink]\nconnection = "udpout:127.0.0.1:14550"\n')
+    obs = Observation(autopilot="px4", params={"EKF2_EV_DELAY": (float(ev_delay), 9)}, px4_sync=sync)
+    obs.delays_s = [0.0175] * 5
+    lines = [f.line() for f in check_px4(cfg, obs)]
+    said = [ln for ln in lines if "EV_DELAY" in ln or "TIMESYNC" in ln]
+    assert len(said) == len(expected) and all(ln.startswith(e) for ln, e in zip(said, expected)), said
 
 
 def test_a_config_or_link_that_cannot_be_used_exits_2(tmp_path, capsys):

@@ -53,6 +53,8 @@ class Observation:
     qualities: List[int] = field(default_factory=list)
     delays_s: List[float] = field(default_factory=list)
     timesync_answered: int = 0
+    # The output's count of PX4's TIMESYNC exchanges (outputs.mavlink.timesync.Px4SyncPace.state).
+    px4_sync: Optional[dict] = None
 
 
 def param_value(raw: float, ptype: int, autopilot: Optional[str]) -> float:

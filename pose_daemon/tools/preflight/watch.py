@@ -177,7 +177,9 @@ def run_preflight(
             raise UserError(f"camera source {cfg.camera.source!r} failed: {exc}") from None
         finally:
             source.close()
-        obs.poses_sent = out.stats()["sent"]
+        stats = out.stats()
+        obs.poses_sent = stats["sent"]
+        obs.px4_sync = stats.get("timesync")
         with watcher.lock:
             if obs.autopilot == "px4":
                 findings = check_px4(cfg, obs, link_kind)
