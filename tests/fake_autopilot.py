@@ -27,6 +27,15 @@ PX4 (mavlink_receiver.cpp, mavlink_timesync, EKF2):
   rate MAV_CMD_SET_MESSAGE_INTERVAL asks for message 111 (0: the default again); an answer
   counts only with a round trip under 10 ms, and the offset is used (poses stamped by their
   ``time_usec``) only after 500 such samples; until then every pose is stamped on arrival.
+- ``px4_events=True``: PX4's onboard link as it is: STATUSTEXT only once a ground station's
+  HEARTBEAT (MAV_TYPE_GCS) was heard on it (streams/STATUSTEXT.hpp, ``tally.texts_withheld``
+  counts the others), and EVENT (#410, libevents: id = 1 << 24 | FNV-1a of the name, arguments
+  little-endian) on every link for what has one: the LANDING_TARGET refusal, and the arming
+  checks (``arming_failures``: event name -> the STATUSTEXT PX4 also says to a ground station)
+  reported as PX4's commander does, a summary (commander_arming_check_summary: errors by
+  health component, the modes it can arm in) then one event per failing check (arguments: the
+  modes, uint32, and the health component, uint8), at the first HEARTBEAT and again on
+  MAV_CMD_RUN_PREARM_CHECKS (401).
 - TARGET_RELATIVE (#511, the development dialect PX4 builds its vision target estimator with):
   decoded as PX4's C library lays it out (mavlink_msg_target_relative.h: timestamp at 0, x/y/z
   at 8, pos_std at 20, yaw_std at 32, q_target at 36, q_sensor at 52, id/frame/type at 68-70,
@@ -133,6 +142,7 @@ class Tally:
     target_refused: Dict[str, int] = field(default_factory=dict)  # PX4: TARGET_RELATIVE refused, by cause
     timesync_answers: List[Tuple[int, int, int]] = field(default_factory=list)  # (tc1, ts1, our now ns)
     stamped_by: Dict[str, int] = field(default_factory=dict)  # PX4: "timesync" / "arrival"
+    texts_withheld: int = 0  # PX4 (px4_events): STATUSTEXT not sent, no ground station heard
     received: List[Any] = field(default_factory=list)  # every message from the daemon
 
 
@@ -154,6 +164,8 @@ class FakeAutopilot:
         boot_age_s: float = 5.0,
         vte: bool = False,
         px4_sync: bool = False,
+        px4_events: bool = False,
+        arming_failures: Optional[Dict[str, str]] = None,
     ) -> None:
         # ArduPilot's dialect (common.xml and EKF_STATUS_REPORT); PX4 uses only common messages.
         from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -187,6 +199,12 @@ class FakeAutopilot:
         self._t_boot = time.monotonic() - boot_age_s
         assert not px4_sync or kind == "px4"
         self.px4_sync: Optional[Px4Timesync] = Px4Timesync(self._t_boot) if px4_sync else None
+        assert not px4_events or kind == "px4"
+        self.px4_events = px4_events
+        self.arming_failures = dict(arming_failures or {})
+        self.gcs_heard = False
+        self.events_sent: List[Tuple[str, int, bytes]] = []  # (name, log level, arguments)
+        self._event_seq = 65535 - 10  # events::initial_event_sequence
         self.attitudes_sent = 0
         self.data_stream_requests: List[Tuple[int, int, int]] = []  # (stream id, rate Hz, start_stop)
         self.tally = Tally()
@@ -261,7 +279,39 @@ class FakeAutopilot:
 
     def _text(self, severity: int, text: str) -> None:
         self.statustexts.append(text)
+        if self.px4_events and not self.gcs_heard:
+            self.tally.texts_withheld += 1  # PX4: STATUSTEXT only where a ground station is
+            return
         self.mav.statustext_send(severity, text.encode("ascii")[:50])
+
+    def _event(self, name: str, level: int, arguments: bytes) -> None:
+        """PX4's EVENT (#410) as mavlink_events.cpp sends it, framed by hand: the dialects of
+        pymavlink 2.4 have no EVENT (CRC extra 160; MAVLink 2 trims trailing zeros)."""
+        from pymavlink.generator.mavcrc import x25crc
+
+        h = 0x811C9DC5
+        for byte in name.encode("ascii"):
+            h = ((h ^ byte) * 0x01000193) & 0xFFFFFFFF
+        ev_id = (1 << 24) | (h & 0xFFFFFF)
+        self._event_seq = (self._event_seq + 1) & 0xFFFF
+        boot_ms = int((time.monotonic() - self._t_boot) * 1e3) & 0xFFFFFFFF
+        payload = struct.pack("<IIHBBB", ev_id, boot_ms, self._event_seq, 0, 0, level) + arguments.ljust(40, b"\x00")
+        payload = payload.rstrip(b"\x00") or b"\x00"
+        header = bytes([0xFD, len(payload), 0, 0, self.mav.seq, self.system, 1]) + (410).to_bytes(3, "little")
+        self.mav.seq = (self.mav.seq + 1) % 256
+        crc = x25crc(header[1:] + payload + bytes([160])).crc
+        self.write(header + payload + struct.pack("<H", crc))
+        self.events_sent.append((name, level, arguments))
+
+    def _report_arming_checks(self) -> None:
+        """commander's Report::report: the summary, then each failing check (log level error)."""
+        local_position_estimate = 17  # health_component_t bit
+        errors = (1 << local_position_estimate) if self.arming_failures else 0
+        can_arm = 0 if self.arming_failures else 0x7FFFFFFF
+        self._event("commander_arming_check_summary", 8, struct.pack("<BIIII", 0, errors, 0, can_arm, can_arm))
+        for name, text in self.arming_failures.items():
+            self._event(name, 3, struct.pack("<IB", 0xFFFFFFFF, local_position_estimate))
+            self._text(2, text)
 
     def _periodic(self, now: float) -> None:
         if self.peer is None:
@@ -270,6 +320,8 @@ class FakeAutopilot:
             self.mav.heartbeat_send(2, 3 if self.kind == "ardupilot" else 12, 0, 0, 4)
             if self._t_first_heartbeat is None:
                 self._t_first_heartbeat = now
+                if self.px4_events:
+                    self._report_arming_checks()
         if self._wipe_at is not None and now >= self._wipe_at:
             self._wipe_at = None
             if self.origin is not None:
@@ -319,7 +371,9 @@ class FakeAutopilot:
 
     def _handle(self, msg: Any, now: float) -> None:
         kind = msg.get_type()
-        if kind == "SET_GPS_GLOBAL_ORIGIN":
+        if kind == "HEARTBEAT" and msg.type == 6:  # MAV_TYPE_GCS
+            self.gcs_heard = True
+        elif kind == "SET_GPS_GLOBAL_ORIGIN":
             if self.kind == "ardupilot" and not self.ekf_running(now):
                 self.tally.origins_refused += 1  # NavEKF3::setOriginLLH: no cores yet
                 return
@@ -380,6 +434,9 @@ class FakeAutopilot:
         elif cmd == 511 and self.message_interval:  # MAV_CMD_SET_MESSAGE_INTERVAL
             self.intervals_us[int(msg.param1)] = int(msg.param2)
             result = 0
+        elif cmd == 401 and self.px4_events:  # MAV_CMD_RUN_PREARM_CHECKS: a forced report
+            result = 0
+            self._report_arming_checks()
         elif cmd == 179:  # MAV_CMD_DO_SET_HOME
             if self.kind == "ardupilot" and self.origin is None:
                 result = 4  # MAV_RESULT_FAILED: Copter::set_home needs the EKF origin
@@ -430,6 +487,8 @@ class FakeAutopilot:
                 self.tally.landing_refused += 1
                 if self.kind == "px4":
                     self._text(2, f"Landing target: coordinate frame {msg.frame} unsupported")
+                    if self.px4_events:
+                        self._event("mavlink_rcv_lnd_target_unsup_coord", 3, bytes([msg.frame]))
                 return
         self.tally.landing_targets.append(msg)
 

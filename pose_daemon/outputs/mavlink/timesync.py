@@ -114,12 +114,12 @@ class Px4SyncPace:
 
     def state(self, now_s: float) -> dict:
         """The counts, PX4's request rate, the good answers' rate since the first answer, and
-        ``seconds_to_window``: how long until PX4's window is full at that rate (0 once it is,
-        None while nothing good was answered)."""
+        ``seconds_to_window``: how long until FAST_UNTIL_GOOD good answers (PX4's window and the
+        margin) at that rate: 0 once there, None while nothing good was answered."""
         delays = sorted(self.answer_delays_s)
         span_s = now_s - self.first_answer_t if self.first_answer_t is not None else 0.0
         good_rate_hz = self.good / span_s if span_s > 0 else 0.0
-        left = max(0, PX4_CONVERGENCE_SAMPLES - self.good)
+        left = max(0, FAST_UNTIL_GOOD - self.good)
         return {
             "good_rate_hz": good_rate_hz,
             "seconds_to_window": 0.0 if not left else (left / good_rate_hz if good_rate_hz > 0 else None),

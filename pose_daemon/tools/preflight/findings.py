@@ -6,7 +6,7 @@ from __future__ import annotations
 import statistics
 import struct
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 MAV_PARAM_TYPE_INT32 = 6
 MAV_PARAM_TYPE_REAL32 = 9
@@ -55,6 +55,7 @@ class Observation:
     timesync_answered: int = 0
     # The output's count of PX4's TIMESYNC exchanges (outputs.mavlink.timesync.Px4SyncPace.state).
     px4_sync: Optional[dict] = None
+    events: List[Any] = field(default_factory=list)  # PX4's EVENT messages (px4_events.Px4Event)
 
 
 def param_value(raw: float, ptype: int, autopilot: Optional[str]) -> float:

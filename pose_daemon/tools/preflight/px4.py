@@ -6,8 +6,9 @@ from __future__ import annotations
 import math
 from typing import Dict, List, Tuple
 
-from ...outputs.mavlink.timesync import GOOD_ANSWER_S, PX4_CONVERGENCE_SAMPLES
+from ...outputs.mavlink.timesync import FAST_UNTIL_GOOD, GOOD_ANSWER_S, PX4_CONVERGENCE_SAMPLES
 from .findings import QUALITY_MIN, Finding, Observation, delay_ms, fmt, watched_findings
+from .px4_events import LOG_ERROR, MODE_POSCTL
 
 # PX4's vision target estimator (src/modules/vision_target_estimator, a beta module of PX4 1.18
 # built only into *_visionTargetEst targets): what decides whether it fuses TARGET_RELATIVE.
@@ -20,6 +21,9 @@ VTE_TASKS = 1 | 2 | 4
 # PX4 dates a pose by its capture time only once its TIMESYNC filter has PX4_CONVERGENCE_SAMPLES
 # round trips under 10 ms (src/lib/timesync); a sync further off than this is judged as none.
 SYNC_WAIT_MAX_S = 60.0
+# PX4 counts a little fewer good round trips than this side sees (the link's own time, PX4's own
+# receive): converged is judged with the margin the output keeps PX4 at 100 Hz for.
+SYNC_JUDGED_GOOD = FAST_UNTIL_GOOD
 # Once synced EKF2_EV_DELAY adds to a capture-time stamp: more than this dates poses too early.
 SYNCED_EV_DELAY_MAX_MS = 10.0
 PX4_PARAMS = (
@@ -91,7 +95,33 @@ def check_px4(cfg, obs: Observation, link_kind: str = "udpout") -> List[Finding]
             out.append(Finding("OK", ", ".join(f"{k} = {fmt(p[k])}" for k in keys)))
     if "TARGET_RELATIVE" in m.messages:
         out += _check_vte(p)
-    return out + watched_findings(cfg, obs, ekf="EKF2")
+    return out + watched_findings(cfg, obs, ekf="EKF2") + event_findings(obs)
+
+
+def event_findings(obs: Observation) -> List[Finding]:
+    """What PX4 said in EVENTs (px4_events.py; its STATUSTEXT does not reach an onboard link):
+    each distinct one at error level or worse is a PROBLEM, by its text or, for one preflight
+    does not know, its id and arguments; the last arming check summary says whether PX4 can arm
+    in position mode."""
+    out: List[Finding] = []
+    seen = set()
+    summary = None
+    for event in obs.events:
+        s = event.arming_summary()
+        if s is not None:
+            summary = s
+            continue
+        key = (event.id, event.arguments)
+        if event.level <= LOG_ERROR and key not in seen:
+            seen.add(key)
+            out.append(Finding("PROBLEM", f"the autopilot says: {event.text()}"))
+    if summary is not None:
+        errors = ", ".join(summary["errors"]) or "none"
+        if int(summary["can_arm"]) & MODE_POSCTL:
+            out.append(Finding("OK", f"PX4's arming checks pass for position mode (errors in: {errors})"))
+        else:
+            out.append(Finding("PROBLEM", f"PX4's arming checks fail for position mode (errors in: {errors})"))
+    return out
 
 
 def _check_ev_delay(ev_delay: float, delay: Tuple[float, float], obs: Observation) -> List[Finding]:
@@ -106,7 +136,7 @@ def _check_ev_delay(ev_delay: float, delay: Tuple[float, float], obs: Observatio
     rate_hz = float(sync.get("good_rate_hz") or 0.0)
     measured = f"measured capture-to-send delay: median {p50:.0f} ms, p90 {p90:.0f} ms"
     window = PX4_CONVERGENCE_SAMPLES
-    if good >= window:
+    if good >= SYNC_JUDGED_GOOD:
         if ev_delay > SYNCED_EV_DELAY_MAX_MS:
             return [
                 Finding(
@@ -141,8 +171,9 @@ def _check_ev_delay(ev_delay: float, delay: Tuple[float, float], obs: Observatio
             ]
         return [Finding("OK", f"EKF2_EV_DELAY = {fmt(ev_delay)} ms covers the arrival dating ({why}; {measured})")]
     text = (
-        f"PX4's TIMESYNC has not converged yet: {good} of the {window} good exchanges it needs, about "
-        f"{wait_s:.0f} s more (a new run counts from 0: --seconds {math.ceil(window / rate_hz) + 3}); "
+        f"PX4's TIMESYNC has not converged yet: {good} good exchanges of the {window} it needs "
+        f"({SYNC_JUDGED_GOOD} counted here to be sure), about "
+        f"{wait_s:.0f} s more (a new run counts from 0: --seconds {math.ceil(SYNC_JUDGED_GOOD / rate_hz) + 3}); "
         f"until then PX4 dates poses on arrival ({measured})"
     )
     if math.floor(p50) <= ev_delay <= SYNCED_EV_DELAY_MAX_MS:

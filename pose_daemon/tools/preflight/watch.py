@@ -35,6 +35,7 @@ from .findings import (
     param_wire,
 )
 from .px4 import PX4_PARAMS, check_px4
+from .px4_events import MAV_CMD_RUN_PREARM_CHECKS, MSG_ID_EVENT, decode_event
 
 # EKF_STATUS_REPORT (ardupilotmega.xml, id 193) is not in the common dialect the link decodes:
 # its payload is read here (five floats, then the uint16 flags).
@@ -54,6 +55,8 @@ class _Watcher:
     def handle(self, msg: Any, now: float) -> None:
         kind = msg.get_type()
         src = msg.get_srcSystem()
+        if kind.startswith("UNKNOWN_"):
+            src = _frame_source(bytes(msg.get_msgbuf()))  # pymavlink leaves an unknown one's header 0
         with self.lock:
             if self.obs.system is not None and src != self.obs.system:
                 return
@@ -79,6 +82,10 @@ class _Watcher:
                 self.obs.home_seen = True
             elif kind == "TIMESYNC" and msg.tc1 == 0:
                 self.obs.timesync_answered += 1
+            elif kind == f"UNKNOWN_{MSG_ID_EVENT}":
+                event = decode_event(bytes(msg.get_msgbuf()))
+                if event is not None:
+                    self.obs.events.append(event)
 
     def _flags(self, flags: int) -> None:
         # The watch asks "did the EKF use the feed": a report that it did is kept over later
@@ -86,6 +93,13 @@ class _Watcher:
         old = self.obs.ekf_flags
         if old is None or not old & POS_HORIZ_FLAGS or flags & POS_HORIZ_FLAGS:
             self.obs.ekf_flags = flags
+
+
+def _frame_source(frame: bytes) -> int:
+    """The sending system of a raw MAVLink 1 (0xFE) or 2 (0xFD) frame."""
+    if len(frame) > 5 and frame[0] == 0xFD:
+        return frame[5]
+    return frame[3] if len(frame) > 3 and frame[0] == 0xFE else 0
 
 
 def _request_params(out, obs_system: int, component: int, names: Sequence[str]) -> None:
@@ -129,6 +143,7 @@ def run_preflight(
         "GPS_GLOBAL_ORIGIN",
         "HOME_POSITION",
         "TIMESYNC",
+        f"UNKNOWN_{MSG_ID_EVENT}",
     ):
         out.listen(kind, watcher.handle)
     obs = watcher.obs
@@ -153,6 +168,7 @@ def run_preflight(
         processor = FrameProcessor.from_config(cfg)
         end = time.monotonic() + seconds
         retried = False
+        checks_asked = obs.autopilot != "px4"  # PX4: its arming checks reported again near the end
         asked_t = -1e18
         try:
             while time.monotonic() < end:
@@ -168,6 +184,9 @@ def run_preflight(
                         )
                     )
                 out.submit(result)
+                if not checks_asked and time.monotonic() > end - 1.0:
+                    checks_asked = True
+                    out.send(functools.partial(_run_prearm_checks, obs.system, obs.component))
                 if not retried and time.monotonic() > end - seconds + PARAM_TIMEOUT_S:
                     retried = True
                     with watcher.lock:
@@ -200,6 +219,11 @@ def run_preflight(
 def _request_message(system: int, component: int, msg_id: int, mav: Any) -> None:
     """MAV_CMD_REQUEST_MESSAGE (512) for ``msg_id`` (GPS_GLOBAL_ORIGIN 49, HOME_POSITION 242)."""
     mav.command_long_send(system, component, 512, 0, float(msg_id), 0, 0, 0, 0, 0, 0)
+
+
+def _run_prearm_checks(system: int, component: int, mav: Any) -> None:
+    """MAV_CMD_RUN_PREARM_CHECKS: PX4 reports every arming check again, as EVENTs (px4_events.py)."""
+    mav.command_long_send(system, component, MAV_CMD_RUN_PREARM_CHECKS, 0, 0, 0, 0, 0, 0, 0, 0)
 
 
 def _apply(out, watcher: _Watcher, fixes: Sequence[Finding], emit: Callable[[str], None]) -> bool:
