@@ -30,6 +30,20 @@ PX4 (mavlink_receiver.cpp, mavlink_timesync, EKF2):
 - ODOMETRY / VISION_POSITION_ESTIMATE quality against EKF2_EV_QMIN (VPE: 0).
 - TIMESYNC requests every ``timesync_s``; once answered, a pose's ``time_usec`` is mapped onto
   its clock, before that the arrival time stands in (``stamped_by``).
+- ``px4_sync=True``: PX4's own TIMESYNC instead (``Px4Timesync``; src/lib/timesync/Timesync.cpp,
+  streams/TIMESYNC.hpp): requests (tc1 = 0, ts1 = its boot clock in ns) at 10 Hz or at the
+  rate MAV_CMD_SET_MESSAGE_INTERVAL asks for message 111 (0: the default again); an answer
+  counts only with a round trip under 10 ms, and the offset is used (poses stamped by their
+  ``time_usec``) only after 500 such samples; until then every pose is stamped on arrival.
+- ``px4_events=True``: PX4's onboard link as it is: STATUSTEXT only once a ground station's
+  HEARTBEAT (MAV_TYPE_GCS) was heard on it (streams/STATUSTEXT.hpp, ``tally.texts_withheld``
+  counts the others), and EVENT (#410, libevents: id = 1 << 24 | FNV-1a of the name, arguments
+  little-endian) on every link for what has one: the LANDING_TARGET refusal, and the arming
+  checks (``arming_failures``: event name -> the STATUSTEXT PX4 also says to a ground station)
+  reported as PX4's commander does, a summary (commander_arming_check_summary: errors by
+  health component, the modes it can arm in) then one event per failing check (arguments: the
+  modes, uint32, and the health component, uint8), at the first HEARTBEAT and again on
+  MAV_CMD_RUN_PREARM_CHECKS (401).
 - TARGET_RELATIVE (#511, the development dialect PX4 builds its vision target estimator with):
   decoded as PX4's C library lays it out (mavlink_msg_target_relative.h: timestamp at 0, x/y/z
   at 8, pos_std at 20, yaw_std at 32, q_target at 36, q_sensor at 52, id/frame/type at 68-70,
@@ -136,6 +150,7 @@ class Tally:
     target_refused: Dict[str, int] = field(default_factory=dict)  # PX4: TARGET_RELATIVE refused, by cause
     timesync_answers: List[Tuple[int, int, int]] = field(default_factory=list)  # (tc1, ts1, our now ns)
     stamped_by: Dict[str, int] = field(default_factory=dict)  # PX4: "timesync" / "arrival"
+    texts_withheld: int = 0  # PX4 (px4_events): STATUSTEXT not sent, no ground station heard
     received: List[Any] = field(default_factory=list)  # every message from the daemon
 
 
@@ -158,6 +173,9 @@ class FakeAutopilot:
         vte: bool = False,
         uptime_s: float = 0.0,
         ext_nav_announced: bool = False,
+        px4_sync: bool = False,
+        px4_events: bool = False,
+        arming_failures: Optional[Dict[str, str]] = None,
     ) -> None:
         # ArduPilot's dialect (common.xml and EKF_STATUS_REPORT); PX4 uses only common messages.
         from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -189,6 +207,14 @@ class FakeAutopilot:
         self.vehicle_state = vehicle_state
         self.message_interval = message_interval
         self._t_boot = time.monotonic() - boot_age_s
+        assert not px4_sync or kind == "px4"
+        self.px4_sync: Optional[Px4Timesync] = Px4Timesync(self._t_boot) if px4_sync else None
+        assert not px4_events or kind == "px4"
+        self.px4_events = px4_events
+        self.arming_failures = dict(arming_failures or {})
+        self.gcs_heard = False
+        self.events_sent: List[Tuple[str, int, bytes]] = []  # (name, log level, arguments)
+        self._event_seq = 65535 - 10  # events::initial_event_sequence
         self.attitudes_sent = 0
         self.data_stream_requests: List[Tuple[int, int, int]] = []  # (stream id, rate Hz, start_stop)
         self.tally = Tally()
@@ -268,7 +294,39 @@ class FakeAutopilot:
 
     def _text(self, severity: int, text: str) -> None:
         self.statustexts.append(text)
+        if self.px4_events and not self.gcs_heard:
+            self.tally.texts_withheld += 1  # PX4: STATUSTEXT only where a ground station is
+            return
         self.mav.statustext_send(severity, text.encode("ascii")[:50])
+
+    def _event(self, name: str, level: int, arguments: bytes) -> None:
+        """PX4's EVENT (#410) as mavlink_events.cpp sends it, framed by hand: the dialects of
+        pymavlink 2.4 have no EVENT (CRC extra 160; MAVLink 2 trims trailing zeros)."""
+        from pymavlink.generator.mavcrc import x25crc
+
+        h = 0x811C9DC5
+        for byte in name.encode("ascii"):
+            h = ((h ^ byte) * 0x01000193) & 0xFFFFFFFF
+        ev_id = (1 << 24) | (h & 0xFFFFFF)
+        self._event_seq = (self._event_seq + 1) & 0xFFFF
+        boot_ms = int((time.monotonic() - self._t_boot) * 1e3) & 0xFFFFFFFF
+        payload = struct.pack("<IIHBBB", ev_id, boot_ms, self._event_seq, 0, 0, level) + arguments.ljust(40, b"\x00")
+        payload = payload.rstrip(b"\x00") or b"\x00"
+        header = bytes([0xFD, len(payload), 0, 0, self.mav.seq, self.system, 1]) + (410).to_bytes(3, "little")
+        self.mav.seq = (self.mav.seq + 1) % 256
+        crc = x25crc(header[1:] + payload + bytes([160])).crc
+        self.write(header + payload + struct.pack("<H", crc))
+        self.events_sent.append((name, level, arguments))
+
+    def _report_arming_checks(self) -> None:
+        """commander's Report::report: the summary, then each failing check (log level error)."""
+        local_position_estimate = 17  # health_component_t bit
+        errors = (1 << local_position_estimate) if self.arming_failures else 0
+        can_arm = 0 if self.arming_failures else 0x7FFFFFFF
+        self._event("commander_arming_check_summary", 8, struct.pack("<BIIII", 0, errors, 0, can_arm, can_arm))
+        for name, text in self.arming_failures.items():
+            self._event(name, 3, struct.pack("<IB", 0xFFFFFFFF, local_position_estimate))
+            self._text(2, text)
 
     def _periodic(self, now: float) -> None:
         if self.peer is None:
@@ -277,6 +335,8 @@ class FakeAutopilot:
             self.mav.heartbeat_send(2, 3 if self.kind == "ardupilot" else 12, 0, 0, 4)
             if self._t_first_heartbeat is None:
                 self._t_first_heartbeat = now
+                if self.px4_events:
+                    self._report_arming_checks()
         if self._wipe_at is not None and now >= self._wipe_at:
             self._wipe_at = None
             if self.origin is not None:
@@ -284,7 +344,11 @@ class FakeAutopilot:
                 self.tally.origins_wiped += 1
         if self.kind == "ardupilot" and self.origin is not None and self.home is None and self.ekf_running(now):
             self.home, self.home_set_by = self.origin, "EKF origin"
-        if self.timesync_s and self._every("ts", self.timesync_s, now):
+        if self.px4_sync is not None:
+            period_s = self.px4_sync.period_s(self.intervals_us.get(111))
+            if period_s is not None and self._every("ts", period_s, now):
+                self.mav.timesync_send(0, self.px4_sync.request())
+        elif self.timesync_s and self._every("ts", self.timesync_s, now):
             self.mav.timesync_send(0, time.monotonic_ns())
         if self.kind == "ardupilot":
             ekf_us = self.intervals_us.get(193, 0)
@@ -327,7 +391,9 @@ class FakeAutopilot:
 
     def _handle(self, msg: Any, now: float) -> None:
         kind = msg.get_type()
-        if kind == "SET_GPS_GLOBAL_ORIGIN":
+        if kind == "HEARTBEAT" and msg.type == 6:  # MAV_TYPE_GCS
+            self.gcs_heard = True
+        elif kind == "SET_GPS_GLOBAL_ORIGIN":
             if self.kind == "ardupilot" and not self.ekf_running(now):
                 self.tally.origins_refused += 1  # NavEKF3::setOriginLLH: no cores yet
                 return
@@ -363,6 +429,10 @@ class FakeAutopilot:
         elif kind == "TIMESYNC":
             if msg.tc1 == 0:
                 self.mav.timesync_send(time.monotonic_ns() - int(self._t_boot * 1e9), msg.ts1)
+            elif self.px4_sync is not None:
+                self.tally.timesync_answers.append((msg.tc1, msg.ts1, time.monotonic_ns()))
+                if self.px4_sync.answer(msg.tc1, msg.ts1):
+                    self.timesync_offset_ns = self.px4_sync.offset_ns
             else:
                 self.tally.timesync_answers.append((msg.tc1, msg.ts1, time.monotonic_ns()))
                 rtt_ns = time.monotonic_ns() - msg.ts1
@@ -386,6 +456,9 @@ class FakeAutopilot:
         elif cmd == 511 and self.message_interval:  # MAV_CMD_SET_MESSAGE_INTERVAL
             self.intervals_us[int(msg.param1)] = int(msg.param2)
             result = 0
+        elif cmd == 401 and self.px4_events:  # MAV_CMD_RUN_PREARM_CHECKS: a forced report
+            result = 0
+            self._report_arming_checks()
         elif cmd == 179:  # MAV_CMD_DO_SET_HOME
             if self.kind == "ardupilot" and self.origin is None:
                 result = 4  # MAV_RESULT_FAILED: Copter::set_home needs the EKF origin
@@ -436,6 +509,8 @@ class FakeAutopilot:
                 self.tally.landing_refused += 1
                 if self.kind == "px4":
                     self._text(2, f"Landing target: coordinate frame {msg.frame} unsupported")
+                    if self.px4_events:
+                        self._event("mavlink_rcv_lnd_target_unsup_coord", 3, bytes([msg.frame]))
                 return
         self.tally.landing_targets.append(msg)
 
@@ -522,6 +597,61 @@ class FakeAutopilot:
                 value = int(round(msg.param_value)) if math.isfinite(msg.param_value) else 0
             self.params[name][0] = value
         self._send_param(name, names.index(name))
+
+
+class Px4Timesync:
+    """PX4's TIMESYNC filter as src/lib/timesync/Timesync.cpp keeps it: the request stream at 10 Hz
+    (streams/TIMESYNC.hpp, configured at 10 Hz on every link) or the interval asked for; each
+    answer (tc1 > 0, whoever it is for) is a sample when its round trip on PX4's clock is under
+    MAX_RTT_SAMPLE (10 ms), and the offset is trusted (``sync_converged``) from
+    CONVERGENCE_WINDOW (500) samples on. ``requests``: ts1 -> the answers to it (our receive
+    time, boot ns), so that a test can see each request answered once and how fast."""
+
+    MAX_RTT_NS = 10_000_000
+    CONVERGENCE_WINDOW = 500
+    DEFAULT_PERIOD_S = 0.1
+
+    def __init__(self, t_boot_s: float) -> None:
+        self._t_boot_ns = int(round(t_boot_s * 1e9))
+        self.sequence = 0  # good samples
+        self.high_rtt = 0  # samples over the gate
+        self.unknown = 0  # answers carrying a ts1 never sent
+        self.requests: Dict[int, List[int]] = {}
+        self.offset_ns: Optional[int] = None
+        self.converged_at_ns: Optional[int] = None
+
+    def now_ns(self) -> int:
+        return time.monotonic_ns() - self._t_boot_ns
+
+    def period_s(self, interval_us: Optional[int]) -> Optional[float]:
+        """MavlinkReceiver::set_message_interval: > 0 that interval, 0 the default, < 0 stopped."""
+        if interval_us is None or interval_us == 0:
+            return self.DEFAULT_PERIOD_S
+        return interval_us / 1e6 if interval_us > 0 else None
+
+    def request(self) -> int:
+        ts1 = self.now_ns()
+        self.requests[ts1] = []
+        return ts1
+
+    def rtts_ns(self) -> List[int]:
+        return [got[0] - ts1 for ts1, got in self.requests.items() if got]
+
+    def answer(self, tc1: int, ts1: int) -> bool:
+        """One answer; True once converged."""
+        now = self.now_ns()
+        if ts1 in self.requests:
+            self.requests[ts1].append(now)
+        else:
+            self.unknown += 1  # not an answer to one of ours (PX4 would still take it)
+        if now - ts1 < self.MAX_RTT_NS:
+            self.sequence += 1
+            self.offset_ns = tc1 - (ts1 + now) // 2
+        else:
+            self.high_rtt += 1
+        if self.sequence >= self.CONVERGENCE_WINDOW and self.converged_at_ns is None:
+            self.converged_at_ns = now
+        return self.converged_at_ns is not None
 
 
 def _R_from_q(q) -> List[List[float]]:

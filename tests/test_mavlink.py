@@ -688,3 +688,41 @@ def test_a_pose_refused_late_after_a_loss_does_not_raise_the_reset_counter_twice
     assert [m.reset_counter for m in odo] == [0] * 5 + [1] * 3
     report = check(msgs)
     assert report.ok, str(report)
+
+
+def test_px4_timesync_is_answered_on_arrival_and_converges_without_a_live_attitude():
+    """PX4 (fake_autopilot.Px4Timesync: src/lib/timesync) counts a TIMESYNC sample only when its
+    round trip is under 10 ms and trusts the offset after 500 such samples. With no live attitude
+    (``[attitude] source = "none"``: nothing else reads the link) every request must still be
+    answered at once, exactly once, with its ts1; PX4 is asked for TIMESYNC at 100 Hz until the
+    500 are in, then for its default rate again, and the poses are then stamped by capture time."""
+    from fake_autopilot import FakeAutopilot
+
+    fc = FakeAutopilot("px4", heartbeat_s=0.2, px4_sync=True)
+    out = output(fc.connection, messages=("ODOMETRY",))
+    sync = fc.px4_sync
+    assert sync is not None
+    try:
+        assert wait_for(lambda: out.autopilot_system == 1, 5.0)
+        assert wait_for(lambda: fc.intervals_us.get(111) == 10_000, 5.0), fc.intervals_us
+        # (A bound, not a measure: at 10 Hz the 500 samples alone would take 50 s.)
+        assert wait_for(lambda: fc.timesync_offset_ns is not None, 40.0), (sync.sequence, sync.high_rtt)
+        for k in range(10):
+            out.submit(vehicle_result(WALL, k, time.monotonic(), (-2.0, 0.0, 0.0)))
+            time.sleep(0.02)
+        # Given back once this side counted the window and its margin of good answers.
+        assert wait_for(lambda: fc.intervals_us.get(111) == 0, 20.0), out.stats()["timesync"]
+        t_close_ns = sync.now_ns()
+        state = out.stats()["timesync"]
+    finally:
+        out.close()
+        fc.close()
+    asked = {ts1: got for ts1, got in sync.requests.items() if ts1 < t_close_ns - 100_000_000}
+    assert len(asked) >= 500
+    assert all(len(got) == 1 for got in asked.values()), [len(g) for g in asked.values() if len(g) != 1][:5]
+    assert sync.unknown == 0  # each answer carries the ts1 of a request
+    rtts = sorted(sync.rtts_ns())
+    # The gate is 10 ms; an answer on arrival over loopback takes well under 1 ms.
+    assert rtts[len(rtts) // 2] < sync.MAX_RTT_NS / 2, rtts[len(rtts) // 2]
+    assert state["good"] >= 600 and state["answered"] >= state["good"]
+    assert fc.tally.stamped_by.get("timesync", 0) > 0

@@ -205,7 +205,98 @@ def test_px4_integer_parameters_are_set_bytewise(tmp_path, capsys):
     assert code == 1
     assert "FIX: EKF2_EV_CTRL = 9" in lines and "OK EKF2_EV_CTRL = 9 set" in lines
     assert fc.param("EKF2_EV_CTRL") == 9 and fc.params["EKF2_EV_CTRL"][1] == MAV_PARAM_TYPE_INT32
-    assert any(ln.startswith("OK EKF2_EV_DELAY = 0 ms") and "TIMESYNC answered" in ln for ln in lines), lines
+    # TIMESYNC every 0.5 s (this fake's rate, not PX4's): PX4's 500 good exchanges are minutes away.
+    assert any(
+        ln.startswith("PROBLEM EKF2_EV_DELAY = 0 ms and PX4's TIMESYNC will not converge soon") for ln in lines
+    ), lines
+
+
+def test_px4_ev_delay_is_judged_against_the_sync_px4_has_reached(tmp_path, capsys):
+    """PX4 (fake_autopilot.Px4Timesync) dates poses by capture time only after 500 round trips under
+    10 ms: a 2.5 s watch cannot see that many, so EKF2_EV_DELAY = 0 is not accepted because
+    TIMESYNC was answered; preflight says how far the sync is and how long it needs, and the
+    fake agrees that it has not converged."""
+    fc = FakeAutopilot("px4", heartbeat_s=0.2, px4_sync=True, px4_events=True)
+    cfg = _config(tmp_path, fc.connection)
+    try:
+        code, lines = _run(capsys, "--config", cfg)
+        sequence, converged = fc.px4_sync.sequence, fc.timesync_offset_ns is not None
+    finally:
+        fc.close()
+    assert code == 1 and not converged
+    assert "OK PX4's arming checks pass for position mode (errors in: none)" in lines
+    said = [ln for ln in lines if "TIMESYNC" in ln]
+    m = re.match(
+        r"PROBLEM PX4's TIMESYNC has not converged yet: (\d+) good exchanges of the 500 it needs \(600 counted here "
+        r"to be sure\), about (\d+) s more "
+        r"\(a new run counts from 0: --seconds (\d+)\); until then PX4 dates poses on arrival",
+        said[0] if len(said) == 1 else "",
+    )
+    assert m, said
+    # This side's count of good answers: PX4's own (the fake's) is near it, lower when its own
+    # receive was late on a loaded machine; either is short of the window.
+    assert 0 < int(m[1]) < 500 and 0 < sequence < 500
+    assert not [ln for ln in lines if ln.startswith("FIX: EKF2_EV_DELAY")]
+
+
+@pytest.mark.parametrize(
+    "ev_delay, sync, expected",
+    [
+        (0, {"answered": 620, "good": 610}, ["OK EKF2_EV_DELAY = 0 ms; PX4's TIMESYNC converged (610 good"]),
+        (
+            20,
+            {"answered": 620, "good": 610},
+            ["PROBLEM EKF2_EV_DELAY = 20 ms: PX4's TIMESYNC converged", "FIX: EKF2_EV_DELAY = 0"],
+        ),
+        (
+            0,
+            {"answered": 0, "good": 0},
+            [
+                "PROBLEM EKF2_EV_DELAY = 0 ms and PX4's TIMESYNC will not converge soon (no TIMESYNC",
+                "FIX: EKF2_EV_DELAY = 18",
+            ],
+        ),
+        (
+            0,
+            {"answered": 80, "good": 0},
+            [
+                "PROBLEM EKF2_EV_DELAY = 0 ms and PX4's TIMESYNC will not converge soon (0 of 80",
+                "FIX: EKF2_EV_DELAY = 18",
+            ],
+        ),
+        (25, {"answered": 80, "good": 0}, ["OK EKF2_EV_DELAY = 25 ms covers the arrival dating"]),
+        (
+            0,
+            {"answered": 300, "good": 290, "good_rate_hz": 95.0, "seconds_to_window": 2.2},
+            [
+                "PROBLEM PX4's TIMESYNC has not converged yet: 290 good exchanges of the 500 it needs (600 counted "
+                "here to be sure), about 2 s more (a new run counts from 0: --seconds 10)"
+            ],
+        ),
+        (
+            0,
+            {"answered": 40, "good": 40, "good_rate_hz": 8.0, "seconds_to_window": 57.5},
+            ["PROBLEM PX4's TIMESYNC has not converged yet: 40 good exchanges of the 500"],
+        ),
+        (
+            0,
+            {"answered": 40, "good": 30, "good_rate_hz": 5.0, "seconds_to_window": 94.0},
+            [
+                "PROBLEM EKF2_EV_DELAY = 0 ms and PX4's TIMESYNC will not converge soon (30 of 40",
+                "FIX: EKF2_EV_DELAY = 18",
+            ],
+        ),
+    ],
+)
+def test_px4_ev_delay_advice_follows_the_delay_px4_applies(ev_delay, sync, expected):
+    from pose_daemon.tools.preflight import Observation, check_px4
+
+    cfg = parse_config('[output.mavlink]\nconnection = "udpout:127.0.0.1:14550"\n')
+    obs = Observation(autopilot="px4", params={"EKF2_EV_DELAY": (float(ev_delay), 9)}, px4_sync=sync)
+    obs.delays_s = [0.0175] * 5
+    lines = [f.line() for f in check_px4(cfg, obs)]
+    said = [ln for ln in lines if "EV_DELAY" in ln or "TIMESYNC" in ln]
+    assert len(said) == len(expected) and all(ln.startswith(e) for ln, e in zip(said, expected)), said
 
 
 def test_a_config_or_link_that_cannot_be_used_exits_2(tmp_path, capsys):
@@ -299,3 +390,30 @@ def test_px4_target_relative_needs_the_vision_target_estimator(tmp_path, capsys)
     assert "FIX: VTE_EV_NOISE_MD = 0" in lines and "OK VTE_AID_MASK = 14 (vision relative position on)" in lines
     assert not [ln for ln in lines if ln.startswith("FIX: VTE_") and "NOISE_MD" not in ln], lines
     assert fused > 0, refused
+
+
+def test_px4_warnings_reach_preflight_as_events_on_the_onboard_link(tmp_path, capsys):
+    """PX4 sends STATUSTEXT only where it heard a ground station, so the daemon's onboard link
+    gets none; its EVENTs (#410) go everywhere: preflight asks PX4 to report its arming checks
+    again (MAV_CMD_RUN_PREARM_CHECKS) and decodes them, a known one by its text, another by its
+    id and arguments."""
+    from pose_daemon.tools.preflight.px4_events import event_id
+
+    failures = {
+        "check_estimator_heading_not_stable": "Preflight Fail: heading estimate not stable",
+        "check_something_preflight_does_not_know": "Preflight Fail: something else",
+    }
+    fc = FakeAutopilot("px4", heartbeat_s=0.2, timesync_s=0.5, px4_events=True, arming_failures=failures)
+    cfg = _config(tmp_path, fc.connection)
+    try:
+        code, lines = _run(capsys, "--config", cfg)
+    finally:
+        fc.close()
+    assert code == 1
+    assert fc.tally.texts_withheld >= 2  # the "Preflight Fail" texts never reached the onboard link
+    assert [m for m in fc.tally.received if m.get_type() == "COMMAND_LONG" and m.command == 401]
+    assert "PROBLEM the autopilot says: Heading estimate not stable" in lines, lines
+    unknown = event_id("check_something_preflight_does_not_know")
+    assert f"PROBLEM the autopilot says: PX4 event 0x{unknown:08x} (error; arguments ff ff ff ff 11)" in lines, lines
+    assert "PROBLEM PX4's arming checks fail for position mode (errors in: local_position_estimate)" in lines
+    assert len([ln for ln in lines if "Heading estimate" in ln]) == 1  # reported twice, said once

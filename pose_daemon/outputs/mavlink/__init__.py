@@ -25,8 +25,9 @@ The rules it keeps (shared/autopilot-rules.md, checked by tests/fc_acceptance.py
   it too). ``set_home``: MAV_CMD_DO_SET_HOME (COMMAND_INT) once the origin holds, until
   acknowledged (ArduPilot has no handler for SET_HOME_POSITION; ArduCopter sets home itself
   once the EKF has an origin, so it is rarely needed).
-- TIMESYNC requests (tc1 = 0) are answered with tc1 = now in ns on the clock of ``time_usec``
-  (PX4 maps ``time_usec`` only after TIMESYNC converged); ``attach_timesync`` lets the
+- TIMESYNC requests (tc1 = 0) are answered on arrival with tc1 = now in ns on the clock of
+  ``time_usec`` (PX4 maps ``time_usec`` only after 500 round trips under 10 ms; it is asked for
+  TIMESYNC at 100 Hz until this side answered that many, timesync.py); ``attach_timesync`` lets the
   attitude side send its own requests over this link and see every TIMESYNC received.
 - The live attitude (``attach_attitude``): the autopilot's ATTITUDE and ATTITUDE_QUATERNION go to
   attitude.AutopilotAttitude with their arrival time on the output's clock; ATTITUDE is asked for
@@ -40,8 +41,9 @@ The rules it keeps (shared/autopilot-rules.md, checked by tests/fc_acceptance.py
 The link is one pymavlink connection string (udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT,
 /dev/ttyX[:BAUD]) opened through ``mavutil.mavlink_connection``; link.py does the reads
 and writes itself so that a failure is seen (pymavlink would print and carry on), and reopens
-the link with a doubling pause. Each received message goes to the handler of its type
-(``MavlinkOutput._handlers``, ``subscribe``), then to any ``listen``ers, in the output's thread.
+the link with a doubling pause. A reader thread handles each received message as it arrives
+(a TIMESYNC request is answered at once: PX4 takes no round trip over 10 ms): it goes to the
+handler of its type (``MavlinkOutput._handlers``, ``subscribe``), then to any ``listen``ers.
 
 The package, one concern per module:
 - ``output.py``: ``MavlinkOutput``, which orchestrates the rest: the track (reset_counter, the

@@ -31,6 +31,7 @@ class MavlinkAttitudeListener(MavlinkOutput):
     """Listens on ``cfg.connection`` for the autopilot's attitude; sends no poses."""
 
     name = "attitude"
+    paces_px4_timesync = False  # no poses: PX4's own sync of this link is not needed
 
     def __init__(
         self,

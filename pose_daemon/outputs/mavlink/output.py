@@ -4,15 +4,19 @@ link (link.py), each pose's messages (messages.py), the origin and home (origin.
 (timesync.py) and the autopilot's own state (vehicle_state.py); the track (reset_counter, the
 rate, lost and found) and the dispatch of received messages are its own.
 
-Each received message goes to the handler of its type (``MavlinkOutput._handlers``,
-``subscribe``), then to any ``listen``ers, in the output's thread. The link is reopened with a
-doubling pause (worker.py).
+The link is read by a thread of its own (``_read_loop``), which waits on the link's
+descriptor and handles what arrives at once: a TIMESYNC request is answered within
+microseconds of its arrival, whatever else the output is doing (PX4 takes no round trip over
+10 ms). Each received message goes to the handler of its type (``MavlinkOutput._handlers``,
+``subscribe``), then to any ``listen``ers, in that thread with the link held. The link is
+reopened with a doubling pause (worker.py).
 """
 
 from __future__ import annotations
 
 import collections
 import logging
+import threading
 import time
 from typing import TYPE_CHECKING, Any, Callable, Dict, List, Optional, Tuple
 
@@ -52,13 +56,12 @@ if TYPE_CHECKING:
 # pose starts a new track (reset_counter + 1).
 HEALTH_GAP_S = 0.3
 HEARTBEAT_S = 1.0
-# With the live attitude the link is read this often (not every tick_s = 50 ms): a frame is
-# processed within milliseconds of its capture, and may only be that little past the newest
-# ATTITUDE received (``[attitude] max_extrapolation_s``, 50 ms by default).
-ATTITUDE_TICK_S = 0.01
+# The reader thread's longest wait on the link before it looks whether the output stopped or
+# the link changed.
+READ_WAIT_S = 0.05
 
 # Handles one received message of its type: (pymavlink message, now_s on the output's clock).
-# Called in the output's thread with the link held, so it may send (self._link.mav).
+# Called in the output's reader thread (or its own) with the link held, so it may send (self._link.mav).
 MessageHandler = Callable[[Any, float], None]
 
 
@@ -66,7 +69,10 @@ class MavlinkOutput(QueuedOutput):
     """Streams each pose to a flight controller; see the package docstring for the rules."""
 
     name = "mavlink"
-    tick_s = 0.05  # how often incoming bytes are read and the heartbeat is checked
+    tick_s = 0.05  # how often the heartbeat and the requests are checked (reading: _read_loop)
+    # PX4 asked for TIMESYNC at 100 Hz until it can have converged (timesync.Px4SyncPace): only
+    # a link that carries poses needs PX4's sync.
+    paces_px4_timesync = True
 
     def __init__(
         self,
@@ -121,6 +127,8 @@ class MavlinkOutput(QueuedOutput):
         self._streams = StateStreams(clock)
         self._attitude_sink: Any = None  # attitude.AutopilotAttitude, once attach_attitude()
         self._timesync = Timesync(clock)
+        self._reader: Optional[threading.Thread] = None
+        self._t_read = 0.0  # when the messages at hand were read (output's clock)
         self._qual_min_asked = self._qual_min_warned = False
         # What is done with each received message, by type (the one dispatch point, _on_message);
         # a type not listed is ignored. More handlers: one line here, or subscribe().
@@ -180,6 +188,8 @@ class MavlinkOutput(QueuedOutput):
         s["autopilot_kind"] = self.autopilot_kind
         s["autopilot_component"] = self._autopilot_component
         s["origin"] = self.origin_state
+        with self._io_lock:
+            s["timesync"] = self._timesync.px4.state(self._clock())
         if s["link_up"] and self.cfg.wait_heartbeat and self.autopilot_system is None:
             s["link"] = "up, waiting for the autopilot's HEARTBEAT"
         return s
@@ -237,10 +247,53 @@ class MavlinkOutput(QueuedOutput):
         # A pose waiting for the autopilot: read its HEARTBEAT first rather than drop the pose.
         return self.cfg.wait_heartbeat and self.autopilot_system is None
 
+    def start(self) -> None:
+        """The output's thread (worker.py) and the link's reader (``_read_loop``)."""
+        super().start()
+        if self._reader is None:
+            self._reader = threading.Thread(target=self._read_loop, name=f"output-{self.name}-rx", daemon=True)
+            self._reader.start()
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        super().close(timeout_s)
+        if self._reader is not None:
+            self._reader.join(timeout_s)
+
+    def _read_loop(self) -> None:
+        """Waits on the link and handles each message as it arrives (module docstring), with
+        the link held; a link that fails is reopened by the output's thread."""
+        while not self._stopping:
+            link = self._link
+            if link is None or not self._link_up:
+                time.sleep(READ_WAIT_S)
+                continue
+            t0 = time.monotonic()
+            if not link.wait_readable(READ_WAIT_S):
+                if time.monotonic() - t0 < READ_WAIT_S / 2:
+                    time.sleep(READ_WAIT_S)  # closed under us: the output's thread reopens it
+                continue
+            with self._io_lock:
+                if self._link is link and self._link_up:
+                    self._run_read()
+
+    def _run_read(self) -> None:
+        try:
+            self._read_received()
+        except LinkError as exc:
+            self._link_failed(str(exc))
+        except Exception as exc:  # never let the reader die; the status line shows it
+            self._error(f"{type(exc).__name__}: {exc}")
+
+    def _read_received(self) -> None:
+        """Handle what waits on the link now (link held)."""
+        assert self._link is not None
+        self._t_read = self._clock()
+        for msg in self._link.read_messages():
+            self._on_message(msg, self._t_read)
+
     def _tick(self, now: float) -> None:
         assert self._link is not None
-        for msg in self._link.read_messages():
-            self._on_message(msg, now)
+        self._read_received()  # what the reader has not taken yet (it was waiting for the link)
         if now - self._last_heartbeat_t >= HEARTBEAT_S:
             self._send_heartbeat(now)
         if self.autopilot_system is None:
@@ -256,7 +309,9 @@ class MavlinkOutput(QueuedOutput):
                 self.autopilot_system, self._autopilot_component, b"VISO_QUAL_MIN", -1
             )
         if self._timesync.request_due(now):
-            self._timesync.request(self._link, now, self._on_message)
+            self._timesync.request(self._link.mav, now)
+        if self.autopilot_kind == "px4" and self.paces_px4_timesync:
+            self._timesync.px4.keep(self._link.mav, self._autopilot_target(), now, self._count)
 
     def _autopilot_target(self) -> Tuple[int, int]:
         """(system, component) to address the autopilot with (system 0 = broadcast until heard)."""
@@ -297,8 +352,8 @@ class MavlinkOutput(QueuedOutput):
         """Feed the live attitude (attitude.AutopilotAttitude) from this link: its TIMESYNC
         exchanges (``attach_timesync``), the autopilot's ATTITUDE and ATTITUDE_QUATERNION with
         their arrival time on the output's clock, and ATTITUDE asked for at 50 Hz (module
-        docstring); the link is read every ATTITUDE_TICK_S from then on. Messages from other
-        systems (a ground station, another vehicle) are not used."""
+        docstring). Messages from other systems (a ground station, another vehicle) are not
+        used."""
         self.attach_timesync(attitude)
 
         def on_attitude(msg: Any, now: float) -> None:
@@ -314,7 +369,6 @@ class MavlinkOutput(QueuedOutput):
         self.listen("ATTITUDE_QUATERNION", on_quaternion)
         with self._io_lock:
             self._attitude_sink = attitude
-            self.tick_s = min(self.tick_s, ATTITUDE_TICK_S)
 
     def _on_message(self, msg: Any, now: float) -> None:
         kind = msg.get_type()
@@ -337,7 +391,7 @@ class MavlinkOutput(QueuedOutput):
         if not self._for_us(msg):
             return
         assert self._link is not None
-        self._timesync.on_timesync(self._link.mav, msg, self._count)
+        self._timesync.on_timesync(self._link.mav, msg, self._count, self._t_read, self._from_autopilot(msg))
 
     def _on_heartbeat(self, msg: Any, now: float) -> None:
         """Notes the autopilot (not a ground station or another companion) and when it was

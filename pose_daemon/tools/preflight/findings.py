@@ -6,7 +6,7 @@ from __future__ import annotations
 import statistics
 import struct
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 MAV_PARAM_TYPE_INT32 = 6
 MAV_PARAM_TYPE_REAL32 = 9
@@ -53,6 +53,9 @@ class Observation:
     qualities: List[int] = field(default_factory=list)
     delays_s: List[float] = field(default_factory=list)
     timesync_answered: int = 0
+    # The output's count of PX4's TIMESYNC exchanges (outputs.mavlink.timesync.Px4SyncPace.state).
+    px4_sync: Optional[dict] = None
+    events: List[Any] = field(default_factory=list)  # PX4's EVENT messages (px4_events.Px4Event)
 
 
 def param_value(raw: float, ptype: int, autopilot: Optional[str]) -> float:

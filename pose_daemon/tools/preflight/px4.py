@@ -4,9 +4,11 @@ instances, the vision target estimator for TARGET_RELATIVE."""
 from __future__ import annotations
 
 import math
-from typing import Dict, List
+from typing import Dict, List, Tuple
 
+from ...outputs.mavlink.timesync import FAST_UNTIL_GOOD, GOOD_ANSWER_S, PX4_CONVERGENCE_SAMPLES
 from .findings import QUALITY_MIN, Finding, Observation, delay_ms, fmt, watched_findings
+from .px4_events import LOG_ERROR, MODE_POSCTL
 
 # PX4's vision target estimator (src/modules/vision_target_estimator, a beta module of PX4 1.18
 # built only into *_visionTargetEst targets): what decides whether it fuses TARGET_RELATIVE.
@@ -16,6 +18,14 @@ VTE_AID_VISION = 4
 # VTE_TASK_MASK: bit 0 precision landing, bit 1 debug (always active), bit 2 precision takeoff.
 VTE_TASK_PRECLAND = 1
 VTE_TASKS = 1 | 2 | 4
+# PX4 dates a pose by its capture time only once its TIMESYNC filter has PX4_CONVERGENCE_SAMPLES
+# round trips under 10 ms (src/lib/timesync); a sync further off than this is judged as none.
+SYNC_WAIT_MAX_S = 60.0
+# PX4 counts a little fewer good round trips than this side sees (the link's own time, PX4's own
+# receive): converged is judged with the margin the output keeps PX4 at 100 Hz for.
+SYNC_JUDGED_GOOD = FAST_UNTIL_GOOD
+# Once synced EKF2_EV_DELAY adds to a capture-time stamp: more than this dates poses too early.
+SYNCED_EV_DELAY_MAX_MS = 10.0
 PX4_PARAMS = (
     ["EKF2_EV_CTRL", "EKF2_HGT_REF", "EKF2_EV_DELAY", "EKF2_GPS_CTRL", "EKF2_EV_QMIN"]
     + [f"MAV_{n}_{k}" for n in range(0, 3) for k in ("CONFIG", "MODE", "RATE")]
@@ -78,32 +88,98 @@ def check_px4(cfg, obs: Observation, link_kind: str = "udpout") -> List[Finding]
     delay = delay_ms(obs)
     ev_delay = p.get("EKF2_EV_DELAY")
     if delay is not None and ev_delay is not None:
-        p50, p90 = delay
-        synced = obs.timesync_answered > 0
-        if not synced and ev_delay < math.floor(p50):
-            out += [
-                Finding(
-                    "PROBLEM",
-                    f"EKF2_EV_DELAY = {fmt(ev_delay)} ms and no TIMESYNC: PX4 stamps poses "
-                    f"on arrival, the measured delay is median {p50:.0f} ms",
-                ),
-                Finding("FIX", param="EKF2_EV_DELAY", value=min(300, math.ceil(p50))),
-            ]
-        else:
-            out.append(
-                Finding(
-                    "OK",
-                    f"EKF2_EV_DELAY = {fmt(ev_delay)} ms (measured capture-to-send delay: median "
-                    f"{p50:.0f} ms, p90 {p90:.0f} ms" + ("; TIMESYNC answered" if synced else "") + ")",
-                )
-            )
+        out += _check_ev_delay(ev_delay, delay, obs)
     for n in range(3):
         keys = [f"MAV_{n}_{k}" for k in ("CONFIG", "MODE", "RATE") if f"MAV_{n}_{k}" in p]
         if keys:
             out.append(Finding("OK", ", ".join(f"{k} = {fmt(p[k])}" for k in keys)))
     if "TARGET_RELATIVE" in m.messages:
         out += _check_vte(p)
-    return out + watched_findings(cfg, obs, ekf="EKF2")
+    return out + watched_findings(cfg, obs, ekf="EKF2") + event_findings(obs)
+
+
+def event_findings(obs: Observation) -> List[Finding]:
+    """What PX4 said in EVENTs (px4_events.py; its STATUSTEXT does not reach an onboard link):
+    each distinct one at error level or worse is a PROBLEM, by its text or, for one preflight
+    does not know, its id and arguments; the last arming check summary says whether PX4 can arm
+    in position mode."""
+    out: List[Finding] = []
+    seen = set()
+    summary = None
+    for event in obs.events:
+        s = event.arming_summary()
+        if s is not None:
+            summary = s
+            continue
+        key = (event.id, event.arguments)
+        if event.level <= LOG_ERROR and key not in seen:
+            seen.add(key)
+            out.append(Finding("PROBLEM", f"the autopilot says: {event.text()}"))
+    if summary is not None:
+        errors = ", ".join(summary["errors"]) or "none"
+        if int(summary["can_arm"]) & MODE_POSCTL:
+            out.append(Finding("OK", f"PX4's arming checks pass for position mode (errors in: {errors})"))
+        else:
+            out.append(Finding("PROBLEM", f"PX4's arming checks fail for position mode (errors in: {errors})"))
+    return out
+
+
+def _check_ev_delay(ev_delay: float, delay: Tuple[float, float], obs: Observation) -> List[Finding]:
+    """EKF2_EV_DELAY against the delay PX4 really applies: none on top of the capture time once
+    its TIMESYNC converged (by this side's count of good exchanges, ``obs.px4_sync``); the whole
+    capture-to-arrival delay while it has not (PX4 then dates each pose on arrival)."""
+    p50, p90 = delay
+    sync = obs.px4_sync or {}
+    good = int(sync.get("good", 0))
+    answered = int(sync.get("answered", obs.timesync_answered))
+    wait_s = sync.get("seconds_to_window")
+    rate_hz = float(sync.get("good_rate_hz") or 0.0)
+    measured = f"measured capture-to-send delay: median {p50:.0f} ms, p90 {p90:.0f} ms"
+    window = PX4_CONVERGENCE_SAMPLES
+    if good >= SYNC_JUDGED_GOOD:
+        if ev_delay > SYNCED_EV_DELAY_MAX_MS:
+            return [
+                Finding(
+                    "PROBLEM",
+                    f"EKF2_EV_DELAY = {fmt(ev_delay)} ms: PX4's TIMESYNC converged ({good} good exchanges), so PX4 "
+                    f"dates each pose by its capture time, and EKF2_EV_DELAY puts it {fmt(ev_delay)} ms earlier still",
+                ),
+                Finding("FIX", param="EKF2_EV_DELAY", value=0),
+            ]
+        return [
+            Finding(
+                "OK",
+                f"EKF2_EV_DELAY = {fmt(ev_delay)} ms; PX4's TIMESYNC converged ({good} good exchanges, "
+                f"{window} needed): poses dated by capture time ({measured})",
+            )
+        ]
+    if good == 0 or wait_s is None or wait_s > SYNC_WAIT_MAX_S:
+        why = (
+            "no TIMESYNC request from PX4 on this link"
+            if answered == 0
+            else f"{good} of {answered} TIMESYNC requests answered within {GOOD_ANSWER_S * 1e3:.0f} ms, "
+            f"{window} needed" + (f", about {wait_s:.0f} s more" if wait_s else "")
+        )
+        if ev_delay < math.floor(p50):
+            return [
+                Finding(
+                    "PROBLEM",
+                    f"EKF2_EV_DELAY = {fmt(ev_delay)} ms and PX4's TIMESYNC will not converge soon ({why}): "
+                    f"PX4 dates poses on arrival, the {measured}",
+                ),
+                Finding("FIX", param="EKF2_EV_DELAY", value=min(300, math.ceil(p50))),
+            ]
+        return [Finding("OK", f"EKF2_EV_DELAY = {fmt(ev_delay)} ms covers the arrival dating ({why}; {measured})")]
+    text = (
+        f"PX4's TIMESYNC has not converged yet: {good} good exchanges of the {window} it needs "
+        f"({SYNC_JUDGED_GOOD} counted here to be sure), about "
+        f"{wait_s:.0f} s more (a new run counts from 0: --seconds {math.ceil(SYNC_JUDGED_GOOD / rate_hz) + 3}); "
+        f"until then PX4 dates poses on arrival ({measured})"
+    )
+    if math.floor(p50) <= ev_delay <= SYNCED_EV_DELAY_MAX_MS:
+        return [Finding("OK", f"{text}; EKF2_EV_DELAY = {fmt(ev_delay)} ms is right before and after")]
+    # No FIX: the value that covers the arrival dating dates poses too early once synced.
+    return [Finding("PROBLEM", text)]
 
 
 def _check_vte(p: Dict[str, float]) -> List[Finding]:

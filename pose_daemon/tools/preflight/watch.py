@@ -34,6 +34,7 @@ from .findings import (
     param_wire,
 )
 from .px4 import PX4_PARAMS, check_px4
+from .px4_events import MAV_CMD_RUN_PREARM_CHECKS, MSG_ID_EVENT, decode_event
 
 # EKF_STATUS_REPORT (ardupilotmega.xml, #193): ArduPilot streams it only at SRn_EXTRA3's rate,
 # 0 on Copter by default, so preflight asks for it (MAV_CMD_REQUEST_MESSAGE) while it watches.
@@ -70,6 +71,8 @@ class _Watcher:
     def handle(self, msg: Any, now: float) -> None:
         kind = msg.get_type()
         src = msg.get_srcSystem()
+        if kind.startswith("UNKNOWN_"):
+            src = _frame_source(bytes(msg.get_msgbuf()))  # pymavlink leaves an unknown one's header 0
         with self.lock:
             if self.obs.system is not None and src != self.obs.system:
                 return
@@ -92,6 +95,10 @@ class _Watcher:
                 self.obs.home_seen = True
             elif kind == "TIMESYNC" and msg.tc1 == 0:
                 self.obs.timesync_answered += 1
+            elif kind == f"UNKNOWN_{MSG_ID_EVENT}":
+                event = decode_event(bytes(msg.get_msgbuf()))
+                if event is not None:
+                    self.obs.events.append(event)
 
     def _flags(self, flags: int) -> None:
         # The watch asks "did the EKF use the feed": a report that it did is kept over later
@@ -113,6 +120,13 @@ def _as_gcs(build: Callable[[Any], Any]) -> Callable[[Any], Any]:
             mav.srcSystem, mav.srcComponent = ids
 
     return send
+
+
+def _frame_source(frame: bytes) -> int:
+    """The sending system of a raw MAVLink 1 (0xFE) or 2 (0xFD) frame."""
+    if len(frame) > 5 and frame[0] == 0xFD:
+        return frame[5]
+    return frame[3] if len(frame) > 3 and frame[0] == 0xFE else 0
 
 
 def _request_params(out, obs_system: int, component: int, names: Sequence[str]) -> None:
@@ -167,6 +181,7 @@ def run_preflight(
         "GPS_GLOBAL_ORIGIN",
         "HOME_POSITION",
         "TIMESYNC",
+        f"UNKNOWN_{MSG_ID_EVENT}",
     ):
         out.listen(kind, watcher.handle)
     obs = watcher.obs
@@ -192,6 +207,7 @@ def run_preflight(
         end = time.monotonic() + seconds
         retried = False
         asked_t = ekf_asked_t = -1e18
+        checks_asked = obs.autopilot != "px4"  # PX4: its arming checks reported again near the end
         try:
             while time.monotonic() < end:
                 if time.monotonic() - asked_t >= 1.0:  # GPS_GLOBAL_ORIGIN and HOME_POSITION, once a second
@@ -211,6 +227,9 @@ def run_preflight(
                         )
                     )
                 out.submit(result)
+                if not checks_asked and time.monotonic() > end - 1.0:
+                    checks_asked = True
+                    out.send(functools.partial(_run_prearm_checks, obs.system, obs.component))
                 if not retried and time.monotonic() > end - seconds + PARAM_TIMEOUT_S:
                     retried = True
                     with watcher.lock:
@@ -220,7 +239,9 @@ def run_preflight(
             raise UserError(f"camera source {cfg.camera.source!r} failed: {exc}") from None
         finally:
             source.close()
-        obs.poses_sent = out.stats()["sent"]
+        stats = out.stats()
+        obs.poses_sent = stats["sent"]
+        obs.px4_sync = stats.get("timesync")
         with watcher.lock:
             if obs.autopilot == "px4":
                 findings = check_px4(cfg, obs, link_kind)
@@ -241,6 +262,11 @@ def run_preflight(
 def _request_message(system: int, component: int, msg_id: int, mav: Any) -> None:
     """MAV_CMD_REQUEST_MESSAGE for ``msg_id`` (GPS_GLOBAL_ORIGIN, HOME_POSITION, EKF_STATUS_REPORT)."""
     mav.command_long_send(system, component, MAV_CMD_REQUEST_MESSAGE, 0, float(msg_id), 0, 0, 0, 0, 0, 0)
+
+
+def _run_prearm_checks(system: int, component: int, mav: Any) -> None:
+    """MAV_CMD_RUN_PREARM_CHECKS: PX4 reports every arming check again, as EVENTs (px4_events.py)."""
+    mav.command_long_send(system, component, MAV_CMD_RUN_PREARM_CHECKS, 0, 0, 0, 0, 0, 0, 0, 0)
 
 
 def _apply(out, watcher: _Watcher, fixes: Sequence[Finding], emit: Callable[[str], None]) -> bool:
