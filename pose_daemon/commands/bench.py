@@ -34,7 +34,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p["estimator"].add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     p["detector"].add_argument(
-        "--frames", type=int, default=300, metavar="N", help="marker frames per marker type (default 300)"
+        "--frames",
+        type=int,
+        default=None,
+        metavar="N",
+        help="marker frames per marker type (default 300); with --sweep view, poses per bin and background (default 20)",
+    )
+    p["detector"].add_argument(
+        "--sweep",
+        choices=("view",),
+        default=None,
+        help="view: only the view-angle sweep (0-80 deg off the face, beside OpenCV ArUco + IPPE)",
     )
     p["detector"].add_argument(
         "--empty", type=int, default=200, metavar="N", help="marker-free frames for false detections (default 200)"
@@ -105,10 +115,14 @@ def run(a: argparse.Namespace) -> int:
         _check(a.timing_n >= 1, f"--timing-n must be positive, got {a.timing_n}")
         report = bench.run_bench(a.n, min(a.timing_n, a.n), a.seed, progress=not a.json)
     elif a.bench == "detector":
-        _check(a.frames >= 1, f"--frames must be at least 1, got {a.frames}")
+        frames = a.frames if a.frames is not None else (20 if a.sweep == "view" else 300)
+        _check(frames >= 1, f"--frames must be at least 1, got {frames}")
         _check(a.repeat >= 1, f"--repeat must be at least 1, got {a.repeat}")
         _check(a.empty >= 0, f"--empty must be 0 or more, got {a.empty}")
-        report = bench.run_bench(a.frames, a.empty, a.seed, a.repeat)
+        if a.sweep == "view":
+            report = bench.run_view_bench(frames, a.seed)
+        else:
+            report = bench.run_bench(frames, a.empty, a.seed, a.repeat)
     elif a.bench == "pipeline":
         _check(a.frames >= 1 and a.fps > 0 and a.distinct >= 1, "--frames and --distinct must be >= 1 and --fps > 0")
         report = bench.run_bench(a.frames, a.fps, a.distinct, a.seed, preview=a.preview)

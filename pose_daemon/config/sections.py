@@ -241,7 +241,10 @@ class GateConfig:
         0.01, Rule("float", lo=0, hi=1), "... raised to this fraction of the marker's side for large markers"
     )
     max_view_deg: float = setting(
-        55.0, Rule("float", lo=0, hi=90), "a marker seen further off its face than this is not believed (0 = any angle)"
+        55.0,
+        Rule("float", lo=0, hi=90),
+        "a plain square first seen further off its face than this is not believed (0 = any angle; "
+        "a tracked square and an ArUco marker are not held to it)",
     )
 
 

@@ -84,7 +84,7 @@ class PriorSettings:
     attitude_bound_deg: float = 15.0  # a solution whose down is further from the attitude's disagrees
     gate_rms_px: float = 1.0  # reprojection RMS bound for small markers, pixels
     gate_rms_frac: float = 0.01  # ... and as a fraction of the marker's side for large ones
-    max_view_deg: float = 55.0  # a marker seen further off its face than this is not believed (0 = any)
+    max_view_deg: float = 55.0  # a plain square first seen further off its face is not believed (0 = any)
     gate: bool = True
     attitude_sigma_deg: float = 1.0  # an attitude's accuracy when it does not state one
     polish: bool = True  # re-fit the chosen pose with the attitude's down as a prior term
@@ -173,6 +173,7 @@ def choose_solution(
     heading_track: Optional[HeadingTrack] = None,
     t_capture_s: Optional[float] = None,
     attitude_accuracy: Optional[AttitudeAccuracy] = None,
+    identified: bool = False,
 ) -> Choice:
     """The solution to send for the estimator's ``pose`` (the better fit, its other planar
     solution in ``pose.alternative``), or why none is sent.
@@ -185,14 +186,17 @@ def choose_solution(
     With ``corners_px``, ``camera`` and ``marker`` and ``settings.polish``, an attitude also
     polishes the candidates (``polish_toward``) and the one with the lower cost is chosen.
     ``heading_track`` (with ``t_capture_s``): the tilt prior's track of a wall marker's recent
-    headings, which then chooses and polishes the heading too (``_level_wall``)."""
+    headings, which then chooses and polishes the heading too (``_level_wall``).
+    ``identified``: the corners are known to be the marker's (its id was decoded, or the track
+    of a pose already sent followed it here): ``max_view_deg`` does not apply then, as it only
+    keeps a rectangle from passing for a square seen obliquely."""
     bound_px = gate_bound_px(settings, side_px)
     if settings.gate and pose.reprojection_error_px > bound_px:
         return Choice(
             None, withheld="gated", reason=f"reprojection RMS {pose.reprojection_error_px:.2f} px > {bound_px:.2f} px"
         )
     alt = pose.alternative
-    max_view = settings.max_view_deg if settings.gate and settings.max_view_deg > 0 else 180.0
+    max_view = settings.max_view_deg if settings.gate and settings.max_view_deg > 0 and not identified else 180.0
     view = view_angle_deg(pose)
     alt_ok = (
         alt is not None
@@ -200,8 +204,8 @@ def choose_solution(
         and view_angle_deg(alt) <= max_view
     )
     if view > max_view and not alt_ok:
-        # Long rectangles pass for squares seen very obliquely (measured on clutter: 58-71 deg);
-        # a real marker that oblique is rarely found and its pose is poor anyway.
+        # Long rectangles pass for squares seen very obliquely (measured on clutter: 58-71 deg):
+        # a plain square's first sighting that oblique cannot be told from one.
         return Choice(None, withheld="gated", reason=f"marker seen {view:.0f} deg off its face (> {max_view:g})")
     # Only the alternative is believable when the pose is seen too far off its face: it is the one.
     swapped = view > max_view

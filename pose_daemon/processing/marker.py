@@ -22,7 +22,7 @@ from ..camera import Camera, Marker
 from ..capture.base import Frame
 from ..config import Config, DetectorConfig, EstimatorConfig
 from ..detect import MarkerDetector
-from ..geometry import VehicleFrames
+from ..geometry import VehicleFrames, angle_between_deg
 from ..pose.continuity import Track, choose_by_continuity
 from ..pose.estimator import estimate_pose
 from ..pose.heading_reference import HeadingReference
@@ -31,6 +31,10 @@ from ..pose.prior import PriorSettings, choose_solution
 from ..pose.prior_noise import MIN_PRIOR_SIGMA_DEG, AttitudeAccuracy, CornerNoise
 from ..pose.types import EstimationError, Pose
 from ..result import FrameResult
+
+#: A tracked plain square is the same square while one of its planar solutions' normals stays
+#: within this of the track's smoothed normal (degrees): far more than a frame's turn at 30 fps.
+TRACK_SAME_SQUARE_DEG = 20.0
 
 
 @contextmanager
@@ -205,6 +209,19 @@ class FrameProcessor:
                 result.pose = self._choose(pose, corners, result)
         return result
 
+    def _identified(self, pose: Pose) -> bool:
+        """Whether the corners are known to be the marker's whatever the view: an ArUco marker's
+        id was decoded; a plain square was followed by the detector's track (not searched
+        afresh) from a pose already sent, and one of its planar solutions turns no more than
+        TRACK_SAME_SQUARE_DEG from the track's normal. Only then is a plain square past
+        ``max_view_deg`` sent (a long rectangle fits a square seen that obliquely)."""
+        if self.marker.type == "aruco":
+            return True
+        if self.track.normal_ref is None or getattr(self.detector, "last_stage", None) not in ("follow", "roi"):
+            return False
+        normals = [pose.R[:, 2]] + ([pose.alternative.R[:, 2]] if pose.alternative is not None else [])
+        return min(angle_between_deg(n, self.track.normal_ref) for n in normals) <= TRACK_SAME_SQUARE_DEG
+
     def _choose(self, pose: Pose, corners: np.ndarray, result: FrameResult) -> Optional[Pose]:
         """The prior's choice between the planar solutions (the track's where the prior has no
         say), or None with ``result.error`` saying why the pose is withheld. The track follows
@@ -225,6 +242,7 @@ class FrameProcessor:
             heading_track=self.heading_track,
             t_capture_s=float(result.t_capture_s),
             attitude_accuracy=self.attitude_accuracy,
+            identified=self._identified(pose),
         )
         result.corner_sigma_px = self.corner_noise.sigma_px
         result.corner_noise_pending = result.corner_sigma_px is None

@@ -2,7 +2,16 @@
 effects, and the trajectories the synthetic source follows."""
 
 from .effects import Effects, make_background
-from .poses import TRAJECTORIES, TRAJECTORY_MOUNTS, Trajectory, TruePose, random_pose, trajectory
+from .poses import (
+    TRAJECTORIES,
+    TRAJECTORY_MOUNTS,
+    Trajectory,
+    TruePose,
+    facing_pose,
+    inside_image,
+    random_pose,
+    trajectory,
+)
 from .scene import (
     RenderedFrame,
     aruco_texture,
@@ -27,6 +36,8 @@ __all__ = [
     "trajectory",
     "Trajectory",
     "random_pose",
+    "facing_pose",
+    "inside_image",
     "TRAJECTORIES",
     "TRAJECTORY_MOUNTS",
 ]

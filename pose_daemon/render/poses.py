@@ -40,6 +40,33 @@ def _R_cam_marker_facing(ray_cam: np.ndarray, tilt_axis_angle: float, tilt_rad: 
     return R_cam_unrot @ R_UNROT_MARKER
 
 
+def facing_pose(
+    camera: Camera,
+    centre_px: Tuple[float, float],
+    distance_m: float,
+    tilt_axis_rad: float,
+    tilt_deg: float,
+    roll_rad: float,
+) -> Tuple[np.ndarray, np.ndarray]:
+    """The pose (rvec, tvec) of a marker centred on the pixel ``centre_px`` at ``distance_m``,
+    its face tilted ``tilt_deg`` away from the line of sight (the view angle) about an in-plane
+    axis at ``tilt_axis_rad``, turned by ``roll_rad`` in its plane."""
+    xn, yn = camera.undistort_normalized(np.array([[float(centre_px[0]), float(centre_px[1])]]))[0]
+    ray = np.array([xn, yn, 1.0])
+    R = _R_cam_marker_facing(ray, tilt_axis_rad, math.radians(tilt_deg), roll_rad)
+    return rvec_from_R(R), ray / np.linalg.norm(ray) * distance_m
+
+
+def inside_image(camera: Camera, marker: Marker, rvec, tvec, margin_px: float = 4.0) -> bool:
+    """Whether the whole marker at (rvec, tvec) is in front of the camera and inside the image,
+    ``margin_px`` from its edges."""
+    pts = marker.object_points @ R_from_rvec(np.asarray(rvec, float)).T + np.asarray(tvec, float)
+    if np.any(pts[:, 2] <= 0.05):
+        return False
+    px = camera.project(pts)
+    return bool(np.all((px >= margin_px) & (px <= [camera.width - 1 - margin_px, camera.height - 1 - margin_px])))
+
+
 def random_pose(
     rng: np.random.Generator,
     camera: Camera,
@@ -48,28 +75,28 @@ def random_pose(
     max_tilt_deg: float = 60.0,
     margin_px: float = 4.0,
     max_tries: int = 1000,
+    min_tilt_deg: float = 0.0,
 ) -> Tuple[np.ndarray, np.ndarray]:
     """A random pose (rvec, tvec) with the whole marker inside the image (``margin_px`` from
     its edges): distance of the marker centre uniform in ``distance_m``, tilt of its face
-    away from the line of sight uniform up to ``max_tilt_deg``, any in-plane rotation."""
+    away from the line of sight (the view angle) uniform in ``min_tilt_deg``..``max_tilt_deg``,
+    any in-plane rotation."""
     for attempt in range(max_tries):
         dist = rng.uniform(*distance_m)
         # Shrink towards the image centre if the marker keeps falling out at this distance.
         spread = 1.0 if attempt < max_tries // 2 else 0.3
         u = camera.cx + spread * rng.uniform(-0.5, 0.5) * camera.width
         v = camera.cy + spread * rng.uniform(-0.5, 0.5) * camera.height
-        xn, yn = camera.undistort_normalized(np.array([[u, v]]))[0]
-        ray = np.array([xn, yn, 1.0])
-        R = _R_cam_marker_facing(
-            ray, rng.uniform(0, 2 * math.pi), math.radians(rng.uniform(0, max_tilt_deg)), rng.uniform(-math.pi, math.pi)
+        rvec, t = facing_pose(
+            camera,
+            (u, v),
+            dist,
+            rng.uniform(0, 2 * math.pi),
+            rng.uniform(min_tilt_deg, max_tilt_deg),
+            rng.uniform(-math.pi, math.pi),
         )
-        t = ray / np.linalg.norm(ray) * dist
-        pts = marker.object_points @ R.T + t
-        if np.any(pts[:, 2] <= 0.05):
-            continue
-        px = camera.project(pts)
-        if np.all((px >= margin_px) & (px <= [camera.width - 1 - margin_px, camera.height - 1 - margin_px])):
-            return rvec_from_R(R), t
+        if inside_image(camera, marker, rvec, t, margin_px):
+            return rvec, t
     raise ValueError(
         f"no pose keeps a {marker.width} x {marker.height} m marker inside the image at "
         f"{distance_m[0]}-{distance_m[1]} m; use a closer distance range"

@@ -7,7 +7,8 @@ tracked marker and for a whole-frame search, with the Pi 2 equivalent (x20).
 
 from .blur import BLUR_SWEEP, run_blur_sweep
 from .clutter import run_clutter
-from .run import print_report, run_bench
+from .run import print_report, run_bench, run_view_bench
+from .viewsweep import run_view_sweep
 from .scenes import CLUTTER_SCENES, clutter_background
 
 __all__ = [
@@ -18,4 +19,6 @@ __all__ = [
     "run_blur_sweep",
     "run_bench",
     "run_clutter",
+    "run_view_bench",
+    "run_view_sweep",
 ]

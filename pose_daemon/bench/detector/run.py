@@ -10,11 +10,16 @@ from .blur import print_sweep, run_blur_sweep
 from .clutter import print_clutter, run_clutter
 from .common import CAMERA, DICTIONARY, MARKER_ID, MARKER_SIZE_M, PI2_FACTOR, fmt
 from .views import run_empty, run_marker_type
+from .viewsweep import print_view_sweep, run_view_sweep
 
 
 def print_report(result: dict) -> None:
-    """The report of ``run_bench`` as the two tables."""
+    """The report of ``run_bench`` as the two tables (of ``run_view_bench``: the sweep's)."""
     cfg = result["setup"]
+    if "view_sweep" in result:
+        print(f"pose-daemon bench detector --sweep view: seed {cfg['seed']}, OpenCV {cfg['opencv']}")
+        print_view_sweep(result["view_sweep"], cfg["frames"])
+        return
     print(
         f"pose-daemon bench detector: {cfg['frames']} frames per marker type, "
         f"{cfg['width']}x{cfg['height']} fx={cfg['fx']:.0f}, {cfg['marker_m']} m marker at 0.5-3 m, "
@@ -137,3 +142,22 @@ def run_bench(frames: int = 300, empty: int = 200, seed: int = 0, repeat: int = 
     result["blur_sweep"] = run_blur_sweep(n_extra, seed, camera)
     setup["clutter_frames"] = setup["sweep_frames"] = n_extra
     return result
+
+
+def run_view_bench(frames: int = 20, seed: int = 0) -> dict:
+    """Only the view-angle sweep (``viewsweep.py``) on ``frames`` poses per bin and background,
+    as many marker-free frames per set: the report as a dict of plain values, JSON-ready."""
+    if frames < 1:
+        raise ValueError(f"frames must be >= 1 (got {frames})")
+    setup = {
+        "frames": frames,
+        "seed": seed,
+        "width": CAMERA.width,
+        "height": CAMERA.height,
+        "fx": CAMERA.fx,
+        "marker_m": MARKER_SIZE_M,
+        "dictionary": DICTIONARY,
+        "id": MARKER_ID,
+        "opencv": cv2.__version__,
+    }
+    return {"setup": setup, "view_sweep": run_view_sweep(frames, seed, CAMERA)}
