@@ -19,8 +19,9 @@ rehearsal rely on is modelled, each as the real simulator does it:
   estimate; EKF_STATUS_REPORT flags 0x33f while vision was fused in the last 0.5 s (0x401:
   attitude and constant position mode otherwise) and pos_horiz_variance the last test ratio's
   square root (ESTIMATOR_STATUS flags and pos_horiz_ratio on PX4).
-- The vehicle controls its estimate, not the truth, to its target (a damped spring, 3 m/s^2 at
-  most, tilting its body by the acceleration it asks for): ArduPilot GUIDED (custom mode 4:
+- The vehicle controls its estimate, not the truth, to its target (a PID on the position, 3 m/s^2
+  at most, tilting its body by the acceleration it asks for) against a steady wind and gusts
+  (``wind_mps2``, ``gust_mps2``: a first-order random process, seeded) while airborne: ArduPilot GUIDED (custom mode 4:
   refused without a position estimate, "Mode change to GUIDED failed: requires position"),
   arming (MAV_CMD_COMPONENT_ARM_DISARM; refused with STATUSTEXT "PreArm: Need Position
   Estimate", or ``prearm_failure``'s text), MAV_CMD_NAV_TAKEOFF (param7 metres above where it
@@ -35,6 +36,7 @@ rehearsal rely on is modelled, each as the real simulator does it:
 from __future__ import annotations
 
 import math
+import random
 import select
 import socket
 import threading
@@ -97,6 +99,9 @@ class FakeSitl:
         gate_m: float = 0.5,
         ekf_gain: float = 0.3,
         prearm_failure: Optional[str] = None,
+        wind_mps2: Tuple[float, float] = (0.05, -0.03),
+        gust_mps2: float = 0.1,
+        seed: int = 0,
     ) -> None:
         from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
@@ -106,6 +111,10 @@ class FakeSitl:
         self.yaw_rad = math.radians(yaw_deg)
         self.gate_m, self.ekf_gain = gate_m, ekf_gain
         self.prearm_failure = prearm_failure
+        self.wind_mps2, self.gust_mps2 = wind_mps2, gust_mps2
+        self._rng = random.Random(seed)
+        self._gust = [0.0, 0.0]
+        self._integral = [0.0, 0.0, 0.0]
         self.autopilot_link = _Link(mavlink2, 1)
         self.gcs_link = _Link(mavlink2, 1)
         self.links = (self.autopilot_link, self.gcs_link)
@@ -183,21 +192,25 @@ class FakeSitl:
         if self.armed and self.mode in ("LAND", "AUTO.LAND") and self.landed_s is None:
             flying = True
         a = [0.0, 0.0, 0.0]
-        if flying and self.est is not None:
-            if self.mode in ("LAND", "AUTO.LAND"):
-                assert self.target is not None
-                for i in range(2):
-                    a[i] = 2.0 * (self.target[i] - self.est[i]) - 2.5 * self.v[i]
-                a[2] = 3.0 * (0.5 - self.v[2])
-            elif self.target is not None:
-                for i in range(3):
-                    a[i] = 2.0 * (self.target[i] - self.est[i]) - 2.5 * self.v[i]
+        disturbance = [0.0, 0.0, 0.0]
+        if flying and self.est is not None and self.target is not None:
+            for i in range(2):
+                self._gust[i] += -self._gust[i] * dt + self.gust_mps2 * math.sqrt(2 * dt) * self._rng.gauss(0, 1)
+                disturbance[i] = self.wind_mps2[i] + self._gust[i]
+            axes = 2 if self.mode in ("LAND", "AUTO.LAND") else 3
+            for i in range(axes):
+                err = self.target[i] - self.est[i]
+                if abs(err) < 0.2:  # no wind-up on a step
+                    self._integral[i] = max(-1.0, min(1.0, self._integral[i] + err * dt))
+                a[i] = 4.0 * err + 1.5 * self._integral[i] - 3.5 * self.v[i]
+            if axes == 2:
+                a[2] = 3.0 * (0.5 - self.v[2])  # descend at 0.5 m/s
             norm = math.sqrt(sum(x * x for x in a))
             if norm > 3.0:
                 a = [x * 3.0 / norm for x in a]
         self.a_cmd = a
         for i in range(3):
-            self.v[i] += a[i] * dt
+            self.v[i] += (a[i] + disturbance[i]) * dt
             self.p[i] += self.v[i] * dt
             if self.est is not None:
                 self.est[i] += self.v[i] * dt  # the IMU between vision fixes
