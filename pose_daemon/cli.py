@@ -29,6 +29,7 @@ COMMANDS = (
     "record",
     "check_config",
     "preflight",
+    "sim",
     "calibrate",
     "marker",
     "plot",

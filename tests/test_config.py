@@ -157,7 +157,7 @@ def test_marker_placement_drives_the_synthetic_trajectory():
         ),
         (
             '[camera]\nsource = "webcam"\n',
-            'config.toml: [camera] source: expected "picamera2", "synthetic", "opencv:N", "video:PATH", '
+            'config.toml: [camera] source: expected "picamera2", "synthetic", "sitl", "opencv:N", "video:PATH", '
             '"replay:PATH" or a GStreamer pipeline ("... ! appsink"), got "webcam"',
         ),
         (
@@ -174,7 +174,7 @@ def test_marker_placement_drives_the_synthetic_trajectory():
         (
             "[cam]\nfx = 1\n",
             "config.toml: [cam]: unknown section (expected one of camera, marker, estimator, detector, "
-            "synthetic, pipeline, mount, attitude, gate, logging, preview, output, map)",
+            "synthetic, pipeline, mount, attitude, gate, logging, preview, sitl, output, map)",
         ),
         (
             "[output.udp]\nport = 1\n",

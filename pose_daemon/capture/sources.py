@@ -16,7 +16,46 @@ from .base import FrameSource
 if TYPE_CHECKING:
     from ..config import CameraConfig, Config
 
-__all__ = ["open_source"]
+__all__ = ["open_source", "sitl_source"]
+
+
+def synthetic_effects(cfg: Config):
+    """The camera effects of the [synthetic] table (blur, noise, motion blur, JPEG), render.Effects."""
+    from ..render import Effects
+
+    syn = cfg.synthetic
+    return Effects(
+        blur_px=syn.blur_px,
+        noise_gray=syn.noise_gray,
+        motion_blur_px=syn.motion_blur_px,
+        jpeg_quality=syn.jpeg_quality,
+    )
+
+
+def sitl_source(cfg: Config, link=None) -> FrameSource:
+    """The ``sitl`` source of ``cfg`` (its [sitl] table, or the defaults without one), on ``link``
+    (a capture.sitl_link.SitlLink shared with a ground station) or on a link of its own."""
+    from ..config import SitlConfig
+    from .sitl import SitlSource
+
+    sitl = cfg.sitl if cfg.sitl is not None else SitlConfig()
+    return SitlSource(
+        cfg.camera.model(),
+        VehicleFrames.from_config(cfg.mount, cfg.placement),
+        marker=cfg.marker.model() if cfg.map is None else None,
+        marker_map=cfg.map.model() if cfg.map is not None else None,
+        fps=cfg.camera.fps,
+        lag_s=sitl.lag_s,
+        effects=synthetic_effects(cfg),
+        seed=cfg.synthetic.seed,
+        link=link,
+        connection=sitl.connection,
+        baud=sitl.baud,
+        source_system=sitl.source_system,
+        source_component=sitl.source_component,
+        marker_below_m=sitl.marker_below_m,
+        truth_timeout_s=sitl.truth_timeout_s,
+    )
 
 
 def open_source(camera: CameraConfig, cfg: Optional[Config] = None, *, realtime: bool = True) -> FrameSource:
@@ -33,18 +72,12 @@ def open_source(camera: CameraConfig, cfg: Optional[Config] = None, *, realtime:
     except ValueError as exc:
         raise SourceError(f"unknown camera source {camera.source!r}: expected {exc}") from None
     if kind == "synthetic":
-        from ..render import Effects
         from .synthetic import SyntheticSource
 
         if cfg is None:
             raise SourceError("the synthetic source needs the whole config (marker, synthetic)")
         syn = cfg.synthetic
-        effects = Effects(
-            blur_px=syn.blur_px,
-            noise_gray=syn.noise_gray,
-            motion_blur_px=syn.motion_blur_px,
-            jpeg_quality=syn.jpeg_quality,
-        )
+        effects = synthetic_effects(cfg)
         marker_map = cfg.map.model() if cfg.map is not None else None
         return SyntheticSource(
             camera.model(),
@@ -61,6 +94,10 @@ def open_source(camera: CameraConfig, cfg: Optional[Config] = None, *, realtime:
             frames_on_vehicle=VehicleFrames.from_config(cfg.mount, cfg.placement),
             marker_map=marker_map,
         )
+    if kind == "sitl":
+        if cfg is None:
+            raise SourceError("the sitl source needs the whole config (mount, marker or map, sitl)")
+        return sitl_source(cfg)
     if kind == "picamera2":
         from .picamera2 import Picamera2Source
 

@@ -35,6 +35,7 @@ from .sections import (
     PipelineConfig,
     PreviewConfig,
     SerialOutputConfig,
+    SitlConfig,
     SyntheticConfig,
 )
 
@@ -56,6 +57,7 @@ __all__ = [
     "LoggingConfig",
     "MapConfig",
     "PreviewConfig",
+    "SitlConfig",
     "ConfigError",
     "DEFAULT_CONFIG_FILE",
     "check_whole",

@@ -13,12 +13,13 @@ from typing import Tuple
 __all__ = ["AUTOPILOTS", "MESSAGES", "SOURCE_FORMS", "SOURCE_KINDS", "parse_connection", "parse_source"]
 
 #: Every kind ``parse_source`` returns.
-SOURCE_KINDS = ("picamera2", "synthetic", "opencv", "video", "replay", "gstreamer")
+SOURCE_KINDS = ("picamera2", "synthetic", "sitl", "opencv", "video", "replay", "gstreamer")
 #: The accepted forms, as the config reference and error messages show them.
 SOURCE_FORMS = (
-    '"picamera2", "synthetic", "opencv:N", "video:PATH", "replay:PATH" or a GStreamer pipeline ("... ! appsink")'
+    '"picamera2", "synthetic", "sitl", "opencv:N", "video:PATH", "replay:PATH" '
+    'or a GStreamer pipeline ("... ! appsink")'
 )
-_WORDS = ("picamera2", "synthetic")
+_WORDS = ("picamera2", "synthetic", "sitl")
 _PREFIXES = ("opencv:", "video:", "replay:")
 
 
@@ -26,8 +27,8 @@ def parse_source(source: str) -> Tuple[str, str]:
     """(kind, arg) of a ``[camera] source`` string; ValueError saying what was expected otherwise.
 
     kind is one of SOURCE_KINDS. arg is what follows ``kind:`` (camera index or device path,
-    video file, recording), the whole pipeline for "gstreamer", "" for "picamera2" and
-    "synthetic". Surrounding white space is ignored. The ValueError's message is the
+    video file, recording), the whole pipeline for "gstreamer", "" for "picamera2",
+    "synthetic" and "sitl". Surrounding white space is ignored. The ValueError's message is the
     expectation alone (e.g. SOURCE_FORMS), for the caller to put in its own sentence.
     """
     s = str(source).strip()

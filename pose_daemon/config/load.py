@@ -36,6 +36,7 @@ from .sections import (
     OutputConfig,
     PipelineConfig,
     PreviewConfig,
+    SitlConfig,
     SyntheticConfig,
 )
 
@@ -76,6 +77,7 @@ class Config:
     logging: LoggingConfig = field(default_factory=LoggingConfig)
     map: Optional[MapConfig] = None
     preview: Optional[PreviewConfig] = None
+    sitl: Optional[SitlConfig] = None
     name: str = "<default config>"
 
     @property
@@ -223,6 +225,7 @@ def check_whole(cfg: Config, *, files: bool = True) -> None:
     - the [output.mavlink] connection is a link ``outputs.mavlink.parse_connection`` accepts;
     - an [attitude] source of its own is a link ``parse_connection`` accepts, and not the
       [output.mavlink] connection (that one is ``source = "mavlink"``);
+    - the ``sitl`` source's marker or map lies on the floor (under the simulated vehicle);
     - with ``files``: a ``video:``/``replay:`` source exists. A missing file will not appear
       later, so it is refused at start rather than reopened for ever like an unplugged camera.
 
@@ -265,6 +268,12 @@ def check_whole(cfg: Config, *, files: bool = True) -> None:
                 f"itself, got its connection {show(cfg.attitude.source)} again (it cannot be opened twice)"
             )
     kind, arg = parse_source(cfg.camera.source)
+    if kind == "sitl" and cfg.placement != "floor":
+        where = "[map]" if cfg.map is not None else "[marker]"
+        raise ConfigError(
+            f'{cfg.name}: {where} placement: expected "floor" for [camera] source = "sitl" (the simulated '
+            f"vehicle starts over its marker), got {show(cfg.placement)}"
+        )
     if files and kind in ("video", "replay") and not Path(arg).exists():
         what = "a video file" if kind == "video" else "a recording, image folder or video"
         raise ConfigError(

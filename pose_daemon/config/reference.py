@@ -43,6 +43,12 @@ _ABOUT: Dict[str, Tuple[str, str]] = {
         "markers.md#marker-maps-many-markers-one-pose",
     ),
     "[preview]": ("The live preview web page; off unless the table is present.", "outputs.md#live-preview-preview"),
+    "[sitl]": (
+        'The simulated camera of `source = "sitl"` (its defaults apply without the table): frames '
+        "rendered from a simulator's true vehicle pose, the marker, map or pad lying under where "
+        "the vehicle stood when the source started, its top edge to the north.",
+        "simulation.md",
+    ),
     "[output.mavlink]": (
         "MAVLink to ArduPilot or PX4; on when the table is present.",
         "outputs.md#mavlink-outputmavlink",

@@ -8,7 +8,7 @@ from typing import Any, Dict, Optional, Tuple
 from ..camera import MARKER_TYPES, Camera, Marker
 from ..geometry import MARKER_PLACEMENTS, MOUNT_PRESETS
 from ..pose.loop import METHODS
-from .forms import AUTOPILOTS, SOURCE_FORMS, parse_source
+from .forms import AUTOPILOTS, SOURCE_FORMS, parse_connection, parse_source
 from .forms import MESSAGES as MAVLINK_MESSAGES
 from .rules import Invalid, Rule, num, setting
 
@@ -382,6 +382,43 @@ class MapConfig:
 
 
 @dataclass(frozen=True)
+class SitlConfig:
+    """The simulated camera of ``[camera] source = "sitl"``: frames rendered from a simulator's truth."""
+
+    connection: str = setting(
+        "tcp:127.0.0.1:5763",
+        Rule("str", nonempty=True),
+        "MAVLink link to the simulator, its own (ArduPilot SITL: tcp:127.0.0.1:5763 = SERIAL2; "
+        "PX4 SITL: udpin:0.0.0.0:14550, its GCS link)",
+    )
+    baud: int = setting(921600, Rule("int", lo=300, hi=20_000_000), "serial links only")
+    source_system: int = setting(
+        255, Rule("int", lo=1, hi=255), "our MAVLink system id on that link (ArduPilot drops its own 1/1)"
+    )
+    source_component: int = setting(190, Rule("int", lo=1, hi=255), "our MAVLink component id (190 = GCS)")
+    lag_s: float = setting(
+        0.0,
+        Rule("float", lo=0, hi=1),
+        "a slow camera: each frame shows the truth this much older than its capture time, seconds",
+    )
+    marker_below_m: float = setting(
+        0.1,
+        Rule("float", lo=0, hi=10),
+        "the marker (map, pad) origin lies this far below the vehicle where it stood when the "
+        "source started: the camera's height over the pad on the ground, metres",
+    )
+    truth_timeout_s: float = setting(
+        2.0, Rule("float", lo=0.1, hi=60), "no truth message for this long = the source failed (reopened)"
+    )
+
+    def check(self) -> None:
+        try:
+            parse_connection(self.connection, self.baud)
+        except ValueError as exc:
+            raise Invalid("connection", str(exc), self.connection) from None
+
+
+@dataclass(frozen=True)
 class PreviewConfig:
     """The live preview web page (pose_daemon.preview); None unless the table is present."""
 
@@ -433,6 +470,7 @@ SECTIONS: Dict[str, type] = {
 # Sections that are None unless present (enabled by their table, like the outputs).
 OPTIONAL_SECTIONS: Dict[str, type] = {
     "preview": PreviewConfig,
+    "sitl": SitlConfig,
 }
 OUTPUTS: Dict[str, type] = {
     "mavlink": MavlinkOutputConfig,

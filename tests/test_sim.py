@@ -1,0 +1,110 @@
+"""pose-daemon sim against the fake simulator (tests/fake_sitl.py): the rehearsal flies, judges
+and reports; a wrong mount or a refused arming fails it with the reason; no simulator is exit 2."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from fake_sitl import FakeSitl
+
+from pose_daemon.cli import main
+
+CONFIG = """
+[camera]
+source = "picamera2"
+width = 320
+height = 240
+fx = 260.0
+fy = 260.0
+cx = 159.5
+cy = 119.5
+fps = 20
+[marker]
+width = 0.2
+placement = "floor"
+[mount]
+preset = "{mount}"
+[synthetic]
+blur_px = 0.6
+noise_gray = 1.0
+[sitl]
+connection = "{gcs}"
+marker_below_m = 0.3
+[output.mavlink]
+connection = "{daemon}"
+[logging]
+level = "WARNING"
+"""
+KEYS = (
+    "autopilot", "armed", "hold_err_rms_m", "hold_err_max_m", "hold_track_rms_m", "ignored_share",
+    "touchdown_err_m", "reasons",
+)  # fmt: skip
+
+
+def _sim(tmp_path, fake: FakeSitl, *extra: str, mount: str = "down"):
+    config = tmp_path / "sim.toml"
+    config.write_text(CONFIG.format(mount=mount, gcs=fake.gcs_connection, daemon=fake.daemon_connection))
+    out = tmp_path / "out"
+    code = main(["sim", "--config", str(config), "--out", str(out), "--hold-s", "3", *extra])
+    return code, json.loads((out / "summary.json").read_text())
+
+
+@pytest.mark.parametrize("kind", ["ardupilot", "px4"])
+def test_a_short_landing_rehearsal_passes_and_reports(tmp_path, capsys, kind):
+    fake = FakeSitl(kind)
+    try:
+        code, summary = _sim(tmp_path, fake, "--fly", "land", "--ekf-wait-s", "20")
+    finally:
+        fake.close()
+    assert code == 0, summary["reasons"]
+    assert set(KEYS) <= set(summary)
+    assert summary["autopilot"] == kind and summary["armed"] is True and summary["reasons"] == []
+    # The EKF follows the daemon's poses of the simulator's truth: mm to cm, never exactly 0.
+    assert 0.0 < summary["hold_err_rms_m"] <= summary["hold_err_max_m"] < 0.05
+    assert 0.0 < summary["hold_track_rms_m"] < 0.1
+    assert summary["ignored_share"] == 0.0
+    assert 0.0 <= summary["touchdown_err_m"] < 0.1
+    assert summary["descent_pose_share"] > 0.9
+    assert fake.tally.modes[-1] in ("LAND", "AUTO.LAND") and fake.tally.fused > 50
+    assert capsys.readouterr().out.strip().endswith("PASSED")
+    assert (tmp_path / "out" / "sim.png").stat().st_size > 0
+
+
+def test_a_wrong_mount_fails_with_the_reason(tmp_path, capsys):
+    fake = FakeSitl("ardupilot")
+    try:
+        code, summary = _sim(tmp_path, fake, "--fly", "land", "--ekf-wait-s", "4", mount="forward")
+    finally:
+        fake.close()
+    assert code == 1
+    assert summary["armed"] is False and summary["touchdown_err_m"] is None
+    assert summary["reasons"][0].startswith(
+        "the EKF did not use the vision feed in 4 s (the daemon found a pose in 0 of"
+    )
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("pose-daemon sim: failed: the EKF did not use the vision feed")
+
+
+def test_an_arming_refusal_is_reported_with_the_autopilots_words(tmp_path):
+    fake = FakeSitl("ardupilot", prearm_failure="PreArm: Compass not calibrated")
+    try:
+        code, summary = _sim(tmp_path, fake, "--fly", "hold", "--ekf-wait-s", "20")
+    finally:
+        fake.close()
+    assert code == 1
+    assert summary["armed"] is False
+    assert summary["reasons"] == ["not armed: PreArm: Compass not calibrated"]
+    assert "PreArm: Compass not calibrated" in summary["statustext"]
+
+
+def test_no_simulator_is_exit_2_with_one_line(tmp_path, capsys, monkeypatch):
+    import pose_daemon.tools.sim as sim
+
+    monkeypatch.setattr(sim, "LINK_TIMEOUT_S", 0.5)
+    config = tmp_path / "sim.toml"
+    config.write_text(CONFIG.format(mount="down", gcs="udpout:127.0.0.1:9", daemon="udpout:127.0.0.1:9"))
+    assert main(["sim", "--config", str(config), "--fly", "land", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert "[sitl] connection udpout:127.0.0.1:9: no autopilot HEARTBEAT in 0.5 s" in err[0]
