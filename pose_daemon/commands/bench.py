@@ -38,7 +38,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=int,
         default=None,
         metavar="N",
-        help="marker frames per marker type (default 300); with --sweep view, poses per bin and background (default 20)",
+        help=(
+            "marker frames per marker type (default 300); with --sweep view, poses per bin and background"
+            " (default 20)"
+        ),
     )
     p["detector"].add_argument(
         "--sweep",
