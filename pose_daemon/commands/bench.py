@@ -39,8 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         metavar="N",
         help=(
-            "marker frames per marker type (default 300); with --sweep view, poses per bin and background"
-            " (default 20)"
+            "marker frames per marker type (default 300); with --sweep view, poses per bin and background (default 20)"
         ),
     )
     p["detector"].add_argument(
