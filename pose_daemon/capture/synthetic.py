@@ -103,7 +103,7 @@ class SyntheticSource:
 
     def _warm_up(self) -> None:
         """Render the first pose once, unseen, before the schedule starts: the renderer's first
-        use costs several frames' time (80-100 ms against 20-40 here), which frame 0 would
+        use costs several frames' time (65-100 ms against 20-40 here), which frame 0 would
         otherwise carry as capture latency, late for the budget with its processing. Its own
         random stream: the frames' noise does not change."""
         truth = self.path.at(0.0)
