@@ -15,7 +15,8 @@ module locks have one) or a ``__del__`` is printed as "Exception ignored in ..."
 the stop is also recorded (``_stop_signum``) and raised again at safe points until the
 process hands over or finishes: at every import (a finder first on ``sys.meta_path``) and at
 each ``check()`` between start-up steps; ``handed_over()`` returns a stop still pending so
-that the service acts on it.
+that the service acts on it. The dropped exception's "Exception ignored in" traceback is
+not printed (``sys.unraisablehook``, while held): the stop it carried is not lost.
 """
 
 from __future__ import annotations
@@ -70,6 +71,16 @@ class _StopAtImport:
 
 
 _FINDER = _StopAtImport()
+_previous_unraisablehook = sys.unraisablehook
+
+
+def _unraisable(args) -> None:
+    """``sys.unraisablehook`` while held: a dropped StartupStop is recorded already and raised
+    again at the next safe point, so Python's "Exception ignored in ..." traceback about it
+    would only alarm; anything else is printed as before."""
+    if isinstance(args.exc_value, StartupStop):
+        return
+    _previous_unraisablehook(args)
 
 
 def _on_status(_signum: int, _frame) -> None:
@@ -80,12 +91,14 @@ def _on_status(_signum: int, _frame) -> None:
 def hold() -> None:
     """From now on a stop signal raises StartupStop and SIGUSR1 is passed over (first thing in
     ``pose-daemon run``)."""
-    global _raising
+    global _raising, _previous_unraisablehook
     for signum in STOP_SIGNALS:
         _previous.setdefault(signum, signal.signal(signum, _on_stop))
     _previous.setdefault(signal.SIGUSR1, signal.signal(signal.SIGUSR1, _on_status))
     if _FINDER not in sys.meta_path:
         sys.meta_path.insert(0, _FINDER)
+    if sys.unraisablehook is not _unraisable:
+        _previous_unraisablehook, sys.unraisablehook = sys.unraisablehook, _unraisable
     _raising = True
 
 
@@ -98,6 +111,8 @@ def handed_over() -> Optional[int]:
     _stop_signum = None
     if _FINDER in sys.meta_path:
         sys.meta_path.remove(_FINDER)
+    if sys.unraisablehook is _unraisable:
+        sys.unraisablehook = _previous_unraisablehook
     return pending
 
 

@@ -105,6 +105,33 @@ def test_synthetic_source_paces_in_real_time_and_ends() -> None:
         source.read()
 
 
+def test_synthetic_source_pays_the_renderers_first_use_before_its_schedule(monkeypatch) -> None:
+    """The renderer's first use is slow (caches, allocations): the source renders once, unseen,
+    in open() before it starts its clock, so frame 0 does not carry that time as capture
+    latency; the frames are the same as without it (the warm-up has its own random stream)."""
+    from pose_daemon.capture import synthetic
+
+    clock = FakeClock()
+    calls = []
+
+    def slow_first(*args, **kwargs):
+        calls.append(clock.t)
+        clock.t += 0.5 if len(calls) == 1 else 0.01
+        return render_marker(*args, **kwargs)
+
+    monkeypatch.setattr(synthetic, "render_marker", slow_first)
+    source = SyntheticSource(CAM, Marker(0.2), fps=20.0, frames=2, clock=clock, sleep=clock.sleep)
+    source.open()
+    assert len(calls) == 1  # the warm-up, before any read
+    frame = source.read()
+    assert clock.t - frame.t_capture_s == pytest.approx(0.01)  # only its own render
+    monkeypatch.undo()
+    plain = SyntheticSource(CAM, Marker(0.2), fps=20.0, frames=2, realtime=False)
+    plain._warm_up = lambda: None  # type: ignore[method-assign]  # as before the warm-up
+    plain.open()
+    assert np.array_equal(plain.read().image, frame.image)
+
+
 def test_synthetic_source_behind_by_more_than_a_frame_restarts_its_schedule() -> None:
     clock = FakeClock()
     source = SyntheticSource(

@@ -98,7 +98,25 @@ class SyntheticSource:
             self._rng, self.camera.width, self.camera.height, self.effects.background, self.effects.plain_gray
         )
         self._seq = 0
+        self._warm_up()
         self._t0 = self._clock()
+
+    def _warm_up(self) -> None:
+        """Render the first pose once, unseen, before the schedule starts: the renderer's first
+        use costs several frames' time (65-100 ms against 20-40 here), which frame 0 would
+        otherwise carry as capture latency, late for the budget with its processing. Its own
+        random stream: the frames' noise does not change."""
+        truth = self.path.at(0.0)
+        render = render_map if self.marker_map is not None else render_marker
+        render(
+            self.camera,
+            self.marker_map if self.marker_map is not None else self.marker,
+            truth.rvec,
+            truth.tvec,
+            effects=self.effects,
+            rng=np.random.default_rng([self.seed, 2]),
+            background=self._background,
+        )
 
     def read(self) -> Frame:
         if self._rng is None:
