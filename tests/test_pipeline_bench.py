@@ -70,3 +70,47 @@ def test_bench_pipeline_measures_the_preview_with_one_viewer(capsys):
     encoded, sent, received = int(m[1]), int(m[2]), int(m[3])
     # 2 s at the default 5 fps: a few frames, each encoded once and received.
     assert 1 <= encoded == sent <= 15 and received >= 1
+
+
+def test_bench_pipeline_runs_a_users_config_and_prints_each_stage(tmp_path, capsys):
+    from pathlib import Path
+
+    # The shipped Pi config at 320x240: its camera, marker and outputs are what the bench runs.
+    text = (Path(__file__).resolve().parents[1] / "config" / "pose-daemon.toml").read_text()
+    for old, new in (("width = 640", "width = 320"), ("height = 480", "height = 240"), ("319.5", "159.5")):
+        text = text.replace(old, new)
+    config = tmp_path / "pi.toml"
+    config.write_text(text.replace("cy = 239.5", "cy = 119.5"))
+    assert main(["bench", "pipeline", "--config", str(config), "--frames", "45", "--distinct", "3"]) == 0
+    captured = capsys.readouterr()
+    out = captured.out
+    # The config's camera, rate, marker and outputs: 320x240 ArUco id 0 at its 30 fps, MAVLink only.
+    assert "320x240 frames of the aruco 0.15 m DICT_4X4_50 id 0 marker (floor trajectory" in out
+    assert re.search(r"frames: 45 captured, \d+ processed, [1-9]\d* with a pose", out), out
+    assert "  mavlink " in out and "  jsonl " not in out
+    head = re.search(r"per stage on this machine \((.+)\), 320x240 at 30 fps", out)
+    assert head, out
+    rows = {m[1]: m for m in re.finditer(r"^  (\w+(?: CPU)?) +([\d.]+) +([\d.]+) +([\d.]+) +(\d+)", out, re.M)}
+    assert {"detect", "estimate", "output", "total", "process CPU"} <= set(rows), out
+    for m in rows.values():
+        assert float(m[2]) <= float(m[3]) <= float(m[4]) and int(m[5]) >= 1
+
+
+def test_a_raspberry_pi_reports_its_own_figures_not_the_estimate():
+    import numpy as np
+
+    from pose_daemon.bench.pipeline import stage_lines
+
+    report = {"size": (320, 240), "fps": 30.0, "stages_s": {"detect": np.array([0.020, 0.030, 0.025])}}
+    on_pi = stage_lines(report, "Raspberry Pi 2 Model B Rev 1.1", True)
+    assert "Pi 2 estimate" not in "\n".join(on_pi) and on_pi[-1].startswith("measured on Raspberry Pi 2")
+    off_pi = stage_lines(report, "x86_64, 2 cores", False)
+    assert "Pi 2 estimate (x20)" in off_pi[1]
+    assert off_pi[2].split()[-2:] == ["500.0", "598.0"]  # 25 ms median, 29.9 ms p99, x20
+
+
+def test_bench_pipeline_refuses_a_map_config(tmp_path, capsys):
+    path = tmp_path / "map.toml"
+    path.write_text('[map]\ndictionary = "DICT_4X4_50"\n[[map.markers]]\nid = 0\nsize = 0.2\nposition = [0, 0, 0]\n')
+    assert main(["bench", "pipeline", "--config", str(path), "--frames", "5"]) == 2
+    assert "a [map] config" in capsys.readouterr().err
