@@ -38,13 +38,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=int,
         default=None,
         metavar="N",
-        help="marker frames per marker type (default 300); with --sweep view, poses per bin and background (default 20)",
+        help="marker frames per marker type (default 300); --sweep view: poses per bin and background (default 20)",
     )
     p["detector"].add_argument(
         "--sweep",
-        choices=("view",),
+        choices=("view", "size"),
         default=None,
-        help="view: only the view-angle sweep (0-80 deg off the face, beside OpenCV ArUco + IPPE)",
+        help="view: only the view-angle sweep (0-80 deg off the face, beside OpenCV ArUco + IPPE); "
+        "size: only a tracked frame's cost by marker size",
     )
     p["detector"].add_argument(
         "--empty", type=int, default=200, metavar="N", help="marker-free frames for false detections (default 200)"
@@ -115,12 +116,12 @@ def run(a: argparse.Namespace) -> int:
         _check(a.timing_n >= 1, f"--timing-n must be positive, got {a.timing_n}")
         report = bench.run_bench(a.n, min(a.timing_n, a.n), a.seed, progress=not a.json)
     elif a.bench == "detector":
-        frames = a.frames if a.frames is not None else (20 if a.sweep == "view" else 300)
+        frames = a.frames if a.frames is not None else {"view": 20, "size": 10}.get(a.sweep, 300)
         _check(frames >= 1, f"--frames must be at least 1, got {frames}")
         _check(a.repeat >= 1, f"--repeat must be at least 1, got {a.repeat}")
         _check(a.empty >= 0, f"--empty must be 0 or more, got {a.empty}")
-        if a.sweep == "view":
-            report = bench.run_view_bench(frames, a.seed)
+        if a.sweep is not None:
+            report = bench.run_sweep_bench(a.sweep, frames, a.seed, a.repeat)
         else:
             report = bench.run_bench(frames, a.empty, a.seed, a.repeat)
     elif a.bench == "pipeline":
