@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from pose_daemon.bench.detector import BLUR_SWEEP, CLUTTER_SCENES
+from pose_daemon.bench.detector import BLUR_SWEEP, CLUTTER_SCENES, print_report
 from pose_daemon.cli import main
 from pose_daemon.detect.square import FULL_PASS_EVERY
 
@@ -75,3 +75,34 @@ def test_bench_argument_errors_exit_2(args, message: str, capsys) -> None:
     assert main(["bench", "detector", *args]) == 2
     err = capsys.readouterr().err
     assert err.strip() == f"pose-daemon: error: {message}"
+
+
+def test_the_view_sweep_sends_oblique_aruco_markers_as_often_as_opencv_and_no_false_pose(capsys) -> None:
+    assert main(["bench", "detector", "--sweep", "view", "--frames", "1", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    result = report["view_sweep"]
+    rows = {(r["marker"], r["detector"], r["background"], r["view_deg"]): r for r in result["rows"]}
+    assert {lo for (_, _, _, lo) in rows} == set(range(0, 80, 10))
+    for lo in (60, 70):
+        ours, anchor = rows[("aruco", "search", "both", lo)], rows[("aruco", "anchor", "both", lo)]
+        assert ours["frames"] == anchor["frames"] == 2
+        assert ours["sent_rate"] >= anchor["sent_rate"] and ours["wrong"] == 0
+    # A plain square's first sighting past 55 deg is withheld, a tracked one is not.
+    assert rows[("square", "search", "both", 70)]["sent_rate"] == 0.0
+    assert rows[("square", "tracked", "both", 60)]["sent_rate"] == 1.0
+    assert all(f["square_sent"] == f["aruco_sent"] == 0 for f in result["false_poses"])
+    print_report(report)
+    assert "square, tracked" in capsys.readouterr().out
+
+
+def test_the_size_sweep_follows_a_tracked_marker_from_33_to_330_px(capsys) -> None:
+    assert main(["bench", "detector", "--sweep", "size", "--frames", "1", "--repeat", "1", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    rows = report["size_cost"]
+    assert len(rows) == 2 * 2 * 5
+    sharp = [r for r in rows if r["blur_px"] == 0.8]
+    assert all(r["frames"] == r["followed"] == 1 and r["time_median_ms"] > 0 for r in sharp)
+    sides = [r["side_px"] for r in sharp[:5]]
+    assert sides == sorted(sides) and sides[0] < 40 and sides[-1] > 280
+    print_report(report)
+    assert "by marker size" in capsys.readouterr().out

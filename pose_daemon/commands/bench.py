@@ -38,15 +38,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=int,
         default=None,
         metavar="N",
-        help=(
-            "marker frames per marker type (default 300); with --sweep view, poses per bin and background (default 20)"
-        ),
+        help="marker frames per marker type (default 300); --sweep view: poses per bin and background (default 20)",
     )
     p["detector"].add_argument(
         "--sweep",
-        choices=("view",),
+        choices=("view", "size"),
         default=None,
-        help="view: only the view-angle sweep (0-80 deg off the face, beside OpenCV ArUco + IPPE)",
+        help="view: only the view-angle sweep (0-80 deg off the face, beside OpenCV ArUco + IPPE); "
+        "size: only a tracked frame's cost by marker size",
     )
     p["detector"].add_argument(
         "--empty", type=int, default=200, metavar="N", help="marker-free frames for false detections (default 200)"
@@ -74,17 +73,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--frames", type=int, default=3000, help="frames to run (default 3000; 20000 for the memory figure)"
     )
     p["pipeline"].add_argument(
-        "--fps",
-        type=float,
-        default=None,
-        help="rate at which the source hands out frames (default 100; with --config the camera's fps)",
-    )
-    p["pipeline"].add_argument(
-        "--config",
-        metavar="FILE",
-        default=None,
-        help="run this config's camera size and rate, marker, detector and estimator (its outputs are "
-        "replaced by a local UDP sink and /dev/null): the per-stage figures of your set-up, on your Pi",
+        "--fps", type=float, default=100.0, help="rate at which the source hands out frames (default 100)"
     )
     p["pipeline"].add_argument("--distinct", type=int, default=48, help="distinct rendered frames, cycled (default 48)")
     p["pipeline"].add_argument("--seed", type=int, default=0, help="trajectory and noise seed")
@@ -127,24 +116,17 @@ def run(a: argparse.Namespace) -> int:
         _check(a.timing_n >= 1, f"--timing-n must be positive, got {a.timing_n}")
         report = bench.run_bench(a.n, min(a.timing_n, a.n), a.seed, progress=not a.json)
     elif a.bench == "detector":
-        frames = a.frames if a.frames is not None else (20 if a.sweep == "view" else 300)
+        frames = a.frames if a.frames is not None else {"view": 20, "size": 10}.get(a.sweep, 300)
         _check(frames >= 1, f"--frames must be at least 1, got {frames}")
         _check(a.repeat >= 1, f"--repeat must be at least 1, got {a.repeat}")
         _check(a.empty >= 0, f"--empty must be 0 or more, got {a.empty}")
-        if a.sweep == "view":
-            report = bench.run_view_bench(frames, a.seed)
+        if a.sweep is not None:
+            report = bench.run_sweep_bench(a.sweep, frames, a.seed, a.repeat)
         else:
             report = bench.run_bench(frames, a.empty, a.seed, a.repeat)
     elif a.bench == "pipeline":
-        user = None
-        if a.config is not None:
-            from ..config import load_config
-
-            user = load_config(a.config)
-            _check(user.map is None, f"--config {a.config}: a [map] config; bench pipeline renders one [marker]")
-        fps = a.fps if a.fps is not None else (user.camera.fps if user is not None else 100.0)
-        _check(a.frames >= 1 and fps > 0 and a.distinct >= 1, "--frames and --distinct must be >= 1 and --fps > 0")
-        report = bench.run_bench(a.frames, fps, a.distinct, a.seed, preview=a.preview, config=user)
+        _check(a.frames >= 1 and a.fps > 0 and a.distinct >= 1, "--frames and --distinct must be >= 1 and --fps > 0")
+        report = bench.run_bench(a.frames, a.fps, a.distinct, a.seed, preview=a.preview)
     elif a.bench == "map":
         _check(
             a.frames >= 2 and a.descent_frames >= 2 and a.repeat >= 1,

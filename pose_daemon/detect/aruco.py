@@ -14,7 +14,7 @@ import numpy as np
 from ..camera import Marker
 from . import aruco_compat, blur_model
 from .edge_profiles import EdgeFit, signed_area
-from .quads import Roi, inside_any
+from .quads import MIN_COMPACTNESS_CODED, Roi, inside_any
 from .refine import SEARCH_CONVERGED_PX, SEARCH_ITERATIONS
 from .square import (
     MAX_REACH_PX,
@@ -23,6 +23,8 @@ from .square import (
     OutlineFinder,
     SquareOptions,
     clamp,
+    corner_reach,
+    least_width,
     median_of,
     medians_of_rows,
     sample_canonical,
@@ -141,6 +143,8 @@ class ArucoFinder(OutlineFinder):
     """Finds the configured dictionary + id; corners come out as TL, TR, BR, BL."""
 
     oriented = True
+    # The code is read before any edge fit: thin outlines (oblique views) cost little.
+    min_compactness = MIN_COMPACTNESS_CODED
 
     def __init__(self, marker: Marker, options: SquareOptions, camera=None) -> None:
         super().__init__(marker, options, camera)
@@ -175,7 +179,9 @@ class ArucoFinder(OutlineFinder):
         self._expected_inner = self._expected_white[self._grid.inner]
 
     def reach_px(self, corners: np.ndarray):
-        side = min(side_lengths(corners).tolist())
+        # Across the border, not along it: a thin rhombus (seen obliquely along a diagonal)
+        # has a border far thinner than its sides are long.
+        side = least_width(corners)
         cell = side / (self.n_bits + 2)
         # Inside, stay within the one-cell black border; outside, within the quiet zone.
         return clamp(0.6 * cell, 1.0, 3.0), clamp(0.15 * side, 1.5, MAX_REACH_PX)
@@ -265,7 +271,11 @@ class ArucoFinder(OutlineFinder):
     def _fit_quad(self, gray: np.ndarray, quad: np.ndarray, scale: int) -> Optional[Candidate]:
         """An outline that passed ``could_be`` -> the marker (edges fitted, labelled) or None."""
         fit = self.refine(
-            gray, quad, iterations=SEARCH_ITERATIONS, max_move_px=1.5 * scale + 1.0, converged_px=SEARCH_CONVERGED_PX
+            gray,
+            quad,
+            iterations=SEARCH_ITERATIONS,
+            max_move_px=(1.5 * scale + 1.0) * corner_reach(quad),
+            converged_px=SEARCH_CONVERGED_PX,
         )
         if fit is None:
             return None

@@ -15,6 +15,10 @@ import numpy as np
 #: Least compactness (4 pi area / perimeter^2 of the contour) of a candidate outline; a
 #: convex quadrilateral with sides in ratio up to 6:1 is above it.
 MIN_COMPACTNESS = 0.3
+#: ... for a marker whose code is read before any edge fit (ArUco): a square seen 80 deg off
+#: its face along a diagonal is a thin rhombus of compactness pi cos / (2 (1 + cos^2)) = 0.26,
+#: its thresholded outline thinner still.
+MIN_COMPACTNESS_CODED = 0.15
 
 #: (x0, y0, x1, y1) pixel bounds, x1/y1 exclusive.
 Roi = Tuple[int, int, int, int]
@@ -37,6 +41,7 @@ def find_quads(
     max_candidates: int = 64,
     downscale: int = 1,
     traced: Optional[tuple] = None,
+    min_compactness: float = MIN_COMPACTNESS,
 ) -> List[np.ndarray]:
     """Dark convex quadrilaterals in ``gray`` (within ``roi``), largest first.
 
@@ -46,7 +51,8 @@ def find_quads(
     the local mean a pixel must be to count as dark (well above sensor noise).
     ``downscale`` 2 thresholds a half-size image (4x fewer pixels; for large search areas).
     ``traced``: what ``trace_dark_regions`` gave for these same arguments (computed on
-    another thread), else it is computed here.
+    another thread), else it is computed here. ``min_compactness``: the least 4 pi area /
+    perimeter^2 of an outline (``MIN_COMPACTNESS``).
     """
     if traced is None:
         traced = trace_dark_regions(gray, block_px=block_px, offset_gray=offset_gray, roi=roi, downscale=downscale)
@@ -59,7 +65,7 @@ def find_quads(
     min_perimeter = 4.0 * min_side_px
     min_area = min_side_px * min_side_px * 0.5
     quads: List[Tuple[float, np.ndarray]] = []
-    perimeters = _outer_perimeters(contours, hierarchy, min_area)
+    perimeters = _outer_perimeters(contours, hierarchy, min_area, min_compactness)
     # Plain floats per polygon: a handful of points, where numpy's call overhead dominates.
     for index in np.flatnonzero(perimeters >= min_perimeter).tolist():
         contour, perimeter = contours[index], float(perimeters[index])
@@ -116,7 +122,9 @@ def trace_dark_regions(
     return contours, None if hierarchy is None else hierarchy[0]
 
 
-def _outer_perimeters(contours, hierarchy: np.ndarray, min_area: float) -> np.ndarray:
+def _outer_perimeters(
+    contours, hierarchy: np.ndarray, min_area: float, min_compactness: float = MIN_COMPACTNESS
+) -> np.ndarray:
     """Perimeter (pixels, closed) of every contour that can hold a quadrilateral, else 0:
     outer boundaries only (a hole's outline is the inside of a dark ring) with at least 4
     points and an enclosed area of at least half ``min_area``. All contours at once: in
@@ -141,7 +149,7 @@ def _outer_perimeters(contours, hierarchy: np.ndarray, min_area: float) -> np.nd
     area = 0.5 * np.abs(np.add.reduceat(pts[:, 0] * dy - dx * pts[:, 1], starts))
     # Compactness 4 pi area / perimeter^2: 0.79 for a square, 0.59 for a 3:1 rectangle, a
     # 60-degree tilt halving one side 0.70; strokes of print and thin texture far below.
-    compact = 4.0 * np.pi * area >= MIN_COMPACTNESS * np.maximum(perimeter, 1e-9) ** 2
+    compact = 4.0 * np.pi * area >= min_compactness * np.maximum(perimeter, 1e-9) ** 2
     keep = (area >= 0.5 * min_area) & compact
     out[chosen[keep]] = perimeter[keep]
     return out

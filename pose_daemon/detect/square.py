@@ -17,7 +17,7 @@ import numpy as np
 
 from ..camera import Marker
 from .edge_profiles import EdgeFit
-from .quads import Roi, find_quads, inside_any, odd, trace_dark_regions
+from .quads import MIN_COMPACTNESS, Roi, find_quads, inside_any, odd, trace_dark_regions
 from .refine import SEARCH_CONVERGED_PX, SEARCH_ITERATIONS, fit_edges
 from .response import Response, decode_lut
 
@@ -62,6 +62,37 @@ def side_lengths(corners: np.ndarray) -> np.ndarray:
             math.hypot(x0 - x3, y0 - y3),
         ]
     )
+
+
+def least_width(corners: np.ndarray) -> float:
+    """The outline's least extent across a side, pixels: the shortest side, or, for a quad
+    sheared thin (a square seen obliquely along a diagonal is a thin rhombus), its area over
+    the mean length of two opposite sides where that is less (a parallelogram's height)."""
+    sides = side_lengths(corners)
+    (x0, y0), (x1, y1), (x2, y2), (x3, y3) = np.asarray(corners, dtype=np.float64).tolist()
+    area = 0.5 * abs((x2 - x0) * (y3 - y1) - (x3 - x1) * (y2 - y0))
+    heights = (area / max(0.5 * (sides[0] + sides[2]), 1e-9), area / max(0.5 * (sides[1] + sides[3]), 1e-9))
+    return min(float(sides.min()), *heights)
+
+
+#: A tracked plain square is followed until it looks as long as a square seen this far off
+#: its face (W:H 1 / cos = 5.8), beyond ``max_aspect_ratio_error``'s 3 (70 deg).
+TRACKED_VIEW_DEG = 80.0
+
+#: ``corner_reach``'s cap: corners sharper than 29 deg move no further than this many times.
+MAX_CORNER_REACH = 4.0
+
+
+def corner_reach(corners: np.ndarray) -> float:
+    """How much further a corner moves than the sides through it: 1 / sin(half the outline's
+    sharpest angle), at most MAX_CORNER_REACH. A thin rhombus's sharp tips (a square seen
+    obliquely along a diagonal) are rounded off by blur and the threshold, and the edge fits
+    put them back several pixels further out than a side moves."""
+    c = np.asarray(corners, dtype=np.float64)
+    a, b = np.roll(c, 1, axis=0) - c, np.roll(c, -1, axis=0) - c
+    cos = np.sum(a * b, axis=1) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-12)
+    sharpest = math.acos(min(max(float(cos.max()), -1.0), 1.0))
+    return min(1.0 / max(math.sin(0.5 * sharpest), 1e-9), MAX_CORNER_REACH)
 
 
 # Canonical marker square [0, 1]^2, corners in image-clockwise order from its top-left.
@@ -242,6 +273,8 @@ class OutlineFinder:
     #: The dark border's width as a fraction of a side when light cells lie behind it (an
     #: ArUco marker's code), None for a solid dark shape: the edge fits then model them.
     border_fraction: Optional[float] = None
+    #: The least compactness of a rough outline searched (quads.MIN_COMPACTNESS).
+    min_compactness: float = MIN_COMPACTNESS
 
     def __init__(self, marker: Marker, options: SquareOptions, camera=None) -> None:
         self.marker = marker
@@ -348,6 +381,7 @@ class OutlineFinder:
             roi=roi,
             downscale=stage[1],
             traced=traced,
+            min_compactness=self.min_compactness,
         )
 
     def process(
@@ -444,9 +478,14 @@ class OutlineFinder:
             reach=(inner, outer),
             check_blur=False,
         )
-        if fit is None or not self.verify(gray, fit):
+        if fit is None or not self.verify_tracked(gray, fit):
             return None
         return Candidate(fit.corners, self.oriented, fit)
+
+    def verify_tracked(self, gray: np.ndarray, fit: EdgeFit) -> bool:
+        """``verify`` for an outline followed from the last frame's (the track vouches for
+        its shape changing smoothly)."""
+        return self.verify(gray, fit)
 
 
 class SquareFinder(OutlineFinder):
@@ -456,20 +495,29 @@ class SquareFinder(OutlineFinder):
 
     def reach_px(self, corners: np.ndarray):
         """(inside, outside) reach of the edge profiles for an outline of this size."""
-        side = min(side_lengths(corners).tolist())
+        side = least_width(corners)
         return clamp(0.2 * side, 1.5, 3.0), clamp(0.15 * side, 1.5, MAX_REACH_PX)
 
-    def shape_ok(self, corners: np.ndarray) -> bool:
+    def shape_ok(self, corners: np.ndarray, max_aspect_ratio_error: Optional[float] = None) -> bool:
         if side_lengths(corners).min() < self.options.min_side_px:
             return False
-        return aspect_error(corners, self.marker) <= np.log(self.options.max_aspect_ratio_error)
+        limit = self.options.max_aspect_ratio_error if max_aspect_ratio_error is None else max_aspect_ratio_error
+        return aspect_error(corners, self.marker) <= np.log(limit)
 
-    def verify(self, gray: np.ndarray, fit: EdgeFit) -> bool:
-        """Is this outline the marker? Straight sides, dark uniform inside, light ring outside."""
+    def verify_tracked(self, gray: np.ndarray, fit: EdgeFit) -> bool:
+        """A followed square may look as long as one seen TRACKED_VIEW_DEG off its face: its
+        first sighting was a square (the view gate stands for that), and the track is what
+        follows it further (processing: ``_identified``)."""
+        limit = max(self.options.max_aspect_ratio_error, 1.0 / math.cos(math.radians(TRACKED_VIEW_DEG)))
+        return self.verify(gray, fit, limit)
+
+    def verify(self, gray: np.ndarray, fit: EdgeFit, max_aspect_ratio_error: Optional[float] = None) -> bool:
+        """Is this outline the marker? Straight sides, dark uniform inside, light ring outside
+        (its W:H within ``max_aspect_ratio_error`` of the marker's, default the options')."""
         o = self.options
         if fit.residual_px > o.max_edge_residual_px or fit.valid_fraction < 0.6:
             return False
-        if fit.contrast < o.min_contrast or not self.shape_ok(fit.corners):
+        if fit.contrast < o.min_contrast or not self.shape_ok(fit.corners, max_aspect_ratio_error):
             return False
         # The ring sits ring_px outside each side (but within a fifth of the side's length).
         s0, s1, s2, s3 = side_lengths(fit.corners).tolist()

@@ -7,7 +7,7 @@ tracked marker and for a whole-frame search, with the Pi 2 equivalent (x20).
 
 from .blur import BLUR_SWEEP, run_blur_sweep
 from .clutter import run_clutter
-from .run import print_report, run_bench, run_view_bench
+from .run import print_report, run_bench, run_sweep_bench
 from .scenes import CLUTTER_SCENES, clutter_background
 from .viewsweep import run_view_sweep
 
@@ -19,6 +19,6 @@ __all__ = [
     "run_blur_sweep",
     "run_bench",
     "run_clutter",
-    "run_view_bench",
+    "run_sweep_bench",
     "run_view_sweep",
 ]

@@ -9,6 +9,7 @@ import cv2
 from .blur import print_sweep, run_blur_sweep
 from .clutter import print_clutter, run_clutter
 from .common import CAMERA, DICTIONARY, MARKER_ID, MARKER_SIZE_M, PI2_FACTOR, fmt
+from .sizecost import print_size_cost, run_size_cost
 from .views import run_empty, run_marker_type
 from .viewsweep import print_view_sweep, run_view_sweep
 
@@ -16,9 +17,12 @@ from .viewsweep import print_view_sweep, run_view_sweep
 def print_report(result: dict) -> None:
     """The report of ``run_bench`` as the two tables (of ``run_view_bench``: the sweep's)."""
     cfg = result["setup"]
-    if "view_sweep" in result:
-        print(f"pose-daemon bench detector --sweep view: seed {cfg['seed']}, OpenCV {cfg['opencv']}")
-        print_view_sweep(result["view_sweep"], cfg["frames"])
+    if "view_sweep" in result or "size_cost" in result:
+        print(f"pose-daemon bench detector --sweep {cfg['sweep']}: seed {cfg['seed']}, OpenCV {cfg['opencv']}")
+        if "view_sweep" in result:
+            print_view_sweep(result["view_sweep"], cfg["frames"])
+        else:
+            print_size_cost(result["size_cost"])
         return
     print(
         f"pose-daemon bench detector: {cfg['frames']} frames per marker type, "
@@ -144,12 +148,14 @@ def run_bench(frames: int = 300, empty: int = 200, seed: int = 0, repeat: int = 
     return result
 
 
-def run_view_bench(frames: int = 20, seed: int = 0) -> dict:
-    """Only the view-angle sweep (``viewsweep.py``) on ``frames`` poses per bin and background,
-    as many marker-free frames per set: the report as a dict of plain values, JSON-ready."""
-    if frames < 1:
-        raise ValueError(f"frames must be >= 1 (got {frames})")
+def run_sweep_bench(sweep: str, frames: int = 20, seed: int = 0, repeat: int = 3) -> dict:
+    """Only one sweep: "view" (``viewsweep.py``, ``frames`` poses per bin and background, as
+    many marker-free frames per set) or "size" (``sizecost.py``, ``frames`` poses per row,
+    each timed ``repeat`` times): the report as a dict of plain values, JSON-ready."""
+    if frames < 1 or repeat < 1 or sweep not in ("view", "size"):
+        raise ValueError(f"sweep must be view or size, frames and repeat >= 1 (got {sweep}, {frames}, {repeat})")
     setup = {
+        "sweep": sweep,
         "frames": frames,
         "seed": seed,
         "width": CAMERA.width,
@@ -160,4 +166,6 @@ def run_view_bench(frames: int = 20, seed: int = 0) -> dict:
         "id": MARKER_ID,
         "opencv": cv2.__version__,
     }
-    return {"setup": setup, "view_sweep": run_view_sweep(frames, seed, CAMERA)}
+    if sweep == "view":
+        return {"setup": setup, "view_sweep": run_view_sweep(frames, seed, CAMERA)}
+    return {"setup": setup, "size_cost": run_size_cost(frames, seed, CAMERA, repeat)}
