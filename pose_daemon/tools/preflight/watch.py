@@ -34,6 +34,7 @@ from .findings import (
     param_value,
     param_wire,
 )
+from .landing import check_landing, landing_params, merge
 from .px4 import PX4_PARAMS, check_px4
 
 # EKF_STATUS_REPORT (ardupilotmega.xml, id 193) is not in the common dialect the link decodes:
@@ -141,7 +142,8 @@ def run_preflight(
         with watcher.lock:
             obs.system, obs.autopilot = out.autopilot_system, out.autopilot_kind
             obs.component = out.stats()["autopilot_component"]
-        names = PX4_PARAMS if obs.autopilot == "px4" else ARDUPILOT_PARAMS
+        names = list(PX4_PARAMS if obs.autopilot == "px4" else ARDUPILOT_PARAMS)
+        names += landing_params(cfg, obs.autopilot)
         _request_params(out, obs.system, obs.component, names)
         try:
             source = open_source(cfg.camera, cfg)
@@ -183,6 +185,7 @@ def run_preflight(
                 findings = check_px4(cfg, obs, link_kind)
             else:
                 findings = check_ardupilot(cfg, obs, link_kind)
+            findings = merge(findings, check_landing(cfg, obs))
         findings.insert(0, Finding("OK", f"autopilot {obs.autopilot} (system {obs.system}) on {m.connection}"))
         for f in findings:
             emit(f.line())
