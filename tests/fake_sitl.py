@@ -54,6 +54,7 @@ class SitlTally:
     ignored: int = 0
     arm_refusals: List[str] = field(default_factory=list)
     truth_sent: int = 0
+    truth_log: List[Tuple[float, List[float]]] = field(default_factory=list)  # (sent at, true NED)
     truth_requests_dropped: int = 0  # SET_MESSAGE_INTERVAL for the truth from 1/1
     modes: List[str] = field(default_factory=list)
 
@@ -274,6 +275,7 @@ class FakeSitl:
                     *self.v, int(round(lat * 1e7)), int(round(lon * 1e7)),
                 )  # fmt: skip
                 self.tally.truth_sent += 1
+                self.tally.truth_log.append((now, list(self.p)))
             if link.due(115, now) and self.kind == "px4":
                 lat = lat0 + self.p[0] / SCALE_M * 1e-7
                 lon = lon0 + self.p[1] / (SCALE_M * math.cos(math.radians(lat0))) * 1e-7
@@ -283,6 +285,7 @@ class FakeSitl:
                     *(int(round(x * 100)) for x in self.v), 0, 0, 0, 0, -1000,
                 )  # fmt: skip
                 self.tally.truth_sent += 1
+                self.tally.truth_log.append((now, list(self.p)))
             if link.due(30, now):
                 link.mav.attitude_send(boot_ms, *self._rpy(), 0.0, 0.0, 0.0)
             if link.due(32, now) and self.est is not None:

@@ -151,3 +151,31 @@ def test_config_refuses_a_wall_marker_and_a_bad_connection():
         parse_config('[camera]\nsource = "sitl"\n', "a.toml")
     with pytest.raises(ConfigError, match=r"a.toml: \[sitl\] connection: expected"):
         parse_config('[camera]\nsource = "sitl"\n[marker]\nplacement = "floor"\n[sitl]\nconnection = "x"\n', "a.toml")
+
+
+@pytest.mark.parametrize("kind", ["ardupilot", "px4"])
+def test_the_truth_is_finer_than_the_simulators_1e7_degree_steps(kind):
+    fake = FakeSitl(kind)
+    link = SitlLink(fake.gcs_connection, marker_below_m=0.0, truth_rate_hz=50.0)
+    link.open()
+    try:
+        assert link.truth_after(-1e18, 0.0, 3.0) is not None
+        with fake._lock:  # drifting slowly in the air: 1e-7 degree steps every few frames
+            fake.p[2] = -1.0
+            fake.v[0], fake.v[1] = 0.006, -0.005  # PX4's cm/s velocity reads 1 and 0 cm/s
+        time.sleep(6.0)
+        samples = list(link.truth)
+    finally:
+        link.close()
+        fake.close()
+    log = fake.tally.truth_log
+    errors, raw = [], []
+    for sample in [s for s in samples if s.t_s > samples[-1].t_s - 1.5]:
+        sent = [p for t, p in log if t <= sample.t_s]
+        p = np.array(sent[-1][:2])
+        errors.append(np.abs(sample.p_local_m[:2] - (p - np.array(log[0][1][:2]))).max())
+    for _t, p in log[-60:]:
+        lat_steps = np.round(np.array(p[:2]) / 0.011131884502145034)
+        raw.append(np.abs(lat_steps * 0.011131884502145034 - np.array(p[:2]))[0])
+    assert max(raw) > 0.003  # what the steps alone would be off by
+    assert max(errors) < 0.0015, max(errors)

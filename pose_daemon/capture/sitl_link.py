@@ -6,12 +6,14 @@ MAV_CMD_SET_MESSAGE_INTERVAL from an id that is not the autopilot's own 1/1, whi
 drops as its own loopback) or PX4's HIL_STATE_QUATERNION (#115, the ground truth SIH publishes).
 Both give latitude, longitude and altitude; the link turns them into local NED metres about
 where the vehicle stood at the first sample (ArduPilot's flat-earth scaling), shifted so that
-the origin is the marker, ``marker_below_m`` under that point.
+the origin is the marker, ``marker_below_m`` under that point. Latitude and longitude come in
+steps of 1e-7 degree (1.1 cm): the position between steps is worked out (``_SteppedAxis``).
 """
 
 from __future__ import annotations
 
 import collections
+import logging
 import math
 import threading
 import time
@@ -23,7 +25,7 @@ import numpy as np
 from ..config.forms import parse_connection
 from ..errors import SourceError
 
-__all__ = ["SitlLink", "TruthSample", "TRUTH_MESSAGES", "LATLON_SCALE_M"]
+__all__ = ["SitlLink", "TruthSample", "TruthFields", "truth_fields", "TRUTH_MESSAGES", "LATLON_SCALE_M"]
 
 #: The truth message each simulator sends, by autopilot kind.
 TRUTH_MESSAGES = {"ardupilot": ("SIM_STATE", 108), "px4": ("HIL_STATE_QUATERNION", 115)}
@@ -34,6 +36,7 @@ _MAV_TYPE_GCS = 6
 _MAV_AUTOPILOT_INVALID = 8
 _AUTOPILOTS = {3: "ardupilot", 12: "px4"}
 _REQUEST_EVERY_S = 1.0
+log = logging.getLogger("pose_daemon.sitl")
 
 
 @dataclass(frozen=True)
@@ -60,16 +63,78 @@ def _R_from_q(w: float, x: float, y: float, z: float) -> np.ndarray:
     )
 
 
-def truth_fields(msg: Any) -> Tuple[int, int, float, np.ndarray]:
-    """(lat 1e-7 deg, lon 1e-7 deg, alt m, R_ned_body) of a SIM_STATE or HIL_STATE_QUATERNION."""
+@dataclass(frozen=True)
+class TruthFields:
+    """One truth message's content: latitude and longitude in 1e-7 degrees (floats) with the
+    size of their steps, altitude in metres, NED velocity in m/s, R_ned_body."""
+
+    lat_e7: float
+    lon_e7: float
+    step_lat_e7: float
+    step_lon_e7: float
+    alt_m: float
+    v_ned_mps: np.ndarray
+    R_ned_body: np.ndarray
+    v_step_mps: float = 0.0  # the velocity's own resolution (PX4: 1 cm/s)
+
+
+def truth_fields(msg: Any) -> TruthFields:
+    """The content of a SIM_STATE or HIL_STATE_QUATERNION (ValueError for a zero quaternion)."""
     if msg.get_type() == "SIM_STATE":
-        # lat/lon are float degrees (a float32: 0.4 m steps); lat_int/lon_int (MAVLink 2
-        # extensions, 1e-7 degrees) when the simulator fills them.
-        lat = int(getattr(msg, "lat_int", 0) or 0) or int(round(msg.lat * 1e7))
-        lon = int(getattr(msg, "lon_int", 0) or 0) or int(round(msg.lon * 1e7))
-        return lat, lon, float(msg.alt), _R_from_q(msg.q1, msg.q2, msg.q3, msg.q4)
+        v = np.array([msg.vn, msg.ve, msg.vd], dtype=np.float64)
+        R = _R_from_q(msg.q1, msg.q2, msg.q3, msg.q4)
+        lat_int, lon_int = int(getattr(msg, "lat_int", 0) or 0), int(getattr(msg, "lon_int", 0) or 0)
+        if lat_int or lon_int:  # the MAVLink 2 extensions, 1e-7 degrees
+            return TruthFields(lat_int, lon_int, 1.0, 1.0, float(msg.alt), v, R)
+        # Only the float32 degrees: steps of a float32's spacing (0.4 m of latitude at 35 deg).
+        step_lat = float(np.spacing(np.float32(msg.lat))) * 1e7
+        step_lon = float(np.spacing(np.float32(msg.lon))) * 1e7
+        return TruthFields(msg.lat * 1e7, msg.lon * 1e7, step_lat, step_lon, float(msg.alt), v, R)
     q = msg.attitude_quaternion
-    return int(msg.lat), int(msg.lon), msg.alt * 1e-3, _R_from_q(q[0], q[1], q[2], q[3])
+    v = np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64) * 0.01
+    R = _R_from_q(q[0], q[1], q[2], q[3])
+    return TruthFields(float(msg.lat), float(msg.lon), 1.0, 1.0, msg.alt * 1e-3, v, R, v_step_mps=0.01)
+
+
+class _SteppedAxis:
+    """One horizontal axis of a position that comes in steps (1e-7 degree: 1.1 cm north).
+
+    Between steps the position follows the message's velocity, or, where that is too coarse to
+    tell it (PX4's cm/s: a slow drift reads 0 or 1 cm/s), the speed between the last two
+    crossings of a step boundary in one direction when the message's velocity agrees with it
+    to its resolution; it is always held inside the step the message gives. At a
+    crossing the position is the boundary crossed, the one place known to about a message
+    period's motion.
+    """
+
+    def __init__(self) -> None:
+        self.t_s: Optional[float] = None
+        self.cell_m = 0.0
+        self.est_m = 0.0
+        self.crossing: Optional[Tuple[float, float, float]] = None  # (t, boundary m, direction)
+        self.v_cross_mps = 0.0
+
+    def update(self, t_s: float, cell_m: float, step_m: float, v_mps: float, v_step_mps: float) -> float:
+        half = 0.5 * step_m
+        if self.t_s is None or t_s - self.t_s > 0.5 or abs(cell_m - self.cell_m) > 1.5 * step_m:
+            self.t_s, self.cell_m, self.est_m, self.crossing, self.v_cross_mps = t_s, cell_m, cell_m, None, 0.0
+            return cell_m
+        dt = t_s - self.t_s
+        if abs(cell_m - self.cell_m) > 0.5 * step_m:  # one step: the boundary was just crossed
+            boundary, direction = 0.5 * (cell_m + self.cell_m), math.copysign(1.0, cell_m - self.cell_m)
+            last = self.crossing
+            if last is not None and last[2] == direction and abs(boundary - last[1]) > 0.5 * step_m:
+                self.v_cross_mps = (boundary - last[1]) / max(t_s - last[0], 1e-3)
+            else:
+                self.v_cross_mps = 0.0  # the first crossing, or back over the same boundary
+            self.crossing = (t_s, boundary, direction)
+            self.est_m = boundary
+        else:
+            # The crossings' speed where the message's velocity agrees with it to its resolution.
+            v = self.v_cross_mps if self.v_cross_mps and abs(v_mps - self.v_cross_mps) <= v_step_mps else v_mps
+            self.est_m = min(cell_m + half, max(cell_m - half, self.est_m + v * dt))
+        self.t_s, self.cell_m = t_s, cell_m
+        return self.est_m
 
 
 class SitlLink:
@@ -116,6 +181,7 @@ class SitlLink:
         self._thread: Optional[threading.Thread] = None
         self._stop = threading.Event()
         self._last_heartbeat_s = -1e18
+        self._axes: Optional[Tuple[_SteppedAxis, _SteppedAxis]] = None
 
     # -- opening and closing
 
@@ -223,9 +289,12 @@ class SitlLink:
                 msg = None
                 self._stop.wait(0.05)
             now = self.clock()
-            if msg is not None and msg.get_type() != "BAD_DATA":
-                self._handle(msg, now)
-            self._tick(now)
+            try:
+                if msg is not None and msg.get_type() != "BAD_DATA":
+                    self._handle(msg, now)
+                self._tick(now)
+            except Exception as exc:  # one bad message or subscriber must not end the link
+                log.warning("sitl link %s: %s: %s", self.connection, type(exc).__name__, exc)
 
     def _tick(self, now: float) -> None:
         if now - self._last_heartbeat_s >= 1.0:
@@ -268,18 +337,28 @@ class SitlLink:
 
     def _truth(self, msg: Any, now: float) -> None:
         try:
-            lat, lon, alt_m, R = truth_fields(msg)
+            f = truth_fields(msg)
         except ValueError:
             return
-        if not (math.isfinite(alt_m) and np.all(np.isfinite(R))) or (lat == 0 and lon == 0):
+        if not (math.isfinite(f.alt_m) and np.all(np.isfinite(f.R_ned_body))) or (f.lat_e7 == 0 and f.lon_e7 == 0):
             return  # not yet initialised
         if self.origin is None:
-            self.origin = (lat, lon, alt_m)
+            self.origin = (int(round(f.lat_e7)), int(round(f.lon_e7)), f.alt_m)
         lat0, lon0, alt0 = self.origin
-        north = (lat - lat0) * LATLON_SCALE_M
-        east = (lon - lon0) * LATLON_SCALE_M * math.cos(math.radians(lat0 * 1e-7))
-        down = -(alt_m - alt0) - self.marker_below_m
-        sample = TruthSample(now, np.array([north, east, down]), R)
+        east_scale = LATLON_SCALE_M * math.cos(math.radians(lat0 * 1e-7))
+        north = (f.lat_e7 - lat0) * LATLON_SCALE_M
+        east = (f.lon_e7 - lon0) * east_scale
+        steps = (f.step_lat_e7 * LATLON_SCALE_M, f.step_lon_e7 * east_scale)
+        if self._axes is None:
+            self._axes = (_SteppedAxis(), _SteppedAxis())
+        measured = np.array(
+            [
+                axis.update(now, value, step, v, f.v_step_mps)
+                for axis, value, step, v in zip(self._axes, (north, east), steps, f.v_ned_mps)
+            ]
+        )
+        down = -(f.alt_m - alt0) - self.marker_below_m
+        sample = TruthSample(now, np.array([measured[0], measured[1], down]), f.R_ned_body)
         with self._cond:
             self.truth.append(sample)
             self._cond.notify_all()

@@ -33,6 +33,7 @@ from .findings import (
     param_value,
     param_wire,
 )
+from .landing import check_landing, landing_params, merge
 from .px4 import PX4_PARAMS, check_px4
 from .px4_events import MAV_CMD_RUN_PREARM_CHECKS, MSG_ID_EVENT, decode_event
 
@@ -194,7 +195,8 @@ def run_preflight(
         with watcher.lock:
             obs.system, obs.autopilot = out.autopilot_system, out.autopilot_kind
             obs.component = out.stats()["autopilot_component"]
-        names = PX4_PARAMS if obs.autopilot == "px4" else ARDUPILOT_PARAMS
+        names = list(PX4_PARAMS if obs.autopilot == "px4" else ARDUPILOT_PARAMS)
+        names += landing_params(cfg, obs.autopilot)
         _request_params(out, obs.system, obs.component, names)
         try:
             source = open_source(cfg.camera, cfg)
@@ -247,6 +249,7 @@ def run_preflight(
                 findings = check_px4(cfg, obs, link_kind)
             else:
                 findings = check_ardupilot(cfg, obs, link_kind)
+            findings = merge(findings, check_landing(cfg, obs))
         findings.insert(0, Finding("OK", f"autopilot {obs.autopilot} (system {obs.system}) on {m.connection}"))
         for f in findings:
             emit(f.line())
