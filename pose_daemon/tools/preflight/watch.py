@@ -192,9 +192,12 @@ def run_preflight(
             time.sleep(0.05)
         if out.autopilot_system is None:
             raise UserError(f"no autopilot HEARTBEAT on {m.connection} within {heartbeat_timeout_s:g} s")
+        # The output's stats take its link lock, which its reader holds while it hands messages
+        # to the watcher (whose lock it then waits for): never ask for them under the watcher's.
+        component = out.stats()["autopilot_component"]
         with watcher.lock:
             obs.system, obs.autopilot = out.autopilot_system, out.autopilot_kind
-            obs.component = out.stats()["autopilot_component"]
+            obs.component = component
         names = list(PX4_PARAMS if obs.autopilot == "px4" else ARDUPILOT_PARAMS)
         names += landing_params(cfg, obs.autopilot)
         _request_params(out, obs.system, obs.component, names)
