@@ -198,6 +198,7 @@ def test_views_of_the_printed_board_calibrate_with_the_printed_line(tmp_path: Pa
         (["--charuco", "11x11", "--dictionary", "DICT_4X4_50", "--size", "0.01"], "has 50 markers"),
         (["--chessboard", "--marker-size", "0.01"], "apply to --charuco only"),
         (["--chessboard", "--pad"], "no --pad"),
+        (["--charuco", "--type", "square"], "no --type square"),
         (["--size", "0.1", "--marker-size", "0.01"], "--charuco only"),
     ],
 )

@@ -202,6 +202,8 @@ def _print_board(args: argparse.Namespace) -> int:
     for option in ("pad", "tiled"):
         if getattr(args, option):
             raise UserError(f"--{kind} prints a calibration board: no --{option}")
+    if args.type != "aruco":
+        raise UserError(f"--{kind} prints a calibration board: no --type {args.type}")
     for option in ("grid", "spacing", "map", "ids", "id"):
         if getattr(args, option) is not None:
             raise UserError(f"--{kind} prints a calibration board: no --{option}")
