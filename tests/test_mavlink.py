@@ -726,3 +726,44 @@ def test_px4_timesync_is_answered_on_arrival_and_converges_without_a_live_attitu
     assert rtts[len(rtts) // 2] < sync.MAX_RTT_NS / 2, rtts[len(rtts) // 2]
     assert state["good"] >= 600 and state["answered"] >= state["good"]
     assert fc.tally.stamped_by.get("timesync", 0) > 0
+
+
+@pytest.mark.parametrize("vte", [False, True])
+def test_px4_gets_target_relative_only_when_it_has_the_vision_target_estimator(vte, caplog):
+    """A stock PX4 has no vision target estimator and cannot parse TARGET_RELATIVE (each one a
+    lost packet): the output asks for VTE_EN (PX4 answers PARAM_ERROR when it has no such
+    parameter), sends TARGET_RELATIVE only when PX4 has it and LANDING_TARGET otherwise, and
+    says which once."""
+    import logging
+
+    from fake_autopilot import FakeAutopilot
+
+    down = g.VehicleFrames.from_settings("down", placement="floor")
+    fc = FakeAutopilot(
+        "px4", heartbeat_s=0.2, timesync_s=0.3, vte=vte, vehicle_state=lambda t: ((0, 0, -1.5), (0, 0, 0))
+    )
+    caplog.set_level(logging.INFO, logger="pose_daemon.outputs")
+    out = output(fc.connection, frames=down, messages=("ODOMETRY", "TARGET_RELATIVE"))
+
+    def said():
+        return [r.getMessage() for r in caplog.records if "vision target estimator" in r.getMessage()]
+
+    try:
+        assert wait_for(lambda: out.autopilot_system == 1 and said(), 5.0), caplog.records
+        assert wait_for(lambda: fc.intervals_us.get(32) == 20_000 and fc.intervals_us.get(30) == 20_000, 5.0)
+        for k in range(30):
+            out.submit(vehicle_result(down, k, time.monotonic(), (0.0, 0.0, -1.5)))
+            time.sleep(0.03)
+        assert wait_for(lambda: len(fc.tally.fiducial_reports) + len(fc.tally.landing_targets) >= 20, 5.0)
+    finally:
+        out.close()
+        fc.close()
+    assert len(said()) == 1, said()
+    sent = {m.get_type() for m in fc.tally.received}
+    if vte:
+        assert said()[0].startswith("PX4 has the vision target estimator (VTE_EN reported)")
+        assert len(fc.tally.fiducial_reports) >= 20 and "LANDING_TARGET" not in sent
+    else:
+        assert said()[0].startswith("PX4 has no vision target estimator (no parameter VTE_EN)")
+        assert "UNKNOWN_511" not in sent and not fc.tally.target_refused
+        assert len(fc.tally.landing_targets) >= 20 and fc.tally.landing_refused == 0
