@@ -767,3 +767,43 @@ def test_px4_gets_target_relative_only_when_it_has_the_vision_target_estimator(v
         assert said()[0].startswith("PX4 has no vision target estimator (no parameter VTE_EN)")
         assert "UNKNOWN_511" not in sent and not fc.tally.target_refused
         assert len(fc.tally.landing_targets) >= 20 and fc.tally.landing_refused == 0
+
+
+def test_px4_timesync_pace_asks_fast_gives_back_and_starts_again_after_a_reboot():
+    """Px4SyncPace on explicit times: 100 Hz asked for (again only while PX4 does not speed up),
+    its default rate asked back after 600 good answers (again while PX4 still asks fast), and a
+    ts1 that goes backwards (PX4 rebooted) starts the count again."""
+    from pose_daemon.outputs.mavlink.timesync import Px4SyncPace
+
+    asked = []
+
+    class Mav:
+        def command_long_send(self, system, component, command, confirmation, *params):
+            asked.append((command, int(params[0]), params[1]))
+
+    pace, mav = Px4SyncPace(), Mav()
+    t, ts1 = 100.0, 10**9
+
+    def requests(n, period_s, delay_s=0.0005):
+        nonlocal t, ts1
+        for _ in range(n):
+            t += period_s
+            ts1 += int(period_s * 1e9)
+            pace.on_request(ts1, t, t + delay_s)
+            pace.keep(mav, (1, 1), t, lambda name: None)
+
+    requests(30, 0.1)  # PX4 at 10 Hz: asked at once, and again 2 s later as it did not speed up
+    assert asked == [(511, 111, 10_000.0), (511, 111, 10_000.0)]
+    requests(200, 0.01)  # at 100 Hz now: nothing more
+    assert len(asked) == 2
+    requests(20, 0.01, delay_s=0.02)  # answers too slow count as answered, not good
+    assert pace.state(t)["answered"] == 250 and pace.state(t)["good"] == 230
+    requests(400, 0.01)
+    assert asked[2:] == [(511, 111, 0.0)]  # 600 good: PX4's default rate again
+    requests(300, 0.01)  # PX4 still at 100 Hz 2 s later: asked again
+    assert asked[2:] == [(511, 111, 0.0), (511, 111, 0.0)]
+    requests(40, 0.1)  # back at 10 Hz: nothing more
+    assert len(asked) == 4 and not pace.fast
+    ts1 = 5 * 10**8  # PX4 rebooted: its boot clock restarts
+    requests(1, 0.1)
+    assert pace.state(t)["good"] == 1 and asked[4:] == [(511, 111, 10_000.0)]
