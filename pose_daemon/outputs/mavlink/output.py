@@ -191,6 +191,7 @@ class MavlinkOutput(QueuedOutput):
         s["autopilot_kind"] = self.autopilot_kind
         s["autopilot_component"] = self._autopilot_component
         s["origin"] = self.origin_state
+        s["vision_target_estimator"] = self._vte.has_vte  # PX4 with TARGET_RELATIVE: None until known
         with self._io_lock:
             s["timesync"] = self._timesync.px4.state(self._clock())
         if s["link_up"] and self.cfg.wait_heartbeat and self.autopilot_system is None:
