@@ -68,6 +68,8 @@ Both:
   MAV_RESULT_UNSUPPORTED and REQUEST_DATA_STREAM sets the rates (MAV_DATA_STREAM_EXTRA1 =
   ATTITUDE, MAV_DATA_STREAM_POSITION = LOCAL_POSITION_NED; rate 0 or start_stop 0 stops it).
 - INT32 parameters sent bytewise in PARAM_VALUE's float (PX4's MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE).
+- PX4: a parameter it does not have is answered with PARAM_ERROR (MAV_PARAM_ERROR_DOES_NOT_EXIST),
+  as mavlink_parameters.cpp does; ArduPilot says nothing.
 """
 
 from __future__ import annotations
@@ -586,6 +588,8 @@ class FakeAutopilot:
                 self._send_param(names[msg.param_index], msg.param_index)
             return
         if name not in self.params:
+            if self.kind == "px4":  # mavlink_parameters.cpp: MAV_PARAM_ERROR_DOES_NOT_EXIST
+                self.mav.param_error_send(msg.get_srcSystem(), msg.get_srcComponent(), name.encode("ascii"), -1, 1)
             return
         if kind == "PARAM_SET":
             ptype = self.params[name][1]

@@ -197,6 +197,8 @@ def test_px4_takes_target_relative_in_the_body_frame_with_its_attitude_at_captur
         # PX4 maps time_usec once a TIMESYNC exchange is done (before it, the arrival time): the
         # poses wait for it, which a loaded machine may take longer than 45 poses to finish.
         assert wait_for(lambda: fc.timesync_offset_ns is not None, 10.0)
+        # TARGET_RELATIVE once PX4 reported VTE_EN (LANDING_TARGET until then).
+        assert wait_for(lambda: out.stats()["vision_target_estimator"] is True, 5.0)
         _stream(out, 45, p_local=(0.3, -0.2, -1.5), yaw_deg=20.0)
         assert wait_for(lambda: len(fc.tally.fiducial_reports) >= 45, 10.0), fc.tally.target_refused
     finally:

@@ -726,3 +726,84 @@ def test_px4_timesync_is_answered_on_arrival_and_converges_without_a_live_attitu
     assert rtts[len(rtts) // 2] < sync.MAX_RTT_NS / 2, rtts[len(rtts) // 2]
     assert state["good"] >= 600 and state["answered"] >= state["good"]
     assert fc.tally.stamped_by.get("timesync", 0) > 0
+
+
+@pytest.mark.parametrize("vte", [False, True])
+def test_px4_gets_target_relative_only_when_it_has_the_vision_target_estimator(vte, caplog):
+    """A stock PX4 has no vision target estimator and cannot parse TARGET_RELATIVE (each one a
+    lost packet): the output asks for VTE_EN (PX4 answers PARAM_ERROR when it has no such
+    parameter), sends TARGET_RELATIVE only when PX4 has it and LANDING_TARGET otherwise, and
+    says which once."""
+    import logging
+
+    from fake_autopilot import FakeAutopilot
+
+    down = g.VehicleFrames.from_settings("down", placement="floor")
+    fc = FakeAutopilot(
+        "px4", heartbeat_s=0.2, timesync_s=0.3, vte=vte, vehicle_state=lambda t: ((0, 0, -1.5), (0, 0, 0))
+    )
+    caplog.set_level(logging.INFO, logger="pose_daemon.outputs")
+    out = output(fc.connection, frames=down, messages=("ODOMETRY", "TARGET_RELATIVE"))
+
+    def said():
+        return [r.getMessage() for r in caplog.records if "vision target estimator" in r.getMessage()]
+
+    try:
+        assert wait_for(lambda: out.autopilot_system == 1 and said(), 5.0), caplog.records
+        assert wait_for(lambda: fc.intervals_us.get(32) == 20_000 and fc.intervals_us.get(30) == 20_000, 5.0)
+        for k in range(30):
+            out.submit(vehicle_result(down, k, time.monotonic(), (0.0, 0.0, -1.5)))
+            time.sleep(0.03)
+        assert wait_for(lambda: len(fc.tally.fiducial_reports) + len(fc.tally.landing_targets) >= 20, 5.0)
+    finally:
+        out.close()
+        fc.close()
+    assert len(said()) == 1, said()
+    sent = {m.get_type() for m in fc.tally.received}
+    if vte:
+        assert said()[0].startswith("PX4 has the vision target estimator (VTE_EN reported)")
+        assert len(fc.tally.fiducial_reports) >= 20 and "LANDING_TARGET" not in sent
+    else:
+        assert said()[0].startswith("PX4 has no vision target estimator (no parameter VTE_EN)")
+        assert "UNKNOWN_511" not in sent and not fc.tally.target_refused
+        assert len(fc.tally.landing_targets) >= 20 and fc.tally.landing_refused == 0
+
+
+def test_px4_timesync_pace_asks_fast_gives_back_and_starts_again_after_a_reboot():
+    """Px4SyncPace on explicit times: 100 Hz asked for (again only while PX4 does not speed up),
+    its default rate asked back after 600 good answers (again while PX4 still asks fast), and a
+    ts1 that goes backwards (PX4 rebooted) starts the count again."""
+    from pose_daemon.outputs.mavlink.timesync import Px4SyncPace
+
+    asked = []
+
+    class Mav:
+        def command_long_send(self, system, component, command, confirmation, *params):
+            asked.append((command, int(params[0]), params[1]))
+
+    pace, mav = Px4SyncPace(), Mav()
+    t, ts1 = 100.0, 10**9
+
+    def requests(n, period_s, delay_s=0.0005):
+        nonlocal t, ts1
+        for _ in range(n):
+            t += period_s
+            ts1 += int(period_s * 1e9)
+            pace.on_request(ts1, t, t + delay_s)
+            pace.keep(mav, (1, 1), t, lambda name: None)
+
+    requests(30, 0.1)  # PX4 at 10 Hz: asked at once, and again 2 s later as it did not speed up
+    assert asked == [(511, 111, 10_000.0), (511, 111, 10_000.0)]
+    requests(200, 0.01)  # at 100 Hz now: nothing more
+    assert len(asked) == 2
+    requests(20, 0.01, delay_s=0.02)  # answers too slow count as answered, not good
+    assert pace.state(t)["answered"] == 250 and pace.state(t)["good"] == 230
+    requests(400, 0.01)
+    assert asked[2:] == [(511, 111, 0.0)]  # 600 good: PX4's default rate again
+    requests(300, 0.01)  # PX4 still at 100 Hz 2 s later: asked again
+    assert asked[2:] == [(511, 111, 0.0), (511, 111, 0.0)]
+    requests(40, 0.1)  # back at 10 Hz: nothing more
+    assert len(asked) == 4 and not pace.fast
+    ts1 = 5 * 10**8  # PX4 rebooted: its boot clock restarts
+    requests(1, 0.1)
+    assert pace.state(t)["good"] == 1 and asked[4:] == [(511, 111, 10_000.0)]

@@ -203,8 +203,12 @@ def test_px4_integer_parameters_are_set_bytewise(tmp_path, capsys):
     finally:
         fc.close()
     assert code == 1
-    assert "FIX: EKF2_EV_CTRL = 9" in lines and "OK EKF2_EV_CTRL = 9 set" in lines
-    assert fc.param("EKF2_EV_CTRL") == 9 and fc.params["EKF2_EV_CTRL"][1] == MAV_PARAM_TYPE_INT32
+    # 11 = horizontal position 1 + vertical position 2 + yaw 8 (docs/px4.md); velocity (4) off.
+    assert "FIX: EKF2_EV_CTRL = 11" in lines and "OK EKF2_EV_CTRL = 11 set" in lines
+    assert fc.param("EKF2_EV_CTRL") == 11 and fc.params["EKF2_EV_CTRL"][1] == MAV_PARAM_TYPE_INT32
+    # --apply watches the feed again with the new values: the verdict is that watch's.
+    again = lines[lines.index("OK parameters set: watching the feed again with them") + 1 :]
+    assert "OK EKF2_EV_CTRL = 11" in again and not [ln for ln in again if ln.startswith("FIX: EKF2_EV_CTRL")]
     # TIMESYNC every 0.5 s (this fake's rate, not PX4's): PX4's 500 good exchanges are minutes away.
     assert any(
         ln.startswith("PROBLEM EKF2_EV_DELAY = 0 ms and PX4's TIMESYNC will not converge soon") for ln in lines
@@ -417,3 +421,40 @@ def test_px4_warnings_reach_preflight_as_events_on_the_onboard_link(tmp_path, ca
     assert f"PROBLEM the autopilot says: PX4 event 0x{unknown:08x} (error; arguments ff ff ff ff 11)" in lines, lines
     assert "PROBLEM PX4's arming checks fail for position mode (errors in: local_position_estimate)" in lines
     assert len([ln for ln in lines if "Heading estimate" in ln]) == 1  # reported twice, said once
+
+
+def test_px4_ev_height_off_is_fixed_and_the_feed_is_judged_on_ekf2s_last_report(tmp_path, capsys):
+    """EKF2_EV_CTRL = 9 leaves EV height unfused: a PROBLEM whose FIX is 11. And "EKF2 uses the
+    feed" is EKF2's last ESTIMATOR_STATUS of the watch: the fake PX4 stops fusing half-way
+    (EKF2_EV_CTRL set to 0 behind preflight's back), and an earlier "using" report must not
+    make it OK."""
+    import threading
+
+    fc = FakeAutopilot("px4", heartbeat_s=0.2, timesync_s=0.5, params={"EKF2_EV_CTRL": 9})
+    cfg = _config(tmp_path, fc.connection, "origin = [47.397742, 8.545594, 488.0]")
+    stop = threading.Timer(2.0, lambda: fc.params["EKF2_EV_CTRL"].__setitem__(0, 0))
+    try:
+        stop.start()
+        code = main(["preflight", "--seconds", "4", "--config", cfg])
+        lines = capsys.readouterr().out.splitlines()
+        used = fc.tally.fused.get("ODOMETRY", 0)
+    finally:
+        stop.cancel()
+        fc.close()
+    assert code == 1 and used > 0  # it did fuse, before the stop
+    assert "FIX: EKF2_EV_CTRL = 11" in lines
+    assert any(ln.startswith("PROBLEM EKF2_EV_CTRL = 9: EKF2 needs bit 0 (horizontal position), bit 1") for ln in lines)
+    assert "PROBLEM EKF2 does not use the feed (flags 0x1)" in lines, lines
+    assert not [ln for ln in lines if ln.startswith("OK EKF2 uses the feed")]
+
+
+def test_px4_an_old_estimator_status_says_nothing_of_the_end_of_the_watch():
+    from pose_daemon.tools.preflight import Observation, check_px4
+
+    cfg = parse_config('[output.mavlink]\nconnection = "udpout:127.0.0.1:14550"\n')
+    obs = Observation(autopilot="px4", ekf_reports=[(10.0, 0x39)], watch_end_t=13.5, poses_sent=50)
+    lines = [f.line() for f in check_px4(cfg, obs)]
+    assert "PROBLEM EKF2's last ESTIMATOR_STATUS came 3.5 s before the watch ended: too old to tell" in lines
+    assert "PROBLEM EKF2 does not use the feed (no status report)" in lines
+    obs.ekf_reports.append((12.8, 0x39))
+    assert "OK EKF2 uses the feed (flags 0x39)" in [f.line() for f in check_px4(cfg, obs)]

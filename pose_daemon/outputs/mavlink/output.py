@@ -46,6 +46,7 @@ from .enums import (
 from .link import MavlinkLink, signing_key_bytes
 from .messages import PoseMessageInputs, encode_pose_messages
 from .origin import OriginKeeper
+from .target_relative import VteProbe
 from .timesync import Timesync, TimesyncPeer
 from .vehicle_state import StateStreams, VehicleStateHistory
 
@@ -130,6 +131,7 @@ class MavlinkOutput(QueuedOutput):
         self._reader: Optional[threading.Thread] = None
         self._t_read = 0.0  # when the messages at hand were read (output's clock)
         self._qual_min_asked = self._qual_min_warned = False
+        self._vte = VteProbe(logging.getLogger(f"pose_daemon.outputs.{self.name}"))
         # What is done with each received message, by type (the one dispatch point, _on_message);
         # a type not listed is ignored. More handlers: one line here, or subscribe().
         self._handlers: Dict[str, MessageHandler] = {
@@ -141,6 +143,7 @@ class MavlinkOutput(QueuedOutput):
             "LOCAL_POSITION_NED": self._on_local_position_ned,
             "ATTITUDE": self._on_attitude,
             "PARAM_VALUE": self._on_param_value,
+            "PARAM_ERROR": self._on_param_error,
         }
         self._listeners: Dict[str, List[MessageHandler]] = collections.defaultdict(list)
         # Track state: touched only with the link held (the io lock of QueuedOutput).
@@ -188,6 +191,7 @@ class MavlinkOutput(QueuedOutput):
         s["autopilot_kind"] = self.autopilot_kind
         s["autopilot_component"] = self._autopilot_component
         s["origin"] = self.origin_state
+        s["vision_target_estimator"] = self._vte.has_vte  # PX4 with TARGET_RELATIVE: None until known
         with self._io_lock:
             s["timesync"] = self._timesync.px4.state(self._clock())
         if s["link_up"] and self.cfg.wait_heartbeat and self.autopilot_system is None:
@@ -310,6 +314,8 @@ class MavlinkOutput(QueuedOutput):
             )
         if self._timesync.request_due(now):
             self._timesync.request(self._link.mav, now)
+        if self.autopilot_kind == "px4" and "TARGET_RELATIVE" in self.messages:
+            self._vte.ask(self._link.mav, self._autopilot_target(), now)
         if self.autopilot_kind == "px4" and self.paces_px4_timesync:
             self._timesync.px4.keep(self._link.mav, self._autopilot_target(), now, self._count)
 
@@ -464,14 +470,20 @@ class MavlinkOutput(QueuedOutput):
             self._state.add_attitude(self._clock(), msg.roll, msg.pitch, msg.yaw)
             self._streams.heard(MSG_ID_ATTITUDE)
 
+    def _on_param_error(self, msg: Any, now: float) -> None:
+        if self._from_autopilot(msg) and self._for_us(msg):
+            self._vte.on_param_error(_param_name(msg.param_id), msg.error)
+
     def _on_param_value(self, msg: Any, now: float) -> None:
-        name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode("ascii", "replace")
+        name = _param_name(msg.param_id)
+        if self._from_autopilot(msg):
+            self._vte.on_param_value(name, msg.param_value)
         if (
             # Only VISION_POSITION_ESTIMATE lacks a quality: ODOMETRY's is compared as it should
             # be (and a ground station's or preflight's reading of the parameter comes here too).
             "VISION_POSITION_ESTIMATE" in self.messages
             and self._from_autopilot(msg)
-            and name.rstrip("\x00") == "VISO_QUAL_MIN"
+            and name == "VISO_QUAL_MIN"
             and msg.param_value > 0
             and not self._qual_min_warned
         ):
@@ -575,7 +587,13 @@ class MavlinkOutput(QueuedOutput):
 
     def _send_pose(self, inputs: PoseMessageInputs) -> int:
         assert self._link is not None
-        msgs = encode_pose_messages(self._link.mav, self.messages, inputs, autopilot=self.autopilot_kind or "ardupilot")
+        messages = self._vte.messages(self.messages) if self.autopilot_kind == "px4" else self.messages
+        msgs = encode_pose_messages(self._link.mav, messages, inputs, autopilot=self.autopilot_kind or "ardupilot")
         for msg in msgs:
             self._link.mav.send(msg)
         return len(msgs)
+
+
+def _param_name(raw: Any) -> str:
+    """A PARAM_VALUE / PARAM_ERROR's param_id as text, without its padding."""
+    return (raw if isinstance(raw, str) else raw.decode("ascii", "replace")).rstrip("\x00")

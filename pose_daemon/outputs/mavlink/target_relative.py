@@ -14,12 +14,15 @@ q_sensor (observation frame -> vehicle-carried NED; all zeros: PX4 uses its own 
 type (LANDING_TARGET_TYPE). PX4's mavlink_receiver rotates a BODY_FRD report into NED (with
 q_sensor, or the vehicle attitude when it is zero) and publishes fiducial_marker_pos_report
 (position, variance = pos_std^2) and fiducial_marker_yaw_report for the estimator.
+
+Only a build with that estimator knows the message (``VteProbe``: VTE_EN asked for); a stock
+PX4 gets LANDING_TARGET in its place.
 """
 
 from __future__ import annotations
 
 import struct
-from typing import Any, Dict, Sequence
+from typing import Any, Dict, Optional, Sequence, Tuple
 
 MAVLINK_MSG_ID_TARGET_RELATIVE = 511
 CRC_EXTRA = 28
@@ -151,3 +154,61 @@ def register(dialect: Any) -> Any:
     cls = message_class(dialect)
     dialect.mavlink_map.setdefault(MAVLINK_MSG_ID_TARGET_RELATIVE, cls)
     return cls
+
+
+# Whether PX4 has the vision target estimator: VTE_EN asked for every VTE_ASK_S, at most
+# VTE_ASKS times; PX4 answers an unknown name with PARAM_ERROR (MAV_PARAM_ERROR_DOES_NOT_EXIST,
+# mavlink_parameters.cpp), an older one with nothing.
+VTE_ASK_S = 1.0
+VTE_ASKS = 3
+MAV_PARAM_ERROR_DOES_NOT_EXIST = 1
+
+
+class VteProbe:
+    """Does PX4 have the vision target estimator, which alone parses TARGET_RELATIVE? A stock
+    build has neither the module nor the message, and counts each one as a lost packet.
+    ``has_vte``: None while not known (LANDING_TARGET stands in), then True (VTE_EN reported)
+    or False (PARAM_ERROR, or no answer to VTE_ASKS requests); said once in ``log``."""
+
+    def __init__(self, log: Any) -> None:
+        self.log = log
+        self.has_vte: Optional[bool] = None
+        self._asked = 0
+        self._asked_t = -1e18
+
+    def ask(self, mav: Any, target: Tuple[int, int], now_s: float) -> None:
+        """Ask for VTE_EN while not known; after VTE_ASKS unanswered requests: no estimator."""
+        if self.has_vte is not None or now_s - self._asked_t < VTE_ASK_S:
+            return
+        if self._asked >= VTE_ASKS:
+            self._decide(False, "VTE_EN not reported")
+            return
+        self._asked += 1
+        self._asked_t = now_s
+        mav.param_request_read_send(target[0], target[1], b"VTE_EN", -1)
+
+    def on_param_value(self, name: str, value: float) -> None:
+        if name == "VTE_EN" and self.has_vte is not True:
+            self._decide(True, "VTE_EN reported")
+
+    def on_param_error(self, name: str, error: int) -> None:
+        if name == "VTE_EN" and error == MAV_PARAM_ERROR_DOES_NOT_EXIST and self.has_vte is None:
+            self._decide(False, "no parameter VTE_EN")
+
+    def _decide(self, has_vte: bool, why: str) -> None:
+        self.has_vte = has_vte
+        if has_vte:
+            self.log.info("PX4 has the vision target estimator (%s): TARGET_RELATIVE is sent", why)
+        else:
+            self.log.warning(
+                "PX4 has no vision target estimator (%s): TARGET_RELATIVE is not sent (a stock PX4 cannot "
+                "parse it), LANDING_TARGET instead",
+                why,
+            )
+
+    def messages(self, messages: Sequence[str]) -> Tuple[str, ...]:
+        """``messages`` with TARGET_RELATIVE replaced by LANDING_TARGET unless PX4 has the estimator."""
+        if self.has_vte or "TARGET_RELATIVE" not in messages:
+            return tuple(messages)
+        out = ["LANDING_TARGET" if m == "TARGET_RELATIVE" else m for m in messages]
+        return tuple(m for k, m in enumerate(out) if m not in out[:k])

@@ -67,6 +67,7 @@ class Px4SyncPace:
         self._last_ts1 = -1
         self._asked_t = -1e18
         self._tries = 0
+        self._tries_back = 0
         self.fast = False  # the fast rate was asked for (and not yet given back)
 
     def on_request(self, ts1_ns: int, t_arrival_s: float, t_answer_s: float) -> None:
@@ -91,7 +92,7 @@ class Px4SyncPace:
     def keep(self, mav: Any, target: tuple, now_s: float, count: Callable[[str], None]) -> None:
         """Ask PX4 for TIMESYNC at 100 Hz while fewer than FAST_UNTIL_GOOD good answers went
         out (again after PACE_RETRY_S while it does not come, PACE_TRIES times), then for its
-        default rate."""
+        default rate (likewise until PX4 asks slower)."""
         system, component = target
         if self.good < FAST_UNTIL_GOOD:
             if self._tries >= PACE_TRIES or now_s - self._asked_t < PACE_RETRY_S:
@@ -101,11 +102,15 @@ class Px4SyncPace:
             interval = float(FAST_INTERVAL_US)
             self.fast = True
             self._tries += 1
-        elif self.fast:
-            interval = 0.0  # PX4: 0 = the stream's default rate (MavlinkReceiver::set_message_interval)
-            self.fast = False
         else:
-            return
+            # Given back, again after PACE_RETRY_S while PX4 still asks fast (the command lost).
+            if not self.fast or self._tries_back >= PACE_TRIES or now_s - self._asked_t < PACE_RETRY_S:
+                return
+            if self._tries_back and self.rate_hz(now_s) < FAST_RATE_HZ:
+                self.fast = False  # PX4 is back at its default rate
+                return
+            interval = 0.0  # PX4: 0 = the stream's default rate (MavlinkReceiver::set_message_interval)
+            self._tries_back += 1
         self._asked_t = now_s
         mav.command_long_send(
             system, component, MAV_CMD_SET_MESSAGE_INTERVAL, 0, float(MSG_ID_TIMESYNC), interval, 0, 0, 0, 0, 0

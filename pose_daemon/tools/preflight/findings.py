@@ -56,6 +56,8 @@ class Observation:
     # The output's count of PX4's TIMESYNC exchanges (outputs.mavlink.timesync.Px4SyncPace.state).
     px4_sync: Optional[dict] = None
     events: List[Any] = field(default_factory=list)  # PX4's EVENT messages (px4_events.Px4Event)
+    ekf_reports: List[Tuple[float, int]] = field(default_factory=list)  # (time.monotonic(), flags) each
+    watch_end_t: Optional[float] = None  # time.monotonic() when the watch's feed ended
 
 
 def param_value(raw: float, ptype: int, autopilot: Optional[str]) -> float:

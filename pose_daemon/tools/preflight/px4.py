@@ -3,8 +3,9 @@ instances, the vision target estimator for TARGET_RELATIVE."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from typing import Dict, List, Tuple
+from typing import Dict, List, Optional, Tuple
 
 from ...outputs.mavlink.timesync import FAST_UNTIL_GOOD, GOOD_ANSWER_S, PX4_CONVERGENCE_SAMPLES
 from .findings import QUALITY_MIN, Finding, Observation, delay_ms, fmt, watched_findings
@@ -24,6 +25,10 @@ SYNC_WAIT_MAX_S = 60.0
 # PX4 counts a little fewer good round trips than this side sees (the link's own time, PX4's own
 # receive): converged is judged with the margin the output keeps PX4 at 100 Hz for.
 SYNC_JUDGED_GOOD = FAST_UNTIL_GOOD
+# EKF2_EV_CTRL's bits the feed needs: horizontal position 1, vertical position 2, yaw 8 (= 11).
+EV_CTRL_NEEDED = 1 | 2 | 8
+# "EKF2 uses the feed" is judged on an ESTIMATOR_STATUS no older than this at the watch's end.
+FRESH_REPORT_S = 2.0
 # Once synced EKF2_EV_DELAY adds to a capture-time stamp: more than this dates poses too early.
 SYNCED_EV_DELAY_MAX_MS = 10.0
 PX4_PARAMS = (
@@ -42,13 +47,13 @@ def check_px4(cfg, obs: Observation, link_kind: str = "udpout") -> List[Finding]
     if ctrl is None:
         out.append(Finding("PROBLEM", "EKF2_EV_CTRL not reported by the autopilot"))
     else:
-        wanted = (int(ctrl) | 1 | 8) & ~4  # horizontal position and yaw; no velocity is sent
+        wanted = (int(ctrl) | EV_CTRL_NEEDED) & ~4  # no velocity is sent
         if wanted != int(ctrl):
             out += [
                 Finding(
                     "PROBLEM",
-                    f"EKF2_EV_CTRL = {int(ctrl)}: EKF2 needs bit 0 (horizontal position) and "
-                    "bit 3 (yaw), not bit 2 (no velocity is sent)",
+                    f"EKF2_EV_CTRL = {int(ctrl)}: EKF2 needs bit 0 (horizontal position), bit 1 (vertical "
+                    "position) and bit 3 (yaw), not bit 2 (no velocity is sent)",
                 ),
                 Finding("FIX", param="EKF2_EV_CTRL", value=wanted),
             ]
@@ -95,7 +100,25 @@ def check_px4(cfg, obs: Observation, link_kind: str = "udpout") -> List[Finding]
             out.append(Finding("OK", ", ".join(f"{k} = {fmt(p[k])}" for k in keys)))
     if "TARGET_RELATIVE" in m.messages:
         out += _check_vte(p)
-    return out + watched_findings(cfg, obs, ekf="EKF2") + event_findings(obs)
+    fresh, stale = _fresh_ekf_flags(obs)
+    if stale:
+        out.append(Finding("PROBLEM", stale))
+    return out + watched_findings(cfg, dataclasses.replace(obs, ekf_flags=fresh), ekf="EKF2") + event_findings(obs)
+
+
+def _fresh_ekf_flags(obs: Observation) -> Tuple[Optional[int], Optional[str]]:
+    """EKF2's flags from its last ESTIMATOR_STATUS of the watch, if it came within
+    FRESH_REPORT_S of the watch's end (an earlier "using" report says nothing of the end);
+    otherwise None and why."""
+    end = obs.watch_end_t
+    reports = [(t, f) for t, f in obs.ekf_reports if end is None or t <= end]
+    if not reports:
+        return None, None
+    t, flags = reports[-1]
+    age_s = 0.0 if end is None else end - t
+    if age_s > FRESH_REPORT_S:
+        return None, f"EKF2's last ESTIMATOR_STATUS came {age_s:.1f} s before the watch ended: too old to tell"
+    return flags, None
 
 
 def event_findings(obs: Observation) -> List[Finding]:

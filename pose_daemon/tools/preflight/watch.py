@@ -102,6 +102,7 @@ class _Watcher:
                     self.obs.events.append(event)
 
     def _flags(self, flags: int) -> None:
+        self.obs.ekf_reports.append((time.monotonic(), flags))
         # The watch asks "did the EKF use the feed": a report that it did is kept over later
         # ones (the feed stops at the end of the watch).
         old = self.obs.ekf_flags
@@ -244,6 +245,7 @@ def run_preflight(
             raise UserError(f"camera source {cfg.camera.source!r} failed: {exc}") from None
         finally:
             source.close()
+        obs.watch_end_t = time.monotonic()
         stats = out.stats()
         obs.poses_sent = stats["sent"]
         obs.px4_sync = stats.get("timesync")
@@ -258,11 +260,14 @@ def run_preflight(
             emit(f.line())
         fixes = [f for f in findings if f.kind == "FIX"]
         problems = [f for f in findings if f.kind == "PROBLEM"]
-        if apply and fixes and _apply(out, watcher, fixes, emit):
-            emit("OK parameters set: run preflight again to watch the feed with them")
-        return 1 if problems else 0
+        recheck = apply and bool(fixes) and _apply(out, watcher, fixes, emit)
+        if not recheck:
+            return 1 if problems else 0
     finally:
         out.close()
+    # The verdict is the feed's with the new values, watched again (not the values read back).
+    emit("OK parameters set: watching the feed again with them")
+    return run_preflight(cfg, seconds=seconds, apply=False, emit=emit, heartbeat_timeout_s=heartbeat_timeout_s)
 
 
 def _request_message(system: int, component: int, msg_id: int, mav: Any) -> None:
