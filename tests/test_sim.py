@@ -20,9 +20,7 @@ fy = 260.0
 cx = 159.5
 cy = 119.5
 fps = 20
-[marker]
-width = 0.2
-placement = "floor"
+{target}
 [mount]
 preset = "{mount}"
 [synthetic]
@@ -30,7 +28,7 @@ blur_px = 0.6
 noise_gray = 1.0
 [sitl]
 connection = "{gcs}"
-marker_below_m = 0.3
+marker_below_m = {below}
 [output.mavlink]
 connection = "{daemon}"
 [logging]
@@ -42,19 +40,31 @@ KEYS = (
 )  # fmt: skip
 
 
-def _sim(tmp_path, fake: FakeSitl, *extra: str, mount: str = "down"):
+SQUARE = '[marker]\nwidth = 0.2\nplacement = "floor"'
+
+
+def _pad() -> str:
+    from pose_daemon.maps.pad import landing_pad
+
+    return "\n".join(landing_pad().to_toml_lines())
+
+
+def _sim(tmp_path, fake: FakeSitl, *extra: str, mount: str = "down", pad: bool = False):
     config = tmp_path / "sim.toml"
-    config.write_text(CONFIG.format(mount=mount, gcs=fake.gcs_connection, daemon=fake.daemon_connection))
+    target, below = (_pad(), 0.15) if pad else (SQUARE, 0.4)  # the square fills the view lower down
+    text = CONFIG.format(mount=mount, gcs=fake.gcs_connection, daemon=fake.daemon_connection, target="", below=below)
+    config.write_text(text + "\n" + target + "\n")
     out = tmp_path / "out"
     code = main(["sim", "--config", str(config), "--out", str(out), "--hold-s", "3", *extra])
     return code, json.loads((out / "summary.json").read_text())
 
 
-@pytest.mark.parametrize("kind", ["ardupilot", "px4"])
-def test_a_short_landing_rehearsal_passes_and_reports(tmp_path, capsys, kind):
-    fake = FakeSitl(kind)
+@pytest.mark.parametrize("kind, pad", [("ardupilot", True), ("px4", False)], ids=["ardupilot-pad", "px4-square"])
+def test_a_short_landing_rehearsal_passes_and_reports(tmp_path, capsys, kind, pad):
+    """On ArduPilot over the nested pad (ArUco map), on PX4 over a plain square marker."""
+    fake = FakeSitl(kind, yaw_deg=20.0)
     try:
-        code, summary = _sim(tmp_path, fake, "--fly", "land", "--ekf-wait-s", "20")
+        code, summary = _sim(tmp_path, fake, "--fly", "land", "--ekf-wait-s", "20", pad=pad)
     finally:
         fake.close()
     assert code == 0, summary["reasons"]
@@ -103,7 +113,8 @@ def test_no_simulator_is_exit_2_with_one_line(tmp_path, capsys, monkeypatch):
 
     monkeypatch.setattr(sim, "LINK_TIMEOUT_S", 0.5)
     config = tmp_path / "sim.toml"
-    config.write_text(CONFIG.format(mount="down", gcs="udpout:127.0.0.1:9", daemon="udpout:127.0.0.1:9"))
+    text = CONFIG.format(mount="down", gcs="udpout:127.0.0.1:9", daemon="udpout:127.0.0.1:9", target=SQUARE, below=0.3)
+    config.write_text(text)
     assert main(["sim", "--config", str(config), "--fly", "land", "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
