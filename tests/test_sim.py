@@ -119,3 +119,24 @@ def test_no_simulator_is_exit_2_with_one_line(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
     assert "[sitl] connection udpout:127.0.0.1:9: no autopilot HEARTBEAT in 0.5 s" in err[0]
+
+
+def test_without_a_mission_sim_runs_the_daemon_until_stopped(tmp_path, capsys):
+    import os
+    import signal
+    import threading
+
+    fake = FakeSitl("ardupilot")
+    config = tmp_path / "sim.toml"
+    text = CONFIG.format(mount="down", gcs=fake.gcs_connection, daemon=fake.daemon_connection, target=SQUARE, below=0.4)
+    config.write_text(text)
+    stopper = threading.Timer(6.0, lambda: os.kill(os.getpid(), signal.SIGINT))
+    stopper.start()
+    try:
+        code = main(["sim", "--config", str(config)])
+    finally:
+        stopper.cancel()
+        fake.close()
+    assert code == 0
+    assert fake.tally.fused > 0  # the daemon's poses of the rendered frames reached the autopilot
+    assert capsys.readouterr().out == ""  # no mission: no report
