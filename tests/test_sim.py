@@ -140,3 +140,14 @@ def test_without_a_mission_sim_runs_the_daemon_until_stopped(tmp_path, capsys):
     assert code == 0
     assert fake.tally.fused > 0  # the daemon's poses of the rendered frames reached the autopilot
     assert capsys.readouterr().out == ""  # no mission: no report
+
+
+def test_a_mission_without_the_mavlink_output_is_refused_before_anything_opens(tmp_path, capsys):
+    config = tmp_path / "sim.toml"
+    text = CONFIG.format(mount="down", gcs="udpout:127.0.0.1:9", daemon="udpout:127.0.0.1:9", target=SQUARE, below=0.4)
+    config.write_text(text.split("[output.mavlink]")[0] + '[logging]\nlevel = "WARNING"\n')
+    assert main(["sim", "--config", str(config), "--fly", "hold", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"pose-daemon: error: {config}: sim --fly needs an [output.mavlink] table (the feed the autopilot flies on)"
+    ]
