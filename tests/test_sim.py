@@ -19,7 +19,7 @@ fx = 260.0
 fy = 260.0
 cx = 159.5
 cy = 119.5
-fps = 20
+fps = 10
 {target}
 [mount]
 preset = "{mount}"
@@ -31,6 +31,8 @@ connection = "{gcs}"
 marker_below_m = {below}
 [output.mavlink]
 connection = "{daemon}"
+[pipeline]
+latency_budget_s = 0.5  # a loaded test machine: the rehearsal's mechanics are tested, not its speed
 [logging]
 level = "WARNING"
 """
