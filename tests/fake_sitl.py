@@ -16,8 +16,9 @@ rehearsal rely on is modelled, each as the real simulator does it:
   EKF's local frame) pass an innovation gate (test ratio = (innovation / ``gate_m``)^2, <= 1
   fused with gain ``ekf_gain``, else ignored and counted); between them the estimate follows the
   true velocity (the IMU). The first pose resets the estimate to it. LOCAL_POSITION_NED is this
-  estimate; EKF_STATUS_REPORT flags 0x33f while vision was fused in the last 0.5 s (0x401:
-  attitude and constant position mode otherwise) and pos_horiz_variance the last test ratio's
+  estimate; EKF_STATUS_REPORT flags 0x33f while vision was fused in the last ``dead_reckoning_s``
+  (1.5 s: the EKF dead-reckons on its IMU that long; 0x401: attitude and constant position
+  mode otherwise) and pos_horiz_variance the last test ratio's
   square root (ESTIMATOR_STATUS flags and pos_horiz_ratio on PX4).
 - The vehicle controls its estimate, not the truth, to its target (a PID on the position, 3 m/s^2
   at most, tilting its body by the acceleration it asks for) against a steady wind and gusts
@@ -103,6 +104,7 @@ class FakeSitl:
         wind_mps2: Tuple[float, float] = (0.05, -0.03),
         gust_mps2: float = 0.1,
         seed: int = 0,
+        dead_reckoning_s: float = 1.5,
     ) -> None:
         from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
@@ -111,6 +113,7 @@ class FakeSitl:
         self.home = home
         self.yaw_rad = math.radians(yaw_deg)
         self.gate_m, self.ekf_gain = gate_m, ekf_gain
+        self.dead_reckoning_s = dead_reckoning_s
         self.prearm_failure = prearm_failure
         self.wind_mps2, self.gust_mps2 = wind_mps2, gust_mps2
         self._rng = random.Random(seed)
@@ -184,7 +187,8 @@ class FakeSitl:
                 self._periodic(now)
 
     def _fusing(self, now: float) -> bool:
-        return self.last_fused_s is not None and now - self.last_fused_s < 0.5
+        # An EKF dead-reckons a while on its IMU before it gives up the position.
+        return self.last_fused_s is not None and now - self.last_fused_s < self.dead_reckoning_s
 
     def _step(self, now: float) -> None:
         dt = min(0.05, max(0.0, now - self._t_last))

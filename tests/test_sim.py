@@ -19,10 +19,8 @@ fx = 260.0
 fy = 260.0
 cx = 159.5
 cy = 119.5
-fps = 20
-[marker]
-width = 0.2
-placement = "floor"
+fps = 10
+{target}
 [mount]
 preset = "{mount}"
 [synthetic]
@@ -30,9 +28,11 @@ blur_px = 0.6
 noise_gray = 1.0
 [sitl]
 connection = "{gcs}"
-marker_below_m = 0.3
+marker_below_m = {below}
 [output.mavlink]
 connection = "{daemon}"
+[pipeline]
+latency_budget_s = 0.5  # a loaded test machine: the rehearsal's mechanics are tested, not its speed
 [logging]
 level = "WARNING"
 """
@@ -42,19 +42,31 @@ KEYS = (
 )  # fmt: skip
 
 
-def _sim(tmp_path, fake: FakeSitl, *extra: str, mount: str = "down"):
+SQUARE = '[marker]\nwidth = 0.2\nplacement = "floor"'
+
+
+def _pad() -> str:
+    from pose_daemon.maps.pad import landing_pad
+
+    return "\n".join(landing_pad().to_toml_lines())
+
+
+def _sim(tmp_path, fake: FakeSitl, *extra: str, mount: str = "down", pad: bool = False):
     config = tmp_path / "sim.toml"
-    config.write_text(CONFIG.format(mount=mount, gcs=fake.gcs_connection, daemon=fake.daemon_connection))
+    target, below = (_pad(), 0.15) if pad else (SQUARE, 0.4)  # the square fills the view lower down
+    text = CONFIG.format(mount=mount, gcs=fake.gcs_connection, daemon=fake.daemon_connection, target="", below=below)
+    config.write_text(text + "\n" + target + "\n")
     out = tmp_path / "out"
     code = main(["sim", "--config", str(config), "--out", str(out), "--hold-s", "3", *extra])
     return code, json.loads((out / "summary.json").read_text())
 
 
-@pytest.mark.parametrize("kind", ["ardupilot", "px4"])
-def test_a_short_landing_rehearsal_passes_and_reports(tmp_path, capsys, kind):
-    fake = FakeSitl(kind)
+@pytest.mark.parametrize("kind, pad", [("ardupilot", True), ("px4", False)], ids=["ardupilot-pad", "px4-square"])
+def test_a_short_landing_rehearsal_passes_and_reports(tmp_path, capsys, kind, pad):
+    """On ArduPilot over the nested pad (ArUco map), on PX4 over a plain square marker."""
+    fake = FakeSitl(kind, yaw_deg=20.0)
     try:
-        code, summary = _sim(tmp_path, fake, "--fly", "land", "--ekf-wait-s", "20")
+        code, summary = _sim(tmp_path, fake, "--fly", "land", "--ekf-wait-s", "20", pad=pad)
     finally:
         fake.close()
     assert code == 0, summary["reasons"]
@@ -103,8 +115,41 @@ def test_no_simulator_is_exit_2_with_one_line(tmp_path, capsys, monkeypatch):
 
     monkeypatch.setattr(sim, "LINK_TIMEOUT_S", 0.5)
     config = tmp_path / "sim.toml"
-    config.write_text(CONFIG.format(mount="down", gcs="udpout:127.0.0.1:9", daemon="udpout:127.0.0.1:9"))
+    text = CONFIG.format(mount="down", gcs="udpout:127.0.0.1:9", daemon="udpout:127.0.0.1:9", target=SQUARE, below=0.3)
+    config.write_text(text)
     assert main(["sim", "--config", str(config), "--fly", "land", "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
     assert "[sitl] connection udpout:127.0.0.1:9: no autopilot HEARTBEAT in 0.5 s" in err[0]
+
+
+def test_without_a_mission_sim_runs_the_daemon_until_stopped(tmp_path, capsys):
+    import os
+    import signal
+    import threading
+
+    fake = FakeSitl("ardupilot")
+    config = tmp_path / "sim.toml"
+    text = CONFIG.format(mount="down", gcs=fake.gcs_connection, daemon=fake.daemon_connection, target=SQUARE, below=0.4)
+    config.write_text(text)
+    stopper = threading.Timer(6.0, lambda: os.kill(os.getpid(), signal.SIGINT))
+    stopper.start()
+    try:
+        code = main(["sim", "--config", str(config)])
+    finally:
+        stopper.cancel()
+        fake.close()
+    assert code == 0
+    assert fake.tally.fused > 0  # the daemon's poses of the rendered frames reached the autopilot
+    assert capsys.readouterr().out == ""  # no mission: no report
+
+
+def test_a_mission_without_the_mavlink_output_is_refused_before_anything_opens(tmp_path, capsys):
+    config = tmp_path / "sim.toml"
+    text = CONFIG.format(mount="down", gcs="udpout:127.0.0.1:9", daemon="udpout:127.0.0.1:9", target=SQUARE, below=0.4)
+    config.write_text(text.split("[output.mavlink]")[0] + '[logging]\nlevel = "WARNING"\n')
+    assert main(["sim", "--config", str(config), "--fly", "hold", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"pose-daemon: error: {config}: sim --fly needs an [output.mavlink] table (the feed the autopilot flies on)"
+    ]

@@ -1,5 +1,7 @@
-"""``pose-daemon sim --config FILE [--fly hold|land] [--out DIR]``: the daemon on frames rendered from a
-simulator's truth (ArduPilot SITL, PX4 SITL) and, with --fly, the rehearsal mission flown on it."""
+"""``pose-daemon sim --config FILE [--fly hold|land] [--out DIR]``: rehearse the flight in ArduPilot or PX4 SITL.
+
+The daemon on frames rendered from the simulator's truth and, with --fly, the rehearsal mission.
+"""
 
 from __future__ import annotations
 

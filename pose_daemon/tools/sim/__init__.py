@@ -73,6 +73,8 @@ def run_sim(
 
     cfg = sim_config(cfg)
     out = Path(out_dir)
+    if fly is not None and cfg.output.mavlink is None:
+        raise UserError(f"{cfg.name}: sim --fly needs an [output.mavlink] table (the feed the autopilot flies on)")
     if fly is not None:
         try:
             out.mkdir(parents=True, exist_ok=True)

@@ -68,6 +68,7 @@ def summarize(
     track_rms, _ = _horizontal(track)
     status = _between([(t, (flags, ratio)) for t, flags, ratio in rec.ekf_status], hold)
     ignored = [flags & POS_HORIZ_FLAGS != POS_HORIZ_FLAGS or ratio > 1.0 for _t, (flags, ratio) in status]
+    ratios = [ratio for _t, (_flags, ratio) in status]
     _, drift = _horizontal(_ekf_errors(rec, windows.get("blackout")))
     recover = windows.get("recover")
     back = _ekf_errors(rec, (recover[1] - 0.5, recover[1])) if recover else []
@@ -85,6 +86,7 @@ def summarize(
         "hold_err_max_m": hold_max,
         "hold_track_rms_m": track_rms,
         "ignored_share": (sum(ignored) / len(ignored)) if ignored else None,
+        "hold_test_ratio_max": max(ratios) if ratios else None,
         "blackout_drift_m": drift,
         "blackout_back_m": _horizontal(back)[1],
         "descent_pose_share": (sum(1 for _t, ok in descent if ok) / len(descent)) if descent else None,
