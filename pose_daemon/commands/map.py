@@ -28,10 +28,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     b.add_argument("--no-plane", action="store_true", help="leave the markers free of the anchor's plane")
     b.set_defaults(func=run_build)
-    c = maps.add_parser("check", help="replay a recording against a map: residual per marker, moved markers")
+    c = maps.add_parser(
+        "check", help="hold a map against a recording's frames: turned, mirrored, mis-sized or moved markers"
+    )
     c.add_argument("map", metavar="MAP.toml", help="a map file ([map] with [[map.markers]])")
     c.add_argument("source", metavar="SOURCE", help="recording folder or folder of images")
-    c.add_argument("--config", metavar="FILE", help="TOML config whose [camera] is used when the source has none")
+    c.add_argument(
+        "--config",
+        metavar="FILE",
+        help="the daemon's TOML config: its [mount], [attitude], [estimator], [detector] (and [camera] when the "
+        "source has none), as run and replay use them",
+    )
     c.set_defaults(func=run_check)
     i = maps.add_parser("import", help="a WPILib / PhotonVision AprilTag field layout (JSON) as a map file")
     i.add_argument("layout", type=Path, metavar="LAYOUT.json", help="the field layout JSON")
@@ -72,7 +79,7 @@ def run_build(a: argparse.Namespace) -> int:
 
 
 def run_check(a: argparse.Namespace) -> int:
-    from ..maps.survey import check
+    from ..maps.check import check
 
     return check(a.map, a.source, a.config)
 
