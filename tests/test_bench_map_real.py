@@ -29,7 +29,7 @@ def test_rendered_field_frames_give_the_same_pose_in_any_order(rendered):
         assert m["apart_m"]["max"] < 1e-3 and m["apart_deg"]["max"] < 0.01
     # The map pose is at least as good a fit as OpenCV's on the same corners, and beside it.
     for row in r["rows"]:
-        assert row["map"]["rms_px"] <= row["opencv"]["rms_px"] + 1e-6
+        assert row["map"]["rms_px"] <= row["opencv"]["rms_px"] + 1e-3
     assert r["apart_m"]["median"] < 0.01
     assert r["map_error_m"]["median"] < 0.3
 
