@@ -17,7 +17,7 @@ BENCHES = {
     "detector": "detection rate, corner and pose error, time per frame against ArUco + IPPE",
     "pipeline": "end-to-end latency (capture -> bytes written) and memory over a long run",
     "outputs": "time each output takes from publish to bytes written on its link",
-    "map": "marker maps: floor-grid flights, the nested-pad descent, cost with 1/4/9 markers",
+    "map": "marker maps: floor-grid flights, the nested-pad descent, cost with 1/4/9 markers; --real: field frames",
     "quality": "the quality sent to the autopilot against the pose's true error (rendered hovers)",
     "ambiguity": "mirror-pose flips per way of choosing the planar solution, and the gate on clutter",
     "mapbuild": "map build on rendered walk-throughs: marker pose error, time to build, the daemon with the built map",
@@ -84,7 +84,21 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="live preview: off (default), idle (served, nobody watching), watch (one viewer reading /stream.mjpg)",
     )
     p["outputs"].add_argument("--poses", type=int, default=3000, help="poses per output (default 3000)")
-    p["map"].add_argument("--frames", type=int, default=600, help="frames per floor-grid flight (default 600)")
+    p["map"].add_argument(
+        "--frames",
+        type=int,
+        default=None,
+        help="frames per floor-grid flight (default 600); with --real and no DIR: field frames rendered (default 40)",
+    )
+    p["map"].add_argument(
+        "--real",
+        nargs="?",
+        const="",
+        metavar="DIR",
+        help="field frames instead: the map pose beside OpenCV's multi-tag solve, in order and shuffled; DIR holds "
+        "the frames and config.toml ([camera], [map]); without DIR, frames rendered over a field",
+    )
+    p["map"].add_argument("--config", metavar="FILE", help="with --real DIR: the config in place of DIR/config.toml")
     p["map"].add_argument(
         "--descent-frames", type=int, default=300, help="frames of the 10 m -> 0.2 m pad descent (default 300)"
     )
@@ -127,12 +141,18 @@ def run(a: argparse.Namespace) -> int:
     elif a.bench == "pipeline":
         _check(a.frames >= 1 and a.fps > 0 and a.distinct >= 1, "--frames and --distinct must be >= 1 and --fps > 0")
         report = bench.run_bench(a.frames, a.fps, a.distinct, a.seed, preview=a.preview)
+    elif a.bench == "map" and a.real is not None:
+        bench = importlib.import_module("pose_daemon.bench.map_real")
+        frames = 40 if a.frames is None else a.frames
+        _check(frames >= 1, f"--frames must be at least 1, got {frames}")
+        report = bench.run_bench(a.real or None, config=a.config, frames=frames, seed=a.seed)
     elif a.bench == "map":
+        frames = 600 if a.frames is None else a.frames
         _check(
-            a.frames >= 2 and a.descent_frames >= 2 and a.repeat >= 1,
+            frames >= 2 and a.descent_frames >= 2 and a.repeat >= 1,
             "--frames and --descent-frames must be >= 2 and --repeat >= 1",
         )
-        report = bench.run_bench(a.frames, a.descent_frames, a.repeat, a.seed, progress=not a.json)
+        report = bench.run_bench(frames, a.descent_frames, a.repeat, a.seed, progress=not a.json)
     elif a.bench == "mapbuild":
         _check(a.validation_frames >= 10, f"--validation-frames must be at least 10, got {a.validation_frames}")
         bench.require_scipy()

@@ -37,15 +37,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.set_defaults(func=run_build)
     c = maps.add_parser(
         "check",
-        help="replay a recording against a map: residual per marker, moved markers",
-        description="pose-daemon map check: replay a recording through the map's own pose pipeline and "
-        "report each marker's RMS corner residual (pixels) under the pose from all the markers in view; "
-        "a marker whose median residual stands out (past a few pixels and several times the others') "
-        "is reported as moved since the survey.",
+        help="hold a map against a recording's frames: turned, mirrored, mis-sized or moved markers",
+        description="pose-daemon map check: replay a recording through the map's own pose pipeline, with "
+        "the whole config (mount, attitude) as run and replay use it, and judge each marker on what the "
+        "frames say: one line per marker that is turned, mirrored, mis-sized or moved (exit 1); exit 0 "
+        "only when every marker the frames show was checked and agrees.",
     )
     c.add_argument("map", metavar="MAP.toml", help="a map file ([map] with [[map.markers]])")
     c.add_argument("source", metavar="SOURCE", help="recording folder or folder of images")
-    c.add_argument("--config", metavar="FILE", help="TOML config whose [camera] is used when the source has none")
+    c.add_argument(
+        "--config",
+        metavar="FILE",
+        help="the daemon's TOML config: its [mount], [attitude], [estimator], [detector] (and [camera] when the "
+        "source has none), as run and replay use them",
+    )
     c.set_defaults(func=run_check)
     i = maps.add_parser("import", help="a WPILib / PhotonVision AprilTag field layout (JSON) as a map file")
     i.add_argument("layout", type=Path, metavar="LAYOUT.json", help="the field layout JSON")
@@ -86,7 +91,7 @@ def run_build(a: argparse.Namespace) -> int:
 
 
 def run_check(a: argparse.Namespace) -> int:
-    from ..maps.survey import check
+    from ..maps.check import check
 
     return check(a.map, a.source, a.config)
 

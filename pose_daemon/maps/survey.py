@@ -1,15 +1,10 @@
-"""``pose-daemon map build`` and ``map check``: a marker map surveyed from walk-through
-recordings (or image folders), and a recording replayed against a map.
+"""``pose-daemon map build``: a marker map surveyed from walk-through recordings (or image
+folders); the sources and the map file that ``map check`` (maps/check.py) reads too.
 
 build: every frame's markers (detect/multi.MapDetector over every id of the dictionary), then
 map_build.build_map; the report names the markers placed (with their uncertainty), those not
 placed and why, the RMS reprojection error and the frames left out; the map is written in the
 [map] format (interface.md) that ``[map] file`` names.
-
-check: the map's own pose pipeline (map_processing.MapFrameProcessor) over a recording; for
-every frame with a pose and two or more markers, each marker's RMS corner residual under the
-pose from all of them. A marker whose median residual is over ``MOVED_PX`` (and several times
-the others') is reported as moved.
 """
 
 from __future__ import annotations
@@ -19,7 +14,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Dict, Iterator, List, Optional, Sequence, TextIO, Tuple
+from typing import TYPE_CHECKING, Dict, Iterator, List, Optional, Sequence, TextIO
 
 import numpy as np
 
@@ -35,12 +30,6 @@ from .build import MapBuild, build_map, require_scipy
 if TYPE_CHECKING:
     from ..detect.multi import MapDetector
 
-#: A marker whose median residual under the map pose exceeds this (pixels) has moved.
-MOVED_PX = 2.0
-#: ... and is this many times the median of the other markers' residuals.
-MOVED_FACTOR = 3.0
-#: Frames a marker must be checked in for a verdict.
-MIN_CHECKED = 3
 #: map build's detector drops a track missed this many frames in a row (see survey_detector).
 SURVEY_MAX_MISSES = 0
 
@@ -359,83 +348,3 @@ def load_map_file(path: str) -> MarkerMap:
         raise UserError(str(exc)) from None
     assert cfg.map is not None
     return cfg.map.model()
-
-
-@dataclass
-class MarkerCheck:
-    id: int
-    frames: int
-    median_px: float
-    p90_px: float
-    moved: bool
-
-
-def check_map(marker_map: MarkerMap, frames: Iterator[Frame], camera: Camera) -> Tuple[List[MarkerCheck], int, int]:
-    """Per-marker residuals of a replay against ``marker_map``; (checks, frames, frames with a pose)."""
-    from ..pose.map_solve import map_corners_px
-    from ..processing.map import MapFrameProcessor
-
-    proc = MapFrameProcessor(camera, marker_map)
-    residuals: Dict[int, List[float]] = {i: [] for i in marker_map.ids}
-    n = ok = 0
-    for frame in frames:
-        n += 1
-        result = proc.process(frame)
-        if not result.ok or result.pose is None:
-            continue
-        ok += 1
-        found = {i: c for i, c in proc.last_found.items() if i in marker_map}
-        if len(found) < 2:
-            continue
-        projected = map_corners_px(camera, marker_map, result.pose.R, result.pose.tvec, list(found))
-        for i, corners in found.items():
-            if i in projected:
-                residuals[i].append(float(np.sqrt(np.mean(np.sum((projected[i] - corners) ** 2, axis=1)))))
-    checks = []
-    medians = {i: float(np.median(r)) for i, r in residuals.items() if len(r) >= MIN_CHECKED}
-    for i in marker_map.ids:
-        r = residuals[i]
-        if len(r) < MIN_CHECKED:
-            checks.append(MarkerCheck(i, len(r), math.nan, math.nan, False))
-            continue
-        others = [m for j, m in medians.items() if j != i]
-        typical = float(np.median(others)) if others else 0.0
-        med = medians[i]
-        checks.append(
-            MarkerCheck(i, len(r), med, float(np.percentile(r, 90)), med > MOVED_PX and med > MOVED_FACTOR * typical)
-        )
-    return checks, n, ok
-
-
-def check(map_path: str, source_path: str, config: Optional[str] = None, stream: Optional[TextIO] = None) -> int:
-    """``pose-daemon map check``: 0 when every marker fits, 1 when one has moved."""
-    stream = stream if stream is not None else sys.stdout
-    marker_map = load_map_file(map_path)
-    source = _open(source_path)
-    camera = _camera_of(source, source_path, config_camera(config))
-    try:
-        checks, n, ok = check_map(marker_map, _frames(source), camera)
-    finally:
-        source.close()
-    print(
-        f"{source_path}: {n} frames, {ok} with a map pose; residual per marker (frames with 2+ markers):", file=stream
-    )
-    print(f"  {'id':>4} {'frames':>7} {'median px':>10} {'p90 px':>8}", file=stream)
-    moved = []
-    for c in checks:
-        if c.frames < MIN_CHECKED:
-            print(f"  {c.id:>4} {c.frames:>7} {'-':>10} {'-':>8}  too few frames to check", file=stream)
-            continue
-        flag = "  MOVED? (far off where the map has it)" if c.moved else ""
-        print(f"  {c.id:>4} {c.frames:>7} {c.median_px:>10.3f} {c.p90_px:>8.3f}{flag}", file=stream)
-        if c.moved:
-            moved.append(c.id)
-    if moved:
-        print(
-            f"moved: marker{'s' if len(moved) > 1 else ''} {', '.join(map(str, moved))} "
-            f"(median residual over {MOVED_PX:g} px); survey again with map build",
-            file=stream,
-        )
-        return 1
-    print("every checked marker is where the map has it", file=stream)
-    return 0

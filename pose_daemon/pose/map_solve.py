@@ -1,9 +1,9 @@
 """One camera pose from every visible marker of a map: a least-squares solve over all corners.
 
-1. Starts: the previous frame's pose (the warm start), each visible marker's own pose (the
-   paper's estimator, both planar solutions) carried into the map frame, and OpenCV's SQPnP over
-   every corner (two markers or more); the distinct ones, best under a robust (capped) cost
-   first, each solved (at most MAX_STARTS).
+1. Starts: the previous frame's pose (the warm start), the own pose of each visible marker (of
+   the three largest in the image; OpenCV's IPPE, both planar solutions) carried into the map
+   frame, and OpenCV's SQPnP over every corner (two markers or more); the distinct ones, best
+   under a robust (capped) cost first, each solved (at most MAX_STARTS).
 2. Gauss-Newton over all corners at once on the 6 camera parameters, damped
    (Levenberg-Marquardt) only when a full step does not lower the cost, through the lens
    distortion (one cv2.projectPoints call per step gives the residuals and their analytic
@@ -57,6 +57,8 @@ ROBUST_CAP_PX = 6.0
 START_INLIER_PX = 12.0
 #: Distinct starts solved at most (a start next to a minimum already found is not solved).
 MAX_STARTS = 6
+#: Markers (the largest in the image) whose two planar poses are starts.
+PLANAR_STARTS = 3
 #: A start whose robust cost is over this many times the best minimum's so far is not solved.
 PRUNE_FACTOR = 4.0
 #: Corner noise assumed when whitening residuals against a prior, and the floor of the
@@ -368,12 +370,20 @@ def _starts(
     estimate,
     previous: Optional[Tuple[np.ndarray, np.ndarray]],
 ) -> List[Tuple[np.ndarray, np.ndarray]]:
-    """(R_cam_map, t) for every start: the previous pose (first), each marker's two planar poses.
+    """(R_cam_map, t) for every start: the previous pose (first), the two planar poses of each
+    marker (of the PLANAR_STARTS largest in the image).
     ``estimate(corners, marker_id)``: the per-marker fallback (the paper's estimator)."""
     out = []
     if previous is not None:
         out.append((np.asarray(previous[0], dtype=np.float64), np.asarray(previous[1], dtype=np.float64)))
-    for marker_id, corners in observed.items():
+    # With more markers in view their common fit (SQPnP) holds the branch: the largest three's
+    # planar poses then (every marker's pair costs a tenth of a millisecond).
+    ids = list(observed)
+    if len(ids) > PLANAR_STARTS:
+        extent = [float(np.ptp(observed[i], axis=0).sum()) for i in ids]
+        ids = [ids[k] for k in np.argsort(extent)[::-1][:PLANAR_STARTS]]
+    for marker_id in ids:
+        corners = observed[marker_id]
         R_map_marker, p = marker_map.T_map_marker(marker_id)
         size_m = marker_map.marker(marker_id).size_m
         for R_cam_marker, t in _marker_poses(camera, corners, size_m, lambda c, i=marker_id: estimate(c, i)):
@@ -550,9 +560,12 @@ def solve_map_pose(
     if not order:
         raise EstimationError("no start puts the map in front of the camera")
 
-    def score(f: _Fit) -> float:
+    def score(f: _Fit, keep: np.ndarray) -> float:
         # Each minimum judged on every corner alike (a marker left out counts at the robust
         # cap), plus the prior's term: the same yardstick whichever markers each solve kept.
+        # With every marker in and no corner over the cap that is the solve's own cost.
+        if keep.all() and float(np.abs(f.r_px).max()) < ROBUST_CAP_PX / math.sqrt(2.0):
+            return f.cost
         return _robust_cost(camera, obj_all[seen], img_all[seen], f.R, f.t) / CORNER_SIGMA_PX**2 + _prior_cost(
             prior, f.R
         )
@@ -584,12 +597,12 @@ def solve_map_pose(
                     found.append(whole)
             for f in found:
                 solutions.append(f)
-                best_score = min(best_score, score(f[0]))
+                best_score = min(best_score, score(f[0], f[1]))
         if len(tried) >= MAX_STARTS:
             break
     if not solutions:
         raise EstimationError("no start puts the map in front of the camera")
-    scores = [score(f) for f, _, _ in solutions]
+    scores = [score(f, k) for f, k, _ in solutions]
     ranked = [solutions[k] for k in np.argsort(scores, kind="stable")]
     fit, keep, rms_all = ranked[0]
     ids = [i for i, k in zip(all_ids, keep) if k]

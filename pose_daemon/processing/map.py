@@ -111,16 +111,26 @@ class MapFrameProcessor:
         )
 
     @classmethod
-    def from_config(cls, cfg, *, attitude_source: Any = None, search: str = "next_frame") -> MapFrameProcessor:
+    def from_config(
+        cls,
+        cfg,
+        *,
+        attitude_source: Any = None,
+        search: str = "next_frame",
+        camera: Optional[Camera] = None,
+        marker_map: Optional[MarkerMap] = None,
+    ) -> MapFrameProcessor:
         """The processor of a Config with a [map]: its camera, map, estimator, detector, mount
         and [attitude] keys; ``attitude_source`` as for the constructor, ``search`` as for
-        ``from_models``."""
+        ``from_models``; ``camera`` and ``marker_map`` in place of the config's (a recording's
+        own camera, the map ``map check`` holds against the frames)."""
+        marker_map = marker_map if marker_map is not None else cfg.map.model()
         return cls.from_models(
-            cfg.camera.model(),
-            cfg.map.model(),
+            camera if camera is not None else cfg.camera.model(),
+            marker_map,
             cfg.estimator,
             cfg.detector,
-            frames=VehicleFrames.from_config(cfg.mount, cfg.placement),
+            frames=VehicleFrames.from_config(cfg.mount, marker_map.placement),
             prior=PriorSettings.from_config(cfg),
             attitude_source=attitude_source,
             search=search,
