@@ -73,7 +73,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--frames", type=int, default=3000, help="frames to run (default 3000; 20000 for the memory figure)"
     )
     p["pipeline"].add_argument(
-        "--fps", type=float, default=100.0, help="rate at which the source hands out frames (default 100)"
+        "--fps",
+        type=float,
+        default=None,
+        help="rate at which the source hands out frames (default 100; with --config the camera's fps)",
+    )
+    p["pipeline"].add_argument(
+        "--config",
+        metavar="FILE",
+        default=None,
+        help="run this config's camera size and rate, marker, detector and estimator (its outputs are "
+        "replaced by a local UDP sink and /dev/null): the per-stage figures of your set-up, on your Pi",
     )
     p["pipeline"].add_argument("--distinct", type=int, default=48, help="distinct rendered frames, cycled (default 48)")
     p["pipeline"].add_argument("--seed", type=int, default=0, help="trajectory and noise seed")
@@ -139,8 +149,15 @@ def run(a: argparse.Namespace) -> int:
         else:
             report = bench.run_bench(frames, a.empty, a.seed, a.repeat)
     elif a.bench == "pipeline":
-        _check(a.frames >= 1 and a.fps > 0 and a.distinct >= 1, "--frames and --distinct must be >= 1 and --fps > 0")
-        report = bench.run_bench(a.frames, a.fps, a.distinct, a.seed, preview=a.preview)
+        user = None
+        if a.config is not None:
+            from ..config import load_config
+
+            user = load_config(a.config)
+            _check(user.map is None, f"--config {a.config}: a [map] config; bench pipeline renders one [marker]")
+        fps = a.fps if a.fps is not None else (user.camera.fps if user is not None else 100.0)
+        _check(a.frames >= 1 and fps > 0 and a.distinct >= 1, "--frames and --distinct must be >= 1 and --fps > 0")
+        report = bench.run_bench(a.frames, fps, a.distinct, a.seed, preview=a.preview, config=user)
     elif a.bench == "map" and a.real is not None:
         bench = importlib.import_module("pose_daemon.bench.map_real")
         frames = 40 if a.frames is None else a.frames

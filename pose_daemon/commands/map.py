@@ -52,7 +52,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "source has none), as run and replay use them",
     )
     c.set_defaults(func=run_check)
-    i = maps.add_parser("import", help="a WPILib / PhotonVision AprilTag field layout (JSON) as a map file")
+    i = maps.add_parser(
+        "import",
+        help="a WPILib / PhotonVision AprilTag field layout (JSON) as a map file",
+        description="pose-daemon map import: read a WPILib / PhotonVision AprilTag field layout (JSON: each "
+        "tag's id and pose as translation + quaternion) and write it as a map file ([map] with "
+        "[[map.markers]]) that [map] file can name; the layout holds no tag size, so --size is required.",
+    )
     i.add_argument("layout", type=Path, metavar="LAYOUT.json", help="the field layout JSON")
     i.add_argument("--out", type=Path, required=True, metavar="MAP.toml", help="the map file to write")
     i.add_argument(
