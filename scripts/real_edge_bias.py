@@ -9,9 +9,10 @@ and each fitted side is held against the corners' line: its signed distance (out
 pixels, the size bias (twice the mean distance over the side) in % of the side, and the
 corner RMS. Read with the detector's ``gamma`` 1.0 (linear) and "srgb".
 
-    .venv/bin/python scripts/real_edge_bias.py ../shared/data/real-frames/lifecam_640x480 10 10
+    .venv/bin/python scripts/real_edge_bias.py ../shared/data/real-frames/lifecam_640x480 10 10 [--fit-gamma]
 
-Arguments: a folder of frames, the board's inner corners across and down. Not in the test
+Arguments: a folder of frames, the board's inner corners across and down; ``--fit-gamma``
+also finds the response exponent (``[detector] gamma``) at which the bias is zero. Not in the test
 suite: the frames are not in users' clones (../shared/data/real-frames/README.md).
 """
 
@@ -107,11 +108,26 @@ def measure(folder: Path, cols: int, rows: int, gamma) -> Dict[str, float]:
     }
 
 
+def fit_gamma(folder: Path, cols: int, rows: int, lo: float = 1.0, hi: float = 3.0, steps: int = 7) -> float:
+    """The response exponent at which the edge fit's mean size bias on the board is zero
+    (bisection on [lo, hi]: the bias grows with the exponent)."""
+    for _ in range(steps):
+        mid = 0.5 * (lo + hi)
+        if measure(folder, cols, rows, mid)["size_bias_mean_pct"] < 0.0:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folder", type=Path)
     parser.add_argument("cols", type=int, help="inner corners across")
     parser.add_argument("rows", type=int, help="inner corners down")
+    parser.add_argument(
+        "--fit-gamma", action="store_true", help="also the [detector] gamma at which the size bias is zero"
+    )
     a = parser.parse_args(argv)
     if not a.folder.is_dir():
         print(f"real_edge_bias: {a.folder}: not a folder", file=sys.stderr)
@@ -127,6 +143,13 @@ def main(argv=None) -> int:
             f" {r['edge_offset_mean_px']:+.3f} px mean ({r['edge_offset_median_px']:+.3f} median), size bias"
             f" {r['size_bias_mean_pct']:+.2f} % mean ({r['size_bias_median_pct']:+.2f} % median),"
             f" corner RMS {r['corner_rms_px']:.3f} px"
+        )
+    if a.fit_gamma:
+        g = fit_gamma(a.folder, a.cols, a.rows)
+        r = measure(a.folder, a.cols, a.rows, g)
+        print(
+            f"  gamma {g:.2f} zeroes the size bias: {r['size_bias_mean_pct']:+.2f} % mean, edge offset"
+            f" {r['edge_offset_mean_px']:+.3f} px"
         )
     return 0
 
