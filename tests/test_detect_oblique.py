@@ -28,10 +28,11 @@ from pose_daemon.geometry import (
 from pose_daemon.processing.marker import FrameProcessor
 from pose_daemon.render import Effects, render_empty, render_frame, render_plane
 
-#: Rotation error bound of an ArUco marker seen 65-75 deg off its face at 0.5-0.7 m here (a
-#: 0.2 m marker 70-100 px wide, foreshortened to 25-40 px): ``bench detector --sweep view``
-#: measured p95 0.25 deg in its 60-70 and 70-80 deg bins for markers 0.5-3 m away
-#: (docs/accuracy.md); twice that leaves room for the few frames drawn here.
+#: Rotation error bound of an ArUco marker seen 65-76 deg off its face 0.6 m away here (a 0.2 m
+#: marker 80 px wide, foreshortened to 20-35 px). ``bench detector --sweep view`` (docs/accuracy.md)
+#: measured p95 0.13-0.18 deg in its 60-70 deg bin and 0.71-0.87 deg in its 70-80 deg bin, the
+#: latter from thin rhombi 2-3 m away whose sharp tips are placed 0.3-0.7 px off; these are
+#: nearer. The bound lies between the two.
 OBLIQUE_ROT_BOUND_DEG = 0.5
 
 

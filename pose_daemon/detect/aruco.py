@@ -44,6 +44,25 @@ from .square import (
 OPENCV_EVERY = 8
 
 
+#: Outlines whose cells are narrower than this (pixels) get a second reading, grown ...
+SMALL_CELL_PX = 3.0
+#: ... by this much at each side (pixels).
+GROW_SMALL_PX = 0.7
+
+
+def grown(quads: np.ndarray, px: float) -> np.ndarray:
+    """Outlines (N, 4, 2), image-clockwise, with every side moved ``px`` outwards (each corner
+    to where its two moved sides meet)."""
+    q = np.asarray(quads, dtype=np.float64)
+    d = np.roll(q, -1, axis=1) - q  # side i: corner i -> i + 1
+    u = d / np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-12)
+    normal = np.stack([u[..., 1], -u[..., 0]], axis=2)  # outward for an image-clockwise outline
+    n_in, n_out = np.roll(normal, 1, axis=1), normal  # the sides into and out of each corner
+    # The corner moves by px (n_in + n_out) / (1 + n_in . n_out): on both moved lines.
+    dot = np.sum(n_in * n_out, axis=2, keepdims=True)
+    return q + px * (n_in + n_out) / np.maximum(1.0 + dot, 0.1)
+
+
 class CellGrid:
     """Where an ArUco marker of ``n_bits`` x ``n_bits`` is read, in unit-square coordinates:
     each cell's centre (the one-cell border included) and a ring of points in the quiet zone;
@@ -210,10 +229,24 @@ class ArucoFinder(OutlineFinder):
         return bool(errors.min() <= self.max_bit_errors + 1)
 
     def could_be_many(self, gray: np.ndarray, quads: np.ndarray) -> np.ndarray:
-        """``could_be`` of each outline in ``quads`` (N, 4, 2): (N,) bool, the same verdicts.
-        From 3 outlines on in one pass (one remap, the medians and bit counts as array
-        operations: in clutter a pass gives 20-100); below, one at a time is cheaper."""
+        """``could_be`` of each outline in ``quads`` (N, 4, 2): (N,) bool. A small outline
+        (cells under SMALL_CELL_PX) the code does not match is read again grown by
+        GROW_SMALL_PX at each side: the threshold's outline runs along the dark region's
+        boundary pixels, up to a pixel inside its edge, half a cell of a 16 px 6x6 marker."""
         quads = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
+        ok = self._could_be_many(gray, quads)
+        if ok.all():
+            return ok
+        least = np.array([least_width(q) for q in quads]) if len(quads) else np.zeros(0)
+        again = np.flatnonzero(~ok & (least < SMALL_CELL_PX * (self.n_bits + 2)))
+        if len(again):
+            ok[again] = self._could_be_many(gray, grown(quads[again], GROW_SMALL_PX))
+        return ok
+
+    def _could_be_many(self, gray: np.ndarray, quads: np.ndarray) -> np.ndarray:
+        """``could_be`` of each outline (N, 4, 2) as read. From 3 outlines on in one pass (one
+        remap, the medians and bit counts as array operations: in clutter a pass gives
+        20-100); below, one at a time is cheaper."""
         if len(quads) < 3:
             return np.array([self.could_be(gray, q) for q in quads], dtype=bool)
         values = sample_canonical_many(gray, quads, self._grid.uv)

@@ -98,21 +98,24 @@ def _gauss_newton_border(
         if it == 0:
             # The levels first (linear in them), from the starting edge and blur.
             lin = np.stack([np.ones_like(a1), a1, a2], axis=2) * weight[:, :, None]
-            ata = np.einsum("nki,nkj->nij", lin, lin) + 1e-6 * np.eye(3)
-            beta = np.linalg.solve(ata, np.einsum("nki,nk->ni", lin, prof * weight)[:, :, None])[:, :, 0]
+            lin_t = lin.transpose(0, 2, 1)
+            ata = lin_t @ lin + 1e-6 * np.eye(3)
+            beta = np.linalg.solve(ata, lin_t @ (prof * weight)[:, :, None])[:, :, 0]
         step, cell = beta[:, 1:2], beta[:, 2:3]
         # dF/de = -(Phi_hi - Phi_lo) / w; the cell term's derivatives have the opposite sign.
         de = (cell * (p2hi - p2lo) - step * (p1hi - p1lo)) / _MODEL_BOX_SAMPLES
         jq = np.stack([np.ones_like(a1), a1, a2, de], axis=2) * weight[:, :, None]
         r = (prof - beta[:, 0:1] - step * a1 - cell * a2) * weight
-        aq = np.einsum("nki,nkj->nij", jq, jq) + 1e-6 * np.eye(4)
-        gq = np.einsum("nki,nk->ni", jq, r)
+        # Batched products as matmul: numpy's einsum took 3-4 times as long on these.
+        jq_t = jq.transpose(0, 2, 1)
+        aq = jq_t @ jq + 1e-6 * np.eye(4)
+        gq = (jq_t @ r[:, :, None])[:, :, 0]
         if fit_blur:
             # dF/ds = (phi_hi - phi_lo) / w.
             jt = (step * (g1hi - g1lo) - cell * (g2hi - g2lo)) / _MODEL_BOX_SAMPLES * weight
-            bqt = np.einsum("nki,nk->ni", jq, jt)
-            ainv_b = np.linalg.solve(aq, bqt[:, :, None])[:, :, 0]
-            ainv_g = np.linalg.solve(aq, gq[:, :, None])[:, :, 0]
+            bqt = (jq_t @ jt[:, :, None])[:, :, 0]
+            both = np.linalg.solve(aq, np.stack([bqt, gq], axis=2))
+            ainv_b, ainv_g = both[:, :, 0], both[:, :, 1]
             red = ((jt * jt).sum(axis=1) - (bqt * ainv_b).sum(axis=1)) * okf
             vec = ((jt * r).sum(axis=1) - (bqt * ainv_g).sum(axis=1)) * okf
             ds = vec.reshape(4, m).sum(axis=1) / np.maximum(red.reshape(4, m).sum(axis=1), 1e-9)
