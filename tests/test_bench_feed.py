@@ -19,7 +19,7 @@ def test_every_pose_sent_is_received_and_its_parts_add_up():
     parts = feed.parts(report)
     assert parts is not None and report["stats"]["sent"] == len(report["received"]) == len(parts["total"])
     assert report["stats"]["written"] + report["stats"]["dropped_total"] == 40
-    split = parts["capture -> check"] + parts["check -> queued"] + parts["queued -> received"]
+    split = parts["capture -> check"] + parts["check -> sent"] + parts["sent -> queued"] + parts["queued -> received"]
     assert np.allclose(split, parts["total"], atol=1e-9)
     assert all((p >= 0).all() for p in parts.values())
 

@@ -9,9 +9,10 @@ queued ``MavlinkOutput`` with the budget, as the daemon runs it). Per pose sent,
 capture, the output's last budget check, the datagram queued in the reader's socket (the
 kernel's SO_TIMESTAMPNS), and the reader's receive. A pose that reached the reader after the
 budget is split into its parts: the daemon's before the check (frame work, the hand-over, the
-queue), the daemon's between the check and the datagram queued (what the check cannot see: a
-preemption right before the system call), and the reader's (the datagram waited for the reader
-to be scheduled).
+queue), the daemon's between the check and its send (what the check cannot see: a preemption
+right before the system call), the kernel's delivery after the send (loopback's softirq, which
+ksoftirqd at nice 0 may run late on a busy core) and the reader's (the datagram waited for the
+reader to be scheduled).
 """
 
 from __future__ import annotations
@@ -186,22 +187,25 @@ def _arrivals(text: str) -> Dict[int, Tuple[float, float]]:
 
 
 def parts(report: Dict[str, Any]) -> Optional[Dict[str, np.ndarray]]:
-    """Per pose received, seconds: capture -> check (the daemon before its last check),
-    check -> queued (the daemon between that check and the datagram in the reader's socket),
-    queued -> received (the reader's scheduling), and the total."""
+    """Per pose received, seconds: capture -> check (the daemon before its last check), check
+    -> sent (the daemon from that check until its send returned, or until the datagram was in
+    the reader's socket if that came first), sent -> queued (the kernel's delivery after the
+    send returned: loopback's softirq), queued -> received (the reader's scheduling), total."""
     from ..result import time_usec_from_s
 
     rows = []
-    for t_capture, t_check, _t_sent in report["timeline"]:
+    for t_capture, t_check, t_sent in report["timeline"]:
         got = report["received"].get(time_usec_from_s(t_capture))
         if got is not None:
             t_queued, t_recv = got
             t_queued = min(max(t_queued, t_check), t_recv)  # the two clocks' offset is read to ~us
-            rows.append((t_check - t_capture, t_queued - t_check, t_recv - t_queued, t_recv - t_capture))
+            t_out = min(t_sent, t_queued)
+            rows.append((t_check - t_capture, t_out - t_check, t_queued - t_out, t_recv - t_queued, t_recv - t_capture))
     if not rows:
         return None
     a = np.array(rows)
-    return {"capture -> check": a[:, 0], "check -> queued": a[:, 1], "queued -> received": a[:, 2], "total": a[:, 3]}
+    names = ("capture -> check", "check -> sent", "sent -> queued", "queued -> received", "total")
+    return {name: a[:, i] for i, name in enumerate(names)}
 
 
 def print_report(report: Dict[str, Any]) -> None:
@@ -227,6 +231,6 @@ def print_report(report: Dict[str, Any]) -> None:
     n = int(late.sum())
     print(f"  late at the reader (> budget): {n} of {len(late)}")
     if n:
-        for name in ("capture -> check", "check -> queued", "queued -> received"):
+        for name in ("capture -> check", "check -> sent", "sent -> queued", "queued -> received"):
             share = p[name][late].sum() / p["total"][late].sum()
             print(f"    of their time, {name:18s} {share * 100:5.1f} % (max {p[name][late].max() * 1e3:.1f} ms)")
