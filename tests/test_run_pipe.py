@@ -156,3 +156,35 @@ def test_a_closed_stdout_stops_the_json_lines_alone_and_mavlink_goes_on(tmp_path
     assert text.count("jsonl output closed: stdout closed by its reader (broken pipe)") == 1, text
     assert "the other outputs go on" in text and "stopping: jsonl" not in text, text
     assert "Traceback" not in text and "Exception ignored" not in text, text
+
+
+def test_estimate_piped_into_a_reader_that_stops_ends_with_0():
+    """The command-line tools are no flight feed: `pose-daemon estimate ... | head -1` ends as
+    `yes | head` does, exit 0, without a traceback."""
+    line = json.dumps({"corners": [[303.5, 206.5], [401.3, 205.7], [399.1, 317.5], [301.9, 307.8]]}) + "\n"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pose_daemon", "estimate"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=ENV,
+    )
+    try:
+        proc.stdin.write(line.encode() * 5)
+        proc.stdin.flush()
+        first = proc.stdout.readline()
+        proc.stdout.close()
+        try:
+            proc.stdin.write(line.encode() * 20000)  # more than a pipe holds: it must write again
+            proc.stdin.close()
+        except BrokenPipeError:
+            pass  # it already ended
+        rc = proc.wait(timeout=60)
+        err = proc.stderr.read().decode()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stderr.close()
+    assert json.loads(first)["ok"] is True
+    assert rc == 0 and "Traceback" not in err and "Exception ignored" not in err, err
