@@ -188,3 +188,45 @@ def test_estimate_piped_into_a_reader_that_stops_ends_with_0():
         proc.stderr.close()
     assert json.loads(first)["ok"] is True
     assert rc == 0 and "Traceback" not in err and "Exception ignored" not in err, err
+
+
+def test_json_lines_to_a_fifo_nobody_reads_yet_do_not_hang_the_start(tmp_path):
+    """`[output.jsonl] path` naming a FIFO whose reader has not started: opening it must not
+    block the daemon's start (open(2) of a FIFO waits for a reader); the output stays down,
+    retried with the doubling pause, and the reader gets lines once it opens the FIFO."""
+    import threading
+
+    fifo = tmp_path / "poses.fifo"
+    os.mkfifo(fifo)
+    made = []
+    starter = threading.Thread(
+        target=lambda: made.append(
+            JsonlOutput(JsonlOutputConfig(path=str(fifo)), queue_size=0, retry_s=0.05, retry_max_s=0.2)
+        ),
+        daemon=True,
+    )
+    starter.start()
+    starter.join(20.0)  # generous: a start that waits for a reader never ends
+    reader = None
+    try:
+        assert made, "opening the FIFO blocked the output's start"
+        out = made[0]
+        assert not out.link_up and "cannot open" in out.status(), out.status()
+        reader = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)
+        got = b""
+        end = time.monotonic() + 20.0
+        k = 0
+        while b"\n" not in got and time.monotonic() < end:
+            k += 1
+            out.submit(FrameResult(seq=k, t_capture_s=time.monotonic(), error="no marker"))
+            time.sleep(0.02)
+            try:
+                got += os.read(reader, 65536)
+            except BlockingIOError:
+                pass
+        assert json.loads(got.split(b"\n")[0])["ok"] is False, out.status()
+    finally:
+        if made:
+            made[0].close()
+        if reader is not None:
+            os.close(reader)
