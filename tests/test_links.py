@@ -486,8 +486,8 @@ def test_a_tcp_peer_that_stops_reading_never_gets_a_late_pose_from_our_buffers()
 def test_a_tcp_reader_that_stops_gets_one_stale_buffer_in_all_not_one_per_reconnection():
     """20 s without reading (the daemon resets the connection and connects again and again),
     then reading again: the stale poses it finds (captured before it read again) are those its
-    kernel took from the first connection only; every later connection carried no pose until the peer read (and wrote) on
-    it again. All time on the output's clock, moved one frame per pose."""
+    kernel took from the first connection only; every later connection carried no pose until
+    the peer read (and wrote) on it again. All time on the output's clock, one frame per pose."""
     from mavlink_helpers import mavlink_output
 
     ap = _TcpAutopilot()
