@@ -5,9 +5,11 @@ leaves a broken JSON line."""
 
 from __future__ import annotations
 
+import collections
 import json
 import os
 import subprocess
+import time
 
 import pytest
 from mavlink_helpers import lost_result, vehicle_result, wait_for
@@ -366,6 +368,7 @@ class _TcpAutopilot:
         self.server.settimeout(0.05)
         self.port = self.server.getsockname()[1]
         self.conns = []  # [socket, parser, bytes its kernel held at resume (or None)]
+        self._last_beat = -1e9
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._accept, daemon=True)
@@ -399,12 +402,23 @@ class _TcpAutopilot:
 
     def read(self):
         """[(message, held)] of everything waiting now; held: its bytes were in our kernel's
-        buffer when reading resumed."""
+        buffer when reading resumed. A running autopilot writes too: each connection read gets
+        a HEARTBEAT (at most every 0.2 s); a stalled one (not reading) writes nothing."""
+        from mavlink_helpers import autopilot_heartbeat
+
         out = []
         with self._lock:
             conns = list(self.conns)
+        beat = time.monotonic() - self._last_beat >= 0.2
+        if beat:
+            self._last_beat = time.monotonic()
         for c in conns:
             sock, p, held = c
+            if beat:
+                try:
+                    sock.send(autopilot_heartbeat())
+                except OSError:
+                    pass
             while True:
                 try:
                     data = sock.recv(65536)
@@ -490,6 +504,162 @@ def test_a_tcp_peer_that_stops_reading_never_gets_a_late_pose_from_our_buffers()
     assert late == [], (len(late), max(late), len(held_late), held)
     assert len(on_time) >= reading + 30  # the stream came back after the stall
     assert "dropped" in stalled_status and "flushed=" in stalled_status, stalled_status
+
+
+def test_a_tcp_reader_that_stops_gets_one_stale_buffer_in_all_not_one_per_reconnection():
+    """20 s without reading (the daemon resets the connection and connects again and again),
+    then reading again: the stale poses it finds (captured before it read again) are those its
+    kernel took from the first connection only; every later connection carried no pose until
+    the peer read (and wrote) on it again. All time on the output's clock, one frame per pose."""
+    from mavlink_helpers import mavlink_output
+
+    ap = _TcpAutopilot()
+    clock = [1000.0]
+    out = mavlink_output(
+        f"tcp:127.0.0.1:{ap.port}",
+        WALL,
+        wait_heartbeat=False,
+        queue_size=0,
+        max_age_s=BUDGET_S,
+        clock=lambda: clock[0],
+        retry_s=0.2,
+        retry_max_s=1.0,
+    )
+
+    def frame(k):
+        clock[0] += 1 / FPS
+        out.submit(vehicle_result(WALL, k, clock[0], (-2.0, 0.0, 0.0)))
+
+    stale_by_conn = collections.Counter()
+    fresh_after = 0
+    try:
+        assert wait_for(lambda: out.link_up, 5.0), out.status()
+        for k in range(30):  # reading
+            frame(k)
+            wait_for(lambda: bool(ap.conns), 1.0)
+            ap.read()
+        for k in range(30, 30 + 20 * FPS):  # 20 s not reading
+            frame(k)
+            if k % 10 == 0:
+                wait_for(lambda: False, 0.002)  # let the output's thread reopen the link
+        reconnections = len(ap.conns) - 1
+        ap.note_held()
+        t_resume = clock[0]  # a pose captured before this is one of the stall's: stale
+        for k in range(30 + 20 * FPS, 30 + 40 * FPS):  # reading again
+            frame(k)
+            wait_for(lambda: out.link_up, 0.5)
+            wait_for(lambda: False, 0.005)
+            with ap._lock:
+                index = {id(c[1]): n for n, c in enumerate(ap.conns)}
+            for n, _m, age in _read_by_conn(ap, index, clock[0]):
+                if clock[0] - age < t_resume:
+                    stale_by_conn[n] += 1
+                else:
+                    fresh_after += 1
+            if fresh_after >= 30:
+                break
+    finally:
+        out.close()
+        ap.close()
+    assert reconnections >= 1, reconnections  # it was reset for not reading and connected again
+    assert set(stale_by_conn) <= {0}, (dict(stale_by_conn), reconnections)
+    assert fresh_after >= 30, out.status()  # and the stream came back once it read again
+    assert "not_reading=" in out.status() or out.stats()["dropped"].get("not_reading"), out.status()
+
+
+def _read_by_conn(ap, index, now_s):
+    """(connection number, message, age) of every ODOMETRY waiting now."""
+    out = []
+    with ap._lock:
+        conns = list(ap.conns)
+    for c in conns:
+        n = index.get(id(c[1]), -1)
+        sock, p = c[0], c[1]
+        while True:
+            try:
+                data = sock.recv(65536)
+            except (BlockingIOError, InterruptedError, OSError):
+                break
+            if not data:
+                break
+            for m in p.parse_buffer(data) or []:
+                if m.get_type() == "ODOMETRY":
+                    out.append((n, m, now_s - m.time_usec / 1e6))
+    ap.read()  # heartbeats: the autopilot runs again
+    return out
+
+
+def test_a_tcp_reader_that_reads_slowly_but_steadily_is_never_reset():
+    """A peer that reads every 50 ms and sends its HEARTBEAT each second (so its kernel delays
+    its ACKs), poses handed over 70 ms after capture (a loaded pipeline, within the 0.1 s
+    budget): what it has not acknowledged yet is not what waits; it is never reset."""
+    import socket
+    import threading
+
+    from mavlink_helpers import autopilot_heartbeat, mavlink_output, parser
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(4)
+    got = collections.Counter()
+    stop = threading.Event()
+
+    def peer():
+        conns = []
+        server.settimeout(0.01)
+        p = parser()
+        t_beat = 0.0
+        while not stop.is_set():
+            try:
+                c, _ = server.accept()
+                c.setblocking(False)
+                conns.append(c)
+            except (socket.timeout, BlockingIOError):
+                pass
+            for c in conns:
+                try:
+                    data = c.recv(65536)
+                except (BlockingIOError, OSError):
+                    data = b""
+                for m in p.parse_buffer(data) or []:
+                    got[m.get_type()] += 1
+                if time.monotonic() - t_beat >= 1.0:
+                    try:
+                        c.send(autopilot_heartbeat())
+                    except OSError:
+                        pass
+            if time.monotonic() - t_beat >= 1.0:
+                t_beat = time.monotonic()
+            got["connections"] = len(conns)
+            stop.wait(0.05)
+        for c in conns:
+            c.close()
+
+    thread = threading.Thread(target=peer, daemon=True)
+    thread.start()
+    out = mavlink_output(
+        f"tcp:127.0.0.1:{server.getsockname()[1]}",
+        WALL,
+        wait_heartbeat=False,
+        queue_size=0,
+        max_age_s=BUDGET_S,
+        retry_s=0.2,
+        retry_max_s=1.0,
+    )
+    try:
+        assert wait_for(lambda: out.link_up, 5.0), out.status()
+        for k in range(6 * FPS):
+            out.submit(vehicle_result(WALL, k, time.monotonic() - 0.07, (-2.0, 0.0, 0.0)))
+            time.sleep(1 / FPS)
+    finally:
+        stop.set()
+        thread.join(5)
+        out.close()
+        server.close()
+    s = out.stats()
+    assert s["link_failures"] == 0 and got["connections"] == 1, (out.status(), dict(got))
+    assert "flushed" not in s["dropped"], out.status()
+    assert got["ODOMETRY"] >= 30, (out.status(), dict(got))
 
 
 def test_a_pty_nobody_reads_never_gives_a_late_line_when_read_again(tmp_path):

@@ -156,3 +156,77 @@ def test_a_closed_stdout_stops_the_json_lines_alone_and_mavlink_goes_on(tmp_path
     assert text.count("jsonl output closed: stdout closed by its reader (broken pipe)") == 1, text
     assert "the other outputs go on" in text and "stopping: jsonl" not in text, text
     assert "Traceback" not in text and "Exception ignored" not in text, text
+
+
+def test_estimate_piped_into_a_reader_that_stops_ends_with_0():
+    """The command-line tools are no flight feed: `pose-daemon estimate ... | head -1` ends as
+    `yes | head` does, exit 0, without a traceback."""
+    line = json.dumps({"corners": [[303.5, 206.5], [401.3, 205.7], [399.1, 317.5], [301.9, 307.8]]}) + "\n"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pose_daemon", "estimate"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=ENV,
+    )
+    try:
+        proc.stdin.write(line.encode() * 5)
+        proc.stdin.flush()
+        first = proc.stdout.readline()
+        proc.stdout.close()
+        try:
+            proc.stdin.write(line.encode() * 20000)  # more than a pipe holds: it must write again
+            proc.stdin.close()
+        except BrokenPipeError:
+            pass  # it already ended
+        rc = proc.wait(timeout=60)
+        err = proc.stderr.read().decode()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stderr.close()
+    assert json.loads(first)["ok"] is True
+    assert rc == 0 and "Traceback" not in err and "Exception ignored" not in err, err
+
+
+def test_json_lines_to_a_fifo_nobody_reads_yet_do_not_hang_the_start(tmp_path):
+    """`[output.jsonl] path` naming a FIFO whose reader has not started: opening it must not
+    block the daemon's start (open(2) of a FIFO waits for a reader); the output stays down,
+    retried with the doubling pause, and the reader gets lines once it opens the FIFO."""
+    import threading
+
+    fifo = tmp_path / "poses.fifo"
+    os.mkfifo(fifo)
+    made = []
+    starter = threading.Thread(
+        target=lambda: made.append(
+            JsonlOutput(JsonlOutputConfig(path=str(fifo)), queue_size=0, retry_s=0.05, retry_max_s=0.2)
+        ),
+        daemon=True,
+    )
+    starter.start()
+    starter.join(20.0)  # generous: a start that waits for a reader never ends
+    reader = None
+    try:
+        assert made, "opening the FIFO blocked the output's start"
+        out = made[0]
+        assert not out.link_up and "cannot open" in out.status(), out.status()
+        reader = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)
+        got = b""
+        end = time.monotonic() + 20.0
+        k = 0
+        while b"\n" not in got and time.monotonic() < end:
+            k += 1
+            out.submit(FrameResult(seq=k, t_capture_s=time.monotonic(), error="no marker"))
+            time.sleep(0.02)
+            try:
+                got += os.read(reader, 65536)
+            except BlockingIOError:
+                pass
+        assert json.loads(got.split(b"\n")[0])["ok"] is False, out.status()
+    finally:
+        if made:
+            made[0].close()
+        if reader is not None:
+            os.close(reader)

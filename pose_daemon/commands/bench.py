@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import os
 
 from ..errors import UserError
 
@@ -17,6 +18,7 @@ BENCHES = {
     "detector": "detection rate, corner and pose error, time per frame against ArUco + IPPE",
     "pipeline": "end-to-end latency (capture -> bytes written) and memory over a long run",
     "outputs": "time each output takes from publish to bytes written on its link",
+    "feed": "the MAVLink feed on one core beside busy loops: late poses, the daemon's part and the reader's",
     "map": "marker maps: floor-grid flights, the nested-pad descent, cost with 1/4/9 markers; --real: field frames",
     "quality": "the quality sent to the autopilot against the pose's true error (rendered hovers)",
     "ambiguity": "mirror-pose flips per way of choosing the planar solution, and the gate on clutter",
@@ -94,6 +96,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="live preview: off (default), idle (served, nobody watching), watch (one viewer reading /stream.mjpg)",
     )
     p["outputs"].add_argument("--poses", type=int, default=3000, help="poses per output (default 3000)")
+    p["feed"].add_argument("--poses", type=int, default=2000, help="frames to send (default 2000)")
+    p["feed"].add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
+    p["feed"].add_argument("--work-ms", type=float, default=15.0, help="CPU time per frame, ms (default 15)")
+    p["feed"].add_argument("--busy", type=int, default=2, help="busy loops on the core (default 2)")
+    p["feed"].add_argument("--core", type=int, default=0, help="the one core for all (default 0)")
+    p["feed"].add_argument("--nice", type=int, default=0, help="the daemon side's nice value (default 0; < 0: root)")
     p["map"].add_argument(
         "--frames",
         type=int,
@@ -185,6 +193,15 @@ def run(a: argparse.Namespace) -> int:
             report = bench.run_pooled(a.frames, range(a.seed, a.seed + a.seeds), a.clutter)
         else:
             report = bench.run_bench(a.frames, a.clutter, a.seed)
+    elif a.bench == "feed":
+        _check(
+            a.poses >= 1 and a.fps > 0 and a.work_ms >= 0 and a.busy >= 0,
+            "--poses >= 1, --fps > 0, --work-ms, --busy >= 0",
+        )
+        _check(
+            a.core in os.sched_getaffinity(0), f"--core must be one of {sorted(os.sched_getaffinity(0))}, got {a.core}"
+        )
+        report = bench.run_bench(a.poses, a.fps, a.work_ms, a.busy, a.core, a.nice)
     else:
         _check(a.poses >= 1, f"--poses must be at least 1, got {a.poses}")
         report = bench.run_bench(a.poses)

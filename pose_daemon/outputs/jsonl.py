@@ -8,6 +8,7 @@ on a fresh line. If even that truncation fails, it is done before the next line 
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import sys
@@ -76,7 +77,16 @@ class JsonlOutput(QueuedOutput):
         elif self.path == "-":
             self._stream = sys.stdout
         else:
-            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+            # O_NONBLOCK: open(2) of a FIFO would wait for its reader, holding up the daemon's
+            # start; without one it fails (ENXIO) and is retried with the doubling pause.
+            try:
+                fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NONBLOCK, 0o644)
+            except OSError as exc:
+                if exc.errno == errno.ENXIO:
+                    raise OSError(exc.errno, f"{self.path} is a FIFO nobody reads yet") from None
+                raise
+            os.set_blocking(fd, True)  # then written as a file: whole lines, in order
+            self._fd = fd
 
     def _close_link(self) -> None:
         fd, self._fd = self._fd, None

@@ -68,6 +68,12 @@ class LinkError(Exception):
     """The link failed (device gone, connection reset): close it and reopen after a pause."""
 
 
+class PeerNotReading(LinkError):
+    """The peer stopped reading: what it was sent is stale, the connection was reset. Until the
+    peer shows again that it reads (``_peer_reads``), new connections carry no poses, so that a
+    stalled reader is not filled again with stale poses on every reconnection."""
+
+
 class LinkClosed(LinkError):
     """The link's reader went away for good (the pipe behind stdout closed, as `head` does):
     reopening cannot help. The output stops and calls ``on_closed(reason)``: the pipeline
@@ -102,6 +108,37 @@ def fd_queued_bytes(fd: int) -> int:
     buf = array.array("i", [0])
     fcntl.ioctl(fd, termios.TIOCOUTQ, buf, True)
     return int(buf[0])
+
+
+SIOCOUTQNSD = 0x894B  # Linux: bytes of a TCP socket's send queue not yet sent
+
+
+def tcp_unsent_bytes(fd: int) -> int:
+    """Bytes a TCP socket holds that were not yet SENT (SIOCOUTQNSD; else TCP_INFO's
+    tcpi_notsent_bytes; else SIOCOUTQ, which counts unacknowledged bytes too). Bytes sent but
+    not yet acknowledged are with the peer already: a delayed ACK must not count as a stall."""
+    import array
+    import fcntl
+    import socket
+    import struct
+
+    buf = array.array("i", [0])
+    try:
+        fcntl.ioctl(fd, SIOCOUTQNSD, buf, True)
+        return int(buf[0])
+    except OSError:
+        pass
+    try:
+        info = socket.socket(fileno=os.dup(fd))
+        try:
+            raw = info.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 232)
+        finally:
+            info.close()
+        if len(raw) >= 148:
+            return int(struct.unpack_from("I", raw, 144)[0])  # tcpi_notsent_bytes (Linux >= 4.6)
+    except OSError:
+        pass
+    return fd_queued_bytes(fd)
 
 
 def is_pty(fd: int) -> bool:
@@ -219,10 +256,12 @@ class QueuedOutput:
         self._t_write_began = 0.0
         self._t_send_check = 0.0
         self._send_s: Deque[float] = collections.deque(maxlen=GUARD_SENDS)
-        # Bytes handed to the link since it opened, and (t_capture_s, end offset) of the results
-        # among them that may still wait in the kernel: what _before_send measures the queue by.
+        # Bytes handed to the link since it opened, and (t_capture_s, end offset, t_sent) of the
+        # results among them that may still wait in the kernel: what _before_send measures by.
         self._bytes_out = 0
-        self._written: Deque[Tuple[float, int]] = collections.deque(maxlen=4096)
+        self._written: Deque[Tuple[float, int, float]] = collections.deque(maxlen=4096)
+        # A connection was reset because its peer stopped reading: no poses until it reads again.
+        self._peer_stalled = False
         if start:
             self.start()
 
@@ -353,8 +392,21 @@ class QueuedOutput:
 
     def _discard_queued(self) -> bool:
         """Throw away what the link still holds (True), or False when it cannot; may raise
-        LinkError to have the link reopened (a TCP connection that is reset)."""
+        LinkError to have the link reopened (a TCP connection that is reset: PeerNotReading)."""
         return False
+
+    def _stall_s(self) -> Optional[float]:
+        """None: what the link holds is discarded once its oldest result is older than the
+        budget. A number (TCP, whose discard is a reset): only once the oldest byte not yet sent
+        also waited that long since it was written (the peer takes nothing); before that the new
+        result is refused (``late``), so a reader that reads, however late its poses left the
+        pipeline, is never reset."""
+        return None
+
+    def _peer_reads(self) -> bool:
+        """After a PeerNotReading reset: True once the new connection's peer shows it reads
+        (MAVLink: it sent a message on it). Poses wait for that (dropped as ``not_reading``)."""
+        return True
 
     def _before_send(self, nbytes: int) -> None:
         """The last step before a link writes ``nbytes`` of the result at hand (nothing to check
@@ -384,7 +436,7 @@ class QueuedOutput:
         now = self._clock()
         t_capture = float(item.t_capture_s)
         self._send_s.append(max(0.0, now - self._t_send_check))
-        self._written.append((t_capture, self._bytes_out))
+        self._written.append((t_capture, self._bytes_out, now))
         if now - t_capture > budget:
             self._count("sent_late")
 
@@ -410,6 +462,9 @@ class QueuedOutput:
         else:
             limit = budget / 2  # cannot tell: assume all since the last discard waits
         if judge_held and written and now - written[0][0] > limit:
+            stall_s = self._stall_s()
+            if stall_s is not None and now - written[0][2] < stall_s:
+                raise _Refused("late")  # the peer may still take it: do not add to a late queue
             held = len(written) if queued is not None else 0
             discarded = False
             try:
@@ -508,6 +563,12 @@ class QueuedOutput:
         if not self._link_up:
             self._drop("link_closed" if self._gone else "link_down")
             return
+        if self._peer_stalled:
+            if not self._peer_reads():
+                self._drop("not_reading")
+                return
+            self._peer_stalled = False
+            self.log.info("%s output: the peer reads again; sending poses", self.name)
         max_age = self._max_age_s
         now = self._clock()
         if max_age is not None and now - float(item.t_capture_s) > max_age:
@@ -529,6 +590,7 @@ class QueuedOutput:
             return
         except LinkError as exc:
             self._drop("link_down")
+            self._peer_stalled = self._peer_stalled or isinstance(exc, PeerNotReading)
             self._link_failed(str(exc))
             return
         except Exception as exc:

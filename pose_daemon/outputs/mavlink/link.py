@@ -23,11 +23,13 @@ from ..device_path import DeviceWatch
 from ..worker import (
     LinkBusy,
     LinkError,
+    PeerNotReading,
     discard_tty_output,
     fd_queued_bytes,
     hold_serial_port,
     is_pty,
     release_serial_port,
+    tcp_unsent_bytes,
 )
 
 WRITE_TIMEOUT_S = 0.25
@@ -118,6 +120,7 @@ class MavlinkLink:
             self.mav.signing.allow_unsigned_callback = None
         port = self.conn.port
         self.pty = False
+        self.heard_from_peer = False  # a TCP peer sent bytes on this connection (it services it)
         self._watch: Optional[DeviceWatch] = None  # a serial path's device, checked each read
         if kind == "serial":
             port.write_timeout = WRITE_TIMEOUT_S
@@ -132,6 +135,8 @@ class MavlinkLink:
         """Bytes taken but not yet on the wire (None: a pseudo-terminal cannot tell)."""
         if self.kind == "serial":
             return None if self.pty else fd_queued_bytes(self.conn.port.fd)
+        if self.kind == "tcp":
+            return tcp_unsent_bytes(self.conn.port.fileno())  # not yet sent: a delayed ACK is no stall
         return fd_queued_bytes(self.conn.port.fileno())
 
     def rate_Bps(self) -> Optional[float]:
@@ -150,7 +155,7 @@ class MavlinkLink:
                 self.conn.port.close()
             except OSError:
                 pass
-            raise LinkError("peer not reading: the connection held poses older than the budget; reset")
+            raise PeerNotReading("peer not reading: the connection held poses older than the budget; reset")
         return False
 
     # pymavlink's encoder calls this for every packed message.
@@ -260,6 +265,7 @@ class MavlinkLink:
             data = port.recv(max(1, min(budget, 4096)))
             if not data:
                 raise LinkError("connection closed by peer")
+            self.heard_from_peer = True
             return data, None
         except LinkError:
             raise

@@ -229,6 +229,13 @@ class MavlinkOutput(QueuedOutput):
     def _discard_queued(self) -> bool:
         return self._link.discard_queued() if self._link is not None else False
 
+    def _stall_s(self) -> Optional[float]:
+        # TCP's discard is a reset: only for a peer that took nothing for half the budget.
+        return self._max_age_s / 2 if self.kind == "tcp" and self._max_age_s is not None else None
+
+    def _peer_reads(self) -> bool:
+        return self._link is not None and self._link.heard_from_peer
+
     def _close_link(self) -> None:
         link, self._link = self._link, None
         if link is not None:
