@@ -304,7 +304,7 @@ def fit_edges(
             if passes >= iterations + extra:
                 extra += 1
             continue
-        if wants_model:
+        if wants_model and border_fraction is not None:
             # The light of code cells behind the border reaches the profiles: modelled.
             sig_side = _side_blur(light, dark, rise, ok, m)
             sig_side = np.where(sig_side > 0.0, sig_side, blur_px)
