@@ -333,3 +333,18 @@ def test_config_and_the_owners_of_its_choices_import_in_any_order(first):
         [sys.executable, "-c", f"import {first}; import pose_daemon.config"], capture_output=True, text=True, timeout=60
     )
     assert res.returncode == 0, res.stderr
+
+
+def test_the_pi2_profile_is_the_pi_config_at_half_size_without_the_blur_model():
+    """config/pi2.toml: what it gives up is what its comments say, the rest is the Pi config."""
+    pi = load_config(ROOT / "config" / "pose-daemon.toml")
+    pi2 = load_config(ROOT / "config" / "pi2.toml")
+    assert (pi2.camera.width, pi2.camera.height) == (pi.camera.width // 2, pi.camera.height // 2)
+    # The same lens at half the resolution: the same field of view.
+    assert pi2.camera.fx == pi.camera.fx / 2 and pi2.camera.fy == pi.camera.fy / 2
+    assert (pi2.camera.cx + 0.5, pi2.camera.cy + 0.5) == ((pi.camera.cx + 0.5) / 2, (pi.camera.cy + 0.5) / 2)
+    assert pi2.camera.fps == pi.camera.fps == 30.0
+    assert pi2.detector.blur_model is False and pi.detector.blur_model is True
+    assert pi2.detector.search_budget_ms == 2.0
+    assert pi2.estimator == pi.estimator and pi2.marker == pi.marker and pi2.output == pi.output
+    assert pi2.mount == pi.mount and pi2.pipeline == pi.pipeline

@@ -98,3 +98,43 @@ def test_border_model_removes_the_code_light_from_defocused_edges(monkeypatch, g
     assert float(half_way.mean()) > 0.0008, half_way
     assert abs(float(sizes.mean())) < 0.5 * float(half_way.mean()), (sizes, half_way)
     assert corner_rms < half_way_rms
+
+
+def _tracked_small_sharp(monkeypatch, n: int, seed: int):
+    """(corner RMS of the tracked frames, border model fits) for sharp (0.8 px) ArUco markers
+    31-36 px across, little tilted (5-6 px cells, where the 3 px profiles end within reach of the code
+    cells' light), each frame detected twice: the second as a tracked frame."""
+    calls = [0]
+    fit_model = refine.fit_border_model
+
+    def counted(*args, **kwargs):
+        calls[0] += 1
+        return fit_model(*args, **kwargs)
+
+    monkeypatch.setattr(refine, "fit_border_model", counted)
+    rng = np.random.default_rng(seed)
+    errors, tracked_calls = [], 0
+    for i in range(n):
+        rvec, tvec = random_pose(rng, CAM, ARUCO, distance_m=(1.4, 1.6), max_tilt_deg=25)
+        image, truth = render(ARUCO, rvec, tvec, seed=seed + i, effects=Effects(blur_px=0.8))
+        detector = MarkerDetector(ARUCO)
+        assert detector.detect(image) is not None
+        before = calls[0]
+        corners = detector.detect(image)
+        tracked_calls += calls[0] - before
+        assert corners is not None and detector.last_stage == "follow"
+        errors.append(aligned(corners, truth) - truth)
+    err = np.concatenate(errors)
+    return float(np.sqrt(np.mean(np.sum(err**2, axis=1)))), tracked_calls
+
+
+def test_a_sharp_small_marker_is_fitted_without_the_border_model(monkeypatch) -> None:
+    """The border model costs several ms a frame; on a sharp edge, profiles shortened to stop
+    clear of the code cells see none of their light, so the plain fit is as good there.
+    Against the same frames with the model (shortening off)."""
+    shortened_rms, shortened_calls = _tracked_small_sharp(monkeypatch, 10, 71)
+    monkeypatch.setattr(refine, "SHORTEN_MARGIN", float("inf"))
+    model_rms, model_calls = _tracked_small_sharp(monkeypatch, 10, 71)
+    assert model_calls > 0  # these frames did run the model before
+    assert shortened_calls == 0
+    assert shortened_rms <= 1.05 * model_rms + 0.005, (shortened_rms, model_rms)

@@ -129,6 +129,9 @@ _LEVELS = np.arange(256, dtype=np.float64)
 
 #: The farthest any edge profile reaches outside a tracked outline (``reach_px``'s cap), pixels.
 MAX_REACH_PX = 3.0
+#: A follow whose edge fits led the outline further than its reach (a turn round) is
+#: followed once more from there while they moved it at most this many reaches.
+RELOCATE_MAX_REACHES = 3.0
 
 #: A run of whole-frame searches that find nothing (no marker in view) runs the full-size
 #: pass in one of every this many, the half-size pass in every one. The half-size pass finds
@@ -470,15 +473,26 @@ class OutlineFinder:
     def follow(self, gray: np.ndarray, predicted: np.ndarray) -> Optional[Candidate]:
         """The marker near ``predicted`` corners (tracked frames): edge fits from there, checked."""
         inner, outer = self.reach_px(predicted)
-        fit = self.refine(
-            gray,
-            predicted,
-            iterations=2,
-            max_move_px=0.8 * min(inner, outer) + 0.5,
-            reach=(inner, outer),
-            check_blur=False,
-        )
-        if fit is None or not self.verify_tracked(gray, fit):
+        max_move = 0.8 * min(inner, outer) + 0.5
+        fit = self.refine(gray, predicted, iterations=2, reach=(inner, outer), check_blur=False)
+        if fit is None:
+            return None
+        moved = float(np.abs(fit.corners - predicted).max())
+        if moved > max_move:
+            # The edges led the fit further than the follow's reach: where the camera turns
+            # round, the prediction (a step ahead) is two steps from the marker. Followed
+            # once more from where they led, within the same reach and checked as any: a
+            # tracked frame's cost, where the region search that found the same outline
+            # costs 3-5 times that (the frames of bench pipeline's p99).
+            if moved > RELOCATE_MAX_REACHES * max_move:
+                return None
+            start = fit.corners
+            inner, outer = self.reach_px(start)
+            max_move = 0.8 * min(inner, outer) + 0.5
+            fit = self.refine(gray, start, iterations=2, max_move_px=max_move, reach=(inner, outer), check_blur=False)
+            if fit is None:
+                return None
+        if not self.verify_tracked(gray, fit):
             return None
         return Candidate(fit.corners, self.oriented, fit)
 
