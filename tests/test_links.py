@@ -651,13 +651,13 @@ def test_a_tcp_reader_that_reads_slowly_but_steadily_is_never_reset():
         for k in range(6 * FPS):
             out.submit(vehicle_result(WALL, k, time.monotonic() - 0.07, (-2.0, 0.0, 0.0)))
             time.sleep(1 / FPS)
+        s = out.stats()  # before the peer goes: its closing the connection is a link failure
     finally:
+        out.close()
         stop.set()
         thread.join(5)
-        out.close()
         server.close()
-    s = out.stats()
-    assert s["link_failures"] == 0 and got["connections"] == 1, (out.status(), dict(got))
+    assert s["link_failures"] == 0 and got["connections"] == 1, (s, dict(got))
     assert "flushed" not in s["dropped"], out.status()
     assert got["ODOMETRY"] >= 30, (out.status(), dict(got))
 
