@@ -458,3 +458,23 @@ def test_px4_an_old_estimator_status_says_nothing_of_the_end_of_the_watch():
     assert "PROBLEM EKF2 does not use the feed (no status report)" in lines
     obs.ekf_reports.append((12.8, 0x39))
     assert "OK EKF2 uses the feed (flags 0x39)" in [f.line() for f in check_px4(cfg, obs)]
+
+
+def test_gps_vertical_velocity_is_a_problem_and_a_visual_odometry_fix_asks_for_a_reboot(tmp_path, capsys):
+    """Copter's default EK3_SRC1_VELZ (3, GPS) refuses to arm without a GPS ("EK3 sources require
+    GPS" in ArduCopter SITL); VISO_TYPE set live works only after a reboot ("PreArm: VisOdom: out
+    of memory" until then): --apply says so, exit 1, rather than judging a feed that cannot work yet."""
+    fc = FakeAutopilot("ardupilot", ekf_start_s=0.0, heartbeat_s=0.2, params={"EK3_SRC1_VELZ": 3, "VISO_TYPE": 0})
+    cfg = _config(tmp_path, fc.connection, "origin = [47.397742, 8.545594, 488.0]")
+    try:
+        code, lines = _run(capsys, "--config", cfg)
+        assert code == 1
+        assert any(ln.startswith("PROBLEM EK3_SRC1_VELZ = 3: vertical velocity from GPS") for ln in lines), lines
+        assert "FIX: EK3_SRC1_VELZ = 0" in lines and "FIX: VISO_TYPE = 1" in lines
+        code, lines = _run(capsys, "--config", cfg, "--apply")
+        assert "OK EK3_SRC1_VELZ = 0 set" in lines and "OK VISO_TYPE = 1 set" in lines, lines
+        assert any(ln.startswith("PROBLEM reboot the autopilot: VISO_TYPE takes effect") for ln in lines), lines
+        assert code == 1
+        assert fc.param("EK3_SRC1_VELZ") == 0 and fc.param("VISO_TYPE") == 1
+    finally:
+        fc.close()

@@ -12,8 +12,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser(
         "sim",
         help="rehearse the flight in ArduPilot or PX4 SITL with your config",
-        description=__doc__.splitlines()[0] + " Exit 0 when the mission passed, 1 when not (the reason "
-        "on one line), 2 for a config or link that cannot be used.",
+        description="pose-daemon sim: the daemon on frames rendered from ArduPilot or PX4 SITL's true vehicle "
+        "pose and, with --fly, the rehearsal mission (take-off, hold, blackout, landing). Exit 0 when the "
+        "mission passed, 1 when not (the reason on one line), 2 for a config or link that cannot be used.",
     )
     parser.add_argument(
         "--config", metavar="FILE", required=True, help="TOML config (its [camera] source becomes sitl)"

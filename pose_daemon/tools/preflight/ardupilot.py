@@ -39,6 +39,7 @@ ARDUPILOT_PARAMS = (
         "EK3_SRC1_POSXY",
         "EK3_SRC1_POSZ",
         "EK3_SRC1_VELXY",
+        "EK3_SRC1_VELZ",
         "EK3_SRC1_YAW",
         "GPS1_TYPE",
         "GPS_TYPE",
@@ -103,6 +104,9 @@ def check_ardupilot(cfg, obs: Observation, link_kind: str = "udpout") -> List[Fi
     want("EK3_SRC1_POSXY", (6,), 6, "EKF3 does not take horizontal position from external nav")
     want("EK3_SRC1_POSZ", (1, 6), 6, "height from neither external nav nor baro")
     want("EK3_SRC1_VELXY", (0,), 0, "no velocity is sent (ODOMETRY's are NaN)")
+    # Copter's default is 3 (GPS): without a GPS it refuses to arm, "EK3 sources require GPS"
+    # (seen in ArduCopter SITL V4.7.0-dev).
+    want("EK3_SRC1_VELZ", (0,), 0, "vertical velocity from GPS (or a source not sent): no arming without a GPS")
     want("EK3_SRC1_YAW", (1, 6), 6, "yaw from neither external nav nor compass")
     want("VISO_ORIENT", (0,), 0, "the daemon already sends the body frame")
     qmin = p.get("VISO_QUAL_MIN")

@@ -40,6 +40,9 @@ from .px4_events import MAV_CMD_RUN_PREARM_CHECKS, MSG_ID_EVENT, decode_event
 # EKF_STATUS_REPORT (ardupilotmega.xml, #193): ArduPilot streams it only at SRn_EXTRA3's rate,
 # 0 on Copter by default, so preflight asks for it (MAV_CMD_REQUEST_MESSAGE) while it watches.
 EKF_STATUS_REPORT_ID = 193
+# Parameters an autopilot reads only at its start (ArduPilot: the visual odometry backend; PX4: the
+# estimator and the MAVLink instances are set up at boot too, but they are not among the fixes).
+REBOOT_PARAMS = frozenset({"VISO_TYPE", "GPS1_TYPE", "GPS_TYPE"})
 GPS_GLOBAL_ORIGIN_ID = 49
 HOME_POSITION_ID = 242
 MAV_CMD_REQUEST_MESSAGE = 512
@@ -303,4 +306,12 @@ def _apply(out, watcher: _Watcher, fixes: Sequence[Finding], emit: Callable[[str
         else:
             emit(f"PROBLEM {f.param} was not set (the autopilot answered {fmt(got[0]) if got else 'nothing'})")
             ok = False
+    reboot = sorted({f.param for f in fixes if f.param in REBOOT_PARAMS})
+    if reboot:
+        # Seen in ArduCopter SITL: VISO_TYPE set live gives "PreArm: VisOdom: out of memory" until a reboot.
+        emit(
+            f"PROBLEM reboot the autopilot: {', '.join(reboot)} takes effect only at its start; "
+            "then run preflight again"
+        )
+        ok = False
     return ok

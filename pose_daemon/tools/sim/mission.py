@@ -172,9 +172,15 @@ class Mission:
     def _wait_for_vision(self) -> None:
         if not self._wait(self._vision_used, self.opt.ekf_wait_s, 0.2):
             poses = sum(1 for _t, ok in self.rec.frames if ok)
+            hint = (
+                ": is the marker in view from the ground? [sitl] marker_below_m is the camera's height over "
+                "it with the vehicle landed, and the whole marker must fit the frame from there"
+                if poses == 0
+                else ""
+            )
             raise MissionFailed(
                 f"the EKF did not use the vision feed in {self.opt.ekf_wait_s:g} s "
-                f"(the daemon found a pose in {poses} of {len(self.rec.frames)} frames)"
+                f"(the daemon found a pose in {poses} of {len(self.rec.frames)} frames){hint}"
             )
 
     def _set_target(self, target: np.ndarray) -> None:
