@@ -15,7 +15,11 @@ rehearsal rely on is modelled, each as the real simulator does it:
 - The EKF, to first order: ODOMETRY / VISION_POSITION_ESTIMATE positions (the vision frame is the
   EKF's local frame) pass an innovation gate (test ratio = (innovation / ``gate_m``)^2, <= 1
   fused with gain ``ekf_gain``, else ignored and counted); between them the estimate follows the
-  true velocity (the IMU). The first pose resets the estimate to it. LOCAL_POSITION_NED is this
+  true velocity (the IMU). The first pose resets the estimate to it. A pose is fused at its own
+  time, as ArduPilot does it: its ``time_usec`` is put on the autopilot's clock by the smallest
+  transport lag seen so far (GCS_MAVLINK::correct_offboard_timestamp_usec_to_ms, JitterCorrection),
+  and the innovation is taken against the estimate of that moment (the EKF's delayed horizon);
+  a pose that arrives late is not judged against where the vehicle has moved since. LOCAL_POSITION_NED is this
   estimate; EKF_STATUS_REPORT flags 0x33f while vision was fused in the last ``dead_reckoning_s``
   (1.5 s: the EKF dead-reckons on its IMU that long; 0x401: attitude and constant position
   mode otherwise) and pos_horiz_variance the last test ratio's
@@ -42,8 +46,9 @@ import select
 import socket
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Deque, Dict, List, Optional, Tuple
 
 SCALE_M = 0.011131884502145034  # metres per 1e-7 degree (ArduPilot's LOCATION_SCALING_FACTOR)
 G = 9.80665
@@ -127,6 +132,10 @@ class FakeSitl:
         self.v = [0.0, 0.0, 0.0]
         self.a_cmd = [0.0, 0.0, 0.0]
         self.est: Optional[List[float]] = None  # the EKF's position, vision frame
+        # (time, estimate) of the last seconds, and the smallest (arrival - time_usec) seen: a
+        # pose is fused against the estimate of its own moment.
+        self._est_log: Deque[Tuple[float, List[float]]] = deque(maxlen=2000)
+        self._min_lag_s: Optional[float] = None
         self.test_ratio = 0.0
         self.last_fused_s: Optional[float] = None
         self.armed = False
@@ -219,6 +228,8 @@ class FakeSitl:
             self.p[i] += self.v[i] * dt
             if self.est is not None:
                 self.est[i] += self.v[i] * dt  # the IMU between vision fixes
+        if self.est is not None:
+            self._est_log.append((now, list(self.est)))
         if self.p[2] >= 0.0 and (self.v[2] > 0.0 or not flying):
             self.p[2], self.v = 0.0, [0.0, 0.0, 0.0]
             if self.armed and self.mode in ("LAND", "AUTO.LAND"):
@@ -348,14 +359,36 @@ class FakeSitl:
             self.est = meas  # the first fix (or one after a long loss) resets the position
             self.test_ratio = 0.0
         else:
-            innovation = [m - e for m, e in zip(meas, self.est)]
+            t_meas = self._measurement_time(msg, now)
+            innovation = [m - e for m, e in zip(meas, self._estimate_at(t_meas))]
             self.test_ratio = sum(x * x for x in innovation[:2]) / self.gate_m**2
             if self.test_ratio > 1.0:
                 self.tally.ignored += 1
                 return
-            self.est = [e + self.ekf_gain * d for e, d in zip(self.est, innovation)]
+            correction = [self.ekf_gain * d for d in innovation]
+            self.est = [e + c for e, c in zip(self.est, correction)]
+            for t_logged, est in self._est_log:  # the estimates since then carry the correction
+                if t_logged >= t_meas:
+                    est[:] = [e + c for e, c in zip(est, correction)]
         self.last_fused_s = now
         self.tally.fused += 1
+
+    def _measurement_time(self, msg: Any, now: float) -> float:
+        """The pose's time on our clock: its time_usec plus the smallest lag seen (the daemon's
+        clock is the monotonic clock, as ours, but the fake does not rely on it)."""
+        stamp_s = float(msg.time_usec if msg.get_type() == "ODOMETRY" else msg.usec) / 1e6
+        lag_s = now - stamp_s
+        if self._min_lag_s is None or lag_s < self._min_lag_s:
+            self._min_lag_s = lag_s
+        return min(now, stamp_s + self._min_lag_s)
+
+    def _estimate_at(self, t_s: float) -> List[float]:
+        """The estimate at ``t_s`` (the newest one logged at or before it), else the oldest kept."""
+        assert self.est is not None
+        for t_logged, est in reversed(self._est_log):
+            if t_logged <= t_s:
+                return est
+        return self._est_log[0][1] if self._est_log else self.est
 
     def _set_mode(self, link: _Link, custom: int, now: float, sub: int = 0) -> int:
         if self.kind == "ardupilot":
