@@ -262,6 +262,5 @@ class FrameProcessor:
             # the covariance sent takes that information in, at the accuracy it was weighed at.
             result.prior_down_sigma_rad = math.radians(max(choice.attitude_sigma_deg, MIN_PRIOR_SIGMA_DEG))
         t_s = float(result.t_capture_s)
-        result.track_innovation = self.track.innovation(choice.pose.R, t_s)
-        self.track.follow(choice.pose, flipped=choice.flipped, t_capture_s=t_s)
+        result.track_innovation = self.track.follow(choice.pose, flipped=choice.flipped, t_capture_s=t_s)
         return choice.pose
