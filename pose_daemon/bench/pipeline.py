@@ -303,13 +303,14 @@ def _run(
     # Garbage collection between frames, as `pose-daemon run` does.
     from ..service import IdleCollector
 
+    collector = IdleCollector()
     pipeline = Pipeline.from_config(
         cfg,
         source,
         processor,
         functools.partial(open_outputs, cfg),
         on_written=on_written,
-        on_idle=IdleCollector().run,
+        on_idle=collector.run,
         frame_observer=tap,
     )
     outputs = pipeline.outputs
@@ -333,6 +334,7 @@ def _run(
         f"running {n_frames} frames at {fps:g} fps through detect -> estimate -> "
         f"{', '.join(o.name for o in outputs)} ..."
     )
+    collector.start()
     pipeline.start()
     pipeline.wait()
     elapsed = time.monotonic() - t0
