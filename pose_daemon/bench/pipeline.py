@@ -449,6 +449,14 @@ def machine() -> Tuple[str, bool]:
     return f"{platform.machine() or 'unknown'}, {os.cpu_count() or '?'} cores", False
 
 
+def software() -> str:
+    """The versions that set the per-call costs: Python, numpy, OpenCV."""
+    import cv2
+
+    python = f"Python {platform.python_version()} ({platform.machine()})"
+    return f"{python}, numpy {np.__version__}, OpenCV {cv2.__version__}"
+
+
 def stage_lines(report: Dict[str, Any], name: str, on_pi: bool) -> List[str]:
     """Each stage's median, p99 and max on this machine (and, off a Pi, the Pi 2 estimate):
     the figures a Pi user sends back to replace the estimate."""
@@ -468,6 +476,11 @@ def stage_lines(report: Dict[str, Any], name: str, on_pi: bool) -> List[str]:
             "  (process CPU: the processing thread's CPU time per frame, detect + estimate + hand-over; "
             "the wall-clock rows add waiting for the CPU)"
         )
+    lines.append(f"  software: {software()}")
     if on_pi:
-        lines.append(f"measured on {name}: this Pi's own figures, not an estimate (docs/performance.md#on-your-pi)")
+        lines.append(
+            f"measured on {name}: this Pi's own figures, not an estimate. Please send this whole output "
+            "with the command you ran in an issue titled 'bench pipeline on <your Pi model>': they replace "
+            "the x20 estimate (docs/performance.md#on-your-pi)"
+        )
     return lines
