@@ -91,7 +91,9 @@ def test_bench_pipeline_runs_a_users_config_and_prints_each_stage(tmp_path, caps
     head = re.search(r"per stage on this machine \((.+)\), 320x240 at 30 fps", out)
     assert head, out
     rows = {m[1]: m for m in re.finditer(r"^  (\w+(?: CPU)?) +([\d.]+) +([\d.]+) +([\d.]+) +(\d+)", out, re.M)}
-    assert {"detect", "estimate", "output", "total", "process CPU"} <= set(rows), out
+    assert {"detect", "estimate", "output", "total", "process CPU", "work"} <= set(rows), out
+    # The work row: every frame of the run processed again, back to back.
+    assert int(rows["work"][5]) == 45 and "(work: the same frames processed again back to back" in out
     for m in rows.values():
         assert float(m[2]) <= float(m[3]) <= float(m[4]) and int(m[5]) >= 1
 

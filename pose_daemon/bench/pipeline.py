@@ -102,6 +102,20 @@ class CpuTimedProcessor:
         return getattr(self.processor, name)
 
 
+def back_to_back_cpu_s(processor: Any, source: PacedSource, fps: float) -> np.ndarray:
+    """The thread CPU time (seconds) of each of the paced run's frames processed again, back to
+    back by a fresh ``processor``, stamped as at ``fps``: the work itself, without the pauses
+    between frames, after which a core that comes back from idle slow (cold caches, a lower
+    clock) doubled the paced run's CPU per frame on the development machine."""
+    cpu_s = np.zeros(source.frames)
+    for seq in range(source.frames):
+        frame = Frame(source.images[source.index(seq)], seq / fps, seq)
+        t0 = time.thread_time()
+        processor.process(frame)
+        cpu_s[seq] = time.thread_time() - t0
+    return cpu_s
+
+
 def rss_bytes() -> int:
     """Resident set size of this process (Linux /proc), bytes."""
     with open("/proc/self/statm") as f:
@@ -374,6 +388,7 @@ def _run(
             stages[stage] = np.asarray(values, dtype=float)
     if timed.count:
         stages["process CPU"] = timed.cpu_s[: timed.count].copy()
+    stages["work"] = back_to_back_cpu_s(FrameProcessor.from_config(cfg), source, fps)
     return {
         "config": cfg.name,
         "size": (cfg.camera.width, cfg.camera.height),
@@ -475,6 +490,11 @@ def stage_lines(report: Dict[str, Any], name: str, on_pi: bool) -> List[str]:
         lines.append(
             "  (process CPU: the processing thread's CPU time per frame, detect + estimate + hand-over; "
             "the wall-clock rows add waiting for the CPU)"
+        )
+    if "work" in stages:
+        lines.append(
+            "  (work: the same frames processed again back to back, without the pauses between them: "
+            "what the frames cost with the core awake; process CPU adds what its waking costs)"
         )
     lines.append(f"  software: {software()}")
     if on_pi:
