@@ -84,12 +84,28 @@ class IdleCollector:
 
     def __init__(self) -> None:
         self.frozen = False
+        self.started = False  # ``start`` froze the start-up objects
         self.collections = [0, 0, 0]  # idle collections per generation
+
+    def start(self) -> None:
+        """Before the first frame's capture (the source not yet opened): collect everything
+        once and freeze the survivors, the start-up's full collection, which the first idle
+        call would otherwise make between frames. There it held the interpreter 22-56 ms on a
+        loaded 2-core x86-64 machine, while a source that needs it (the demo's renders in the
+        daemon's process; a camera's own capture thread hands frames over in Python too) made
+        the next frame wait: 120 ms after its capture, dropped as late (issue 33)."""
+        if not gc.isenabled():
+            return
+        gc.collect()
+        gc.freeze()
+        self.started = True
 
     def run(self) -> None:
         if not gc.isenabled():
             return
         if not self.frozen:
+            # What the first frame built (lazy imports, tables) joins the frozen objects; after
+            # ``start`` the collection looks only at what was made since.
             gc.collect()
             gc.freeze()
             self.frozen = True
@@ -257,6 +273,7 @@ class Service:
         ping_every_s = wd_s / 2.0 if wd_s else None
         if self.attitude_link is not None:
             self.attitude_link.start()  # opened in its own thread: a link down now is retried
+        self.idle_collector.start()
         self.pipeline.start()
         if self.preview is not None:
             self.preview.start()

@@ -90,6 +90,32 @@ def test_synthetic_source_follows_the_trajectory_with_truth() -> None:
     assert np.array_equal(again.read().image, frames[0].image)
 
 
+@pytest.mark.parametrize("kind", ["wall", "floor"])
+def test_synthetic_source_makes_its_texture_levels_before_its_first_frame(kind) -> None:
+    """Every texture level a frame along the trajectory picks is made when the source opens,
+    none on a frame (the demo's frame 35, the first at a new level, was rendered so late that
+    it was dropped); the depths sampled over 200 s lie within the trajectory's depth range."""
+    from pose_daemon.render.effects import linear_effects
+    from pose_daemon.render.texture import marker_pyramid
+
+    cfg = Config.default()
+    camera = cfg.camera.model()
+    marker = Marker(0.2017)  # a texture of its own: texture.py caches them by size
+    source = SyntheticSource(camera, marker, trajectory=kind, realtime=False)
+    source.open()
+    pyramid = marker_pyramid(marker, linear_effects(source.effects))
+    made = []
+    pyramid._make = lambda ppm: made.append(ppm)  # a level made from here on is noted, not made
+    near, far = source.path.depth_range_m()
+    f_px = max(camera.fx, camera.fy) * source.effects.supersample
+    for t_s in np.arange(0.0, 200.0, 0.05):
+        depth = float(source.path.at(t_s).tvec[2])
+        assert near <= depth <= far
+        pyramid.pick(f_px / depth)  # what render_plane_layer asks for
+    assert made == []
+    source.close()
+
+
 def test_synthetic_source_paces_in_real_time_and_ends() -> None:
     clock = FakeClock()
     source = SyntheticSource(

@@ -202,6 +202,42 @@ def test_a_camera_turning_round_is_followed_not_searched() -> None:
             assert detector.last_stage == "follow", (i, detector.last_stage)
 
 
+def test_a_turn_whose_edge_fit_settled_takes_no_second_fit(monkeypatch) -> None:
+    """At the turn of the test above the follow's edge fit leads the outline 3 px from the
+    prediction (beyond the 2.9 px reach) and its last pass settles there: that fit is the
+    result, one edge fit as on any tracked frame, not two; a second one from its corners (what
+    was run before) moves them by 0.02 px and brings them no closer to the truth."""
+    from pose_daemon.detect import square
+
+    fits = []
+    real_fit_edges = square.fit_edges
+
+    def counted(gray, corners, **kwargs):
+        fit = real_fit_edges(gray, corners, **kwargs)
+        fits.append((np.array(corners, dtype=float), fit))
+        return fit
+
+    monkeypatch.setattr(square, "fit_edges", counted)
+    detector = MarkerDetector(ARUCO)
+    step_m = 2.6 / np.sqrt(2.0) / 250.0
+    turned = []
+    for i, k in enumerate([0, 1, 2, 3, 2, 1]):
+        image, truth = render(ARUCO, *facing_pose(5, 1.0, 15, shift_m=(k * step_m, k * step_m)), seed=80 + i)
+        fits.clear()
+        corners = detector.detect(image)
+        assert corners is not None and rms(aligned(corners, truth), truth) < 0.15
+        if i > 0:
+            assert detector.last_stage == "follow" and len(fits) == 1, (i, detector.last_stage, len(fits))
+            start, fit = fits[0]
+            if np.abs(fit.corners - start).max() > 2.9:
+                turned.append(i)
+                inner, outer = detector._finder.reach_px(fit.corners)
+                again = real_fit_edges(image, fit.corners, inner_px=inner, outer_px=outer, check_blur=False)
+                assert fit.settled and np.abs(again.corners - fit.corners).max() < 0.05
+                assert rms(fit.corners, truth) <= rms(again.corners, truth) + 0.005
+    assert turned == [4]
+
+
 def _inside(points: np.ndarray, region) -> bool:
     x0, y0, x1, y1 = region
     return bool(((points >= [x0, y0]) & (points <= [x1 - 1, y1 - 1])).all())

@@ -91,7 +91,9 @@ def test_bench_pipeline_runs_a_users_config_and_prints_each_stage(tmp_path, caps
     head = re.search(r"per stage on this machine \((.+)\), 320x240 at 30 fps", out)
     assert head, out
     rows = {m[1]: m for m in re.finditer(r"^  (\w+(?: CPU)?) +([\d.]+) +([\d.]+) +([\d.]+) +(\d+)", out, re.M)}
-    assert {"detect", "estimate", "output", "total", "process CPU"} <= set(rows), out
+    assert {"detect", "estimate", "output", "total", "process CPU", "work"} <= set(rows), out
+    # The work row: every frame of the run processed again, back to back.
+    assert int(rows["work"][5]) == 45 and "(work: the same frames processed again back to back" in out
     for m in rows.values():
         assert float(m[2]) <= float(m[3]) <= float(m[4]) and int(m[5]) >= 1
 
@@ -104,7 +106,11 @@ def test_a_raspberry_pi_reports_its_own_figures_not_the_estimate():
     report = {"size": (320, 240), "fps": 30.0, "stages_s": {"detect": np.array([0.020, 0.030, 0.025])}}
     on_pi = stage_lines(report, "Raspberry Pi 2 Model B Rev 1.1", True)
     assert "Pi 2 estimate" not in "\n".join(on_pi) and on_pi[-1].startswith("measured on Raspberry Pi 2")
+    # ... and how to send them, with the versions that set the per-call costs.
+    assert "in an issue titled 'bench pipeline on <your Pi model>'" in on_pi[-1]
+    assert re.fullmatch(r"  software: Python [\d.]+ \(\w+\), numpy [\w.]+, OpenCV [\w.-]+", on_pi[-2]), on_pi[-2]
     off_pi = stage_lines(report, "x86_64, 2 cores", False)
+    assert off_pi[-1].startswith("  software: Python") and "issue" not in "\n".join(off_pi)
     assert "Pi 2 estimate (x20)" in off_pi[1]
     assert off_pi[2].split()[-2:] == ["500.0", "598.0"]  # 25 ms median, 29.9 ms p99, x20
 

@@ -159,3 +159,26 @@ def test_the_track_predicts_a_steady_turn_and_leaves_a_jump_out_of_its_motion():
     assert track.innovation(moved[5][1], moved[5][0]).angle_deg < 1e-6
     track.reset()
     assert track.innovation(R6, t6) is None
+
+
+def test_a_frame_works_out_its_track_innovation_once(monkeypatch):
+    """The processor's innovation (sent with the pose's quality) is the one the track judged
+    the pose by when it followed it: worked out once a frame, not twice."""
+    from pose_daemon.pose.continuity import Track
+
+    worked_out = []
+    real = Track.innovation
+
+    def counted(self, R, t):
+        worked_out.append(real(self, R, t))
+        return worked_out[-1]
+
+    monkeypatch.setattr(Track, "innovation", counted)
+    truths, corners = _track(3, n=12)
+    proc = FrameProcessor(CAMERA, MARKER, detector=ScriptedDetector(corners))
+    for i in range(12):
+        worked_out.clear()
+        result = proc.process(Frame(IMAGE, i / 30.0, i))
+        assert result.pose is not None and len(worked_out) == 1, (i, len(worked_out))
+        assert result.track_innovation is worked_out[0]
+        assert (result.track_innovation is None) == (i < 2)

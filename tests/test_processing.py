@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from pose_daemon.capture.base import Frame
-from pose_daemon.processing.marker import FrameProcessor
+from pose_daemon.processing.marker import FrameProcessor, mean_side_px
 from pose_daemon.render import Effects, render_marker
 
 
@@ -57,3 +57,13 @@ def test_the_wall_flight_at_2_fps_with_frames_dropped_keeps_its_corner_labels():
             R = R_from_rvec(frame.metadata["true_rvec"]).T @ np.asarray(result.pose.R)
             assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 5.0, frame.seq
         assert sent >= 0.9 * seen, (seed, sent, seen)
+
+
+def test_the_mean_side_on_floats_is_numpys_to_the_bit():
+    """The marker's size the prior is given: the plain-float form gives numpy's figure exactly."""
+    rng = np.random.default_rng(7)
+    for corners in rng.uniform(-50.0, 700.0, (2000, 4, 2)):
+        expected = float(np.mean(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1)))
+        assert mean_side_px(corners) == expected
+    square = np.array([[10.0, 10.0], [40.0, 10.0], [40.0, 40.0], [10.0, 40.0]])
+    assert mean_side_px(square) == 30.0

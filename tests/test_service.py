@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import gc
 import os
 import signal
 import socket
@@ -186,6 +187,39 @@ def test_ready_watchdog_only_while_frames_flow_status_and_stopping(listener):
     # link must not hold up the exit); on a starved machine the last write may come after that.
     _wait_for(lambda: len(out.got) == 60 or out.stats()["link"] == "closed")
     assert [g[0] for g in out.got] == list(range(60))
+
+
+class FreezeWatchingSource(FakeSource):
+    """FakeSource that notes how many objects Python's collector had frozen when it was opened
+    (before the first frame's capture)."""
+
+    def open(self) -> None:
+        self.frozen_at_open = gc.get_freeze_count()
+        super().open()
+
+
+def test_start_up_objects_are_collected_and_frozen_before_the_first_frame(listener):
+    """The start-up's full collection comes before the source opens, not between the first
+    frames, where it held the interpreter for tens of ms while the demo's source rendered its
+    next frame (issue 33: the demo dropped a frame as late at start); the first idle call then
+    collects only what was made since."""
+    path, _ = listener
+    gc.unfreeze()  # what an earlier daemon in this process froze
+    source = FreezeWatchingSource(frames=20, period_s=0.005)
+    svc = Service(
+        _cfg(),
+        source=source,
+        outputs=outputs_of(FakeOutput),
+        processor=FakeProcessor(),
+        notifier=SdNotifier(path),
+        env={},
+    )
+    try:
+        assert svc.run() == 0
+        assert source.frozen_at_open > 1000
+        assert svc.idle_collector.started and svc.idle_collector.frozen
+    finally:
+        gc.unfreeze()
 
 
 def test_no_watchdog_without_watchdog_usec(listener):

@@ -102,6 +102,20 @@ class CpuTimedProcessor:
         return getattr(self.processor, name)
 
 
+def back_to_back_cpu_s(processor: Any, source: PacedSource, fps: float) -> np.ndarray:
+    """The thread CPU time (seconds) of each of the paced run's frames processed again, back to
+    back by a fresh ``processor``, stamped as at ``fps``: the work itself, without the pauses
+    between frames, after which a core that comes back from idle slow (cold caches, a lower
+    clock) doubled the paced run's CPU per frame on the development machine."""
+    cpu_s = np.zeros(source.frames)
+    for seq in range(source.frames):
+        frame = Frame(source.images[source.index(seq)], seq / fps, seq)
+        t0 = time.thread_time()
+        processor.process(frame)
+        cpu_s[seq] = time.thread_time() - t0
+    return cpu_s
+
+
 def rss_bytes() -> int:
     """Resident set size of this process (Linux /proc), bytes."""
     with open("/proc/self/statm") as f:
@@ -303,13 +317,14 @@ def _run(
     # Garbage collection between frames, as `pose-daemon run` does.
     from ..service import IdleCollector
 
+    collector = IdleCollector()
     pipeline = Pipeline.from_config(
         cfg,
         source,
         processor,
         functools.partial(open_outputs, cfg),
         on_written=on_written,
-        on_idle=IdleCollector().run,
+        on_idle=collector.run,
         frame_observer=tap,
     )
     outputs = pipeline.outputs
@@ -333,6 +348,7 @@ def _run(
         f"running {n_frames} frames at {fps:g} fps through detect -> estimate -> "
         f"{', '.join(o.name for o in outputs)} ..."
     )
+    collector.start()
     pipeline.start()
     pipeline.wait()
     elapsed = time.monotonic() - t0
@@ -372,6 +388,7 @@ def _run(
             stages[stage] = np.asarray(values, dtype=float)
     if timed.count:
         stages["process CPU"] = timed.cpu_s[: timed.count].copy()
+    stages["work"] = back_to_back_cpu_s(FrameProcessor.from_config(cfg), source, fps)
     return {
         "config": cfg.name,
         "size": (cfg.camera.width, cfg.camera.height),
@@ -447,6 +464,14 @@ def machine() -> Tuple[str, bool]:
     return f"{platform.machine() or 'unknown'}, {os.cpu_count() or '?'} cores", False
 
 
+def software() -> str:
+    """The versions that set the per-call costs: Python, numpy, OpenCV."""
+    import cv2
+
+    python = f"Python {platform.python_version()} ({platform.machine()})"
+    return f"{python}, numpy {np.__version__}, OpenCV {cv2.__version__}"
+
+
 def stage_lines(report: Dict[str, Any], name: str, on_pi: bool) -> List[str]:
     """Each stage's median, p99 and max on this machine (and, off a Pi, the Pi 2 estimate):
     the figures a Pi user sends back to replace the estimate."""
@@ -466,6 +491,16 @@ def stage_lines(report: Dict[str, Any], name: str, on_pi: bool) -> List[str]:
             "  (process CPU: the processing thread's CPU time per frame, detect + estimate + hand-over; "
             "the wall-clock rows add waiting for the CPU)"
         )
+    if "work" in stages:
+        lines.append(
+            "  (work: the same frames processed again back to back, without the pauses between them: "
+            "what the frames cost with the core awake; process CPU adds what its waking costs)"
+        )
+    lines.append(f"  software: {software()}")
     if on_pi:
-        lines.append(f"measured on {name}: this Pi's own figures, not an estimate (docs/performance.md#on-your-pi)")
+        lines.append(
+            f"measured on {name}: this Pi's own figures, not an estimate. Please send this whole output "
+            "with the command you ran in an issue titled 'bench pipeline on <your Pi model>': they replace "
+            "the x20 estimate (docs/performance.md#on-your-pi)"
+        )
     return lines

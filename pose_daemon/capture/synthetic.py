@@ -14,7 +14,7 @@ from ..attitude import Attitude
 from ..camera import Camera, Marker
 from ..errors import EndOfStream, SourceError
 from ..geometry import R_from_rvec, VehicleFrames
-from ..render import TRAJECTORY_MOUNTS, Effects, Trajectory, make_background, render_marker
+from ..render import TRAJECTORY_MOUNTS, Effects, Trajectory, make_background, prepare_marker, render_marker
 from ..render.map import MapTrajectory, render_map
 from .base import Frame
 
@@ -105,7 +105,9 @@ class SyntheticSource:
         """Render the first pose once, unseen, before the schedule starts: the renderer's first
         use costs several frames' time (65-100 ms against 20-40 here), which frame 0 would
         otherwise carry as capture latency, late for the budget with its processing. Its own
-        random stream: the frames' noise does not change."""
+        random stream: the frames' noise does not change. A marker's texture levels for every
+        depth of the trajectory are made here too: the demo's frame 35, the first at a new
+        level, took 50-170 ms to render on a loaded machine and was dropped as late."""
         truth = self.path.at(0.0)
         render = render_map if self.marker_map is not None else render_marker
         render(
@@ -117,6 +119,8 @@ class SyntheticSource:
             rng=np.random.default_rng([self.seed, 2]),
             background=self._background,
         )
+        if self.marker_map is None and isinstance(self.path, Trajectory):
+            prepare_marker(self.camera, self.marker, self.path.depth_range_m(), self.effects)
 
     def read(self) -> Frame:
         if self._rng is None:

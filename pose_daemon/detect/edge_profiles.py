@@ -30,6 +30,9 @@ class EdgeFit:
     valid_fraction: float  # share of profiles that crossed the edge cleanly
     blur_px: float = 0.0  # the edges' blur, Gaussian sigma, the most blurred side
     side_blur_px: Optional[np.ndarray] = None  # each side's (4,), from SIDE_BLUR_REPORT_PX on (fit_edges)
+    # The last pass met the fit's own stopping rule (it moved the corners less than its
+    # converged_px, its profiles centred on the edges): a fit from its corners would stay there.
+    settled: bool = False
 
 
 def signed_area(corners: np.ndarray) -> float:

@@ -210,6 +210,7 @@ def fit_edges(
     blur_px = 0.0  # the edges' blur (Gaussian sigma equivalent, the most blurred side), per pass
     passes, extra = 0, 0
     shortened = False  # the profiles were shortened clear of the code cells (once per fit)
+    settled = False  # the last pass met the stopping rule below
     while passes < iterations + extra:
         passes += 1
         d = current[NEXT] - current
@@ -400,11 +401,13 @@ def fit_edges(
                     extra += 1
                 continue
         if moved < converged_px and window_px >= 1.25 and not check_blur:
+            settled = True
             break
         if moved < converged_px and window_px >= 1.25:
             # Final unless the edges are so blurred that the windows were too narrow for the
             # half-way level or the profiles too close to the rounded corners.
             if window_px >= WINDOW_BLUR_SIGMAS * blur_px and clear_of_corners(u, length, end, blur_px):
+                settled = True
                 break
     if fit_parts is None:
         return None
@@ -423,4 +426,5 @@ def fit_edges(
         valid_fraction=valid_fraction,
         blur_px=blur_px,
         side_blur_px=side_blur,
+        settled=settled,
     )

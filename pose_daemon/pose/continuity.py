@@ -121,14 +121,18 @@ class Track:
         self.follow(chosen, flipped=chosen is not pose)
         return chosen
 
-    def follow(self, chosen: Pose, *, flipped: bool = False, t_capture_s: Optional[float] = None) -> None:
+    def follow(
+        self, chosen: Pose, *, flipped: bool = False, t_capture_s: Optional[float] = None
+    ) -> Optional[Innovation]:
         """The track follows ``chosen``, the pose finally sent whoever chose it (continuity or
         the attitude prior); ``flipped``: it is the estimator's alternative, counted in flips.
         With ``t_capture_s`` the pose joins the track's motion (``innovation``) unless it jumps
         more than TRACK_OUTLIER_ALLOWANCES turn allowances off it (TRACK_RESTART_MISSES such
-        in a row: the motion restarts from them)."""
+        in a row: the motion restarts from them). Returns the pose's ``innovation`` against the
+        track before it followed (None without ``t_capture_s``), worked out once per frame."""
         if flipped:
             self.flips += 1
+        inn = None
         if t_capture_s is not None:
             R = np.array(chosen.R, dtype=np.float64)
             inn = self.innovation(R, t_capture_s)
@@ -147,3 +151,4 @@ class Track:
         self.normal_ref = (
             n.copy() if self.normal_ref is None else ((1.0 - NORMAL_SMOOTHING) * self.normal_ref + NORMAL_SMOOTHING * n)
         )
+        return inn

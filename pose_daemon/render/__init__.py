@@ -15,6 +15,7 @@ from .poses import (
 from .scene import (
     RenderedFrame,
     aruco_texture,
+    prepare_marker,
     render_empty,
     render_frame,
     render_marker,
@@ -31,6 +32,7 @@ __all__ = [
     "render_empty",
     "render_frame",
     "aruco_texture",
+    "prepare_marker",
     "make_background",
     "marker_texture_grid",
     "trajectory",

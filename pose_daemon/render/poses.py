@@ -168,6 +168,12 @@ class Trajectory:
         R = R_cam_unrot @ R_UNROT_MARKER
         return TruePose(t_s=float(t_s), rvec=rvec_from_R(R), tvec=-R @ p_marker)
 
+    def depth_range_m(self) -> Tuple[float, float]:
+        """Bounds of the marker centre's depth in the camera frame (tvec's z) along the whole
+        trajectory, metres: the camera is ``dist`` (near..far) from the marker's plane and at
+        most 1.13 ``dist`` from its centre with the sway, aimed within 7 deg of it."""
+        return 0.95 * self.near, 1.15 * self.far
+
     def frames(self) -> VehicleFrames:
         """The mount and placement this trajectory flies with (TRAJECTORY_MOUNTS)."""
         return VehicleFrames.from_settings(TRAJECTORY_MOUNTS[self.kind], placement=self.kind)

@@ -31,6 +31,7 @@ __all__ = [
     "render_empty",
     "render_frame",
     "aruco_texture",
+    "prepare_marker",
 ]
 
 
@@ -96,6 +97,27 @@ def pose_arrays(rvec, tvec) -> Tuple[np.ndarray, np.ndarray]:
 
 
 _DEFAULT_EFFECTS = Effects()
+
+
+def prepare_marker(
+    camera: Camera, marker: Marker, depth_m: Tuple[float, float], effects: Effects = _DEFAULT_EFFECTS
+) -> None:
+    """Make now every texture level that ``render_marker`` picks for ``marker`` at depths from
+    ``depth_m[0]`` to ``depth_m[1]`` metres (the marker's z in the camera frame), which it
+    would otherwise make on the first frame at each new depth: 40-170 ms for one level on a
+    loaded 2-core x86-64 machine, longer than a frame period, so a paced source (the demo's)
+    delivered that frame too late to use."""
+    ss = max(1, int(effects.supersample))
+    f_px = max(camera.fx, camera.fy) * ss
+    pyramid = marker_pyramid(marker, linear_effects(effects))
+    # render_plane_layer asks for f * ss / depth texels per metre; the levels are a factor of
+    # 2 apart, so steps of 2 from the farthest depth's to the nearest's pick each one in between.
+    ppm, finest = f_px / max(float(depth_m[1]), 1e-3), f_px / max(float(depth_m[0]), 1e-3)
+    while True:
+        pyramid.pick(min(ppm, finest))
+        if ppm >= finest:
+            return
+        ppm *= 2.0
 
 
 def render_marker(
