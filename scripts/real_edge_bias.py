@@ -9,7 +9,7 @@ and each fitted side is held against the corners' line: its signed distance (out
 pixels, the size bias (twice the mean distance over the side) in % of the side, and the
 corner RMS. Read with the detector's ``gamma`` 1.0 (linear) and "srgb".
 
-    .venv/bin/python scripts/real_edge_bias.py ../shared/data/real-frames/lifecam_640x480 10 10 [--fit-gamma] [--held-out]
+    .venv/bin/python scripts/real_edge_bias.py ../shared/data/real-frames/lifecam_640x480 10 10 [--fit-gamma]
 
 Arguments: a folder of frames, the board's inner corners across and down; ``--fit-gamma``
 also finds the response exponent (``[detector] gamma``) at which the bias is zero; ``--held-out``
