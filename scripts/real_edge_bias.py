@@ -12,8 +12,10 @@ corner RMS. Read with the detector's ``gamma`` 1.0 (linear) and "srgb".
     .venv/bin/python scripts/real_edge_bias.py ../shared/data/real-frames/lifecam_640x480 10 10 [--fit-gamma]
 
 Arguments: a folder of frames, the board's inner corners across and down; ``--fit-gamma``
-also finds the response exponent (``[detector] gamma``) at which the bias is zero. Not in the test
-suite: the frames are not in users' clones (../shared/data/real-frames/README.md).
+also finds the response exponent (``[detector] gamma``) at which the bias is zero; ``--held-out``
+fits it on every other frame and reads the frames it did not see with it (a camera's exponent
+measured once, used on new frames). Not in the test suite: the frames are not in users' clones
+(../shared/data/real-frames/README.md).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 import cv2
 import numpy as np
@@ -72,12 +74,15 @@ def side_offsets(fitted: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return out
 
 
-def measure(folder: Path, cols: int, rows: int, gamma) -> Dict[str, float]:
+def frame_paths(folder: Path) -> List[Path]:
+    return [p for p in sorted(folder.iterdir()) if p.suffix.lower() in (".png", ".jpg", ".jpeg")]
+
+
+def measure(folder: Path, cols: int, rows: int, gamma, paths: Optional[List[Path]] = None) -> Dict[str, float]:
+    """The edge fit's bias read at ``gamma`` over the frames ``paths`` (default: the folder's)."""
     lut = decode_lut(gamma)
     offsets, sizes, corner_err, frames = [], [], [], 0
-    for path in sorted(folder.iterdir()):
-        if path.suffix.lower() not in (".png", ".jpg", ".jpeg"):
-            continue
+    for path in frame_paths(folder) if paths is None else paths:
         gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         grid = None if gray is None else board_corners(gray, cols, rows)
         if grid is None:
@@ -108,12 +113,20 @@ def measure(folder: Path, cols: int, rows: int, gamma) -> Dict[str, float]:
     }
 
 
-def fit_gamma(folder: Path, cols: int, rows: int, lo: float = 1.0, hi: float = 3.0, steps: int = 7) -> float:
+def fit_gamma(
+    folder: Path,
+    cols: int,
+    rows: int,
+    lo: float = 1.0,
+    hi: float = 3.0,
+    steps: int = 7,
+    paths: Optional[List[Path]] = None,
+) -> float:
     """The response exponent at which the edge fit's mean size bias on the board is zero
-    (bisection on [lo, hi]: the bias grows with the exponent)."""
+    (bisection on [lo, hi]: the bias grows with the exponent), over ``paths`` (default all)."""
     for _ in range(steps):
         mid = 0.5 * (lo + hi)
-        if measure(folder, cols, rows, mid)["size_bias_mean_pct"] < 0.0:
+        if measure(folder, cols, rows, mid, paths)["size_bias_mean_pct"] < 0.0:
             lo = mid
         else:
             hi = mid
@@ -127,6 +140,11 @@ def main(argv=None) -> int:
     parser.add_argument("rows", type=int, help="inner corners down")
     parser.add_argument(
         "--fit-gamma", action="store_true", help="also the [detector] gamma at which the size bias is zero"
+    )
+    parser.add_argument(
+        "--held-out",
+        action="store_true",
+        help="also: the exponent fitted on every other frame, the bias it leaves on the frames it did not see",
     )
     a = parser.parse_args(argv)
     if not a.folder.is_dir():
@@ -151,6 +169,20 @@ def main(argv=None) -> int:
             f"  gamma {g:.2f} zeroes the size bias: {r['size_bias_mean_pct']:+.2f} % mean, edge offset"
             f" {r['edge_offset_mean_px']:+.3f} px"
         )
+    if a.held_out:
+        paths = frame_paths(a.folder)
+        halves = (paths[0::2], paths[1::2])
+        for k, (fit_on, held) in enumerate((halves, halves[::-1])):
+            g = fit_gamma(a.folder, a.cols, a.rows, paths=fit_on)
+            r = measure(a.folder, a.cols, a.rows, g, held)
+            if not r["squares"]:
+                print(f"  held out ({'odd' if k == 0 else 'even'} frames): no board found")
+                continue
+            print(
+                f"  gamma {g:.2f} fitted on the {'even' if k == 0 else 'odd'} frames, read on the other"
+                f" {r['frames']}: size bias {r['size_bias_mean_pct']:+.2f} % mean, edge offset"
+                f" {r['edge_offset_mean_px']:+.3f} px"
+            )
     return 0
 
 

@@ -151,6 +151,9 @@ def test_recovers_intrinsics_and_distortion(board, chessboard_dir, charuco_dir, 
     cover = int(re.search(r"coverage of the image: (\d+)%", stdout).group(1))
     assert cover >= 90
     assert "[camera]" in out.read_text() and "OUTLIER" not in stdout
+    # These renders are linear: the response exponent measured on the board's dark squares is 1.
+    gamma = float(re.search(r"camera response: \[detector\] gamma = ([0-9.]+)", stdout).group(1))
+    assert abs(gamma - 1.0) < 0.15
 
 
 @pytest.mark.parametrize("seed", CHARUCO_SEEDS)

@@ -318,9 +318,13 @@ class ArucoFinder(OutlineFinder):
     def stages(self, gray: np.ndarray, roi: Optional[Roi]) -> List[Tuple[str, int]]:
         """Our own quadrilaterals and bit reading first (cheap); OpenCV's ArUco detector, with
         its several threshold scales, when they find nothing: in a region search always, in a
-        whole-frame search once in ``OPENCV_EVERY`` fruitless ones (the 8th, 16th, ...)."""
+        whole-frame search in the first of a run (after ``reset`` or a lost track: a marker
+        only it sees, such as one 70-80 deg off its face with 11-13 px short sides, is then
+        found on first sight, not up to 8 frames later) and once in ``OPENCV_EVERY`` fruitless
+        ones after it (the 8th, 16th, ...)."""
         own = super().stages(gray, roi)
-        if roi is not None or self.fruitless_searches % OPENCV_EVERY == OPENCV_EVERY - 1:
+        runs = self.fruitless_searches
+        if roi is not None or runs == 0 or runs % OPENCV_EVERY == OPENCV_EVERY - 1:
             return own + [("opencv", 1)]
         return own
 

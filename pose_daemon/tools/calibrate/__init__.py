@@ -38,6 +38,7 @@ from .fit import (
     refuse_too_few,
     report,
 )
+from .response import ResponseMeasurement, measure_response
 from .run import DEFAULT_MIN_COVERAGE, run_calibration
 
 __all__ = [
@@ -57,6 +58,7 @@ __all__ = [
     "OUTLIER_FACTOR",
     "OUTLIER_FLOOR_PX",
     "ROBUST_ROUNDS",
+    "ResponseMeasurement",
     "STATUS_INTERVAL_S",
     "VIEW_REJECT_SHARE",
     "ViewSelector",
@@ -66,6 +68,7 @@ __all__ = [
     "camera_toml",
     "camera_values",
     "distortion_difference_px",
+    "measure_response",
     "parse_board",
     "refuse_too_few",
     "report",

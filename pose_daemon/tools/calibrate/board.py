@@ -113,6 +113,7 @@ class BoardView:
     image_points: np.ndarray
     object_points: np.ndarray
     name: str = ""
+    gray: Optional[np.ndarray] = None  # the frame it was found in (the response exponent's measurement)
 
 
 class BoardDetector:
@@ -133,8 +134,12 @@ class BoardDetector:
     def detect(self, gray: np.ndarray, name: str = "") -> Optional[BoardView]:
         """The board's corners in ``gray``, or None when it is not found."""
         if self.spec.kind == "chessboard":
-            return self._detect_chessboard(gray, name)
-        return self._detect_charuco(gray, name)
+            view = self._detect_chessboard(gray, name)
+        else:
+            view = self._detect_charuco(gray, name)
+        if view is not None:
+            view.gray = gray.copy()
+        return view
 
     def _detect_chessboard(self, gray: np.ndarray, name: str) -> Optional[BoardView]:
         pattern = (self.spec.cols, self.spec.rows)

@@ -1,5 +1,6 @@
 """``pose-daemon calibrate``'s flow: views from a folder, a recording or the live camera, the fit,
-its report, and the [camera] section written out or into the config."""
+its report with the camera's response exponent, and the [camera] section written out or into
+the config."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from .board import BoardSpec
 from .camera_section import camera_toml, update_config_file
 from .collect import views_from_path, views_live
 from .fit import calibrate_views, refuse_too_few, report
+from .response import measure_response
 
 DEFAULT_MIN_COVERAGE = 0.5
 
@@ -76,6 +78,18 @@ def run_calibration(
             f"(need {min_coverage:.0%}); add views with the board near the edges and corners"
         )
 
+    response = measure_response(result.views, spec.square_m)
+    if response.exponent is not None:
+        say(
+            f"camera response: [detector] gamma = {response.exponent:.2f} puts the edge fits on the board's edges "
+            f"({response.squares} dark squares; read as linear {response.bias_linear_pct:+.2f} %, as sRGB "
+            f"{response.bias_srgb_pct:+.2f} % size bias): set it in the config's [detector] section"
+        )
+    else:
+        say(
+            f"camera response: not measured ({response.squares} dark squares fitted; read as linear "
+            f"{response.bias_linear_pct:+.2f} %, as sRGB {response.bias_srgb_pct:+.2f} % size bias)"
+        )
     cam = result.camera
     stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     comment = (
