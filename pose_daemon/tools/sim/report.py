@@ -82,6 +82,7 @@ def summarize(
         "autopilot": autopilot,
         "fly": fly,
         "armed": rec.ever_armed,
+        "arm_refusals": list(mission.arm_refusals) if mission is not None else [],
         "hold_err_rms_m": hold_rms,
         "hold_err_max_m": hold_max,
         "hold_track_rms_m": track_rms,
@@ -120,11 +121,14 @@ def table(summary: Dict[str, Any]) -> str:
     """The summary as aligned ``key  value`` lines (metres, shares), the verdict last."""
     lines = []
     for key, value in summary.items():
-        if key in ("reasons", "statustext"):
+        if key in ("reasons", "statustext", "arm_refusals"):
             continue
         shown = "-" if value is None else f"{value:.4f}" if isinstance(value, float) else str(value)
         limit = LIMITS.get(key)
         lines.append(f"{key:<20} {shown:>10}" + (f"   (limit {limit:g})" if limit is not None else ""))
+    refusals = summary.get("arm_refusals") or []
+    if refusals and summary["armed"]:
+        lines.append(f"{'armed after':<20} {len(refusals):>10}   refusals, the last: {refusals[-1]}")
     verdict = "PASSED" if not summary["reasons"] else "FAILED: " + "; ".join(summary["reasons"])
     return "\n".join(lines + [verdict])
 
