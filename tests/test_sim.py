@@ -83,6 +83,19 @@ def test_a_short_landing_rehearsal_passes_and_reports(tmp_path, capsys, kind, pa
     assert (tmp_path / "out" / "sim.png").stat().st_size > 0
 
 
+def test_a_landing_from_higher_up_holds_there_and_lands_on_the_pad(tmp_path):
+    """--climb-m: the hover (and so the landing's start) over the nested pad 3 m up, not 1 m."""
+    fake = FakeSitl("ardupilot", yaw_deg=-15.0)
+    try:
+        code, summary = _sim(tmp_path, fake, "--fly", "land", "--ekf-wait-s", "20", "--climb-m", "3", pad=True)
+    finally:
+        fake.close()
+    assert code == 0, summary["reasons"]
+    assert abs(summary["hold_height_m"] - 3.0) < 0.15
+    assert 0.0 <= summary["touchdown_err_m"] < 0.1
+    assert summary["descent_pose_share"] > 0.9
+
+
 def test_a_wrong_mount_fails_with_the_reason(tmp_path, capsys):
     fake = FakeSitl("ardupilot")
     try:

@@ -1,5 +1,5 @@
 """The rehearsal mission, flown as a ground station over the simulator link: wait for the EKF to
-use the vision feed, arm, take off to 1 m, hold, move 0.5 m and back, a marker blackout in the
+use the vision feed, arm, take off (1 m, or --climb-m), hold, move 0.5 m and back, a marker blackout in the
 hover, land. What the simulator says on the way is kept by the Recorder."""
 
 from __future__ import annotations
@@ -138,6 +138,7 @@ class Mission:
         self.kind: str = link.autopilot
         self.windows: Dict[str, Tuple[float, float]] = {}
         self.hold_target: Optional[np.ndarray] = None
+        self.takeoff_s: Optional[float] = None  # when it armed (our clock): the truth there is the ground
         self.targets: List[Tuple[float, np.ndarray]] = []  # (from time, target)
         self.arm_refusals: List[str] = []  # each refused attempt's STATUSTEXT (or result)
         self._setpoint: Optional[np.ndarray] = None
@@ -242,13 +243,15 @@ class Mission:
         elif self._command(MAV_CMD_DO_SET_MODE, MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, COPTER_GUIDED) != 0:
             raise self._refusal("GUIDED refused", t0)
         self._arm()
+        self.takeoff_s = self.clock()
         if self.kind == "ardupilot":
             if self._command(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0, self.opt.climb_m) != 0:
                 raise self._refusal("takeoff refused", t0)
         self.hold_target = hover
         self.targets.append((self.clock(), hover.copy()))
-        if not self._reach(hover, self.opt.step_timeout_s, tolerance_m=0.1):
-            raise MissionFailed(f"did not reach {self.opt.climb_m:g} m in {self.opt.step_timeout_s:g} s")
+        climb_s = self.opt.step_timeout_s + self.opt.climb_m  # 1 m/s: ArduCopter climbs at 2.5, PX4 at 1-3
+        if not self._reach(hover, climb_s, tolerance_m=0.1):
+            raise MissionFailed(f"did not reach {self.opt.climb_m:g} m in {climb_s:g} s")
         self._set_target(hover)
 
     def _arm(self) -> None:
