@@ -29,11 +29,13 @@ rehearsal rely on is modelled, each as the real simulator does it:
   (``wind_mps2``, ``gust_mps2``: a first-order random process, seeded) while airborne: ArduPilot GUIDED (custom mode 4:
   refused without a position estimate, "Mode change to GUIDED failed: requires position"),
   arming (MAV_CMD_COMPONENT_ARM_DISARM; refused with STATUSTEXT "PreArm: Need Position
-  Estimate", or ``prearm_failure``'s text), MAV_CMD_NAV_TAKEOFF (param7 metres above where it
-  armed), SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_LOCAL_NED, LAND (custom mode 9) at 0.5 m/s
-  holding its position, disarming 1 s after touchdown. PX4: OFFBOARD (main mode 6) accepted only
-  with a setpoint streamed in the last 0.5 s, arming likewise refused without a position
-  estimate ("Arming denied: no local position"), MAV_CMD_NAV_LAND = AUTO.LAND (main 4, sub 6).
+  Estimate", or ``prearm_failure``'s text, or "Arm: Accels inconsistent" until its two IMUs'
+  accelerometers have agreed for ``accels_settle_s`` after boot: AP_Arming's 10 s),
+  MAV_CMD_NAV_TAKEOFF (param7 metres above where it armed), SET_POSITION_TARGET_LOCAL_NED in
+  MAV_FRAME_LOCAL_NED, LAND (custom mode 9) at 0.5 m/s holding its position, disarming 1 s after
+  touchdown. PX4: OFFBOARD (main mode 6) accepted only with a setpoint streamed in the last 0.5
+  s, arming likewise refused without a position estimate ("Arming denied: no local position"),
+  MAV_CMD_NAV_LAND = AUTO.LAND (main 4, sub 6).
 - STATUSTEXT goes to the GCS link only once it heard a GCS HEARTBEAT there (PX4 does so; here
   both do, which costs the tests nothing).
 """
@@ -110,6 +112,7 @@ class FakeSitl:
         gust_mps2: float = 0.1,
         seed: int = 0,
         dead_reckoning_s: float = 1.5,
+        accels_settle_s: float = 0.0,
     ) -> None:
         from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
@@ -120,6 +123,7 @@ class FakeSitl:
         self.gate_m, self.ekf_gain = gate_m, ekf_gain
         self.dead_reckoning_s = dead_reckoning_s
         self.prearm_failure = prearm_failure
+        self.accels_settle_s = accels_settle_s
         self.wind_mps2, self.gust_mps2 = wind_mps2, gust_mps2
         self._rng = random.Random(seed)
         self._gust = [0.0, 0.0]
@@ -445,6 +449,8 @@ class FakeSitl:
             self.armed, self.target = False, None
             return 0
         reason = self.prearm_failure
+        if reason is None and self.kind == "ardupilot" and now - self._t_boot < self.accels_settle_s:
+            reason = "Arm: Accels inconsistent"
         if reason is None and not self._fusing(now):
             reason = (
                 "PreArm: Need Position Estimate" if self.kind == "ardupilot" else "Arming denied: no local position"

@@ -85,6 +85,19 @@ def test_a_short_landing_rehearsal_passes_and_reports(tmp_path, capsys, kind, pa
     assert (tmp_path / "out" / "sim.png").stat().st_size > 0
 
 
+def test_a_landing_from_higher_up_holds_there_and_lands_on_the_pad(tmp_path):
+    """--climb-m: the hover (and so the landing's start) over the nested pad 3 m up, not 1 m."""
+    fake = FakeSitl("ardupilot", yaw_deg=-15.0)
+    try:
+        code, summary = _sim(tmp_path, fake, "--fly", "land", "--ekf-wait-s", "20", "--climb-m", "3", pad=True)
+    finally:
+        fake.close()
+    assert code == 0, summary["reasons"]
+    assert abs(summary["hold_height_m"] - 3.0) < 0.15
+    assert 0.0 <= summary["touchdown_err_m"] < 0.1
+    assert summary["descent_pose_share"] > 0.9
+
+
 def test_a_wrong_mount_fails_with_the_reason(tmp_path, capsys):
     fake = FakeSitl("ardupilot")
     try:
@@ -100,16 +113,47 @@ def test_a_wrong_mount_fails_with_the_reason(tmp_path, capsys):
     assert err[-1].startswith("pose-daemon sim: failed: the EKF did not use the vision feed")
 
 
-def test_an_arming_refusal_is_reported_with_the_autopilots_words(tmp_path):
+def test_an_arming_refusal_is_retried_then_reported_with_the_autopilots_words(tmp_path):
     fake = FakeSitl("ardupilot", prearm_failure="PreArm: Compass not calibrated")
     try:
-        code, summary = _sim(tmp_path, fake, "--fly", "hold", "--ekf-wait-s", "20")
+        code, summary = _sim(tmp_path, fake, "--fly", "hold", "--ekf-wait-s", "20", "--arm-wait-s", "3")
     finally:
         fake.close()
     assert code == 1
     assert summary["armed"] is False
-    assert summary["reasons"] == ["not armed: PreArm: Compass not calibrated"]
+    (reason,) = summary["reasons"]
+    assert reason.startswith("not armed in 3 s (") and reason.endswith(" tries): PreArm: Compass not calibrated")
+    assert summary["arm_refusals"] == ["PreArm: Compass not calibrated"] * len(fake.tally.arm_refusals)
+    assert len(fake.tally.arm_refusals) >= 1
     assert "PreArm: Compass not calibrated" in summary["statustext"]
+
+
+def test_arming_refused_while_the_accels_settle_is_retried_until_it_arms(tmp_path, capsys):
+    """ArduPilot refuses "Arm: Accels inconsistent" until its IMUs have agreed 10 s after boot: a
+    rehearsal started right after the simulator must retry as a ground station's user would.
+    The fake's settling ends after it has refused twice (not on a clock: the test does not race the machine)."""
+    import threading
+
+    fake = FakeSitl("ardupilot", accels_settle_s=1e9)
+
+    def settle() -> None:
+        while len(fake.tally.arm_refusals) < 2 and not fake._stop:
+            threading.Event().wait(0.05)
+        fake.accels_settle_s = 0.0
+
+    watcher = threading.Thread(target=settle, daemon=True)
+    watcher.start()
+    try:
+        code, summary = _sim(tmp_path, fake, "--fly", "hold", "--ekf-wait-s", "20", "--arm-wait-s", "60")
+    finally:
+        fake.close()
+        watcher.join(1.0)
+    assert code == 0, summary["reasons"]
+    assert summary["armed"] is True and summary["reasons"] == []
+    refusals = fake.tally.arm_refusals
+    assert len(refusals) >= 2 and summary["arm_refusals"] == ["Arm: Accels inconsistent"] * len(refusals)
+    shown = f"{'armed after':<20} {len(refusals):>10}   refusals, the last: Arm: Accels inconsistent"
+    assert shown in capsys.readouterr().out
 
 
 def test_no_simulator_is_exit_2_with_one_line(tmp_path, capsys, monkeypatch):

@@ -234,3 +234,44 @@ def test_the_nested_pad_gives_a_pose_on_the_ground_and_in_the_air():
     assert close[1] == (0,) and set(far[1]) == {0, 16}  # the small marker alone near the ground
     np.testing.assert_allclose(close[0], [0.01, -0.005, -0.15], atol=0.01)
     np.testing.assert_allclose(far[0], [0.01, -0.005, -1.45], atol=0.03)
+
+
+DEFAULTS_CONFIG = """
+[camera]
+source = "sitl"
+[marker]
+placement = "floor"
+[mount]
+preset = "down"
+[attitude]
+source = "none"
+[sitl]
+connection = "{conn}"
+"""
+
+
+@pytest.mark.parametrize("below", [None, 0.1], ids=["default", "0.1"])
+def test_the_default_camera_height_sees_the_default_marker_from_the_ground_at_any_heading(below):
+    """The EKF must take the feed before take-off, so the camera on the ground must see the
+    marker whole: the default camera (640x480, fx 500) over the default 0.2 m marker, from the
+    default marker_below_m at every heading; from 0.1 m (the old default) the marker overfills the view."""
+    fake = FakeSitl("ardupilot")
+    text = DEFAULTS_CONFIG.format(conn=fake.gcs_connection)
+    cfg = parse_config(text if below is None else text + f"marker_below_m = {below}\n", "defaults.toml")
+    source = open_source(cfg.camera, cfg)
+    processor = FrameProcessor.from_config(cfg)
+    found = []
+    source.open()
+    try:
+        for yaw_deg in (0.0, 20.0, 45.0, 70.0):  # the square's diagonal at 45 deg is its widest
+            with fake._lock:
+                fake.yaw_rad = math.radians(yaw_deg)
+            time.sleep(0.2)
+            frame = source.read()
+            while frame.metadata["truth_t_s"] < time.monotonic() - 0.1:  # a frame of the new heading
+                frame = source.read()
+            found.append(processor.process(frame).pose is not None)
+    finally:
+        source.close()
+        fake.close()
+    assert found == ([True] * 4 if below is None else [False] * 4)

@@ -52,7 +52,7 @@ class SitlSource:
         baud: int = 921600,
         source_system: int = 255,
         source_component: int = 190,
-        marker_below_m: float = 0.1,
+        marker_below_m: float = 0.4,
         truth_timeout_s: float = 2.0,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,

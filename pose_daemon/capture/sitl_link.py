@@ -152,7 +152,7 @@ class SitlLink:
         baud: int = 921600,
         source_system: int = 255,
         source_component: int = 190,
-        marker_below_m: float = 0.1,
+        marker_below_m: float = 0.4,
         truth_rate_hz: float = 30.0,
         origin: Optional[Tuple[int, int, float]] = None,
         clock: Callable[[], float] = time.monotonic,

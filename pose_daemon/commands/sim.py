@@ -27,6 +27,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--ekf-wait-s", type=float, default=60.0, help="how long the EKF may take to use the feed (default 60)"
     )
+    parser.add_argument(
+        "--climb-m",
+        type=float,
+        default=1.0,
+        help="height of the hover over where it took off, metres: the landing starts from there (default 1)",
+    )
+    parser.add_argument(
+        "--arm-wait-s",
+        type=float,
+        default=30.0,
+        help="how long a refused arming is retried, every 2 s, as a ground station's user would (default 30)",
+    )
     parser.set_defaults(func=run)
 
 
@@ -39,5 +51,11 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--hold-s must be in [1, 3600], got {args.hold_s:g}")
     if not 1.0 <= args.ekf_wait_s <= 3600.0:
         raise UserError(f"--ekf-wait-s must be in [1, 3600], got {args.ekf_wait_s:g}")
-    options = MissionOptions(hold_s=args.hold_s, ekf_wait_s=args.ekf_wait_s)
+    if not 0.0 <= args.arm_wait_s <= 3600.0:
+        raise UserError(f"--arm-wait-s must be in [0, 3600], got {args.arm_wait_s:g}")
+    if not 0.5 <= args.climb_m <= 100.0:
+        raise UserError(f"--climb-m must be in [0.5, 100], got {args.climb_m:g}")
+    options = MissionOptions(
+        hold_s=args.hold_s, ekf_wait_s=args.ekf_wait_s, arm_wait_s=args.arm_wait_s, climb_m=args.climb_m
+    )
     return run_sim(load_config(args.config), fly=args.fly, out_dir=args.out, options=options)

@@ -402,10 +402,11 @@ class SitlConfig:
         "a slow camera: each frame shows the truth this much older than its capture time, seconds",
     )
     marker_below_m: float = setting(
-        0.1,
+        0.4,
         Rule("float", lo=0, hi=10),
         "the marker (map, pad) origin lies this far below the vehicle where it stood when the "
-        "source started: the camera's height over the pad on the ground, metres",
+        "source started: the camera's height over the pad on the ground, metres (the default "
+        "camera sees the default 0.2 m marker whole from 0.4 m at any heading, not from 0.1)",
     )
     truth_timeout_s: float = setting(
         2.0, Rule("float", lo=0.1, hi=60), "no truth message for this long = the source failed (reopened)"

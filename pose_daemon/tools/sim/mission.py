@@ -1,13 +1,15 @@
 """The rehearsal mission, flown as a ground station over the simulator link: wait for the EKF to
-use the vision feed, arm, take off to 1 m, hold, move 0.5 m and back, a marker blackout in the
+use the vision feed, arm, take off (1 m, or --climb-m), hold, move 0.5 m and back, a marker blackout in the
 hover, land. What the simulator says on the way is kept by the Recorder."""
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
@@ -15,6 +17,8 @@ import numpy as np
 from ...geometry import VehicleFrames
 
 __all__ = ["MissionOptions", "Recorder", "Mission", "MissionFailed"]
+
+log = logging.getLogger("pose_daemon.sim")
 
 # MAVLink values (common.xml, ArduCopter's and PX4's custom modes).
 MAV_CMD_NAV_LAND = 21
@@ -47,6 +51,8 @@ class MissionOptions:
     fly: str = "land"
     hold_s: float = 30.0
     ekf_wait_s: float = 60.0
+    arm_wait_s: float = 30.0
+    arm_retry_s: float = 2.0
     climb_m: float = 1.0
     move_m: float = 0.5
     blackout_s: float = 1.5
@@ -132,7 +138,9 @@ class Mission:
         self.kind: str = link.autopilot
         self.windows: Dict[str, Tuple[float, float]] = {}
         self.hold_target: Optional[np.ndarray] = None
+        self.takeoff_s: Optional[float] = None  # when it armed (our clock): the truth there is the ground
         self.targets: List[Tuple[float, np.ndarray]] = []  # (from time, target)
+        self.arm_refusals: List[str] = []  # each refused attempt's STATUSTEXT (or result)
         self._setpoint: Optional[np.ndarray] = None
         self._stop = threading.Event()
         self._streamer: Optional[threading.Thread] = None
@@ -234,17 +242,51 @@ class Mission:
                 raise self._refusal("OFFBOARD refused", t0)
         elif self._command(MAV_CMD_DO_SET_MODE, MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, COPTER_GUIDED) != 0:
             raise self._refusal("GUIDED refused", t0)
-        result = self._command(MAV_CMD_COMPONENT_ARM_DISARM, 1)
-        if result != 0 or not self._wait(lambda: self.rec.armed, 3.0):
-            raise self._refusal("not armed", t0)
+        self._arm()
+        self.takeoff_s = self.clock()
         if self.kind == "ardupilot":
             if self._command(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0, self.opt.climb_m) != 0:
                 raise self._refusal("takeoff refused", t0)
         self.hold_target = hover
         self.targets.append((self.clock(), hover.copy()))
-        if not self._reach(hover, self.opt.step_timeout_s, tolerance_m=0.1):
-            raise MissionFailed(f"did not reach {self.opt.climb_m:g} m in {self.opt.step_timeout_s:g} s")
+        climb_s = self.opt.step_timeout_s + self.opt.climb_m  # 1 m/s: ArduCopter climbs at 2.5, PX4 at 1-3
+        if not self._reach(hover, climb_s, tolerance_m=0.1):
+            raise MissionFailed(f"did not reach {self.opt.climb_m:g} m in {climb_s:g} s")
         self._set_target(hover)
+
+    def _arm(self) -> None:
+        """Arm as a ground station's user would: a refusal that may pass later (ArduPilot's
+        "Arm: Accels inconsistent" for its first 10 s after boot, a gyro still settling) is
+        retried every ``arm_retry_s`` until ``arm_wait_s``; every refusal's words are kept."""
+        deadline = self.clock() + self.opt.arm_wait_s
+        while True:
+            t_try = self.clock()
+            result = self._command(MAV_CMD_COMPONENT_ARM_DISARM, 1)
+            if result == 0 and self._wait(lambda: self.rec.armed, 3.0):
+                return
+            self._wait(partial(self._said_about_arming, t_try), 0.5)  # its words follow the ACK
+            said = self._arm_words(t_try)
+            self.arm_refusals.append(said or f"COMMAND_ACK result {result}")
+            if self.clock() + self.opt.arm_retry_s > deadline:
+                break
+            log.info("sim: arming refused (%s); again in %g s", self.arm_refusals[-1], self.opt.arm_retry_s)
+            time.sleep(self.opt.arm_retry_s)
+        tries = len(self.arm_refusals)
+        raise MissionFailed(
+            f"not armed in {self.opt.arm_wait_s:g} s ({tries} tries): {self.arm_refusals[-1]}"
+            if said
+            else f"not armed in {self.opt.arm_wait_s:g} s ({tries} tries; the autopilot said nothing)"
+        )
+
+    def _arm_words(self, since_s: float) -> Optional[str]:
+        """The autopilot's refusal since ``since_s``: its last STATUSTEXT naming arming
+        ("PreArm: ...", "Arm: ...", "Arming denied: ..."), else its last STATUSTEXT."""
+        said = [text for t, text in self.rec.texts if t >= since_s]
+        about = [text for text in said if "arm" in text.lower()]
+        return (about or said)[-1] if said else None
+
+    def _said_about_arming(self, since_s: float) -> bool:
+        return self._arm_words(since_s) is not None
 
     def _reach(self, target: np.ndarray, timeout_s: float, tolerance_m: float) -> bool:
         def there() -> bool:

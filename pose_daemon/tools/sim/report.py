@@ -63,8 +63,12 @@ def summarize(
     hold = windows.get("hold")
     hold_rms, hold_max = _horizontal(_ekf_errors(rec, hold))
     track = []
+    height = None
     if mission is not None and mission.hold_target is not None:
         track = [p - mission.hold_target for _t, p in _between(rec.truth, hold)]
+        start = _truth_at(rec, mission.takeoff_s) if mission.takeoff_s is not None else None
+        held = [float(start[2] - p[2]) for _t, p in _between(rec.truth, hold)] if start is not None else []
+        height = float(np.mean(held)) if held else None
     track_rms, _ = _horizontal(track)
     status = _between([(t, (flags, ratio)) for t, flags, ratio in rec.ekf_status], hold)
     ignored = [flags & POS_HORIZ_FLAGS != POS_HORIZ_FLAGS or ratio > 1.0 for _t, (flags, ratio) in status]
@@ -82,6 +86,8 @@ def summarize(
         "autopilot": autopilot,
         "fly": fly,
         "armed": rec.ever_armed,
+        "arm_refusals": list(mission.arm_refusals) if mission is not None else [],
+        "hold_height_m": height,
         "hold_err_rms_m": hold_rms,
         "hold_err_max_m": hold_max,
         "hold_track_rms_m": track_rms,
@@ -120,11 +126,14 @@ def table(summary: Dict[str, Any]) -> str:
     """The summary as aligned ``key  value`` lines (metres, shares), the verdict last."""
     lines = []
     for key, value in summary.items():
-        if key in ("reasons", "statustext"):
+        if key in ("reasons", "statustext", "arm_refusals"):
             continue
         shown = "-" if value is None else f"{value:.4f}" if isinstance(value, float) else str(value)
         limit = LIMITS.get(key)
         lines.append(f"{key:<20} {shown:>10}" + (f"   (limit {limit:g})" if limit is not None else ""))
+    refusals = summary.get("arm_refusals") or []
+    if refusals and summary["armed"]:
+        lines.append(f"{'armed after':<20} {len(refusals):>10}   refusals, the last: {refusals[-1]}")
     verdict = "PASSED" if not summary["reasons"] else "FAILED: " + "; ".join(summary["reasons"])
     return "\n".join(lines + [verdict])
 
