@@ -178,6 +178,7 @@ class FakeAutopilot:
         px4_sync: bool = False,
         px4_events: bool = False,
         arming_failures: Optional[Dict[str, str]] = None,
+        gps: bool = False,
     ) -> None:
         # ArduPilot's dialect (common.xml and EKF_STATUS_REPORT); PX4 uses only common messages.
         from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -214,6 +215,8 @@ class FakeAutopilot:
         assert not px4_events or kind == "px4"
         self.px4_events = px4_events
         self.arming_failures = dict(arming_failures or {})
+        assert not gps or kind == "px4"
+        self.gps = gps  # PX4: EKF2 fuses GPS (its ESTIMATOR_STATUS flags say so)
         self.gcs_heard = False
         self.events_sent: List[Tuple[str, int, bytes]] = []  # (name, log level, arguments)
         self._event_seq = 65535 - 10  # events::initial_event_sequence
@@ -321,11 +324,25 @@ class FakeAutopilot:
         self.events_sent.append((name, level, arguments))
 
     def _report_arming_checks(self) -> None:
-        """commander's Report::report: the summary, then each failing check (log level error)."""
-        local_position_estimate = 17  # health_component_t bit
-        errors = (1 << local_position_estimate) if self.arming_failures else 0
-        can_arm = 0 if self.arming_failures else 0x7FFFFFFF
-        self._event("commander_arming_check_summary", 8, struct.pack("<BIIII", 0, errors, 0, can_arm, can_arm))
+        """commander's Report::report as a real PX4 SITL sent it on its onboard link with no RC,
+        no mission and no offboard setpoints: the summary (errors: system, from the offboard
+        check; warnings: remote_control; can_arm 0x807f3ab0: Hold, takeoff, land, not position
+        mode, which needs manual control), then each check: "No valid mission available" (info,
+        mission mode), "No offboard signal" (error, offboard mode only), "No manual control
+        input" (warning, every mode), "No connection to the ground control station" (info);
+        then each of ``arming_failures`` (error, every mode; local_position_estimate), which
+        leave no mode that needs a position."""
+        local_position_estimate, system, remote_control, communication_links = 17, 20, 7, 12
+        errors = 1 << system | ((1 << local_position_estimate) if self.arming_failures else 0)
+        can_arm = 0x807F3AB0
+        if self.arming_failures:
+            can_arm &= ~(4 | 8 | 16 | 32 | 0x4000 | 0x20000 | 0x40000 | 0x100000 | 0x200000)
+        summary = struct.pack("<BIIII", 0, errors, 1 << remote_control, can_arm, can_arm)
+        self._event("commander_arming_check_summary", 8, summary)
+        self._event("check_modes_mission", 6, struct.pack("<IB", 8, 20))
+        self._event("check_modes_offboard_signal", 3, struct.pack("<IB", 0x4000, system))
+        self._event("check_modes_manual_control", 4, struct.pack("<IB", 0xFFFFFFFF, remote_control))
+        self._event("check_rc_dl_no_dllink", 6, struct.pack("<IB", 0xFFFFFFFF, communication_links))
         for name, text in self.arming_failures.items():
             self._event(name, 3, struct.pack("<IB", 0xFFFFFFFF, local_position_estimate))
             self._text(2, text)
@@ -357,7 +374,15 @@ class FakeAutopilot:
             if ekf_us > 0 and self._every("ekf", ekf_us / 1e6, now):
                 self._ekf_status_report(now)
         elif self._every("ekf", 0.5, now):
-            flags = 0x01 | (0x08 | 0x10 | 0x20 if self._fusing(now) and self.origin is not None else 0)
+            # As a real PX4 SITL's EKF2 (ekf_helper.cpp): the horizontal position bits (8, 16 with
+            # an origin) are on also while it holds a constant position with no source (0xef);
+            # bit 8 (PRED_POS_HORIZ_REL) only while a position is fused: the feed, or GPS
+            # (``gps=True``: bit 9 too, 0x3ff, as with PX4's default EKF2_GPS_CTRL).
+            flags = 0xEF | (0x10 if self.origin is not None or self.gps else 0)
+            if self._fusing(now) or self.gps:
+                flags |= 0x100
+            if self.gps:
+                flags |= 0x200
             self.mav.estimator_status_send(int(now * 1e6), flags, 0, 0, 0, 0, 0, 0, 0, 0)
         if self.vehicle_state is not None:
             p, _ = self.vehicle_state(now)
