@@ -292,13 +292,18 @@ class FakeSitl:
                 self.tally.truth_log.append((now, list(self.p)))
             if link.due(30, now):
                 link.mav.attitude_send(boot_ms, *self._rpy(), 0.0, 0.0, 0.0)
-            if link.due(32, now) and self.est is not None:
-                link.mav.local_position_ned_send(boot_ms, *self.est, *self.v)
+            if link.due(32, now) and (self.est is not None or self.kind == "px4"):
+                # PX4's EKF2 reports a local position before any source, holding it constant.
+                est = self.est if self.est is not None else [0.0, 0.0, 0.0]
+                link.mav.local_position_ned_send(boot_ms, *est, *self.v)
             if link.due(193, now) and self.kind == "ardupilot":
                 flags = 0x33F if self._fusing(now) else 0x401
                 link.mav.ekf_status_report_send(flags, 0.1, math.sqrt(self.test_ratio), 0.1, 0.1, 0.0)
             if link.due(230, now) and self.kind == "px4":
-                flags = 0x3F if self._fusing(now) else 0x1
+                # As a real PX4 SIH's EKF2 on the ground with its origin set: 0xff holding a
+                # constant position with no source (the horizontal position bits on all the same),
+                # 0x1ff fusing the feed (bit 8, PRED_POS_HORIZ_REL, only then).
+                flags = 0x1FF if self._fusing(now) else 0xFF
                 link.mav.estimator_status_send(
                     int(now * 1e6), flags, 0.1, self.test_ratio, 0.1, 0.1, 0.0, 0.0, 0.01, 0.01
                 )

@@ -83,8 +83,11 @@ def test_a_short_landing_rehearsal_passes_and_reports(tmp_path, capsys, kind, pa
     assert (tmp_path / "out" / "sim.png").stat().st_size > 0
 
 
-def test_a_wrong_mount_fails_with_the_reason(tmp_path, capsys):
-    fake = FakeSitl("ardupilot")
+@pytest.mark.parametrize("kind", ["ardupilot", "px4"])
+def test_a_wrong_mount_fails_with_the_reason(tmp_path, capsys, kind):
+    """No pose, no fusion: PX4's EKF2 sets its horizontal position flags on the ground all the
+    same (0xff), and only its bit 8 says a position is fused."""
+    fake = FakeSitl(kind)
     try:
         code, summary = _sim(tmp_path, fake, "--fly", "land", "--ekf-wait-s", "4", mount="forward")
     finally:

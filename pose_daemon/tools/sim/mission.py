@@ -29,6 +29,18 @@ COPTER_GUIDED, COPTER_LAND = 4, 9
 PX4_OFFBOARD = (6, 0)
 #: EKF horizontal position flags: EKF_STATUS_REPORT / ESTIMATOR_STATUS bits 3 (relative) and 4 (absolute).
 POS_HORIZ_FLAGS = 8 | 16
+#: PX4's EKF2 sets those also while it holds a constant position with no source at all (a real
+#: PX4 SITL on the ground: 0xef); its bit 8 (PRED_POS_HORIZ_REL) is on only while it fuses a
+#: horizontal position (ekf_helper.cpp). ArduPilot's EKF3 reported 0x33f fusing the feed.
+PX4_POS_FUSED = 0x100
+
+
+def fuses_position(kind: str, flags: int) -> bool:
+    """Whether an EKF status's flags say that a horizontal position is fused (``kind``: the autopilot)."""
+    need = POS_HORIZ_FLAGS | (PX4_POS_FUSED if kind == "px4" else 0)
+    return flags & need == need
+
+
 #: The messages asked of the simulator link (id, name, Hz), by autopilot.
 STREAMS = {
     "ardupilot": ((32, "LOCAL_POSITION_NED", 10.0), (193, "EKF_STATUS_REPORT", 5.0), (245, "EXTENDED_SYS_STATE", 2.0)),
@@ -167,7 +179,7 @@ class Mission:
         if not self.rec.ekf_status or self.rec.latest_ekf() is None:
             return False
         t, flags, ratio = self.rec.ekf_status[-1]
-        return self.clock() - t < 2.0 and flags & POS_HORIZ_FLAGS == POS_HORIZ_FLAGS and ratio <= 1.0
+        return self.clock() - t < 2.0 and fuses_position(self.kind, flags) and ratio <= 1.0
 
     def _wait_for_vision(self) -> None:
         if not self._wait(self._vision_used, self.opt.ekf_wait_s, 0.2):

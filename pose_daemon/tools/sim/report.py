@@ -9,7 +9,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .mission import POS_HORIZ_FLAGS, Mission, Recorder
+from .mission import Mission, Recorder, fuses_position
 
 __all__ = ["LIMITS", "summarize", "table", "plot"]
 
@@ -67,7 +67,7 @@ def summarize(
         track = [p - mission.hold_target for _t, p in _between(rec.truth, hold)]
     track_rms, _ = _horizontal(track)
     status = _between([(t, (flags, ratio)) for t, flags, ratio in rec.ekf_status], hold)
-    ignored = [flags & POS_HORIZ_FLAGS != POS_HORIZ_FLAGS or ratio > 1.0 for _t, (flags, ratio) in status]
+    ignored = [not fuses_position(autopilot, flags) or ratio > 1.0 for _t, (flags, ratio) in status]
     ratios = [ratio for _t, (_flags, ratio) in status]
     _, drift = _horizontal(_ekf_errors(rec, windows.get("blackout")))
     recover = windows.get("recover")
