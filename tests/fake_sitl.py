@@ -29,7 +29,9 @@ rehearsal rely on is modelled, each as the real simulator does it:
   armed), SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_LOCAL_NED, LAND (custom mode 9) at 0.5 m/s
   holding its position, disarming 1 s after touchdown. PX4: OFFBOARD (main mode 6) accepted only
   with a setpoint streamed in the last 0.5 s, arming likewise refused without a position
-  estimate ("Arming denied: no local position"), MAV_CMD_NAV_LAND = AUTO.LAND (main 4, sub 6).
+  estimate ("Arming denied: no local position") or with its heading not aligned, which a
+  LOCAL_FRD ODOMETRY never aligns ("Preflight Fail: heading estimate not stable", as a real
+  PX4 SIH said), MAV_CMD_NAV_LAND = AUTO.LAND (main 4, sub 6).
 - STATUSTEXT goes to the GCS link only once it heard a GCS HEARTBEAT there (PX4 does so; here
   both do, which costs the tests nothing).
 """
@@ -115,6 +117,7 @@ class FakeSitl:
         self.gate_m, self.ekf_gain = gate_m, ekf_gain
         self.dead_reckoning_s = dead_reckoning_s
         self.prearm_failure = prearm_failure
+        self.heading_aligned = False  # PX4: the feed's yaw aligns EKF2's heading (ODOMETRY in LOCAL_NED)
         self.wind_mps2, self.gust_mps2 = wind_mps2, gust_mps2
         self._rng = random.Random(seed)
         self._gust = [0.0, 0.0]
@@ -345,6 +348,8 @@ class FakeSitl:
         if msg.get_type() == "ODOMETRY" and (msg.quality < 0 or msg.frame_id not in (1, 20)):
             self.tally.ignored += 1
             return
+        # PX4's EKF2 fuses a LOCAL_FRD yaw without calling its heading aligned (ev_yaw_control.cpp).
+        self.heading_aligned = msg.get_type() == "VISION_POSITION_ESTIMATE" or msg.frame_id == 1
         meas = [float(msg.x), float(msg.y), float(msg.z)]
         if not all(math.isfinite(x) for x in meas):
             self.tally.ignored += 1
@@ -421,6 +426,8 @@ class FakeSitl:
             reason = (
                 "PreArm: Need Position Estimate" if self.kind == "ardupilot" else "Arming denied: no local position"
             )
+        if reason is None and self.kind == "px4" and not self.heading_aligned:
+            reason = "Preflight Fail: heading estimate not stable"  # a real PX4 SIH on a LOCAL_FRD feed
         if reason is not None:
             self.tally.arm_refusals.append(reason)
             self._text(link, 3, reason)

@@ -524,3 +524,20 @@ def test_px4_uses_the_feed_only_when_ekf2_fuses_a_position_that_is_not_gps(tmp_p
     assert len(said) == 1 and said[0].startswith(expected), lines
     if not expected.startswith("OK"):
         assert code == 1
+
+
+def test_px4_gets_odometry_in_local_ned_so_that_ekf2_aligns_its_heading_to_the_feed(tmp_path, capsys):
+    """A real PX4 SIH without GPS fused EV position, height and yaw from ODOMETRY in LOCAL_FRD but
+    never called its heading aligned (ev_yaw_control.cpp), and refused position mode and Hold:
+    "heading estimate not stable". In LOCAL_NED it aligns to the feed; ArduPilot keeps LOCAL_FRD."""
+    fc = FakeAutopilot("px4", heartbeat_s=0.2, timesync_s=0.5, px4_events=True)
+    cfg = _config(tmp_path, fc.connection)
+    try:
+        code, lines = _run(capsys, "--config", cfg)
+        frames = {m.frame_id for m in list(fc.tally.received) if m.get_type() == "ODOMETRY"}
+    finally:
+        fc.close()
+    assert frames == {1}  # MAV_FRAME_LOCAL_NED
+    assert fc.heading_aligned is True
+    assert not [ln for ln in lines if "Heading estimate not stable" in ln], lines
+    assert any(ln.startswith("OK PX4's arming checks pass for Hold") for ln in lines), lines
