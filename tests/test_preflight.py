@@ -541,3 +541,27 @@ def test_px4_gets_odometry_in_local_ned_so_that_ekf2_aligns_its_heading_to_the_f
     assert fc.heading_aligned is True
     assert not [ln for ln in lines if "Heading estimate not stable" in ln], lines
     assert any(ln.startswith("OK PX4's arming checks pass for Hold") for ln in lines), lines
+
+
+def test_px4_arming_checks_are_judged_on_its_last_report(tmp_path, capsys):
+    """PX4 reports its arming checks when they change and on MAV_CMD_RUN_PREARM_CHECKS: a check
+    that failed in an earlier report and passes in the last (the feed fused by then) is no
+    PROBLEM. A real PX4 SIH said "No valid position estimate" before the feed was fused."""
+    import threading
+
+    fc = FakeAutopilot("px4", heartbeat_s=0.2, timesync_s=0.5, px4_events=True)
+    cfg = _config(tmp_path, fc.connection)
+    failing = threading.Timer(0.5, fc.arming_failures.update, [{"check_modes_local_pos": "No valid position"}])
+    fixed = threading.Timer(1.5, fc.arming_failures.clear)
+    try:
+        failing.start()
+        fixed.start()
+        code, lines = _run(capsys, "--config", cfg)
+        reported = [name for name, _level, _args in fc.events_sent if name == "check_modes_local_pos"]
+    finally:
+        failing.cancel()
+        fixed.cancel()
+        fc.close()
+    assert reported  # it was said, in the first report
+    assert not [ln for ln in lines if "No valid position estimate" in ln], lines
+    assert any(ln.startswith("OK PX4's arming checks pass for Hold") for ln in lines), lines

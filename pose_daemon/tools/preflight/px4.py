@@ -158,23 +158,27 @@ def _fresh_ekf_flags(obs: Observation) -> Tuple[Optional[int], Optional[str]]:
 
 def event_findings(obs: Observation) -> List[Finding]:
     """What PX4 said in EVENTs (px4_events.py; its STATUSTEXT does not reach an onboard link):
-    each distinct one at error level or worse is a PROBLEM, by its text or, for one preflight
+    each distinct one at error level or worse is a PROBLEM (an arming check only in the last
+    report), by its text or, for one preflight
     does not know, its id and arguments; the last arming check summary says whether PX4 can arm
     in position mode."""
     out: List[Finding] = []
     seen = set()
     summary = None
     elsewhere: List[str] = []  # failing checks of modes the feed does not decide (offboard, mission)
-    for event in obs.events:
+    # A report is a summary and the checks after it: only the last one says what fails now (a
+    # real PX4 SIH reported "No valid position estimate" before the feed was fused, not after).
+    last = max((k for k, e in enumerate(obs.events) if e.arming_summary() is not None), default=-1)
+    for k, event in enumerate(obs.events):
         s = event.arming_summary()
         if s is not None:
             summary = s
             continue
         key = (event.id, event.arguments)
-        if event.level > LOG_ERROR or key in seen:
+        modes = event.check_modes()
+        if event.level > LOG_ERROR or key in seen or (modes is not None and k < last):
             continue
         seen.add(key)
-        modes = event.check_modes()
         if modes is not None and not modes & POSITION_MODES:
             elsewhere.append(event.text())
             continue
