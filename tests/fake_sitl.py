@@ -118,6 +118,7 @@ class FakeSitl:
         self.dead_reckoning_s = dead_reckoning_s
         self.prearm_failure = prearm_failure
         self.heading_aligned = False  # PX4: the feed's yaw aligns EKF2's heading (ODOMETRY in LOCAL_NED)
+        self._text_id = 0  # PX4: STATUSTEXT ids
         self.wind_mps2, self.gust_mps2 = wind_mps2, gust_mps2
         self._rng = random.Random(seed)
         self._gust = [0.0, 0.0]
@@ -321,7 +322,14 @@ class FakeSitl:
     def _text(self, link: _Link, severity: int, text: str) -> None:
         if link is self.gcs_link and not link.gcs_heard:
             return
-        link.mav.statustext_send(severity, text.encode("ascii")[:50])
+        data = text.encode("ascii")
+        if self.kind == "ardupilot":
+            link.mav.statustext_send(severity, data[:50])
+            return
+        # PX4 (streams/STATUSTEXT.hpp): one id per text (counting from 0), 50-byte chunks.
+        for seq, k in enumerate(range(0, len(data), 50)):
+            link.mav.statustext_send(severity, data[k : k + 50], self._text_id, seq)
+        self._text_id = (self._text_id + 1) & 0xFFFF
 
     def _handle(self, link: _Link, msg: Any, now: float) -> None:
         kind = msg.get_type()

@@ -156,3 +156,17 @@ def test_a_mission_without_the_mavlink_output_is_refused_before_anything_opens(t
     assert err == [
         f"pose-daemon: error: {config}: sim --fly needs an [output.mavlink] table (the feed the autopilot flies on)"
     ]
+
+
+def test_a_px4_refusal_longer_than_one_statustext_is_reported_whole(tmp_path):
+    """PX4 sends a text over 50 characters in chunks of one id (a real PX4 SIH: "Arming denied:
+    Resolve system health failures firs" then "t<TAB>"): the reason is the whole text."""
+    text = "Arming denied: Resolve system health failures first\t"
+    fake = FakeSitl("px4", prearm_failure=text)
+    try:
+        code, summary = _sim(tmp_path, fake, "--fly", "hold", "--ekf-wait-s", "20")
+    finally:
+        fake.close()
+    assert code == 1 and summary["armed"] is False
+    assert summary["reasons"] == ["not armed: Arming denied: Resolve system health failures first"]
+    assert "Arming denied: Resolve system health failures first" in summary["statustext"]

@@ -74,6 +74,7 @@ class Recorder:
     ekf: List[Tuple[float, np.ndarray]] = field(default_factory=list)  # LOCAL_POSITION_NED
     ekf_status: List[Tuple[float, int, float]] = field(default_factory=list)  # flags, horizontal test ratio
     texts: List[Tuple[float, str]] = field(default_factory=list)
+    _text_id: int = -1  # the last STATUSTEXT's id (PX4's chunks of one text share it)
     acks: List[Tuple[float, int, int]] = field(default_factory=list)
     poses: List[Tuple[float, np.ndarray]] = field(default_factory=list)  # the daemon's vehicle position
     frames: List[Tuple[float, bool]] = field(default_factory=list)  # capture time, pose found
@@ -108,7 +109,16 @@ class Recorder:
             self.ekf_status.append((t, int(msg.flags), float(msg.pos_horiz_ratio)))
         elif kind == "STATUSTEXT":
             text = msg.text.decode("ascii", "replace") if isinstance(msg.text, bytes) else str(msg.text)
-            self.texts.append((t, text.rstrip("\x00")))
+            text = text.rstrip("\x00")
+            # PX4 sends a text longer than 50 characters in chunks (streams/STATUSTEXT.hpp: one id,
+            # chunk_seq 1, 2, ... after the first; ids count from 0): the rest joins the first.
+            text_id, seq = int(getattr(msg, "id", 0) or 0), int(getattr(msg, "chunk_seq", 0) or 0)
+            if seq > 0 and self.texts and self._text_id == text_id:
+                t0, first = self.texts[-1]
+                self.texts[-1] = (t0, first + text)
+            else:
+                self.texts.append((t, text))
+            self._text_id = text_id
         elif kind == "COMMAND_ACK":
             self.acks.append((t, int(msg.command), int(msg.result)))
         elif kind == "EXTENDED_SYS_STATE":
@@ -122,8 +132,9 @@ class Recorder:
         return self.ekf[-1][1] if self.ekf else None
 
     def last_text(self, since_s: float) -> Optional[str]:
+        """The last text since ``since_s``, without the tab PX4's commander ends its texts with."""
         said = [text for t, text in self.texts if t >= since_s]
-        return said[-1] if said else None
+        return said[-1].rstrip() if said else None
 
 
 class Mission:

@@ -91,7 +91,7 @@ def summarize(
         "blackout_back_m": _horizontal(back)[1],
         "descent_pose_share": (sum(1 for _t, ok in descent if ok) / len(descent)) if descent else None,
         "touchdown_err_m": touchdown,
-        "statustext": [text for _t, text in rec.texts],
+        "statustext": [text.rstrip() for _t, text in rec.texts],
         "reasons": [],
     }
     summary["reasons"] = reasons(summary, failure)
