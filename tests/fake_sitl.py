@@ -31,7 +31,9 @@ rehearsal rely on is modelled, each as the real simulator does it:
   with a setpoint streamed in the last 0.5 s, arming likewise refused without a position
   estimate ("Arming denied: no local position") or with its heading not aligned, which a
   LOCAL_FRD ODOMETRY never aligns ("Preflight Fail: heading estimate not stable", as a real
-  PX4 SIH said), MAV_CMD_NAV_LAND = AUTO.LAND (main 4, sub 6).
+  PX4 SIH said) or for ``settle_s`` after the feed was first fused ("Arming denied: Resolve
+  system health failures first", EKF2's pre-flight checks settling), MAV_CMD_NAV_LAND =
+  AUTO.LAND (main 4, sub 6).
 - STATUSTEXT goes to the GCS link only once it heard a GCS HEARTBEAT there (PX4 does so; here
   both do, which costs the tests nothing).
 """
@@ -107,6 +109,7 @@ class FakeSitl:
         gust_mps2: float = 0.1,
         seed: int = 0,
         dead_reckoning_s: float = 1.5,
+        settle_s: float = 2.0,
     ) -> None:
         from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
@@ -117,6 +120,11 @@ class FakeSitl:
         self.gate_m, self.ekf_gain = gate_m, ekf_gain
         self.dead_reckoning_s = dead_reckoning_s
         self.prearm_failure = prearm_failure
+        # PX4: EKF2's pre-flight checks filter the innovations for a while after the feed is first
+        # fused; until then a real PX4 SIH refused to arm ("Preflight Fail: horizontal position
+        # unstable", "Arming denied: Resolve system health failures first").
+        self.settle_s = settle_s if kind == "px4" else 0.0
+        self.first_fused_s: Optional[float] = None
         self.heading_aligned = False  # PX4: the feed's yaw aligns EKF2's heading (ODOMETRY in LOCAL_NED)
         self._text_id = 0  # PX4: STATUSTEXT ids
         self.wind_mps2, self.gust_mps2 = wind_mps2, gust_mps2
@@ -373,6 +381,8 @@ class FakeSitl:
                 return
             self.est = [e + self.ekf_gain * d for e, d in zip(self.est, innovation)]
         self.last_fused_s = now
+        if self.first_fused_s is None:
+            self.first_fused_s = now
         self.tally.fused += 1
 
     def _set_mode(self, link: _Link, custom: int, now: float, sub: int = 0) -> int:
@@ -436,6 +446,9 @@ class FakeSitl:
             )
         if reason is None and self.kind == "px4" and not self.heading_aligned:
             reason = "Preflight Fail: heading estimate not stable"  # a real PX4 SIH on a LOCAL_FRD feed
+        if reason is None and self.first_fused_s is not None and now - self.first_fused_s < self.settle_s:
+            self._text(link, 4, "Preflight Fail: horizontal position unstable")
+            reason = "Arming denied: Resolve system health failures first"
         if reason is not None:
             self.tally.arm_refusals.append(reason)
             self._text(link, 3, reason)

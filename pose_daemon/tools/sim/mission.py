@@ -27,6 +27,9 @@ MAV_FRAME_LOCAL_NED = 1
 POSITION_ONLY_MASK = 0b0000_1101_1111_1000  # x, y, z used; velocity, acceleration, yaw rate ignored
 COPTER_GUIDED, COPTER_LAND = 4, 9
 PX4_OFFBOARD = (6, 0)
+# A refused arming is asked again this often, for this long (Mission._arm).
+ARM_RETRY_EVERY_S = 1.0
+ARM_RETRY_S = 10.0
 #: EKF horizontal position flags: EKF_STATUS_REPORT / ESTIMATOR_STATUS bits 3 (relative) and 4 (absolute).
 POS_HORIZ_FLAGS = 8 | 16
 #: PX4's EKF2 sets those also while it holds a constant position with no source at all (a real
@@ -257,8 +260,7 @@ class Mission:
                 raise self._refusal("OFFBOARD refused", t0)
         elif self._command(MAV_CMD_DO_SET_MODE, MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, COPTER_GUIDED) != 0:
             raise self._refusal("GUIDED refused", t0)
-        result = self._command(MAV_CMD_COMPONENT_ARM_DISARM, 1)
-        if result != 0 or not self._wait(lambda: self.rec.armed, 3.0):
+        if not self._arm():
             raise self._refusal("not armed", t0)
         if self.kind == "ardupilot":
             if self._command(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0, self.opt.climb_m) != 0:
@@ -268,6 +270,19 @@ class Mission:
         if not self._reach(hover, self.opt.step_timeout_s, tolerance_m=0.1):
             raise MissionFailed(f"did not reach {self.opt.climb_m:g} m in {self.opt.step_timeout_s:g} s")
         self._set_target(hover)
+
+    def _arm(self) -> bool:
+        """Arm, asking again every ARM_RETRY_EVERY_S for ARM_RETRY_S while it is refused: a real
+        PX4 SIH refused for a few seconds after EKF2 first fused the feed, while its pre-flight
+        checks settled ("Preflight Fail: horizontal position unstable"), as a pilot would retry."""
+        deadline = self.clock() + ARM_RETRY_S
+        while True:
+            result = self._command(MAV_CMD_COMPONENT_ARM_DISARM, 1)
+            if result == 0 and self._wait(lambda: self.rec.armed, 3.0):
+                return True
+            if self.clock() + ARM_RETRY_EVERY_S > deadline:
+                return False
+            time.sleep(ARM_RETRY_EVERY_S)
 
     def _reach(self, target: np.ndarray, timeout_s: float, tolerance_m: float) -> bool:
         def there() -> bool:
