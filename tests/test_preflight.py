@@ -565,3 +565,23 @@ def test_px4_arming_checks_are_judged_on_its_last_report(tmp_path, capsys):
     assert reported  # it was said, in the first report
     assert not [ln for ln in lines if "No valid position estimate" in ln], lines
     assert any(ln.startswith("OK PX4's arming checks pass for Hold") for ln in lines), lines
+
+
+def test_px4_event_ids_of_a_real_sitl_are_named():
+    """Events a real PX4 SIH (main 02e73e3b, its all_events.json) sent on the onboard link, by id."""
+    from pose_daemon.tools.preflight.px4_events import Px4Event, event_id
+
+    seen = {
+        0x012F1DC7: "check_modes_offboard_signal",
+        0x01A9B99D: "commander_mission_comp_lost",
+        0x0106ED29: "check_modes_manual_control",
+        0x0105C2D9: "check_modes_mission",
+        0x0167C97B: "check_rc_dl_no_dllink",
+        0x01A893E0: "commander_arming_check_summary",
+    }
+    for ev_id, name in seen.items():
+        assert event_id(name) == ev_id, name
+    lost = Px4Event(id=0x01A9B99D, name="commander_mission_comp_lost", level=2, arguments=b"", sequence=0)
+    assert lost.text() == "Connection to mission computer lost"
+    offboard = Px4Event(0x012F1DC7, "check_modes_offboard_signal", 3, bytes.fromhex("0040000014"), 0)
+    assert offboard.check_modes() == 0x4000 and offboard.text() == "No offboard signal"

@@ -54,6 +54,9 @@ KNOWN: Dict[str, Tuple[str, str, str]] = {
     "check_modes_manual_control": ("No manual control input", "check", ""),
     "check_modes_mission": ("No valid mission available", "check", ""),
     "check_rc_dl_no_dllink": ("No connection to the ground control station", "check", ""),
+    # commander, critical: the onboard link went silent (a real PX4 SIH said it once an earlier
+    # daemon had stopped; the next preflight's first watch hears it).
+    "commander_mission_comp_lost": ("Connection to mission computer lost", "plain", ""),
     "mavlink_rcv_lnd_target_unsup_coord": ("Landing target: unsupported coordinate frame {1}", "plain", "<B"),
     "mavlink_rcv_odom_unsup_estimator_type": ("ODOMETRY: unsupported estimator_type {1}", "plain", "<B"),
 }
