@@ -42,8 +42,8 @@ PX4 (mavlink_receiver.cpp, mavlink_timesync, EKF2):
   checks (``arming_failures``: event name -> the STATUSTEXT PX4 also says to a ground station)
   reported as PX4's commander does, a summary (commander_arming_check_summary: errors by
   health component, the modes it can arm in) then one event per failing check (arguments: the
-  modes, uint32, and the health component, uint8), at the first HEARTBEAT and again on
-  MAV_CMD_RUN_PREARM_CHECKS (401).
+  modes, uint32, and the health component, uint8), at the first HEARTBEAT, whenever the
+  failing checks change, and again on MAV_CMD_RUN_PREARM_CHECKS (401).
 - TARGET_RELATIVE (#511, the development dialect PX4 builds its vision target estimator with):
   decoded as PX4's C library lays it out (mavlink_msg_target_relative.h: timestamp at 0, x/y/z
   at 8, pos_std at 20, yaw_std at 32, q_target at 36, q_sensor at 52, id/frame/type at 68-70,
@@ -178,6 +178,7 @@ class FakeAutopilot:
         px4_sync: bool = False,
         px4_events: bool = False,
         arming_failures: Optional[Dict[str, str]] = None,
+        gps: bool = False,
     ) -> None:
         # ArduPilot's dialect (common.xml and EKF_STATUS_REPORT); PX4 uses only common messages.
         from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -214,6 +215,10 @@ class FakeAutopilot:
         assert not px4_events or kind == "px4"
         self.px4_events = px4_events
         self.arming_failures = dict(arming_failures or {})
+        assert not gps or kind == "px4"
+        self.gps = gps  # PX4: EKF2 fuses GPS (its ESTIMATOR_STATUS flags say so)
+        self.heading_aligned: Optional[bool] = None  # PX4: by the last pose's frame (None: no pose yet)
+        self._reported_failures: Dict[str, str] = {}
         self.gcs_heard = False
         self.events_sent: List[Tuple[str, int, bytes]] = []  # (name, log level, arguments)
         self._event_seq = 65535 - 10  # events::initial_event_sequence
@@ -320,13 +325,38 @@ class FakeAutopilot:
         self.write(header + payload + struct.pack("<H", crc))
         self.events_sent.append((name, level, arguments))
 
+    def _failures(self) -> Dict[str, str]:
+        """The failing estimator checks now: ``arming_failures`` and, as a real PX4 SIH without
+        GPS, "heading estimate not stable" while the feed's last ODOMETRY came in LOCAL_FRD."""
+        failures = dict(self.arming_failures)
+        if self.heading_aligned is False and not self.gps:
+            failures["check_estimator_heading_not_stable"] = "Preflight Fail: heading estimate not stable"
+        return failures
+
     def _report_arming_checks(self) -> None:
-        """commander's Report::report: the summary, then each failing check (log level error)."""
-        local_position_estimate = 17  # health_component_t bit
-        errors = (1 << local_position_estimate) if self.arming_failures else 0
-        can_arm = 0 if self.arming_failures else 0x7FFFFFFF
-        self._event("commander_arming_check_summary", 8, struct.pack("<BIIII", 0, errors, 0, can_arm, can_arm))
-        for name, text in self.arming_failures.items():
+        """commander's Report::report as a real PX4 SITL sent it on its onboard link with no RC,
+        no mission and no offboard setpoints: the summary (errors: system, from the offboard
+        check; warnings: remote_control; can_arm 0x807f3ab0: Hold, takeoff, land, not position
+        mode, which needs manual control), then each check: "No valid mission available" (info,
+        mission mode), "No offboard signal" (error, offboard mode only), "No manual control
+        input" (warning, every mode), "No connection to the ground control station" (info);
+        then each of ``arming_failures`` (error, every mode; local_position_estimate), which
+        leave no mode that needs a position; and, as a real PX4 SIH without GPS, "heading
+        estimate not stable" while the feed's last ODOMETRY came in LOCAL_FRD."""
+        local_position_estimate, system, remote_control, communication_links = 17, 20, 7, 12
+        failures = self._failures()
+        self._reported_failures = dict(failures)
+        errors = 1 << system | ((1 << local_position_estimate) if failures else 0)
+        can_arm = 0x807F3AB0
+        if failures:
+            can_arm &= ~(4 | 8 | 16 | 32 | 0x4000 | 0x20000 | 0x40000 | 0x100000 | 0x200000)
+        summary = struct.pack("<BIIII", 0, errors, 1 << remote_control, can_arm, can_arm)
+        self._event("commander_arming_check_summary", 8, summary)
+        self._event("check_modes_mission", 6, struct.pack("<IB", 8, 20))
+        self._event("check_modes_offboard_signal", 3, struct.pack("<IB", 0x4000, system))
+        self._event("check_modes_manual_control", 4, struct.pack("<IB", 0xFFFFFFFF, remote_control))
+        self._event("check_rc_dl_no_dllink", 6, struct.pack("<IB", 0xFFFFFFFF, communication_links))
+        for name, text in failures.items():
             self._event(name, 3, struct.pack("<IB", 0xFFFFFFFF, local_position_estimate))
             self._text(2, text)
 
@@ -339,6 +369,8 @@ class FakeAutopilot:
                 self._t_first_heartbeat = now
                 if self.px4_events:
                     self._report_arming_checks()
+            elif self.px4_events and self._reported_failures != self._failures():
+                self._report_arming_checks()  # commander reports when the results change
         if self._wipe_at is not None and now >= self._wipe_at:
             self._wipe_at = None
             if self.origin is not None:
@@ -357,7 +389,15 @@ class FakeAutopilot:
             if ekf_us > 0 and self._every("ekf", ekf_us / 1e6, now):
                 self._ekf_status_report(now)
         elif self._every("ekf", 0.5, now):
-            flags = 0x01 | (0x08 | 0x10 | 0x20 if self._fusing(now) and self.origin is not None else 0)
+            # As a real PX4 SITL's EKF2 (ekf_helper.cpp): the horizontal position bits (8, 16 with
+            # an origin) are on also while it holds a constant position with no source (0xef);
+            # bit 8 (PRED_POS_HORIZ_REL) only while a position is fused: the feed, or GPS
+            # (``gps=True``: bit 9 too, 0x3ff, as with PX4's default EKF2_GPS_CTRL).
+            flags = 0xEF | (0x10 if self.origin is not None or self.gps else 0)
+            if self._fusing(now) or self.gps:
+                flags |= 0x100
+            if self.gps:
+                flags |= 0x200
             self.mav.estimator_status_send(int(now * 1e6), flags, 0, 0, 0, 0, 0, 0, 0, 0)
         if self.vehicle_state is not None:
             p, _ = self.vehicle_state(now)
@@ -489,6 +529,8 @@ class FakeAutopilot:
         else:
             qmin = self.param("EKF2_EV_QMIN")
             usable = int(self.param("EKF2_EV_CTRL")) & 1 == 1
+            # EKF2 fuses a LOCAL_FRD yaw without calling its heading aligned (ev_yaw_control.cpp).
+            self.heading_aligned = kind == "VISION_POSITION_ESTIMATE" or msg.frame_id == 1
             by = "timesync" if self.timesync_offset_ns is not None else "arrival"
             self.tally.stamped_by[by] = self.tally.stamped_by.get(by, 0) + 1
         if quality < qmin:

@@ -34,8 +34,11 @@ rehearsal rely on is modelled, each as the real simulator does it:
   MAV_CMD_NAV_TAKEOFF (param7 metres above where it armed), SET_POSITION_TARGET_LOCAL_NED in
   MAV_FRAME_LOCAL_NED, LAND (custom mode 9) at 0.5 m/s holding its position, disarming 1 s after
   touchdown. PX4: OFFBOARD (main mode 6) accepted only with a setpoint streamed in the last 0.5
-  s, arming likewise refused without a position estimate ("Arming denied: no local position"),
-  MAV_CMD_NAV_LAND = AUTO.LAND (main 4, sub 6).
+  s, arming likewise refused without a position estimate ("Arming denied: no local position")
+  or with its heading not aligned, which a LOCAL_FRD ODOMETRY never aligns ("Preflight Fail:
+  heading estimate not stable", as a real PX4 SIH said) or for ``settle_s`` after the feed was
+  first fused ("Arming denied: Resolve system health failures first", EKF2's pre-flight checks
+  settling), MAV_CMD_NAV_LAND = AUTO.LAND (main 4, sub 6).
 - STATUSTEXT goes to the GCS link only once it heard a GCS HEARTBEAT there (PX4 does so; here
   both do, which costs the tests nothing).
 """
@@ -113,6 +116,7 @@ class FakeSitl:
         seed: int = 0,
         dead_reckoning_s: float = 1.5,
         accels_settle_s: float = 0.0,
+        settle_s: float = 2.0,
     ) -> None:
         from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
@@ -124,6 +128,13 @@ class FakeSitl:
         self.dead_reckoning_s = dead_reckoning_s
         self.prearm_failure = prearm_failure
         self.accels_settle_s = accels_settle_s
+        # PX4: EKF2's pre-flight checks filter the innovations for a while after the feed is first
+        # fused; until then a real PX4 SIH refused to arm ("Preflight Fail: horizontal position
+        # unstable", "Arming denied: Resolve system health failures first").
+        self.settle_s = settle_s if kind == "px4" else 0.0
+        self.first_fused_s: Optional[float] = None
+        self.heading_aligned = False  # PX4: the feed's yaw aligns EKF2's heading (ODOMETRY in LOCAL_NED)
+        self._text_id = 0  # PX4: STATUSTEXT ids
         self.wind_mps2, self.gust_mps2 = wind_mps2, gust_mps2
         self._rng = random.Random(seed)
         self._gust = [0.0, 0.0]
@@ -307,13 +318,18 @@ class FakeSitl:
                 self.tally.truth_log.append((now, list(self.p)))
             if link.due(30, now):
                 link.mav.attitude_send(boot_ms, *self._rpy(), 0.0, 0.0, 0.0)
-            if link.due(32, now) and self.est is not None:
-                link.mav.local_position_ned_send(boot_ms, *self.est, *self.v)
+            if link.due(32, now) and (self.est is not None or self.kind == "px4"):
+                # PX4's EKF2 reports a local position before any source, holding it constant.
+                est = self.est if self.est is not None else [0.0, 0.0, 0.0]
+                link.mav.local_position_ned_send(boot_ms, *est, *self.v)
             if link.due(193, now) and self.kind == "ardupilot":
                 flags = 0x33F if self._fusing(now) else 0x401
                 link.mav.ekf_status_report_send(flags, 0.1, math.sqrt(self.test_ratio), 0.1, 0.1, 0.0)
             if link.due(230, now) and self.kind == "px4":
-                flags = 0x3F if self._fusing(now) else 0x1
+                # As a real PX4 SIH's EKF2 on the ground with its origin set: 0xff holding a
+                # constant position with no source (the horizontal position bits on all the same),
+                # 0x1ff fusing the feed (bit 8, PRED_POS_HORIZ_REL, only then).
+                flags = 0x1FF if self._fusing(now) else 0xFF
                 link.mav.estimator_status_send(
                     int(now * 1e6), flags, 0.1, self.test_ratio, 0.1, 0.1, 0.0, 0.0, 0.01, 0.01
                 )
@@ -328,7 +344,14 @@ class FakeSitl:
     def _text(self, link: _Link, severity: int, text: str) -> None:
         if link is self.gcs_link and not link.gcs_heard:
             return
-        link.mav.statustext_send(severity, text.encode("ascii")[:50])
+        data = text.encode("ascii")
+        if self.kind == "ardupilot":
+            link.mav.statustext_send(severity, data[:50])
+            return
+        # PX4 (streams/STATUSTEXT.hpp): one id per text (counting from 0), 50-byte chunks.
+        for seq, k in enumerate(range(0, len(data), 50)):
+            link.mav.statustext_send(severity, data[k : k + 50], self._text_id, seq)
+        self._text_id = (self._text_id + 1) & 0xFFFF
 
     def _handle(self, link: _Link, msg: Any, now: float) -> None:
         kind = msg.get_type()
@@ -355,6 +378,8 @@ class FakeSitl:
         if msg.get_type() == "ODOMETRY" and (msg.quality < 0 or msg.frame_id not in (1, 20)):
             self.tally.ignored += 1
             return
+        # PX4's EKF2 fuses a LOCAL_FRD yaw without calling its heading aligned (ev_yaw_control.cpp).
+        self.heading_aligned = msg.get_type() == "VISION_POSITION_ESTIMATE" or msg.frame_id == 1
         meas = [float(msg.x), float(msg.y), float(msg.z)]
         if not all(math.isfinite(x) for x in meas):
             self.tally.ignored += 1
@@ -375,6 +400,8 @@ class FakeSitl:
                 if t_logged >= t_meas:
                     est[:] = [e + c for e, c in zip(est, correction)]
         self.last_fused_s = now
+        if self.first_fused_s is None:
+            self.first_fused_s = now
         self.tally.fused += 1
 
     def _measurement_time(self, msg: Any, now: float) -> float:
@@ -455,6 +482,11 @@ class FakeSitl:
             reason = (
                 "PreArm: Need Position Estimate" if self.kind == "ardupilot" else "Arming denied: no local position"
             )
+        if reason is None and self.kind == "px4" and not self.heading_aligned:
+            reason = "Preflight Fail: heading estimate not stable"  # a real PX4 SIH on a LOCAL_FRD feed
+        if reason is None and self.first_fused_s is not None and now - self.first_fused_s < self.settle_s:
+            self._text(link, 4, "Preflight Fail: horizontal position unstable")
+            reason = "Arming denied: Resolve system health failures first"
         if reason is not None:
             self.tally.arm_refusals.append(reason)
             self._text(link, 3, reason)

@@ -189,7 +189,15 @@ def check(
             elif abs(math.sqrt(sum(c * c for c in m.q_target)) - 1.0) > 1e-3:
                 v.append(f"#{i} TARGET_RELATIVE: q_target not of unit length")
         elif kind == "ODOMETRY":
-            if (m.frame_id, m.child_frame_id) != (MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD):
+            if autopilot == "px4":
+                # PX4 takes LOCAL_FRD too, but EKF2 never calls a LOCAL_FRD yaw's heading aligned
+                # (ev_yaw_control.cpp): without GPS no mode that needs a position arms (real SIH).
+                if (m.frame_id, m.child_frame_id) != (MAV_FRAME_LOCAL_NED, MAV_FRAME_BODY_FRD):
+                    v.append(
+                        f"#{i} ODOMETRY: frames ({m.frame_id}, {m.child_frame_id}); PX4 aligns its heading only "
+                        f"to LOCAL_NED (1) / BODY_FRD (12)"
+                    )
+            elif (m.frame_id, m.child_frame_id) != (MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD):
                 v.append(
                     f"#{i} ODOMETRY: frames ({m.frame_id}, {m.child_frame_id}); ArduPilot uses only "
                     f"LOCAL_FRD (20) / BODY_FRD (12)"

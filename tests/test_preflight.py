@@ -202,13 +202,14 @@ def test_px4_integer_parameters_are_set_bytewise(tmp_path, capsys):
         code, lines = _run(capsys, "--config", cfg, "--apply")
     finally:
         fc.close()
-    assert code == 1
     # 11 = horizontal position 1 + vertical position 2 + yaw 8 (docs/px4.md); velocity (4) off.
     assert "FIX: EKF2_EV_CTRL = 11" in lines and "OK EKF2_EV_CTRL = 11 set" in lines
     assert fc.param("EKF2_EV_CTRL") == 11 and fc.params["EKF2_EV_CTRL"][1] == MAV_PARAM_TYPE_INT32
     # --apply watches the feed again with the new values: the verdict is that watch's.
     again = lines[lines.index("OK parameters set: watching the feed again with them") + 1 :]
     assert "OK EKF2_EV_CTRL = 11" in again and not [ln for ln in again if ln.startswith("FIX: EKF2_EV_CTRL")]
+    assert "OK EKF2 uses the feed (flags 0x1ef: a horizontal position fused, not GPS)" in again, again
+    # (The exit status follows EKF2_EV_DELAY against the second watch's delay: timing, not tested.)
     # TIMESYNC every 0.5 s (this fake's rate, not PX4's): PX4's 500 good exchanges are minutes away.
     assert any(
         ln.startswith("PROBLEM EKF2_EV_DELAY = 0 ms and PX4's TIMESYNC will not converge soon") for ln in lines
@@ -228,7 +229,10 @@ def test_px4_ev_delay_is_judged_against_the_sync_px4_has_reached(tmp_path, capsy
     finally:
         fc.close()
     assert code == 1 and not converged
-    assert "OK PX4's arming checks pass for position mode (errors in: none)" in lines
+    assert (
+        "OK PX4's arming checks pass for Hold, which needs a position (position mode also needs manual control; "
+        "errors in: system; warnings in: remote_control)"
+    ) in lines
     said = [ln for ln in lines if "TIMESYNC" in ln]
     m = re.match(
         r"PROBLEM PX4's TIMESYNC has not converged yet: (\d+) good exchanges of the 500 it needs \(600 counted here "
@@ -373,6 +377,10 @@ def test_px4_target_relative_needs_the_vision_target_estimator(tmp_path, capsys)
     assert code == 1
     for fix in ("FIX: VTE_EN = 1", "FIX: VTE_AID_MASK = 14", "FIX: VTE_TASK_MASK = 1"):
         assert fix in lines, lines
+    # VTE_EN (reboot_required in PX4's yaml) starts the estimator only at PX4's next boot: the
+    # re-check would pass on the values read back, so --apply asks for the reboot instead.
+    assert any(ln.startswith("PROBLEM reboot the autopilot: VTE_EN takes effect only at its start") for ln in lines)
+    assert "OK parameters set: watching the feed again with them" not in lines
     assert any(ln.startswith("PROBLEM VTE_EN = 0: the vision target estimator is not started") for ln in lines)
     assert "OK VTE_POS_EN = 1" in lines and "FIX: VTE_POS_EN = 1" not in lines
     assert "OK VTE_EN = 1 set" in lines and "OK VTE_AID_MASK = 14 set" in lines
@@ -419,7 +427,13 @@ def test_px4_warnings_reach_preflight_as_events_on_the_onboard_link(tmp_path, ca
     assert "PROBLEM the autopilot says: Heading estimate not stable" in lines, lines
     unknown = event_id("check_something_preflight_does_not_know")
     assert f"PROBLEM the autopilot says: PX4 event 0x{unknown:08x} (error; arguments ff ff ff ff 11)" in lines, lines
-    assert "PROBLEM PX4's arming checks fail for position mode (errors in: local_position_estimate)" in lines
+    assert (
+        "PROBLEM PX4's arming checks fail for position mode and Hold (errors in: local_position_estimate, system; "
+        "warnings in: remote_control)"
+    ) in lines
+    # The offboard check fails on every onboard link without setpoints: not the feed's business.
+    assert "OK PX4's failing checks of modes the feed does not decide: No offboard signal" in lines
+    assert not [ln for ln in lines if ln.startswith("PROBLEM") and "offboard" in ln], lines
     assert len([ln for ln in lines if "Heading estimate" in ln]) == 1  # reported twice, said once
 
 
@@ -444,7 +458,10 @@ def test_px4_ev_height_off_is_fixed_and_the_feed_is_judged_on_ekf2s_last_report(
     assert code == 1 and used > 0  # it did fuse, before the stop
     assert "FIX: EKF2_EV_CTRL = 11" in lines
     assert any(ln.startswith("PROBLEM EKF2_EV_CTRL = 9: EKF2 needs bit 0 (horizontal position), bit 1") for ln in lines)
-    assert "PROBLEM EKF2 does not use the feed (flags 0x1)" in lines, lines
+    assert (
+        "PROBLEM EKF2 does not use the feed (flags 0xff: no horizontal position fused, it holds a constant position)"
+        in lines
+    ), lines
     assert not [ln for ln in lines if ln.startswith("OK EKF2 uses the feed")]
 
 
@@ -452,12 +469,14 @@ def test_px4_an_old_estimator_status_says_nothing_of_the_end_of_the_watch():
     from pose_daemon.tools.preflight import Observation, check_px4
 
     cfg = parse_config('[output.mavlink]\nconnection = "udpout:127.0.0.1:14550"\n')
-    obs = Observation(autopilot="px4", ekf_reports=[(10.0, 0x39)], watch_end_t=13.5, poses_sent=50)
+    p = {"EKF2_EV_CTRL": (11.0, 6), "EKF2_GPS_CTRL": (0.0, 6)}
+    obs = Observation(autopilot="px4", params=p, ekf_reports=[(10.0, 0x1FF)], watch_end_t=13.5, poses_sent=50)
     lines = [f.line() for f in check_px4(cfg, obs)]
     assert "PROBLEM EKF2's last ESTIMATOR_STATUS came 3.5 s before the watch ended: too old to tell" in lines
     assert "PROBLEM EKF2 does not use the feed (no status report)" in lines
-    obs.ekf_reports.append((12.8, 0x39))
-    assert "OK EKF2 uses the feed (flags 0x39)" in [f.line() for f in check_px4(cfg, obs)]
+    obs.ekf_reports.append((12.8, 0x1FF))
+    lines = [f.line() for f in check_px4(cfg, obs)]
+    assert "OK EKF2 uses the feed (flags 0x1ff: a horizontal position fused, not GPS)" in lines, lines
 
 
 def test_gps_vertical_velocity_is_a_problem_and_a_visual_odometry_fix_asks_for_a_reboot(tmp_path, capsys):
@@ -478,3 +497,91 @@ def test_gps_vertical_velocity_is_a_problem_and_a_visual_odometry_fix_asks_for_a
         assert fc.param("EK3_SRC1_VELZ") == 0 and fc.param("VISO_TYPE") == 1
     finally:
         fc.close()
+
+
+@pytest.mark.parametrize(
+    "gps, ev_ctrl, expected",
+    [
+        (False, 0, "PROBLEM EKF2 does not use the feed (flags 0xff: no horizontal position fused, it holds a constant"),
+        (True, 0, "PROBLEM EKF2 does not use the feed: EKF2_EV_CTRL = 0 has horizontal position off (flags 0x3ff: its"),
+        (True, 11, "PROBLEM EKF2 fuses GPS (EKF2_GPS_CTRL = 0; flags 0x3ff): its status cannot show whether"),
+        (False, 11, "OK EKF2 uses the feed (flags 0x1ff: a horizontal position fused, not GPS)"),
+    ],
+    ids=["no-source", "gps-not-ev", "gps-and-ev", "ev-alone"],
+)
+def test_px4_uses_the_feed_only_when_ekf2_fuses_a_position_that_is_not_gps(tmp_path, capsys, gps, ev_ctrl, expected):
+    """A real PX4 SITL's EKF2 sets ESTIMATOR_STATUS's horizontal position bits also while it holds
+    a constant position with no source (0xef, 0xff with an origin), and with GPS whatever
+    EKF2_EV_CTRL says (0x3ff): only bit 8 (a position fused) without bit 9 (GPS) shows the feed.
+    (The fake's EKF2_GPS_CTRL stays 0: the flags alone tell GPS here, as they do on PX4.)"""
+    fc = FakeAutopilot("px4", heartbeat_s=0.2, timesync_s=0.5, gps=gps, params={"EKF2_EV_CTRL": ev_ctrl})
+    cfg = _config(tmp_path, fc.connection, "origin = [47.397742, 8.545594, 488.0]")
+    try:
+        code, lines = _run(capsys, "--config", cfg)
+    finally:
+        fc.close()
+    said = [ln for ln in lines if ln.startswith(("OK EKF2 ", "PROBLEM EKF2 "))]
+    assert len(said) == 1 and said[0].startswith(expected), lines
+    if not expected.startswith("OK"):
+        assert code == 1
+
+
+def test_px4_gets_odometry_in_local_ned_so_that_ekf2_aligns_its_heading_to_the_feed(tmp_path, capsys):
+    """A real PX4 SIH without GPS fused EV position, height and yaw from ODOMETRY in LOCAL_FRD but
+    never called its heading aligned (ev_yaw_control.cpp), and refused position mode and Hold:
+    "heading estimate not stable". In LOCAL_NED it aligns to the feed; ArduPilot keeps LOCAL_FRD."""
+    fc = FakeAutopilot("px4", heartbeat_s=0.2, timesync_s=0.5, px4_events=True)
+    cfg = _config(tmp_path, fc.connection)
+    try:
+        code, lines = _run(capsys, "--config", cfg)
+        frames = {m.frame_id for m in list(fc.tally.received) if m.get_type() == "ODOMETRY"}
+    finally:
+        fc.close()
+    assert frames == {1}  # MAV_FRAME_LOCAL_NED
+    assert fc.heading_aligned is True
+    assert not [ln for ln in lines if "Heading estimate not stable" in ln], lines
+    assert any(ln.startswith("OK PX4's arming checks pass for Hold") for ln in lines), lines
+
+
+def test_px4_arming_checks_are_judged_on_its_last_report(tmp_path, capsys):
+    """PX4 reports its arming checks when they change and on MAV_CMD_RUN_PREARM_CHECKS: a check
+    that failed in an earlier report and passes in the last (the feed fused by then) is no
+    PROBLEM. A real PX4 SIH said "No valid position estimate" before the feed was fused."""
+    import threading
+
+    fc = FakeAutopilot("px4", heartbeat_s=0.2, timesync_s=0.5, px4_events=True)
+    cfg = _config(tmp_path, fc.connection)
+    failing = threading.Timer(0.5, fc.arming_failures.update, [{"check_modes_local_pos": "No valid position"}])
+    fixed = threading.Timer(1.5, fc.arming_failures.clear)
+    try:
+        failing.start()
+        fixed.start()
+        code, lines = _run(capsys, "--config", cfg)
+        reported = [name for name, _level, _args in fc.events_sent if name == "check_modes_local_pos"]
+    finally:
+        failing.cancel()
+        fixed.cancel()
+        fc.close()
+    assert reported  # it was said, in the first report
+    assert not [ln for ln in lines if "No valid position estimate" in ln], lines
+    assert any(ln.startswith("OK PX4's arming checks pass for Hold") for ln in lines), lines
+
+
+def test_px4_event_ids_of_a_real_sitl_are_named():
+    """Events a real PX4 SIH (main 02e73e3b, its all_events.json) sent on the onboard link, by id."""
+    from pose_daemon.tools.preflight.px4_events import Px4Event, event_id
+
+    seen = {
+        0x012F1DC7: "check_modes_offboard_signal",
+        0x01A9B99D: "commander_mission_comp_lost",
+        0x0106ED29: "check_modes_manual_control",
+        0x0105C2D9: "check_modes_mission",
+        0x0167C97B: "check_rc_dl_no_dllink",
+        0x01A893E0: "commander_arming_check_summary",
+    }
+    for ev_id, name in seen.items():
+        assert event_id(name) == ev_id, name
+    lost = Px4Event(id=0x01A9B99D, name="commander_mission_comp_lost", level=2, arguments=b"", sequence=0)
+    assert lost.text() == "Connection to mission computer lost"
+    offboard = Px4Event(0x012F1DC7, "check_modes_offboard_signal", 3, bytes.fromhex("0040000014"), 0)
+    assert offboard.check_modes() == 0x4000 and offboard.text() == "No offboard signal"

@@ -98,8 +98,11 @@ def test_a_landing_from_higher_up_holds_there_and_lands_on_the_pad(tmp_path):
     assert summary["descent_pose_share"] > 0.9
 
 
-def test_a_wrong_mount_fails_with_the_reason(tmp_path, capsys):
-    fake = FakeSitl("ardupilot")
+@pytest.mark.parametrize("kind", ["ardupilot", "px4"])
+def test_a_wrong_mount_fails_with_the_reason(tmp_path, capsys, kind):
+    """No pose, no fusion: PX4's EKF2 sets its horizontal position flags on the ground all the
+    same (0xff), and only its bit 8 says a position is fused."""
+    fake = FakeSitl(kind)
     try:
         code, summary = _sim(tmp_path, fake, "--fly", "land", "--ekf-wait-s", "4", mount="forward")
     finally:
@@ -199,3 +202,17 @@ def test_a_mission_without_the_mavlink_output_is_refused_before_anything_opens(t
     assert err == [
         f"pose-daemon: error: {config}: sim --fly needs an [output.mavlink] table (the feed the autopilot flies on)"
     ]
+
+
+def test_a_px4_refusal_longer_than_one_statustext_is_reported_whole(tmp_path):
+    """PX4 sends a text over 50 characters in chunks of one id (a real PX4 SIH: "Arming denied:
+    Resolve system health failures firs" then "t<TAB>"): the reason is the whole text."""
+    text = "Arming denied: Resolve system health failures first\t"
+    fake = FakeSitl("px4", prearm_failure=text)
+    try:
+        code, summary = _sim(tmp_path, fake, "--fly", "hold", "--ekf-wait-s", "20")
+    finally:
+        fake.close()
+    assert code == 1 and summary["armed"] is False
+    assert summary["reasons"] == ["not armed: Arming denied: Resolve system health failures first"]
+    assert "Arming denied: Resolve system health failures first" in summary["statustext"]

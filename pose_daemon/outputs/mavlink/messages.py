@@ -115,19 +115,26 @@ def encode_pose_messages(
     mav: Any, messages: Sequence[str], inputs: PoseMessageInputs, autopilot: str = "ardupilot"
 ) -> List[Any]:
     """The MAVLink messages (pymavlink objects, not yet packed) for one pose, in ``messages`` order:
-    ODOMETRY and VISION_POSITION_ESTIMATE in the local FRD frame; LANDING_TARGET in the body
+    ODOMETRY and VISION_POSITION_ESTIMATE in the local frame (ODOMETRY's frame_id LOCAL_FRD, to
+    PX4 LOCAL_NED: see below); LANDING_TARGET in the body
     FRD frame for ArduPilot (``autopilot`` "ardupilot" or "other"), in local NED for "px4"."""
     t_us = inputs.t_us
     x, y, z = (float(v) for v in inputs.p_local_m)
     cov = inputs.covariance
     out: List[Any] = []
+    # ODOMETRY's frame: ArduPilot takes only LOCAL_FRD. PX4's EKF2 fuses a LOCAL_FRD yaw but never
+    # calls its heading aligned (ev_yaw_control.cpp: yaw_align false), so without GPS and compass
+    # it refuses every mode that needs a position ("heading estimate not stable", seen in PX4 SITL);
+    # in LOCAL_NED it aligns its heading to the feed: the marker frame is its north (as it takes
+    # VISION_POSITION_ESTIMATE, which has no frame field, in NED).
+    odometry_frame = MAV_FRAME_LOCAL_NED if autopilot == "px4" else MAV_FRAME_LOCAL_FRD
     for name in messages:
         if name == "ODOMETRY":
             q = [float(v) for v in quaternion_from_R_3x3(inputs.R_local_body)]
             out.append(
                 mav.odometry_encode(
                     t_us,
-                    MAV_FRAME_LOCAL_FRD,
+                    odometry_frame,
                     MAV_FRAME_BODY_FRD,
                     x,
                     y,

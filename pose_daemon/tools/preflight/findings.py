@@ -81,7 +81,9 @@ def delay_ms(obs: Observation) -> Optional[Tuple[float, float]]:
     return statistics.median(d) * 1e3, d[min(len(d) - 1, int(0.9 * len(d)))] * 1e3
 
 
-def watched_findings(cfg, obs: Observation, ekf: str) -> List[Finding]:
+def watched_findings(cfg, obs: Observation, ekf: str, feed: Optional[Finding] = None) -> List[Finding]:
+    """Poses sent, the EKF's use of the feed (``feed``: the autopilot's own verdict, else from
+    the position flags and what it said), origin and home, what the autopilot said."""
     m = cfg.output.mavlink
     out: List[Finding] = []
     if obs.poses_sent == 0:
@@ -92,7 +94,9 @@ def watched_findings(cfg, obs: Observation, ekf: str) -> List[Finding]:
     # said once per EKF start only, so a repeated preflight cannot wait for it.
     using = obs.ekf_flags is not None and obs.ekf_flags & POS_HORIZ_FLAGS
     said = any("external nav" in t for _s, t in obs.statustexts)
-    if using or said:
+    if feed is not None:
+        out.append(feed)
+    elif using or said:
         out.append(Finding("OK", f"{ekf} uses the feed" + (f" (flags 0x{obs.ekf_flags:x})" if using else "")))
     else:
         flags = "no status report" if obs.ekf_flags is None else f"flags 0x{obs.ekf_flags:x}"

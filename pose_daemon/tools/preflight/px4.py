@@ -9,7 +9,7 @@ from typing import Dict, List, Optional, Tuple
 
 from ...outputs.mavlink.timesync import FAST_UNTIL_GOOD, GOOD_ANSWER_S, PX4_CONVERGENCE_SAMPLES
 from .findings import QUALITY_MIN, Finding, Observation, delay_ms, fmt, watched_findings
-from .px4_events import LOG_ERROR, MODE_POSCTL
+from .px4_events import LOG_ERROR, MODE_LOITER, MODE_POSCTL
 
 # PX4's vision target estimator (src/modules/vision_target_estimator, a beta module of PX4 1.18
 # built only into *_visionTargetEst targets): what decides whether it fuses TARGET_RELATIVE.
@@ -29,6 +29,17 @@ SYNC_JUDGED_GOOD = FAST_UNTIL_GOOD
 EV_CTRL_NEEDED = 1 | 2 | 8
 # "EKF2 uses the feed" is judged on an ESTIMATOR_STATUS no older than this at the watch's end.
 FRESH_REPORT_S = 2.0
+# ESTIMATOR_STATUS flags as EKF2 sets them (ekf_helper.cpp, get_ekf_soln_status): bit 3 (8,
+# horizontal position) whenever EKF2 is not dead-reckoning for too long, so also while it holds a
+# constant position on the ground with no source at all (seen in PX4 SITL: 0xef, 0x1ff); bit 8
+# (256, PRED_POS_HORIZ_REL) only while a horizontal position source is fused, bit 9 (512) while
+# GNSS is. The feed is what EKF2 fuses when bit 8 is on, EKF2_EV_CTRL has position and bit 9 is off.
+EKF2_AIDING = 0x100
+EKF2_GNSS = 0x200
+EKF2_CONST_POS = 0x80
+# The modes whose arming checks the feed decides: position mode, and Hold, which needs a position
+# but no manual control (PX4 refuses position mode without RC or a joystick, feed or not).
+POSITION_MODES = MODE_POSCTL | MODE_LOITER
 # Once synced EKF2_EV_DELAY adds to a capture-time stamp: more than this dates poses too early.
 SYNCED_EV_DELAY_MAX_MS = 10.0
 PX4_PARAMS = (
@@ -103,7 +114,31 @@ def check_px4(cfg, obs: Observation, link_kind: str = "udpout") -> List[Finding]
     fresh, stale = _fresh_ekf_flags(obs)
     if stale:
         out.append(Finding("PROBLEM", stale))
-    return out + watched_findings(cfg, dataclasses.replace(obs, ekf_flags=fresh), ekf="EKF2") + event_findings(obs)
+    feed = _feed_finding(fresh, p) if fresh is not None else None
+    watched = watched_findings(cfg, dataclasses.replace(obs, ekf_flags=fresh), ekf="EKF2", feed=feed)
+    return out + watched + event_findings(obs)
+
+
+def _feed_finding(flags: int, p: Dict[str, float]) -> Finding:
+    """Whether EKF2's last fresh ESTIMATOR_STATUS says it fuses the feed (EKF2_AIDING above)."""
+    ctrl = int(p.get("EKF2_EV_CTRL", 0))
+    gps = f"EKF2_GPS_CTRL = {fmt(p['EKF2_GPS_CTRL'])}" if "EKF2_GPS_CTRL" in p else "GPS"
+    if not flags & EKF2_AIDING:
+        held = ", it holds a constant position" if flags & EKF2_CONST_POS else ""
+        return Finding("PROBLEM", f"EKF2 does not use the feed (flags 0x{flags:x}: no horizontal position fused{held})")
+    if not ctrl & 1:
+        return Finding(
+            "PROBLEM",
+            f"EKF2 does not use the feed: EKF2_EV_CTRL = {ctrl} has horizontal position off (flags 0x{flags:x}: "
+            + ("its position is from GPS)" if flags & EKF2_GNSS else "its position is from another source)"),
+        )
+    if flags & EKF2_GNSS:
+        return Finding(
+            "PROBLEM",
+            f"EKF2 fuses GPS ({gps}; flags 0x{flags:x}): its status cannot show whether it uses the feed as well "
+            "(with EKF2_GPS_CTRL = 0 preflight can tell)",
+        )
+    return Finding("OK", f"EKF2 uses the feed (flags 0x{flags:x}: a horizontal position fused, not GPS)")
 
 
 def _fresh_ekf_flags(obs: Observation) -> Tuple[Optional[int], Optional[str]]:
@@ -123,27 +158,55 @@ def _fresh_ekf_flags(obs: Observation) -> Tuple[Optional[int], Optional[str]]:
 
 def event_findings(obs: Observation) -> List[Finding]:
     """What PX4 said in EVENTs (px4_events.py; its STATUSTEXT does not reach an onboard link):
-    each distinct one at error level or worse is a PROBLEM, by its text or, for one preflight
+    each distinct one at error level or worse is a PROBLEM (an arming check only in the last
+    report), by its text or, for one preflight
     does not know, its id and arguments; the last arming check summary says whether PX4 can arm
     in position mode."""
     out: List[Finding] = []
     seen = set()
     summary = None
-    for event in obs.events:
+    elsewhere: List[str] = []  # failing checks of modes the feed does not decide (offboard, mission)
+    # A report is a summary and the checks after it: only the last one says what fails now (a
+    # real PX4 SIH reported "No valid position estimate" before the feed was fused, not after).
+    last = max((k for k, e in enumerate(obs.events) if e.arming_summary() is not None), default=-1)
+    for k, event in enumerate(obs.events):
         s = event.arming_summary()
         if s is not None:
             summary = s
             continue
         key = (event.id, event.arguments)
-        if event.level <= LOG_ERROR and key not in seen:
-            seen.add(key)
-            out.append(Finding("PROBLEM", f"the autopilot says: {event.text()}"))
+        modes = event.check_modes()
+        if event.level > LOG_ERROR or key in seen or (modes is not None and k < last):
+            continue
+        seen.add(key)
+        if modes is not None and not modes & POSITION_MODES:
+            elsewhere.append(event.text())
+            continue
+        out.append(Finding("PROBLEM", f"the autopilot says: {event.text()}"))
+    if elsewhere:
+        out.append(Finding("OK", f"PX4's failing checks of modes the feed does not decide: {'; '.join(elsewhere)}"))
     if summary is not None:
         errors = ", ".join(summary["errors"]) or "none"
-        if int(summary["can_arm"]) & MODE_POSCTL:
+        warnings = ", ".join(summary["warnings"]) or "none"
+        can_arm = int(summary["can_arm"])
+        if can_arm & MODE_POSCTL:
             out.append(Finding("OK", f"PX4's arming checks pass for position mode (errors in: {errors})"))
+        elif can_arm & MODE_LOITER:
+            out.append(
+                Finding(
+                    "OK",
+                    f"PX4's arming checks pass for Hold, which needs a position (position mode also needs manual "
+                    f"control; errors in: {errors}; warnings in: {warnings})",
+                )
+            )
         else:
-            out.append(Finding("PROBLEM", f"PX4's arming checks fail for position mode (errors in: {errors})"))
+            out.append(
+                Finding(
+                    "PROBLEM",
+                    "PX4's arming checks fail for position mode and Hold "
+                    f"(errors in: {errors}; warnings in: {warnings})",
+                )
+            )
     return out
 
 

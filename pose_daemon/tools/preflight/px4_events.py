@@ -48,6 +48,15 @@ KNOWN: Dict[str, Tuple[str, str, str]] = {
     "check_modes_local_pos": ("Navigation error: No valid position estimate", "check", ""),
     "check_modes_local_alt": ("Navigation error: No valid altitude estimate", "check", ""),
     "check_modes_global_pos": ("Navigation error: No valid global position estimate", "check", ""),
+    # Seen on every onboard link of a PX4 SITL without RC, mission or offboard setpoints: checks
+    # of modes the feed does not decide (their modes argument says which).
+    "check_modes_offboard_signal": ("No offboard signal", "check", ""),
+    "check_modes_manual_control": ("No manual control input", "check", ""),
+    "check_modes_mission": ("No valid mission available", "check", ""),
+    "check_rc_dl_no_dllink": ("No connection to the ground control station", "check", ""),
+    # commander, critical: the onboard link went silent (a real PX4 SIH said it once an earlier
+    # daemon had stopped; the next preflight's first watch hears it).
+    "commander_mission_comp_lost": ("Connection to mission computer lost", "plain", ""),
     "mavlink_rcv_lnd_target_unsup_coord": ("Landing target: unsupported coordinate frame {1}", "plain", "<B"),
     "mavlink_rcv_odom_unsup_estimator_type": ("ODOMETRY: unsupported estimator_type {1}", "plain", "<B"),
 }
@@ -60,6 +69,7 @@ HEALTH_COMPONENTS = (
     "payload global_position_estimate storage parachute magnetometer accel gyro open_drone_id traffic_avoidance"
 ).split()
 MODE_POSCTL = 4
+MODE_LOITER = 16  # Hold: needs a position, not manual control
 
 
 def event_id(name: str) -> int:
@@ -100,6 +110,13 @@ class Px4Event:
             for k, value in enumerate(struct.unpack(fmt, raw), start=1):
                 text = text.replace("{" + str(k) + "}", str(value))
         return text
+
+    def check_modes(self) -> Optional[int]:
+        """An arming check's modes (navigation_mode_group_t bits it fails for); None for an event
+        that is not a known arming check."""
+        if self.name is None or self.name not in KNOWN or KNOWN[self.name][1] != "check":
+            return None
+        return int(struct.unpack("<I", (self.arguments + bytes(4))[:4])[0])
 
     def arming_summary(self) -> Optional[Dict[str, object]]:
         """For ``commander_arming_check_summary``: the health components with errors and

@@ -41,8 +41,8 @@ from .px4_events import MAV_CMD_RUN_PREARM_CHECKS, MSG_ID_EVENT, decode_event
 # 0 on Copter by default, so preflight asks for it (MAV_CMD_REQUEST_MESSAGE) while it watches.
 EKF_STATUS_REPORT_ID = 193
 # Parameters an autopilot reads only at its start (ArduPilot: the visual odometry backend; PX4: the
-# estimator and the MAVLink instances are set up at boot too, but they are not among the fixes).
-REBOOT_PARAMS = frozenset({"VISO_TYPE", "GPS1_TYPE", "GPS_TYPE"})
+# vision target estimator, VTE_EN / VTE_POS_EN, reboot_required in its parameter file).
+REBOOT_PARAMS = frozenset({"VISO_TYPE", "GPS1_TYPE", "GPS_TYPE", "VTE_EN", "VTE_POS_EN"})
 GPS_GLOBAL_ORIGIN_ID = 49
 HOME_POSITION_ID = 242
 MAV_CMD_REQUEST_MESSAGE = 512

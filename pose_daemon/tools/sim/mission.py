@@ -33,6 +33,18 @@ COPTER_GUIDED, COPTER_LAND = 4, 9
 PX4_OFFBOARD = (6, 0)
 #: EKF horizontal position flags: EKF_STATUS_REPORT / ESTIMATOR_STATUS bits 3 (relative) and 4 (absolute).
 POS_HORIZ_FLAGS = 8 | 16
+#: PX4's EKF2 sets those also while it holds a constant position with no source at all (a real
+#: PX4 SITL on the ground: 0xef); its bit 8 (PRED_POS_HORIZ_REL) is on only while it fuses a
+#: horizontal position (ekf_helper.cpp). ArduPilot's EKF3 reported 0x33f fusing the feed.
+PX4_POS_FUSED = 0x100
+
+
+def fuses_position(kind: str, flags: int) -> bool:
+    """Whether an EKF status's flags say that a horizontal position is fused (``kind``: the autopilot)."""
+    need = POS_HORIZ_FLAGS | (PX4_POS_FUSED if kind == "px4" else 0)
+    return flags & need == need
+
+
 #: The messages asked of the simulator link (id, name, Hz), by autopilot.
 STREAMS = {
     "ardupilot": ((32, "LOCAL_POSITION_NED", 10.0), (193, "EKF_STATUS_REPORT", 5.0), (245, "EXTENDED_SYS_STATE", 2.0)),
@@ -68,6 +80,7 @@ class Recorder:
     ekf: List[Tuple[float, np.ndarray]] = field(default_factory=list)  # LOCAL_POSITION_NED
     ekf_status: List[Tuple[float, int, float]] = field(default_factory=list)  # flags, horizontal test ratio
     texts: List[Tuple[float, str]] = field(default_factory=list)
+    _text_id: int = -1  # the last STATUSTEXT's id (PX4's chunks of one text share it)
     acks: List[Tuple[float, int, int]] = field(default_factory=list)
     poses: List[Tuple[float, np.ndarray]] = field(default_factory=list)  # the daemon's vehicle position
     frames: List[Tuple[float, bool]] = field(default_factory=list)  # capture time, pose found
@@ -102,7 +115,16 @@ class Recorder:
             self.ekf_status.append((t, int(msg.flags), float(msg.pos_horiz_ratio)))
         elif kind == "STATUSTEXT":
             text = msg.text.decode("ascii", "replace") if isinstance(msg.text, bytes) else str(msg.text)
-            self.texts.append((t, text.rstrip("\x00")))
+            text = text.rstrip("\x00")
+            # PX4 sends a text longer than 50 characters in chunks (streams/STATUSTEXT.hpp: one id,
+            # chunk_seq 1, 2, ... after the first; ids count from 0): the rest joins the first.
+            text_id, seq = int(getattr(msg, "id", 0) or 0), int(getattr(msg, "chunk_seq", 0) or 0)
+            if seq > 0 and self.texts and self._text_id == text_id:
+                t0, first = self.texts[-1]
+                self.texts[-1] = (t0, first + text)
+            else:
+                self.texts.append((t, text))
+            self._text_id = text_id
         elif kind == "COMMAND_ACK":
             self.acks.append((t, int(msg.command), int(msg.result)))
         elif kind == "EXTENDED_SYS_STATE":
@@ -116,8 +138,9 @@ class Recorder:
         return self.ekf[-1][1] if self.ekf else None
 
     def last_text(self, since_s: float) -> Optional[str]:
+        """The last text since ``since_s``, without the tab PX4's commander ends its texts with."""
         said = [text for t, text in self.texts if t >= since_s]
-        return said[-1] if said else None
+        return said[-1].rstrip() if said else None
 
 
 class Mission:
@@ -175,7 +198,7 @@ class Mission:
         if not self.rec.ekf_status or self.rec.latest_ekf() is None:
             return False
         t, flags, ratio = self.rec.ekf_status[-1]
-        return self.clock() - t < 2.0 and flags & POS_HORIZ_FLAGS == POS_HORIZ_FLAGS and ratio <= 1.0
+        return self.clock() - t < 2.0 and fuses_position(self.kind, flags) and ratio <= 1.0
 
     def _wait_for_vision(self) -> None:
         if not self._wait(self._vision_used, self.opt.ekf_wait_s, 0.2):
@@ -256,7 +279,8 @@ class Mission:
 
     def _arm(self) -> None:
         """Arm as a ground station's user would: a refusal that may pass later (ArduPilot's
-        "Arm: Accels inconsistent" for its first 10 s after boot, a gyro still settling) is
+        "Arm: Accels inconsistent" for its first 10 s after boot, PX4's "Preflight Fail: horizontal
+        position unstable" for a few seconds after EKF2 first fuses the feed) is
         retried every ``arm_retry_s`` until ``arm_wait_s``; every refusal's words are kept."""
         deadline = self.clock() + self.opt.arm_wait_s
         while True:

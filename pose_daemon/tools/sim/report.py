@@ -9,7 +9,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .mission import POS_HORIZ_FLAGS, Mission, Recorder
+from .mission import Mission, Recorder, fuses_position
 
 __all__ = ["LIMITS", "summarize", "table", "plot"]
 
@@ -71,7 +71,7 @@ def summarize(
         height = float(np.mean(held)) if held else None
     track_rms, _ = _horizontal(track)
     status = _between([(t, (flags, ratio)) for t, flags, ratio in rec.ekf_status], hold)
-    ignored = [flags & POS_HORIZ_FLAGS != POS_HORIZ_FLAGS or ratio > 1.0 for _t, (flags, ratio) in status]
+    ignored = [not fuses_position(autopilot, flags) or ratio > 1.0 for _t, (flags, ratio) in status]
     ratios = [ratio for _t, (_flags, ratio) in status]
     _, drift = _horizontal(_ekf_errors(rec, windows.get("blackout")))
     recover = windows.get("recover")
@@ -97,7 +97,7 @@ def summarize(
         "blackout_back_m": _horizontal(back)[1],
         "descent_pose_share": (sum(1 for _t, ok in descent if ok) / len(descent)) if descent else None,
         "touchdown_err_m": touchdown,
-        "statustext": [text for _t, text in rec.texts],
+        "statustext": [text.rstrip() for _t, text in rec.texts],
         "reasons": [],
     }
     summary["reasons"] = reasons(summary, failure)
