@@ -210,9 +210,9 @@ def test_a_px4_refusal_longer_than_one_statustext_is_reported_whole(tmp_path):
     text = "Arming denied: Resolve system health failures first\t"
     fake = FakeSitl("px4", prearm_failure=text)
     try:
-        code, summary = _sim(tmp_path, fake, "--fly", "hold", "--ekf-wait-s", "20")
+        code, summary = _sim(tmp_path, fake, "--fly", "hold", "--ekf-wait-s", "20", "--arm-wait-s", "0")
     finally:
         fake.close()
     assert code == 1 and summary["armed"] is False
-    assert summary["reasons"] == ["not armed: Arming denied: Resolve system health failures first"]
+    assert summary["reasons"] == ["not armed in 0 s (1 try): Arming denied: Resolve system health failures first"]
     assert "Arming denied: Resolve system health failures first" in summary["statustext"]

@@ -295,17 +295,17 @@ class Mission:
                 break
             log.info("sim: arming refused (%s); again in %g s", self.arm_refusals[-1], self.opt.arm_retry_s)
             time.sleep(self.opt.arm_retry_s)
-        tries = len(self.arm_refusals)
+        tries = f"{len(self.arm_refusals)} {'try' if len(self.arm_refusals) == 1 else 'tries'}"
         raise MissionFailed(
-            f"not armed in {self.opt.arm_wait_s:g} s ({tries} tries): {self.arm_refusals[-1]}"
+            f"not armed in {self.opt.arm_wait_s:g} s ({tries}): {self.arm_refusals[-1]}"
             if said
-            else f"not armed in {self.opt.arm_wait_s:g} s ({tries} tries; the autopilot said nothing)"
+            else f"not armed in {self.opt.arm_wait_s:g} s ({tries}; the autopilot said nothing)"
         )
 
     def _arm_words(self, since_s: float) -> Optional[str]:
         """The autopilot's refusal since ``since_s``: its last STATUSTEXT naming arming
         ("PreArm: ...", "Arm: ...", "Arming denied: ..."), else its last STATUSTEXT."""
-        said = [text for t, text in self.rec.texts if t >= since_s]
+        said = [text.strip() for t, text in self.rec.texts if t >= since_s]  # PX4 may end one in a tab
         about = [text for text in said if "arm" in text.lower()]
         return (about or said)[-1] if said else None
 
