@@ -218,8 +218,11 @@ class Service:
         self.preview = self._open_preview(tap) if tap is not None else None
         self.notifier = notifier if notifier is not None else SdNotifier()
         self.watchdog_s = watchdog_interval_s(env)
-        self._stop = threading.Event()
-        self._status_requested = threading.Event()
+        # Plain flags, not threading.Event: a signal handler runs in the main thread between two
+        # bytecodes, possibly while that thread holds an Event's lock inside Event.wait(), and
+        # Event.set() would then wait for that lock for ever (a SIGTERM that hung the daemon).
+        self._stop_requested = False
+        self._status_requested = False
         self.stop_reason: Optional[str] = None
         self.watchdog_pings = 0
 
@@ -235,14 +238,14 @@ class Service:
             self.pipeline.frame_observer = None
             return None
 
-    # Signal handlers only set flags; the main loop acts on them.
+    # Signal handlers only set flags, taking no lock; the main loop acts on them.
     def request_stop(self, reason: str = "stop requested") -> None:
         if self.stop_reason is None:
             self.stop_reason = reason
-        self._stop.set()
+        self._stop_requested = True
 
     def request_status(self) -> None:
-        self._status_requested.set()
+        self._status_requested = True
 
     def install_signal_handlers(self) -> Dict[int, object]:
         """SIGTERM/SIGINT/SIGHUP -> clean stop, SIGUSR1 -> status line; returns the previous handlers.
@@ -292,11 +295,11 @@ class Service:
         next_ping = now
         last_ping = now
         try:
-            while not self._stop.is_set():
+            while not self._stop_requested:
                 if self.pipeline.finished.is_set():
                     self.stop_reason = self.pipeline.end_reason or "pipeline ended"
                     break
-                self._stop.wait(0.05)
+                time.sleep(0.05)  # a signal's flag is seen within this
                 now = self.clock()
                 if not ready and self.pipeline.first_frame.is_set():
                     ready = True
@@ -310,8 +313,8 @@ class Service:
                         self.watchdog_pings += 1
                         last_ping = now
                     next_ping = now + ping_every_s
-                if self._status_requested.is_set():
-                    self._status_requested.clear()
+                if self._status_requested:
+                    self._status_requested = False
                     self._log_status(reset=False)
                 if now >= next_status:
                     next_status = now + interval_s

@@ -7,6 +7,7 @@ import gc
 import os
 import signal
 import socket
+import sys
 import threading
 import time
 
@@ -272,6 +273,42 @@ def test_sigterm_stops_cleanly_and_sigusr1_logs_status(listener, caplog):
     status = [r.getMessage() for r in caplog.records if r.getMessage().startswith("status: ")]
     assert len(status) == 2  # SIGUSR1, then the final line at stop
     assert "fps" in status[0] and "source ok" in status[0]
+
+
+def test_the_signal_handlers_take_no_lock(listener):
+    """A handler runs in the main thread between two bytecodes, possibly while that thread holds
+    a lock (inside Event.wait()): one that takes a lock, as Event.set() does, can wait for ever
+    (a SIGTERM once hung the daemon so). Every C call the handlers make is watched."""
+    path, _ = listener
+    svc = Service(
+        _cfg(),
+        source=FakeSource(frames=5),
+        outputs=outputs_of(FakeOutput),
+        processor=FakeProcessor(),
+        notifier=SdNotifier(path),
+        env={},
+    )
+    previous = svc.install_signal_handlers()
+    acquired = []
+
+    def watch(_frame, event, arg):
+        if event == "c_call" and getattr(arg, "__name__", "") in ("acquire", "__enter__", "acquire_lock"):
+            acquired.append(repr(arg))
+
+    try:
+        handlers = {signum: signal.getsignal(signum) for signum in previous}
+        sys.setprofile(watch)
+        try:
+            for signum in (signal.SIGUSR1, signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+                handlers[signum](signum, None)
+        finally:
+            sys.setprofile(None)
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    assert acquired == []
+    assert svc.stop_reason == "SIGTERM"
+    assert svc.run() == 0  # the stop is acted on
 
 
 def test_crashing_source_exits_1(listener):
