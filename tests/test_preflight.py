@@ -346,6 +346,41 @@ def test_the_delay_advice_never_goes_past_ardupilots_largest_viso_delay(set_ms, 
     assert len(said) == len(expected) and all(ln.startswith(e) for ln, e in zip(said, expected)), said
 
 
+@pytest.mark.parametrize(
+    "set_ms, expected",
+    [
+        (
+            20,
+            [
+                "PROBLEM VISO_DELAY_MS = 20 is shorter than the measured capture-to-send delay (shortest 30 ms,",
+                "FIX: VISO_DELAY_MS = 30",
+            ],
+        ),
+        (45, ["OK VISO_DELAY_MS = 45 (measured capture-to-send delay: shortest 30 ms, median 60 ms, p90 200 ms)"]),
+        (
+            120,
+            [
+                "OK VISO_DELAY_MS = 120 (measured capture-to-send delay: shortest 30 ms, median 60 ms, p90 200 ms; "
+                "closest to the capture time: 30)"
+            ],
+        ),
+    ],
+)
+def test_viso_delay_is_judged_against_the_shortest_delay_as_ardupilots_jitter_correction_dates_poses(set_ms, expected):
+    """ArduPilot dates a pose at time_usec plus the shortest lag it saw, less VISO_DELAY_MS: the
+    shortest delay, not the median, brings back the capture time."""
+    from pose_daemon.tools.preflight import Observation, check_ardupilot
+
+    cfg = parse_config('[output.mavlink]\nconnection = "udpout:127.0.0.1:14550"\n')
+    obs = Observation(autopilot="ardupilot", params={"VISO_DELAY_MS": (float(set_ms), 9)})
+    obs.delays_s = [0.030, 0.060, 0.060, 0.090, 0.200]
+    lines = [f.line() for f in check_ardupilot(cfg, obs)]
+    said = [ln for ln in lines if "VISO_DELAY_MS" in ln]
+    assert len(said) == len(expected), said
+    for ln, e in zip(said, expected):
+        assert ln.startswith(e) if e.endswith(",") else ln == e, said
+
+
 def test_px4_target_relative_needs_the_vision_target_estimator(tmp_path, capsys):
     """With TARGET_RELATIVE listed, preflight checks PX4's vision target estimator (PX4 1.18,
     vision_target_estimator_params.yaml): a stock build without it is a PROBLEM with no FIX; on

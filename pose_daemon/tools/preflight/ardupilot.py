@@ -147,23 +147,31 @@ def check_ardupilot(cfg, obs: Observation, link_kind: str = "udpout") -> List[Fi
             )
             if vd < VISO_DELAY_MAX_MS:
                 out.append(Finding("FIX", param="VISO_DELAY_MS", value=VISO_DELAY_MAX_MS))
-        elif vd < math.floor(p50):
-            out += [
-                Finding(
-                    "PROBLEM",
-                    f"VISO_DELAY_MS = {fmt(vd)} is shorter than the measured capture-to-send "
-                    f"delay (median {p50:.0f} ms, p90 {p90:.0f} ms)",
-                ),
-                Finding("FIX", param="VISO_DELAY_MS", value=math.ceil(p50)),
-            ]
         else:
-            out.append(
-                Finding(
-                    "OK",
-                    f"VISO_DELAY_MS = {fmt(vd)} (measured capture-to-send delay: median "
-                    f"{p50:.0f} ms, p90 {p90:.0f} ms)",
+            # ArduPilot dates a pose at its time_usec plus the shortest lag it has seen on the
+            # link (its jitter correction, AP_RTC/JitterCorrection), then takes VISO_DELAY_MS off
+            # (NavEKF3 writeExtNavData): the capture time comes back with the shortest delay.
+            # Shorter, a pose meets a state newer than its capture; longer, an older one.
+            shortest_ms = min(obs.delays_s) * 1e3
+            measured = f"shortest {shortest_ms:.0f} ms, median {p50:.0f} ms, p90 {p90:.0f} ms"
+            if vd < math.floor(shortest_ms):
+                out += [
+                    Finding(
+                        "PROBLEM",
+                        f"VISO_DELAY_MS = {fmt(vd)} is shorter than the measured capture-to-send delay "
+                        f"({measured}): ArduPilot dates each pose at its capture time plus the "
+                        "shortest delay it saw, less VISO_DELAY_MS",
+                    ),
+                    Finding("FIX", param="VISO_DELAY_MS", value=math.ceil(shortest_ms)),
+                ]
+            else:
+                best = f"; closest to the capture time: {math.ceil(shortest_ms)}" if vd > shortest_ms + 20 else ""
+                out.append(
+                    Finding(
+                        "OK",
+                        f"VISO_DELAY_MS = {fmt(vd)} (measured capture-to-send delay: {measured}{best})",
+                    )
                 )
-            )
     gps = p.get("GPS1_TYPE", p.get("GPS_TYPE"))
     if gps is not None:
         if gps == 0 and m.origin is None and not obs.origin_seen:
