@@ -31,6 +31,7 @@ def _stream(out, n: int, p_local=(0.0, 0.0, -1.5), yaw_deg: float = 0.0, results
         time.sleep(1 / 30)
 
 
+@pytest.mark.slow
 def test_origin_is_sent_until_the_ekf_keeps_it(monkeypatch):
     """Item 1: an origin sent before EKF3 runs is refused, one taken during its start-up is
     wiped; the output keeps sending until the autopilot keeps reporting it back."""

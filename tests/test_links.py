@@ -589,6 +589,7 @@ def _read_by_conn(ap, index, now_s):
     return out
 
 
+@pytest.mark.slow
 def test_a_tcp_reader_that_reads_slowly_but_steadily_is_never_reset():
     """A peer that reads every 50 ms and sends its HEARTBEAT each second (so its kernel delays
     its ACKs), poses handed over 70 ms after capture (a loaded pipeline, within the 0.1 s

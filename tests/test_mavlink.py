@@ -424,6 +424,7 @@ def test_connection_strings():
         parse_config('[output.mavlink]\nconnection = "udpout:localhost"\n', "fc.toml")
 
 
+@pytest.mark.slow
 def test_mavproxy_ground_station_receives_the_stream(tmp_path):
     """MAVProxy, a real ground station, logs the stream; its log passes the acceptance check."""
     import os
@@ -690,6 +691,7 @@ def test_a_pose_refused_late_after_a_loss_does_not_raise_the_reset_counter_twice
     assert report.ok, str(report)
 
 
+@pytest.mark.slow
 def test_px4_timesync_is_answered_on_arrival_and_converges_without_a_live_attitude():
     """PX4 (fake_autopilot.Px4Timesync: src/lib/timesync) counts a TIMESYNC sample only when its
     round trip is under 10 ms and trusts the offset after 500 such samples. With no live attitude

@@ -69,6 +69,7 @@ def _passes(code: int, lines: list) -> None:
 GOOD = 'messages = ["ODOMETRY"]\norigin = [47.397742, 8.545594, 488.0]'
 
 
+@pytest.mark.slow
 def test_a_repeated_preflight_passes_on_a_good_ardupilot(tmp_path, capsys):
     """ArduPilot says "using external nav data" once per EKF start and streams no
     EKF_STATUS_REPORT unless asked (Copter's SR_EXTRA3 = 0): the verdict comes from the report
@@ -111,6 +112,7 @@ def test_preflight_30_s_after_boot_passes_and_asks_as_a_ground_station(tmp_path,
     assert senders == {(255, 190)}, senders
 
 
+@pytest.mark.slow
 def test_a_bad_ardupilot_still_fails_and_odometry_gets_no_vpe_warning(tmp_path, capsys):
     """EKF3 not taking external nav: the fresh report says so (flags 0x1), on a second run too.
     VISO_QUAL_MIN > 0 with ODOMETRY only is compared with ODOMETRY's quality: the daemon says
@@ -148,6 +150,7 @@ def test_the_daemon_sending_as_the_autopilot_itself_is_a_problem(tmp_path, capsy
     assert "PROBLEM EKF3 does not use the feed (flags 0x1)" in lines, lines
 
 
+@pytest.mark.slow
 def test_ardupilot_problems_are_fixed_by_apply(tmp_path, capsys):
     fc = FakeAutopilot(
         "ardupilot",
@@ -195,6 +198,7 @@ def test_ardupilot_problems_are_fixed_by_apply(tmp_path, capsys):
     ), lines
 
 
+@pytest.mark.slow
 def test_px4_integer_parameters_are_set_bytewise(tmp_path, capsys):
     fc = FakeAutopilot("px4", heartbeat_s=0.2, timesync_s=0.5, params={"EKF2_EV_CTRL": 4})
     cfg = _config(tmp_path, fc.connection)
@@ -381,6 +385,7 @@ def test_viso_delay_is_judged_against_the_shortest_delay_as_ardupilots_jitter_co
         assert ln.startswith(e) if e.endswith(",") else ln == e, said
 
 
+@pytest.mark.slow
 def test_px4_target_relative_needs_the_vision_target_estimator(tmp_path, capsys):
     """With TARGET_RELATIVE listed, preflight checks PX4's vision target estimator (PX4 1.18,
     vision_target_estimator_params.yaml): a stock build without it is a PROBLEM with no FIX; on
@@ -472,6 +477,7 @@ def test_px4_warnings_reach_preflight_as_events_on_the_onboard_link(tmp_path, ca
     assert len([ln for ln in lines if "Heading estimate" in ln]) == 1  # reported twice, said once
 
 
+@pytest.mark.slow
 def test_px4_ev_height_off_is_fixed_and_the_feed_is_judged_on_ekf2s_last_report(tmp_path, capsys):
     """EKF2_EV_CTRL = 9 leaves EV height unfused: a PROBLEM whose FIX is 11. And "EKF2 uses the
     feed" is EKF2's last ESTIMATOR_STATUS of the watch: the fake PX4 stops fusing half-way
@@ -514,6 +520,7 @@ def test_px4_an_old_estimator_status_says_nothing_of_the_end_of_the_watch():
     assert "OK EKF2 uses the feed (flags 0x1ff: a horizontal position fused, not GPS)" in lines, lines
 
 
+@pytest.mark.slow
 def test_gps_vertical_velocity_is_a_problem_and_a_visual_odometry_fix_asks_for_a_reboot(tmp_path, capsys):
     """Copter's default EK3_SRC1_VELZ (3, GPS) refuses to arm without a GPS ("EK3 sources require
     GPS" in ArduCopter SITL); VISO_TYPE set live works only after a reboot ("PreArm: VisOdom: out

@@ -144,6 +144,7 @@ def _run(capsys, *argv):
     return code, lines
 
 
+@pytest.mark.slow
 def test_preflight_reads_and_fixes_the_ardupilot_landing_parameters(tmp_path, capsys):
     wrong = {**PLND_OK, "PLND_EST_TYPE": 0, "PLND_ORIENT": 0, "PLND_ALT_MIN": 0.75, "PLND_CAM_POS_X": 0.05}
     fc = FakeAutopilot("ardupilot", ekf_start_s=0.0, heartbeat_s=0.2, params=wrong)

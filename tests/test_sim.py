@@ -63,6 +63,7 @@ def _sim(tmp_path, fake: FakeSitl, *extra: str, mount: str = "down", pad: bool =
     return code, json.loads((out / "summary.json").read_text())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind, pad", [("ardupilot", True), ("px4", False)], ids=["ardupilot-pad", "px4-square"])
 def test_a_short_landing_rehearsal_passes_and_reports(tmp_path, capsys, kind, pad):
     """On ArduPilot over the nested pad (ArUco map), on PX4 over a plain square marker."""
@@ -85,6 +86,7 @@ def test_a_short_landing_rehearsal_passes_and_reports(tmp_path, capsys, kind, pa
     assert (tmp_path / "out" / "sim.png").stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_a_landing_from_higher_up_holds_there_and_lands_on_the_pad(tmp_path):
     """--climb-m: the hover (and so the landing's start) over the nested pad 3 m up, not 1 m."""
     fake = FakeSitl("ardupilot", yaw_deg=-15.0)
@@ -98,6 +100,7 @@ def test_a_landing_from_higher_up_holds_there_and_lands_on_the_pad(tmp_path):
     assert summary["descent_pose_share"] > 0.9
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["ardupilot", "px4"])
 def test_a_wrong_mount_fails_with_the_reason(tmp_path, capsys, kind):
     """No pose, no fusion: PX4's EKF2 sets its horizontal position flags on the ground all the
@@ -116,6 +119,7 @@ def test_a_wrong_mount_fails_with_the_reason(tmp_path, capsys, kind):
     assert err[-1].startswith("pose-daemon sim: failed: the EKF did not use the vision feed")
 
 
+@pytest.mark.slow
 def test_an_arming_refusal_is_retried_then_reported_with_the_autopilots_words(tmp_path):
     fake = FakeSitl("ardupilot", prearm_failure="PreArm: Compass not calibrated")
     try:
@@ -131,6 +135,7 @@ def test_an_arming_refusal_is_retried_then_reported_with_the_autopilots_words(tm
     assert "PreArm: Compass not calibrated" in summary["statustext"]
 
 
+@pytest.mark.slow
 def test_arming_refused_while_the_accels_settle_is_retried_until_it_arms(tmp_path, capsys):
     """ArduPilot refuses "Arm: Accels inconsistent" until its IMUs have agreed 10 s after boot: a
     rehearsal started right after the simulator must retry as a ground station's user would.
@@ -172,6 +177,7 @@ def test_no_simulator_is_exit_2_with_one_line(tmp_path, capsys, monkeypatch):
     assert "[sitl] connection udpout:127.0.0.1:9: no autopilot HEARTBEAT in 0.5 s" in err[0]
 
 
+@pytest.mark.slow
 def test_without_a_mission_sim_runs_the_daemon_until_stopped(tmp_path, capsys):
     import os
     import signal
