@@ -95,14 +95,29 @@ class BlurFit:
     steps: int
 
 
+_KERNEL_GRIDS: dict = {}
+
+
 def _gaussian_kernel(cov: np.ndarray) -> np.ndarray:
-    lam, vec = np.linalg.eigh(cov)
-    lam = np.maximum(lam, 0.09)
-    inv = (vec / lam) @ vec.T
-    half = int(math.ceil(3.5 * math.sqrt(float(lam.max()))))
-    g = np.arange(-half, half + 1, dtype=np.float64)
-    gx, gy = np.meshgrid(g, g)
-    k = np.exp(-0.5 * (inv[0, 0] * gx * gx + 2.0 * inv[0, 1] * gx * gy + inv[1, 1] * gy * gy))
+    (a, b), (_, c) = cov.tolist()
+    # The 2 x 2 eigenvalues in closed form (numpy's eigh costs more than the kernel here);
+    # eigh only where the smaller is clamped.
+    mid, rad = 0.5 * (a + c), math.hypot(0.5 * (a - c), b)
+    big = max(mid + rad, 0.09)
+    if mid - rad >= 0.09:
+        det = a * c - b * b
+        ixx, ixy, iyy = c / det, -b / det, a / det
+    else:
+        lam, vec = np.linalg.eigh(cov)
+        inv = (vec / np.maximum(lam, 0.09)) @ vec.T
+        ixx, ixy, iyy = float(inv[0, 0]), float(inv[0, 1]), float(inv[1, 1])
+    half = int(math.ceil(3.5 * math.sqrt(big)))
+    grid = _KERNEL_GRIDS.get(half)
+    if grid is None:
+        g = np.arange(-half, half + 1, dtype=np.float64)
+        gx, gy = np.meshgrid(g, g)
+        grid = _KERNEL_GRIDS[half] = (gx * gx, 2.0 * gx * gy, gy * gy)
+    k = np.exp(-0.5 * (ixx * grid[0] + ixy * grid[1] + iyy * grid[2]))
     return (k / k.sum()).astype(np.float32)
 
 
@@ -131,6 +146,26 @@ def _psf_ok(psf: np.ndarray, smear: bool) -> bool:
 
 def _homography(corners: np.ndarray) -> np.ndarray:
     return cv2.getPerspectiveTransform(UNIT_SQUARE, np.asarray(corners, dtype=np.float32)).astype(np.float64)
+
+
+_UNIT_UV = UNIT_SQUARE.astype(np.float64)
+
+
+def _dh_dc(corners: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """d(homography's 8 free entries)/d(corner coordinates x0, y0, x1, ...) (8, 8), where
+    ``h`` (3, 3) maps the unit square onto ``corners``: differentiating the linear system
+    that gives h, corner i's x (or y) enters its own equation only, on its right-hand side
+    and times h's denominator there (1 + h6 u + h7 v), so the derivative is the system's
+    inverse with its columns scaled by those denominators."""
+    A = np.zeros((8, 8))
+    u, v = _UNIT_UV[:, 0], _UNIT_UV[:, 1]
+    x, y = corners[:, 0], corners[:, 1]
+    A[0::2, 0], A[0::2, 1], A[0::2, 2] = u, v, 1.0
+    A[1::2, 3], A[1::2, 4], A[1::2, 5] = u, v, 1.0
+    A[0::2, 6], A[0::2, 7] = -u * x, -v * x
+    A[1::2, 6], A[1::2, 7] = -u * y, -v * y
+    w = np.repeat(1.0 + h[2, 0] * u + h[2, 1] * v, 2)
+    return np.linalg.inv(A) * w[None, :]
 
 
 class MarkerModel:
@@ -278,18 +313,6 @@ class MarkerModel:
             res, contrast = linear(M[mask])
             return float(res.astype(np.float64) @ res.astype(np.float64)), res, contrast, s, M, u[mask], v[mask]
 
-        def dh_dc(c: np.ndarray) -> np.ndarray:
-            """d(homography's 8 free entries)/d(corner coordinates), central differences."""
-            dhdc = np.empty((8, 8))
-            flat = c.ravel()
-            for j in range(8):
-                e = np.zeros(8)
-                e[j] = 1e-3
-                hp = _homography((flat + e).reshape(4, 2)).ravel()[:8]
-                hm = _homography((flat - e).reshape(4, 2)).ravel()[:8]
-                dhdc[:, j] = (hp - hm) / 2e-3
-            return dhdc
-
         def jacobian(c, psf, smear, s, M, contrast, uu, vv) -> np.ndarray:
             Mx, My = np.zeros_like(M), np.zeros_like(M)
             Mx[:, 1:-1] = 0.5 * (M[:, 2:] - M[:, :-2])
@@ -297,13 +320,14 @@ class MarkerModel:
             mx, my = Mx[mask], My[mask]
             # The model moves with the corners: d(residual)/dh = contrast * grad(M) . dx/dh
             # (dx/dh: the homography's Jacobian at each pixel's pattern point), then dh/dc.
-            h6, h7 = _homography(c)[2, :2].tolist()
+            hom = _homography(c)
+            h6, h7 = hom[2, :2].tolist()
             den = h6 * uu + h7 * vv + 1.0
             a, b = contrast * mx / den, contrast * my / den
             ab = a * xs + b * ys
             Jh = np.column_stack([a * uu, a * vv, a, b * uu, b * vv, b, -ab * uu, -ab * vv])
             J = np.empty((n, 11), np.float32)
-            J[:, :8] = Jh @ dh_dc(c)
+            J[:, :8] = Jh @ _dh_dc(c, hom)
             mxx = (M[:, 2:] - 2.0 * M[:, 1:-1] + M[:, :-2])[mask[:, 1:-1]]
             myy = (M[2:, :] - 2.0 * M[1:-1, :] + M[:-2, :])[mask[1:-1, :]]
             if smear:
@@ -332,6 +356,10 @@ class MarkerModel:
                 moved = 0.0
                 while lam <= 1e4:
                     delta = np.linalg.solve(JtJ + lam * damp, -g)
+                    # A step, barely damped, that moves no corner by more than the tolerance is
+                    # the last: taken when it lowers the cost, and not retried more damped
+                    # when it does not (at the optimum every step raises it).
+                    last = lam <= 0.1 and float(np.abs(delta[:8]).max()) < MODEL_CONVERGED_PX
                     c2, psf2 = c + delta[:8].reshape(4, 2), psf + delta[8:]
                     if not _psf_ok(psf2, smear):
                         lam *= 10.0
@@ -342,6 +370,8 @@ class MarkerModel:
                         c, psf = c2, psf2
                         cost, res, contrast, s, M, uu, vv = out
                         lam = max(lam / 10.0, 1e-7)
+                        break
+                    if last:
                         break
                     lam *= 10.0
                 if lam > 1e4 or moved < MODEL_CONVERGED_PX:
