@@ -163,6 +163,59 @@ def test_a_tracked_blurred_marker_is_modelled_too() -> None:
     assert max(errors) < 0.05, errors
 
 
+def _tracked_twice(monkeypatch, effects: Effects, gamma):
+    """Per tracked frame (its model fits, as (given the last frame's blur, steps, a smear), the
+    corners and the truth) of a detector that tracks six frames, and the same of a second one
+    whose fits are made to start afresh every frame."""
+    log = []  # (given the last frame's blur, steps, a smear) of each model fit
+    fit = MarkerModel.fit
+
+    def logged(self, gray, corners, blur_px, quiet_px, least_blur_px=None, lut=None, start=None):
+        out = fit(self, gray, corners, blur_px, quiet_px, least_blur_px, lut, start)
+        if out is not None:
+            log.append((start is not None, out.steps, out.smear_px > 0.0))
+        return out
+
+    monkeypatch.setattr(MarkerModel, "fit", logged)
+    warm, fresh = MarkerDetector(ARUCO, gamma=gamma), MarkerDetector(ARUCO, gamma=gamma)
+    rows = []
+    for i, roll in enumerate((10.0, 10.4, 10.8, 11.2, 11.6, 12.0)):
+        image, truth = _blurred_frame(effects, roll_deg=roll, seed=40 + i)
+        log.clear()
+        a = warm.detect(image)
+        warm_log = list(log)
+        fresh._finder._model_start = None
+        log.clear()
+        b = fresh.detect(image)
+        assert a is not None and b is not None
+        if i > 0:
+            assert warm.last_stage == "follow" and fresh.last_stage == "follow"
+            rows.append((warm_log, a, list(log), b, truth))
+    return rows
+
+
+def test_a_tracked_defocus_starts_from_its_last_blur_and_lands_where_a_fresh_fit_does(monkeypatch) -> None:
+    """A tracked frame's fit starts from the last frame's blur: fewer steps, and the corners
+    of a fit from a round blur, on the same frames tracked afresh."""
+    rows = _tracked_twice(monkeypatch, Effects(blur_px=2.5, noise_gray=2.0), 1.0)
+    assert all([f[0] for f in r[0]] == [True] and [f[0] for f in r[2]] == [False] for r in rows)
+    apart = [float(np.abs(r[1] - r[3]).max()) for r in rows]
+    warm_err, fresh_err = [rms(r[1], r[4]) for r in rows], [rms(r[3], r[4]) for r in rows]
+    assert max(apart) < 0.05, apart
+    assert float(np.mean(warm_err)) <= float(np.mean(fresh_err)) + 0.005, (warm_err, fresh_err)
+    assert sum(r[0][0][1] for r in rows) < sum(r[2][0][1] for r in rows)
+
+
+def test_a_tracked_smear_is_fitted_afresh(monkeypatch) -> None:
+    """A smear's fit does not start from the last frame's smear (from there it stayed at the
+    edge fits' corners): every frame's is the fresh fit's."""
+    effects = Effects(blur_px=0.8, motion_blur_px=8.0, motion_blur_angle_deg=30.0, noise_gray=2.0, gamma="srgb")
+    rows = _tracked_twice(monkeypatch, effects, "srgb")
+    assert all(np.array_equal(r[1], r[3]) for r in rows)
+    # ... a smear fitted as the fresh one is, as many steps (a Gaussian's, then the smear's).
+    assert all(len(r[0]) == 1 and r[0][0][2] and r[0][0][1] == r[2][0][1] for r in rows)
+
+
 def test_degenerate_input_gives_none_not_an_error() -> None:
     model = _model_of(MarkerDetector(ARUCO))
     flat = np.full((CAM.height, CAM.width), 128, np.uint8)

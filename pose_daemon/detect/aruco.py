@@ -193,6 +193,8 @@ class ArucoFinder(OutlineFinder):
         expected[1:-1, 1:-1] = self.bits.astype(bool)
         self._expected_white = expected.ravel()
         self._model = blur_model.MarkerModel(expected)
+        # The last accepted model fit's blur, where a tracked frame's fit starts (``polish``).
+        self._model_start: Optional[blur_model.BlurStart] = None
         # The inner cells' indices in each rotation (4, n_bits^2), and their expected colour.
         self._inner_perms = np.array([perm[self._grid.inner] for perm in self._grid.perms])
         self._expected_inner = self._expected_white[self._grid.inner]
@@ -273,22 +275,32 @@ class ArucoFinder(OutlineFinder):
         # would only cost: the model takes the code's light into account itself).
         return blur_model.MODEL_MIN_BLUR_PX if self.options.blur_model else math.inf
 
-    def polish(self, gray: np.ndarray, cand: Candidate) -> Candidate:
+    def restart_searches(self) -> None:
+        super().restart_searches()
+        self._model_start = None
+
+    def polish(self, gray: np.ndarray, cand: Candidate, tracked: bool = False) -> Candidate:
         """The marker's corners from the model of its whole blurred pattern (``blur_model``)
-        where its edges are blurred and the model describes the frame; else ``cand``."""
+        where its edges are blurred and the model describes the frame; else ``cand``.
+        ``tracked``: the marker followed from the last frame, whose model fit's blur the fit
+        starts from (from a round blur again when that is not accepted)."""
         fit = cand.fit
+        start, self._model_start = (self._model_start if tracked else None), None
         if not self.options.blur_model or fit is None or fit.blur_px < blur_model.MODEL_MIN_BLUR_PX:
             return cand
         quiet_px = self.reach_px(cand.corners)[1]
         least = None if fit.side_blur_px is None else float(fit.side_blur_px.min())
-        model_fit = self._model.fit(gray, cand.corners, fit.blur_px, quiet_px, least, self.lut)
+        model_fit = self._model.fit(gray, cand.corners, fit.blur_px, quiet_px, least, self.lut, start)
+        if start is not None and not blur_model.accept(model_fit, cand.corners, fit.blur_px):
+            model_fit = self._model.fit(gray, cand.corners, fit.blur_px, quiet_px, least, self.lut)
         if model_fit is None or not blur_model.accept(model_fit, cand.corners, fit.blur_px):
             return cand
+        self._model_start = model_fit.start
         return Candidate(model_fit.corners, True, fit)
 
     def follow(self, gray: np.ndarray, predicted: np.ndarray) -> Optional[Candidate]:
         cand = super().follow(gray, predicted)
-        return None if cand is None else self.polish(gray, cand)
+        return None if cand is None else self.polish(gray, cand, tracked=True)
 
     def try_quad(self, gray: np.ndarray, quad: np.ndarray, scale: int, found: List[Candidate]) -> Optional[Candidate]:
         """A rough outline -> the marker (refined, labelled) or None; the code is read from
