@@ -194,6 +194,11 @@ def test_marker_placement_drives_the_synthetic_trajectory():
         ),
         ("[marker]\nid = 3\n", 'config.toml: [marker] id: expected no id unless type = "aruco", got 3'),
         (
+            "[detector]\ngamma = 1.0\ngamma_shoulder = 2.0\n",
+            "config.toml: [detector] gamma_shoulder: expected a number below 2 * (gamma - 0.1) (1.8): the exponent "
+            "at black stays positive, got 2.0",
+        ),
+        (
             "[pipeline]\nsource_retry_s = 2.0\nsource_retry_max_s = 1.0\n",
             "config.toml: [pipeline] source_retry_max_s: expected a number >= source_retry_s (2), got 1.0",
         ),

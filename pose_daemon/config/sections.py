@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from typing import Any, Dict, Optional, Tuple
 
 from ..camera import MARKER_TYPES, Camera, Marker
+from ..detect.response import MIN_BLACK_EXPONENT, check_shoulder
 from ..geometry import MARKER_PLACEMENTS, MOUNT_PRESETS
 from ..pose.loop import METHODS
 from .forms import AUTOPILOTS, SOURCE_FORMS, parse_connection, parse_source
@@ -103,6 +104,12 @@ class DetectorConfig:
         Rule("float", lo=0.2, hi=5),
         "camera response exponent: edges located in linear light (1.0 linear, about 2.2 for sRGB/Rec. 709 cameras)",
     )
+    gamma_shoulder: float = setting(
+        0.0,
+        Rule("float", lo=0, hi=4),
+        "rise of the response exponent from black to white, about gamma at mid grey (0 = a power law;"
+        " `pose-daemon calibrate` measures both)",
+    )
     search_budget_ms: float = setting(
         0.0,
         Rule("float", lo=0, hi=10_000),
@@ -113,6 +120,16 @@ class DetectorConfig:
         Rule("bool"),
         "type aruco: a blurred marker's corners from a model of its whole pattern (false: edge fits only, faster)",
     )
+
+    def check(self) -> None:
+        try:
+            check_shoulder(self.gamma_shoulder, self.gamma)
+        except ValueError:
+            limit = 2.0 * (self.gamma - MIN_BLACK_EXPONENT)
+            expected = (
+                f"a number below 2 * (gamma - {MIN_BLACK_EXPONENT:g}) ({limit:g}): the exponent at black stays positive"
+            )
+            raise Invalid("gamma_shoulder", expected, self.gamma_shoulder) from None
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ import numpy as np
 from ..camera import Camera, Marker
 from ..image import as_gray
 from .quads import Roi
-from .response import Response, check_response
+from .response import Response, check_response, check_shoulder
 from .square import MAX_REACH_PX, Candidate, SquareFinder, SquareOptions, aspect_error, side_lengths
 
 #: Which step found the marker in the last call: "follow", "roi", "full" or None (not found).
@@ -134,6 +134,8 @@ class MarkerDetector:
     - ``gamma`` (1.0): the camera's response, a power-law exponent (1.0 = linear intensity,
       about 2.2 for sRGB/Rec. 709 cameras) or "srgb"; edges are located in linear intensity,
       so that blur does not shrink the marker (see detect/response.py).
+    - ``gamma_shoulder`` (0.0): how much the response's exponent rises from black to white
+      (``gamma`` is its value at mid grey; 0 = a power law; detect/response.py).
     - ``blur_model`` (True): an ArUco marker whose edges are blurred (sigma >= 1.2 px) gets its
       corners from a model of its whole blurred pattern fitted to the frame (see
       detect/blur_model.py): unbiased by the code's light and less noisy than the edge fits,
@@ -166,6 +168,7 @@ class MarkerDetector:
         max_aspect_ratio_error: float = 3.0,
         roi_margin: float = 0.5,
         gamma: Response = 1.0,
+        gamma_shoulder: float = 0.0,
         search_budget_ms: Optional[float] = None,
         clock: Callable[[], float] = time.perf_counter,
         search_threads: Optional[int] = None,
@@ -218,6 +221,7 @@ class MarkerDetector:
             max_edge_residual_px=float(max_edge_residual_px),
             max_aspect_ratio_error=float(max_aspect_ratio_error),
             gamma=check_response(gamma),
+            gamma_shoulder=check_shoulder(gamma_shoulder, check_response(gamma)),
             blur_model=bool(blur_model),
         )
         if marker.type == "aruco":

@@ -47,6 +47,7 @@ class SquareOptions:
     max_aspect_ratio_error: float = 3.0  # measured W:H may differ from the marker's by this factor
     ring_px: float = 2.5  # how far outside the sides the light ring is sampled
     gamma: Response = 1.0  # the camera's response (response.py): edges fitted in linear light
+    gamma_shoulder: float = 0.0  # its exponent's rise from black to white (0 = a power law)
     blur_model: bool = True  # ArUco: a blurred marker's corners from its whole pattern (blur_model.py)
 
 
@@ -283,7 +284,7 @@ class OutlineFinder:
         self.marker = marker
         self.options = options
         self.camera = camera
-        self.lut = decode_lut(options.gamma)
+        self.lut = decode_lut(options.gamma, options.gamma_shoulder)
         self._pool: Optional[Any] = None  # a ThreadPoolExecutor of one worker once use_threads(2+)
         #: The next threshold pass's traced dark regions, started on the worker while the
         #: current pass runs: (future, search, (stage, roi, block)), or None. ``search``

@@ -128,6 +128,7 @@ class FrameProcessor:
                 min_side_px=detector.min_side_px,
                 camera=camera,
                 gamma=detector.gamma,
+                gamma_shoulder=detector.gamma_shoulder,
                 search_budget_ms=detector.search_budget_ms or None,
                 blur_model=detector.blur_model,
             ),

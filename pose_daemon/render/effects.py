@@ -12,7 +12,7 @@ from typing import Any, Dict, Optional
 import cv2
 import numpy as np
 
-from ..detect.response import Response, check_response, decode, encode, is_linear
+from ..detect.response import Response, check_response, check_shoulder, decode, encode, is_linear
 
 
 @dataclass
@@ -36,6 +36,7 @@ class Effects:
     quiet_zone: float = 0.25  # white margin around the dark region (see above)
     supersample: int = 3  # samples per pixel along each axis (>= 1)
     gamma: Response = 1.0  # camera response: 1.0 linear, a power law or "srgb"
+    gamma_shoulder: float = 0.0  # the power law's exponent rises by this from black to white
     sharpen: float = 0.0  # unsharp-mask amount on the encoded image (0 = none)
     sharpen_px: float = 1.0  # its Gaussian sigma, pixels
 
@@ -51,6 +52,7 @@ class Effects:
         if int(self.supersample) < 1:
             raise ValueError(f"Effects.supersample must be >= 1, got {self.supersample!r}")
         self.gamma = check_response(self.gamma, "Effects.gamma")
+        self.gamma_shoulder = check_shoulder(self.gamma_shoulder, self.gamma, "Effects.gamma_shoulder")
         for name, lowest in (("sharpen", 0.0), ("sharpen_px", 0.1)):
             value = getattr(self, name)
             if isinstance(value, bool) or not (
@@ -103,16 +105,16 @@ def make_background(
 def to_linear(img: np.ndarray, effects: Effects) -> np.ndarray:
     """Grey levels as the camera would deliver them in focus -> the scene's linear light
     (the same array when the camera's response is linear)."""
-    if is_linear(effects.gamma):
+    if is_linear(effects.gamma, effects.gamma_shoulder):
         return img
-    return decode(img, effects.gamma).astype(np.float32)
+    return decode(img, effects.gamma, effects.gamma_shoulder).astype(np.float32)
 
 
 def linear_effects(effects: Effects) -> Effects:
     """``effects`` with the paper and ink levels in linear light (for the marker texture)."""
-    if is_linear(effects.gamma):
+    if is_linear(effects.gamma, effects.gamma_shoulder):
         return effects
-    white, black = decode(np.array([effects.white, effects.black]), effects.gamma).tolist()
+    white, black = decode(np.array([effects.white, effects.black]), effects.gamma, effects.gamma_shoulder).tolist()
     return dataclasses.replace(effects, white=white, black=black)
 
 
@@ -170,8 +172,8 @@ def apply_effects(img: np.ndarray, effects: Effects, rng: np.random.Generator) -
         cv2.setRNGSeed(int(rng.integers(1, 2**31 - 1)))
         cv2.randn(noise, np.array([0.0]), np.array([float(effects.noise_gray)]))
         img = img + noise
-    if not is_linear(effects.gamma):
-        img = encode(img, effects.gamma).astype(np.float32)
+    if not is_linear(effects.gamma, effects.gamma_shoulder):
+        img = encode(img, effects.gamma, effects.gamma_shoulder).astype(np.float32)
     if effects.sharpen > 0:
         img = _sharpen(img, effects.sharpen, effects.sharpen_px)
     out = np.clip(img + 0.5, 0, 255).astype(np.uint8)

@@ -168,7 +168,9 @@ def render_plane(
     R, t = pose_arrays(rvec, tvec)
     # The texture's grey levels are as the camera gives them in focus: rendered in linear light.
     tex = np.ascontiguousarray(
-        to_linear(np.asarray(texture, dtype=np.float32), effects) if not is_linear(effects.gamma) else texture
+        to_linear(np.asarray(texture, dtype=np.float32), effects)
+        if not is_linear(effects.gamma, effects.gamma_shoulder)
+        else texture
     )
     size = (float(size_m[0]), float(size_m[1]))
     return _composite(camera, plane_pyramid(tex, size), R, t, effects, rng, background)

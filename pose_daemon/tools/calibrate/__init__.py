@@ -38,7 +38,7 @@ from .fit import (
     refuse_too_few,
     report,
 )
-from .response import ResponseMeasurement, measure_response
+from .response import SHOULDER_GRID, ResponseMeasurement, fit_response, measure_response
 from .run import DEFAULT_MIN_COVERAGE, run_calibration
 
 __all__ = [
@@ -59,6 +59,7 @@ __all__ = [
     "OUTLIER_FLOOR_PX",
     "ROBUST_ROUNDS",
     "ResponseMeasurement",
+    "SHOULDER_GRID",
     "STATUS_INTERVAL_S",
     "VIEW_REJECT_SHARE",
     "ViewSelector",
@@ -68,6 +69,7 @@ __all__ = [
     "camera_toml",
     "camera_values",
     "distortion_difference_px",
+    "fit_response",
     "measure_response",
     "parse_board",
     "refuse_too_few",

@@ -5,21 +5,29 @@ straight line through two neighbouring corners is where a square's edge truly li
 square between four found corners is fitted by the detector's edge fit (started from them,
 reaching as a plain square's does) read at a trial exponent, and its fitted sides are held
 against the corners' lines; the exponent at which the mean size bias is zero is the camera's
-(scripts/real_edge_bias.py does the same on a folder of frames: on real webcam frames an
-exponent fitted on half of them left -0.4 to +0.5 % on the other half, within 0.13 % on three
-of four camera modes, docs/accuracy.md).
+(scripts/real_edge_bias.py does the same on a folder of frames, docs/accuracy.md).
+
+One exponent is right for a camera whose curve is a power law. A webcam's may have a shoulder
+(``[detector] gamma_shoulder``, detect/response.py): its exponent rises towards white, so each
+view's bias at the exponent depends on the view's exposure (the LifeCam HD-3000's views: -2 to
++2.3 % at the one exponent, from the dim views to the bright). With views of several exposures
+the shoulder shows as that spread between views: the shoulder kept is the one that leaves the
+least spread between the views' mean size biases (each at the exponent that zeroes their
+overall mean), and only when it takes at least ``SHOULDER_MIN_GAIN`` of the power law's spread
+away (views of one exposure cannot tell a shoulder: it stays 0). A power law that leaves less
+than ``SHOULDER_MIN_SPREAD_PCT`` between the views is kept without looking.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from ...detect.edge_profiles import signed_area
 from ...detect.refine import fit_edges
-from ...detect.response import Response, decode_lut
+from ...detect.response import MIN_BLACK_EXPONENT, Response, decode_lut
 from ...detect.square import clamp, least_width
 from .board import BoardView
 
@@ -29,6 +37,20 @@ EXPONENT_RANGE = (0.5, 4.0)
 BISECTION_STEPS = 9
 #: Fewer dark squares than this measured: no exponent.
 MIN_SQUARES = 20
+#: The shoulders tried (detect/response.py), then a parabola through the best and its neighbours.
+SHOULDER_GRID = (0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
+#: A shoulder is kept when it takes at least this share off the power law's spread between views.
+SHOULDER_MIN_GAIN = 0.25
+#: Views (with a dark square fitted) needed before a spread between them is looked at.
+MIN_VIEWS_FOR_SHOULDER = 4
+#: A shoulder is looked for only when the power law leaves more spread than this between the
+#: views (%, half the issue's bound on the size bias): less is not worth a second parameter.
+SHOULDER_MIN_SPREAD_PCT = 0.15
+#: With a guess, the exponent is first bracketed this far either side of it.
+GUESS_BRACKET = 0.25
+#: The exponent is searched until the mean size bias is within this (%) of zero, or for
+#: ``BISECTION_STEPS`` steps.
+ZERO_TOLERANCE_PCT = 0.005
 
 
 @dataclass
@@ -41,6 +63,10 @@ class ResponseMeasurement:
     squares: int
     bias_linear_pct: float
     bias_srgb_pct: float
+    shoulder: float = 0.0  # [detector] gamma_shoulder (0 = a power law)
+    views: int = 0  # views with a dark square fitted
+    spread_pct: float = 0.0  # standard deviation of the views' mean size biases, at the result
+    spread_power_pct: float = 0.0  # the same at the best power law (shoulder 0)
 
 
 def dark_squares(gray: np.ndarray, view: BoardView, square_m: float) -> List[np.ndarray]:
@@ -76,37 +102,127 @@ def _offsets(fitted: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return 0.5 * (np.sum((fa - a) * normal, axis=1) + np.sum((fb - b) * normal, axis=1))
 
 
-def size_bias_pct(squares: List[Tuple[np.ndarray, np.ndarray]], response: Response) -> Tuple[float, int]:
+def size_bias_pct(
+    squares: List[Tuple[np.ndarray, np.ndarray]], response: Response, shoulder: float = 0.0
+) -> Tuple[float, int]:
     """The edge fit's mean size bias (%, fitted / true side - 1) over ``squares`` (gray, quad)
-    read at ``response``, and the number of squares fitted."""
-    lut = decode_lut(response)
-    sizes = []
-    for gray, quad in squares:
+    read at ``response`` (and ``shoulder``), and the number of squares fitted."""
+    sizes = _square_biases(squares, decode_lut(response, shoulder))
+    return (float(np.nanmean(sizes)) if np.isfinite(sizes).any() else 0.0), int(np.isfinite(sizes).sum())
+
+
+def _square_biases(squares: List[Tuple[np.ndarray, np.ndarray]], lut: Optional[np.ndarray]) -> np.ndarray:
+    """Each square's size bias (%), NaN where the edge fit failed."""
+    sizes = np.full(len(squares), np.nan)
+    for k, (gray, quad) in enumerate(squares):
         side = least_width(quad)
         inner, outer = clamp(0.2 * side, 1.5, 3.0), clamp(0.15 * side, 1.5, 3.0)
         fit = fit_edges(gray, quad, inner_px=inner, outer_px=outer, iterations=3, lut=lut)
         if fit is None:
             continue
         lengths = np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)
-        sizes.append(200.0 * float(_offsets(fit.corners, quad).mean()) / float(lengths.mean()))
-    return (float(np.mean(sizes)) if sizes else 0.0), len(sizes)
+        sizes[k] = 200.0 * float(_offsets(fit.corners, quad).mean()) / float(lengths.mean())
+    return sizes
 
 
-def measure_response(views: List[BoardView], square_m: float) -> ResponseMeasurement:
-    """The camera's response exponent from board views that carry their frames (``view.gray``)."""
-    squares = [(v.gray, q) for v in views if v.gray is not None for q in dark_squares(v.gray, v, square_m)]
-    linear, n = size_bias_pct(squares, 1.0)
-    srgb, _ = size_bias_pct(squares, "srgb")
-    if n < MIN_SQUARES:
-        return ResponseMeasurement(None, n, linear, srgb)
-    lo, hi = EXPONENT_RANGE
-    # The bias grows with the exponent (a dark square read at a higher one comes out larger).
-    if size_bias_pct(squares, lo)[0] > 0.0 or size_bias_pct(squares, hi)[0] < 0.0:
-        return ResponseMeasurement(None, n, linear, srgb)
-    for _ in range(BISECTION_STEPS):
+class _Views:
+    """Dark squares grouped by view: the mean size bias over all and each view's, per curve."""
+
+    def __init__(self, groups: Sequence[List[Tuple[np.ndarray, np.ndarray]]]) -> None:
+        self.squares = [sq for group in groups for sq in group]
+        self.view = np.concatenate([np.full(len(g), i) for i, g in enumerate(groups)]) if self.squares else np.zeros(0)
+
+    def biases(self, gamma: float, shoulder: float) -> Tuple[float, np.ndarray]:
+        sizes = _square_biases(self.squares, decode_lut(gamma, shoulder))
+        ok = np.isfinite(sizes)
+        per_view = np.array([sizes[ok & (self.view == v)].mean() for v in np.unique(self.view[ok])])
+        return (float(sizes[ok].mean()) if ok.any() else 0.0), per_view
+
+    def zero(self, shoulder: float, guess: Optional[float] = None) -> Optional[Tuple[float, float]]:
+        """The exponent that zeroes the mean size bias at ``shoulder``, and the spread between
+        the views there; None when outside the range. ``guess``: where to look first (the zero
+        at a neighbouring shoulder: ``gamma`` is the exponent at mid grey, and moves little)."""
+        bottom, top = EXPONENT_RANGE
+        bottom = max(bottom, 0.5 * shoulder + MIN_BLACK_EXPONENT + 0.01)
+        lo, hi = bottom, top
+        if guess is not None:
+            guess = min(max(guess, bottom), top)
+            lo, hi = max(bottom, guess - GUESS_BRACKET), min(top, guess + GUESS_BRACKET)
+        # The bias grows with the exponent (a dark square read at a higher one comes out larger).
+        b_lo, b_hi = self.biases(lo, shoulder)[0], self.biases(hi, shoulder)[0]
+        if b_lo > 0.0 and lo > bottom:
+            hi, b_hi, lo = lo, b_lo, bottom
+            b_lo = self.biases(lo, shoulder)[0]
+        elif b_hi < 0.0 and hi < top:
+            lo, b_lo, hi = hi, b_hi, top
+            b_hi = self.biases(hi, shoulder)[0]
+        if not b_lo <= 0.0 <= b_hi:
+            return None
+        for _ in range(BISECTION_STEPS):
+            # Regula falsi kept bracketing (the bias is near linear in the exponent), halved
+            # towards the middle so that a stuck end cannot stall it.
+            t = min(max(-b_lo / (b_hi - b_lo), 0.05), 0.95) if b_hi > b_lo else 0.5
+            mid = lo + t * (hi - lo)
+            b, per_view = self.biases(mid, shoulder)
+            if abs(b) <= ZERO_TOLERANCE_PCT:
+                return mid, float(np.std(per_view))
+            if b < 0.0:
+                lo, b_lo = mid, b
+            else:
+                hi, b_hi = mid, b
         mid = 0.5 * (lo + hi)
-        if size_bias_pct(squares, mid)[0] < 0.0:
-            lo = mid
-        else:
-            hi = mid
-    return ResponseMeasurement(0.5 * (lo + hi), n, linear, srgb)
+        return mid, float(np.std(self.biases(mid, shoulder)[1]))
+
+
+def fit_response(
+    groups: Sequence[List[Tuple[np.ndarray, np.ndarray]]], shoulders: Sequence[float] = SHOULDER_GRID
+) -> ResponseMeasurement:
+    """The camera's response from dark squares (gray, quad) grouped by view: the exponent that
+    zeroes the mean size bias, with the shoulder that leaves the least spread between the views
+    (see the module's notes); ``shoulders``: the grid tried ((0.0,): a power law only)."""
+    data = _Views(groups)
+    linear, n = size_bias_pct(data.squares, 1.0)
+    srgb, _ = size_bias_pct(data.squares, "srgb")
+    views = len([g for g in groups if g])
+    if n < MIN_SQUARES:
+        return ResponseMeasurement(None, n, linear, srgb, views=views)
+    power = data.zero(0.0)
+    tried: Dict[float, Tuple[float, float]] = {}
+    grid = tuple(shoulders)
+    spread = 0.0 if power is None else power[1]
+    if views >= MIN_VIEWS_FOR_SHOULDER and len(grid) > 1 and spread > SHOULDER_MIN_SPREAD_PCT:
+        guess = None if power is None else power[0]
+        for shoulder in grid:
+            found = power if shoulder == 0.0 else data.zero(shoulder, guess)
+            if found is not None:
+                tried[shoulder] = found
+                guess = found[0]
+    if tried:
+        best = min(tried, key=lambda k: tried[k][1])
+        k = grid.index(best)
+        if 0 < k < len(grid) - 1 and all(grid[j] in tried for j in (k - 1, k + 1)):
+            # The spread's minimum on a parabola through the best and its neighbours.
+            x = np.array(grid[k - 1 : k + 2])
+            a, b, _ = np.polyfit(x, [tried[v][1] for v in x], 2)
+            if a > 0:
+                refined = float(np.clip(-b / (2 * a), x[0], x[2]))
+                found = data.zero(refined, tried[best][0])
+                if found is not None and found[1] < tried[best][1]:
+                    tried[refined] = found
+                    best = refined
+        if power is not None and best != 0.0 and tried[best][1] <= (1.0 - SHOULDER_MIN_GAIN) * power[1]:
+            gamma, spread = tried[best]
+            return ResponseMeasurement(gamma, n, linear, srgb, best, views, spread, power[1])
+    if power is None:
+        return ResponseMeasurement(None, n, linear, srgb, views=views)
+    return ResponseMeasurement(power[0], n, linear, srgb, 0.0, views, power[1], power[1])
+
+
+def measure_response(
+    views: List[BoardView], square_m: float, shoulders: Sequence[float] = SHOULDER_GRID
+) -> ResponseMeasurement:
+    """The camera's response (exponent and shoulder) from board views that carry their frames
+    (``view.gray``); ``shoulders`` as ``fit_response``'s."""
+    return fit_response(
+        [[(v.gray, q) for q in dark_squares(v.gray, v, square_m)] for v in views if v.gray is not None], shoulders
+    )

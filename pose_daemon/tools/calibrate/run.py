@@ -79,7 +79,15 @@ def run_calibration(
         )
 
     response = measure_response(result.views, spec.square_m)
-    if response.exponent is not None:
+    if response.exponent is not None and response.shoulder:
+        say(
+            f"camera response: [detector] gamma = {response.exponent:.2f}, gamma_shoulder = {response.shoulder:.2f} "
+            f"put the edge fits on the board's edges ({response.squares} dark squares; the views' size biases "
+            f"spread {response.spread_pct:.2f} %, {response.spread_power_pct:.2f} % at one exponent; read as linear "
+            f"{response.bias_linear_pct:+.2f} %, as sRGB {response.bias_srgb_pct:+.2f} % size bias): set both in the "
+            "config's [detector] section"
+        )
+    elif response.exponent is not None:
         say(
             f"camera response: [detector] gamma = {response.exponent:.2f} puts the edge fits on the board's edges "
             f"({response.squares} dark squares; read as linear {response.bias_linear_pct:+.2f} %, as sRGB "
