@@ -424,10 +424,8 @@ class MarkerModel:
                     break
             return c, psf, cost, res, contrast, steps
 
-        if warm is not None:
-            c, psf, cost, res, contrast, steps = solve(c0, np.array(warm[0], dtype=np.float64), False)
-        else:
-            c, psf, cost, res, contrast, steps = solve(c0, np.array([blur_px**2, 0.0, blur_px**2]), False)
+        psf0 = np.array(warm[0] if warm is not None else [blur_px**2, 0.0, blur_px**2], dtype=np.float64)
+        c, psf, cost, res, contrast, steps = solve(c0, psf0, False)
         cov = np.array([[psf[0], psf[1]], [psf[1], psf[2]]])
         smear_px = 0.0
         smear = False

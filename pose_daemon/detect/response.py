@@ -29,18 +29,23 @@ import numpy as np
 Response = Union[float, str]
 
 
+def _number_in(value: object, lo: float, hi: float) -> bool:
+    """Whether ``value`` is a finite int or float (not a bool) in [lo, hi]."""
+    return (
+        not isinstance(value, bool)
+        and isinstance(value, (int, float))
+        and math.isfinite(value)
+        and lo <= float(value) <= hi
+    )
+
+
 def check_response(value: Response, name: str = "gamma") -> Response:
     """``value`` if it is a valid response (a number in [0.2, 5] or "srgb"), else ValueError."""
     if isinstance(value, str):
         if value.strip().lower() == "srgb":
             return "srgb"
         raise ValueError(f"{name} must be a number in [0.2, 5] or 'srgb', got {value!r}")
-    if (
-        isinstance(value, bool)
-        or not isinstance(value, (int, float))
-        or not math.isfinite(value)
-        or not 0.2 <= float(value) <= 5.0
-    ):
+    if not _number_in(value, 0.2, 5.0):
         raise ValueError(f"{name} must be a number in [0.2, 5] or 'srgb', got {value!r}")
     return float(value)
 
@@ -53,12 +58,7 @@ MIN_BLACK_EXPONENT = 0.1
 def check_shoulder(shoulder: float, response: Response, name: str = "gamma_shoulder") -> float:
     """``shoulder`` if it is valid with ``response`` (a number in [0, 4]; 0 with "srgb"; below
     twice the exponent less ``MIN_BLACK_EXPONENT``), else ValueError."""
-    if (
-        isinstance(shoulder, bool)
-        or not isinstance(shoulder, (int, float))
-        or not math.isfinite(shoulder)
-        or not 0.0 <= float(shoulder) <= 4.0
-    ):
+    if not _number_in(shoulder, 0.0, 4.0):
         raise ValueError(f"{name} must be a number in [0, 4], got {shoulder!r}")
     if float(shoulder) == 0.0:
         return 0.0
